@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+import stat
 import tempfile
 from collections.abc import Iterator
 from pathlib import Path
@@ -43,9 +44,16 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
     The caller writes the whole file to the yielded path (with any library: cv2, numpy,
     matplotlib). If the block raises, the temporary file is removed and ``path`` is untouched.
     The temporary name keeps the destination's suffix so that libraries choosing a format by
-    extension (cv2.imwrite, matplotlib) still work.
+    extension (cv2.imwrite, matplotlib) still work. An overwritten file keeps its permission
+    bits; a new one gets ``0o666`` less the process umask, as ``open`` would give it.
     """
     dest = Path(path)
+    if dest.exists():
+        mode = stat.S_IMODE(dest.stat().st_mode)
+    else:
+        umask = os.umask(0)
+        os.umask(umask)
+        mode = 0o666 & ~umask
     folder = dest.parent if str(dest.parent) else Path(".")
     try:
         fd, tmp_name = tempfile.mkstemp(prefix=f".{dest.stem}.", suffix=f".tmp{dest.suffix}",
@@ -58,6 +66,7 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
         yield tmp
         with open(tmp, "rb+") as handle:
             os.fsync(handle.fileno())
+        os.chmod(tmp, mode)
         os.replace(tmp, dest)
     except BaseException:
         with contextlib.suppress(OSError):

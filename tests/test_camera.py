@@ -1,0 +1,414 @@
+"""Tests for blurcalib.camera: projection, undistortion, torch ops, homographies and file I/O."""
+
+from __future__ import annotations
+
+import json
+import math
+import re
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+import torch
+
+from blurcalib.camera import (
+    BrownConrady,
+    CameraFileError,
+    Pose,
+    apply_homography,
+    apply_homography_torch,
+    distort_torch,
+    load_camera_json,
+    load_camera_yaml,
+    plane_homography,
+    project_points,
+    project_torch,
+    rodrigues_torch,
+    save_camera_json,
+    save_camera_yaml,
+    undistort_torch,
+)
+
+CV_UNDISTORT_CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 200, 1e-16)
+
+
+def random_camera(rng: np.random.Generator) -> BrownConrady:
+    """Realistic camera: distortion invertible over the whole image."""
+    width, height = 640, 480
+    fx = rng.uniform(800.0, 1500.0)
+    return BrownConrady(
+        fx=fx,
+        fy=fx * rng.uniform(0.98, 1.02),
+        cx=width / 2 + rng.uniform(-20.0, 20.0),
+        cy=height / 2 + rng.uniform(-20.0, 20.0),
+        k1=rng.uniform(-0.4, 0.2),
+        k2=rng.uniform(0.0, 0.2),
+        p1=rng.uniform(-2e-3, 2e-3),
+        p2=rng.uniform(-2e-3, 2e-3),
+        k3=rng.uniform(-0.02, 0.02),
+        width=width,
+        height=height,
+    )
+
+
+def random_pose(rng: np.random.Generator) -> Pose:
+    return Pose.from_rvec_tvec(
+        rng.uniform(-0.5, 0.5, 3), [rng.uniform(-0.1, 0.1), rng.uniform(-0.1, 0.1), rng.uniform(0.6, 1.5)]
+    )
+
+
+def target_points(rng: np.random.Generator, n: int) -> np.ndarray:
+    return np.column_stack([rng.uniform(-0.3, 0.3, (n, 2)), np.zeros(n)])
+
+
+def normalised(pose: Pose, points_world: np.ndarray) -> np.ndarray:
+    cam = pose.transform(points_world)
+    return cam[:, :2] / cam[:, 2:]
+
+
+@pytest.fixture
+def rng() -> np.random.Generator:
+    return np.random.default_rng(1234)
+
+
+# ---------------------------------------------------------------------------
+# NumPy model vs OpenCV
+# ---------------------------------------------------------------------------
+
+
+def test_project_matches_cv2_project_points(rng: np.random.Generator) -> None:
+    for _ in range(20):
+        camera, pose = random_camera(rng), random_pose(rng)
+        pts = np.vstack([target_points(rng, 40), rng.uniform(-0.3, 0.3, (10, 3))])
+        expected, _ = cv2.projectPoints(pts, pose.rvec, pose.t, camera.K, camera.dist)
+        np.testing.assert_allclose(project_points(camera, pose, pts), expected[:, 0], rtol=0, atol=1e-9)
+
+
+def test_unproject_matches_cv2_undistort_points_and_round_trips(rng: np.random.Generator) -> None:
+    for _ in range(20):
+        camera, pose = random_camera(rng), random_pose(rng)
+        pts = target_points(rng, 50)
+        px = project_points(camera, pose, pts)
+        xn = camera.unproject(px)
+        expected = cv2.undistortPoints(px[:, None, :], camera.K, camera.dist, criteria=CV_UNDISTORT_CRITERIA)[
+            :, 0
+        ]
+        np.testing.assert_allclose(xn, expected, rtol=0, atol=1e-9)
+        np.testing.assert_allclose(xn, normalised(pose, pts), rtol=0, atol=1e-9)
+
+
+def test_undistort_inverts_strong_distortion_over_whole_image() -> None:
+    camera = BrownConrady(500.0, 500.0, 319.5, 239.5, -0.35, 0.12, 1e-3, -1e-3, -0.01, 640, 480)
+    u, v = np.meshgrid(np.linspace(0, 639, 41), np.linspace(0, 479, 31))
+    px = np.column_stack([u.ravel(), v.ravel()])
+    xd = (px - [camera.cx, camera.cy]) / [camera.fx, camera.fy]
+    x = camera.undistort(xd)
+    np.testing.assert_allclose(camera.distort(x), xd, rtol=0, atol=1e-13)
+    np.testing.assert_allclose(camera.undistort(camera.distort(x)), x, rtol=0, atol=1e-10)
+    assert np.max(np.linalg.norm(x - xd, axis=1)) > 0.05  # distortion is far from negligible
+
+
+def test_pixel_to_ray_is_unit_and_reprojects(rng: np.random.Generator) -> None:
+    camera = random_camera(rng)
+    px = rng.uniform([0, 0], [camera.width - 1, camera.height - 1], (30, 2))
+    rays = camera.pixel_to_ray(px)
+    assert rays.shape == (30, 3)
+    np.testing.assert_allclose(np.linalg.norm(rays, axis=1), 1.0, rtol=0, atol=1e-14)
+    assert np.all(rays[:, 2] > 0)
+    np.testing.assert_allclose(camera.project(2.5 * rays), px, rtol=0, atol=1e-9)
+
+
+# ---------------------------------------------------------------------------
+# Torch versions
+# ---------------------------------------------------------------------------
+
+
+def batch_case(
+    rng: np.random.Generator, batch: int, n: int
+) -> tuple[list[BrownConrady], list[Pose], np.ndarray]:
+    cameras = [random_camera(rng) for _ in range(batch)]
+    poses = [random_pose(rng) for _ in range(batch)]
+    return cameras, poses, np.stack([target_points(rng, n) for _ in range(batch)])
+
+
+def test_project_torch_matches_numpy_float64(rng: np.random.Generator) -> None:
+    cameras, poses, pts = batch_case(rng, 4, 25)
+    out = project_torch(
+        torch.from_numpy(pts),
+        torch.from_numpy(np.stack([p.R for p in poses])),
+        torch.from_numpy(np.stack([p.t for p in poses])),
+        torch.from_numpy(np.stack([c.K for c in cameras])),
+        torch.from_numpy(np.stack([c.dist for c in cameras])),
+    )
+    assert out.shape == (4, 25, 2) and out.dtype == torch.float64
+    expected = np.stack([project_points(c, p, x) for c, p, x in zip(cameras, poses, pts, strict=True)])
+    np.testing.assert_allclose(out.numpy(), expected, rtol=0, atol=1e-9)
+
+    shared = cameras[0]
+    out_shared = project_torch(
+        torch.from_numpy(pts[0]),
+        torch.from_numpy(np.stack([p.R for p in poses])),
+        torch.from_numpy(np.stack([p.t for p in poses])),
+        torch.from_numpy(shared.K),
+        torch.from_numpy(shared.dist),
+    )
+    expected_shared = np.stack([project_points(shared, p, pts[0]) for p in poses])
+    np.testing.assert_allclose(out_shared.numpy(), expected_shared, rtol=0, atol=1e-9)
+
+
+def test_project_torch_float32_keeps_dtype_and_is_accurate(rng: np.random.Generator) -> None:
+    cameras, poses, pts = batch_case(rng, 2, 10)
+    args = [
+        pts,
+        np.stack([p.R for p in poses]),
+        np.stack([p.t for p in poses]),
+        np.stack([c.K for c in cameras]),
+        np.stack([c.dist for c in cameras]),
+    ]
+    out32 = project_torch(*(torch.from_numpy(a).float() for a in args))
+    out64 = project_torch(*(torch.from_numpy(a) for a in args))
+    assert out32.dtype == torch.float32
+    np.testing.assert_allclose(out32.double().numpy(), out64.numpy(), rtol=0, atol=1e-3)
+
+
+def test_project_torch_gradients_match_finite_differences(rng: np.random.Generator) -> None:
+    cameras, poses, pts = batch_case(rng, 2, 3)
+    inputs = tuple(
+        torch.from_numpy(np.asarray(a, dtype=np.float64)).requires_grad_()
+        for a in (
+            pts,
+            np.stack([p.rvec for p in poses]),
+            np.stack([p.t for p in poses]),
+            np.stack([c.K for c in cameras]),
+            np.stack([c.dist for c in cameras]),
+        )
+    )
+
+    def fn(points, rvec, t, K, dist):
+        return project_torch(points, rodrigues_torch(rvec), t, K, dist)
+
+    assert torch.autograd.gradcheck(fn, inputs)
+
+
+def test_distort_and_undistort_torch_match_numpy(rng: np.random.Generator) -> None:
+    cameras = [random_camera(rng) for _ in range(3)]
+    xn = rng.uniform(-0.3, 0.3, (3, 20, 2))
+    dist = torch.from_numpy(np.stack([c.dist for c in cameras]))
+    xd = distort_torch(torch.from_numpy(xn), dist)
+    expected = np.stack([c.distort(x) for c, x in zip(cameras, xn, strict=True)])
+    np.testing.assert_allclose(xd.numpy(), expected, rtol=0, atol=1e-15)
+    np.testing.assert_allclose(undistort_torch(xd, dist).numpy(), xn, rtol=0, atol=1e-12)
+
+
+def test_undistort_torch_gradients_match_finite_differences(rng: np.random.Generator) -> None:
+    xd = torch.from_numpy(rng.uniform(-0.4, 0.4, (2, 4, 2))).requires_grad_()
+    dist = torch.tensor([[-0.3, 0.1, 1e-3, -2e-3, 0.01], [0.1, -0.05, 0.0, 1e-3, 0.0]], dtype=torch.float64)
+    assert torch.autograd.gradcheck(undistort_torch, (xd, dist.requires_grad_()))
+
+
+def test_rodrigues_torch_matches_cv2(rng: np.random.Generator) -> None:
+    axes = rng.normal(size=(12, 3))
+    axes /= np.linalg.norm(axes, axis=1, keepdims=True)
+    angles = np.array([0.0, 1e-12, 1e-7, 1e-4, 9.9e-4, 1.01e-3, 0.1, 0.5, 1.0, 2.0, 3.0, 3.14])
+    rvecs = axes * angles[:, None]
+    out = rodrigues_torch(torch.from_numpy(rvecs))
+    assert out.shape == (12, 3, 3)
+    for rvec, R in zip(rvecs, out.numpy(), strict=True):
+        np.testing.assert_allclose(R, cv2.Rodrigues(rvec)[0], rtol=0, atol=1e-14)
+
+
+@pytest.mark.parametrize("angle", [0.0, 5e-4, 2e-3, 1.0])
+def test_rodrigues_torch_gradients_finite_at_all_angles(angle: float) -> None:
+    rvec = torch.tensor([[0.6, -0.48, 0.64]], dtype=torch.float64) * angle
+    assert torch.autograd.gradcheck(rodrigues_torch, (rvec.requires_grad_(),))
+
+
+# ---------------------------------------------------------------------------
+# Homographies
+# ---------------------------------------------------------------------------
+
+
+def test_plane_homography_maps_to_undistorted_pixels(rng: np.random.Generator) -> None:
+    camera, pose = random_camera(rng), random_pose(rng)
+    pts = target_points(rng, 30)
+    H = plane_homography(camera.K, pose)
+    mapped = apply_homography(H, pts[:, :2])
+    pinhole = camera.with_params(k1=0.0, k2=0.0, p1=0.0, p2=0.0, k3=0.0)
+    np.testing.assert_allclose(mapped, project_points(pinhole, pose, pts), rtol=0, atol=1e-9)
+    # The distorted observations, undistorted and re-expressed in pixels, land on the same spots.
+    xn = camera.unproject(project_points(camera, pose, pts))
+    np.testing.assert_allclose(mapped, xn * [camera.fx, camera.fy] + [camera.cx, camera.cy], atol=1e-8)
+
+
+def test_apply_homography_batched_numpy_and_torch_agree(rng: np.random.Generator) -> None:
+    H = np.eye(3) + rng.normal(scale=[[0.1, 0.1, 5.0], [0.1, 0.1, 5.0], [1e-4, 1e-4, 0.0]], size=(3, 3, 3))
+    pts = rng.uniform(0, 100, (3, 7, 2))
+    batched = apply_homography(H, pts)
+    assert batched.shape == (3, 7, 2)
+    for b in range(3):
+        homog = np.column_stack([pts[b], np.ones(7)]) @ H[b].T
+        np.testing.assert_allclose(batched[b], homog[:, :2] / homog[:, 2:], rtol=1e-13)
+        np.testing.assert_allclose(apply_homography(H[b], pts[b]), batched[b], rtol=0, atol=0)
+    out = apply_homography_torch(torch.from_numpy(H), torch.from_numpy(pts))
+    np.testing.assert_allclose(out.numpy(), batched, rtol=1e-14)
+    inputs = (torch.from_numpy(H[:2]).requires_grad_(), torch.from_numpy(pts[:2, :3]).requires_grad_())
+    assert torch.autograd.gradcheck(apply_homography_torch, inputs)
+
+
+# ---------------------------------------------------------------------------
+# Scaling
+# ---------------------------------------------------------------------------
+
+
+def test_scaled_camera_maps_projections_with_pixel_centre_convention(rng: np.random.Generator) -> None:
+    camera, pose = random_camera(rng), random_pose(rng)
+    pts = target_points(rng, 20)
+    px = project_points(camera, pose, pts)
+    for s in (0.5, 0.25, 2.0, 1.7):
+        scaled = camera.scaled(s)
+        np.testing.assert_allclose(project_points(scaled, pose, pts), s * (px + 0.5) - 0.5, atol=1e-9)
+        assert (scaled.width, scaled.height) == (round(s * 640), round(s * 480))
+    round_trip = camera.scaled(2.0).scaled(0.5)
+    np.testing.assert_allclose(round_trip.K, camera.K, rtol=1e-15, atol=1e-12)
+
+
+def test_scaled_convention_matches_cv2_resize() -> None:
+    """A blob's centroid after an exact 2x box downsample lands where scaled() predicts."""
+    yy, xx = np.mgrid[0:64, 0:64].astype(np.float64)
+    centre = np.array([20.3, 30.7])
+    image = np.exp(-((xx - centre[0]) ** 2 + (yy - centre[1]) ** 2) / (2 * 3.0**2))
+    small = cv2.resize(image, (32, 32), interpolation=cv2.INTER_AREA)
+    sy, sx = np.mgrid[0:32, 0:32]
+    centroid = np.array([(small * sx).sum(), (small * sy).sum()]) / small.sum()
+    camera = BrownConrady(100.0, 100.0, centre[0], centre[1], 0, 0, 0, 0, 0, 64, 64).scaled(0.5)
+    np.testing.assert_allclose(centroid, [camera.cx, camera.cy], atol=1e-9)
+
+
+# ---------------------------------------------------------------------------
+# Poses and validation
+# ---------------------------------------------------------------------------
+
+
+def test_pose_algebra(rng: np.random.Generator) -> None:
+    a, b = random_pose(rng), random_pose(rng)
+    pts = rng.normal(size=(10, 3))
+    np.testing.assert_allclose(Pose.from_rvec_tvec(a.rvec, a.t).R, a.R, atol=1e-14)
+    np.testing.assert_allclose(a.inverse().transform(a.transform(pts)), pts, atol=1e-14)
+    np.testing.assert_allclose(a.compose(b).transform(pts), a.transform(b.transform(pts)), atol=1e-14)
+    np.testing.assert_allclose(a.transform(a.camera_center[None]), 0.0, atol=1e-14)
+    restored = Pose.from_dict(json.loads(json.dumps(a.to_dict())))
+    assert np.array_equal(restored.R, a.R) and np.array_equal(restored.t, a.t)
+    with pytest.raises(ValueError, match="'t'"):
+        Pose.from_dict({"R": np.eye(3).tolist()})
+    with pytest.raises(ValueError, match="rotation"):
+        Pose(np.diag([1.0, 1.0, -1.0]), np.zeros(3))
+
+
+def test_optical_axis_angle_to_target_normal() -> None:
+    assert Pose.identity().optical_axis_angle_to_target_normal() == 0.0
+    # Camera on the other side of the target, still looking straight at it.
+    assert Pose.from_rvec_tvec([math.pi, 0, 0], [0, 0, 1]).optical_axis_angle_to_target_normal() == (
+        pytest.approx(0.0, abs=1e-15)
+    )
+    for angle in (0.1, 0.7, 1.2):
+        tilted = Pose.from_rvec_tvec([0.0, angle, 0.0], [0, 0, 1])
+        assert tilted.optical_axis_angle_to_target_normal() == pytest.approx(angle, abs=1e-14)
+        tilted = Pose.from_rvec_tvec([math.pi - angle, 0.0, 0.0], [0, 0, 1])
+        assert tilted.optical_axis_angle_to_target_normal() == pytest.approx(angle, abs=1e-14)
+
+
+def test_camera_dict_round_trip_and_validation(rng: np.random.Generator) -> None:
+    camera = random_camera(rng)
+    assert BrownConrady.from_dict(camera.to_dict()) == camera
+    assert BrownConrady.from_matrix(camera.K, camera.dist, 640, 480) == camera
+    data = camera.to_dict()
+    del data["k2"]
+    with pytest.raises(ValueError, match="'k2'"):
+        BrownConrady.from_dict(data)
+    with pytest.raises(ValueError, match="focal"):
+        camera.with_params(fx=-1.0)
+    with pytest.raises(ValueError, match="width"):
+        camera.with_params(width=0)
+    with pytest.raises(ValueError, match="supported"):
+        BrownConrady.from_matrix(camera.K, [0.1, 0, 0, 0, 0, 0.2, 0, 0], 640, 480)
+
+
+# ---------------------------------------------------------------------------
+# Camera files
+# ---------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    ("save", "load"), [(save_camera_yaml, load_camera_yaml), (save_camera_json, load_camera_json)]
+)
+def test_camera_file_round_trip_is_exact_and_atomic(
+    tmp_path: Path, rng: np.random.Generator, save, load
+) -> None:
+    path = tmp_path / "camera.file"
+    first, second = random_camera(rng), random_camera(rng).with_params(cx=1 / 3, k3=-1e-17)
+    save(path, first)
+    save(path, second)  # overwrite in place
+    assert load(path) == second
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["camera.file"]
+
+
+def test_yaml_file_is_opencv_file_storage(tmp_path: Path, rng: np.random.Generator) -> None:
+    camera = random_camera(rng)
+    path = tmp_path / "camera.yaml"
+    save_camera_yaml(path, camera)
+    storage = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
+    assert np.array_equal(storage.getNode("camera_matrix").mat(), camera.K)
+    assert np.array_equal(storage.getNode("distortion_coefficients").mat(), camera.dist[None])
+    assert storage.getNode("image_width").real() == 640 and storage.getNode("image_height").real() == 480
+    storage.release()
+
+
+CORRUPT_YAML = {
+    "garbage": "this is :: not [ yaml",
+    "truncated": (
+        "%YAML:1.0\ncamera_matrix: !!opencv-matrix\n   rows: 3\n   cols: 3\n   dt: d\n   data: [ 1., 0."
+    ),
+    "empty": "",
+    "missing_key": "%YAML:1.0\nimage_width: 640\nimage_height: 480\n",
+    "not_a_matrix": (
+        "%YAML:1.0\ncamera_matrix: 5\ndistortion_coefficients: 1\nimage_width: 1\nimage_height: 1\n"
+    ),
+}
+CORRUPT_JSON = {
+    "garbage": "{not json",
+    "empty": "",
+    "missing_key": json.dumps({"fx": 1.0}),
+    "not_a_mapping": "[1, 2, 3]",
+    "bad_value": json.dumps({**BrownConrady(1, 1, 0, 0, 0, 0, 0, 0, 0, 1, 1).to_dict(), "fy": "wide"}),
+}
+
+
+@pytest.mark.parametrize(
+    ("load", "content"),
+    [(load_camera_yaml, c) for c in CORRUPT_YAML.values()]
+    + [(load_camera_json, c) for c in CORRUPT_JSON.values()],
+    ids=[f"yaml-{k}" for k in CORRUPT_YAML] + [f"json-{k}" for k in CORRUPT_JSON],
+)
+def test_corrupt_camera_file_raises_naming_the_file(tmp_path: Path, load, content: str) -> None:
+    path = tmp_path / "broken_camera.txt"
+    path.write_text(content)
+    with pytest.raises(CameraFileError, match=re.escape(str(path))):
+        load(path)
+
+
+@pytest.mark.parametrize("load", [load_camera_yaml, load_camera_json])
+def test_missing_camera_file_raises(tmp_path: Path, load) -> None:
+    with pytest.raises(CameraFileError, match=r"nowhere\.yaml.*does not exist"):
+        load(tmp_path / "nowhere.yaml")
+
+
+def test_camera_file_error_names_the_problem(tmp_path: Path) -> None:
+    yaml_path = tmp_path / "cam.yaml"
+    yaml_path.write_text(CORRUPT_YAML["missing_key"])
+    with pytest.raises(CameraFileError, match="missing key 'camera_matrix'"):
+        load_camera_yaml(yaml_path)
+    json_path = tmp_path / "cam.json"
+    json_path.write_text(CORRUPT_JSON["missing_key"])
+    with pytest.raises(CameraFileError, match="missing key 'fy'"):
+        load_camera_json(json_path)
