@@ -1,0 +1,779 @@
+"""Physically based simulator of sharp and motion-blurred frames of the star target.
+
+A frame is rendered as a real camera records it:
+
+1. the target's reflectance ``S`` (exact, anti-aliased texture of the page, ``pattern.py``);
+2. camera motion during the exposure: ``X_cam(tau) = Exp(tau xi + tau^2 xi2) X_cam(0)`` for
+   normalised time ``tau in [-1/2, 1/2]`` (``xi = (omega, v)`` a twist in the camera frame,
+   ``xi2`` its curvature), integrated by ``T`` time samples ``tau_i = (i + 1/2) / T - 1/2``;
+3. the true lens (:class:`TrueCamera`: Brown-Conrady plus a smooth non-parametric deviation),
+   applied once to the time integral, which is exact because the lens maps every time sample
+   through the same coordinate change;
+4. the pixel's area: everything above is rendered ``supersample`` times finer and box-averaged;
+5. defocus (a Gaussian of ``defocus_sigma`` px), illumination (a linear gradient) and
+   vignetting, both applied to the blurred irradiance;
+6. Poisson-Gaussian noise and 8-bit quantisation.
+
+Ground truth per frame: the mid-exposure pose (``tau = 0``), each feature's mid-exposure image
+position and its time-averaged position (the mean of the ``T`` sampled positions, which is the
+centroid of the feature's motion PSF; the symmetric defocus does not move it), visibility, the
+local blur length (the length of the sampled image path), and the true PSF at any image point
+(:meth:`FrameTruth.psf_at`). Pixel convention: OpenCV (top-left pixel centre at (0, 0)).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+from collections.abc import Callable
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import cv2
+import numpy as np
+from scipy.interpolate import RectBivariateSpline
+
+from blurcalib.camera import BrownConrady, Pose
+from blurcalib.fileio import atomic_path, atomic_write_text, ensure_writable_dir
+from blurcalib.pattern import StarPattern, layout_pattern, star_sector_white
+
+GROUND_TRUTH_FILE = "ground_truth.json"
+GROUND_TRUTH_VERSION = 1
+
+
+# ------------------------------------------------------------------------------ the true camera
+@dataclass(frozen=True)
+class TrueCamera:
+    """The simulated lens: Brown-Conrady followed by a smooth deviation field.
+
+    ``x = pi_BC(X) + delta(pi_BC(X))`` px, with
+    ``delta(p) = sum_m a_m sin(2 pi (k_m . p / (W, H)) + phi_m)`` (``a_m (2,)`` px,
+    ``k_m (2,)`` cycles per image). A generic (B-spline) model can represent ``delta``; a
+    parametric one cannot, which is what makes the simulated data worth a generic model.
+
+    Attributes:
+        model: the Brown-Conrady part.
+        waves: ``(M, 5)`` rows ``(a_x, a_y, k_x, k_y, phi)`` of the deviation.
+    """
+
+    model: BrownConrady
+    waves: np.ndarray = field(default_factory=lambda: np.zeros((0, 5)))
+
+    def deviation(self, px: np.ndarray) -> np.ndarray:
+        """``delta(px)``: ``(N, 2)`` px -> ``(N, 2)`` px."""
+        px = np.asarray(px, dtype=np.float64)
+        out = np.zeros_like(px)
+        size = np.array([self.model.width, self.model.height], dtype=np.float64)
+        for ax, ay, kx, ky, phi in self.waves:
+            s = np.sin(2.0 * np.pi * (px[..., 0] * kx / size[0] + px[..., 1] * ky / size[1]) + phi)
+            out[..., 0] += ax * s
+            out[..., 1] += ay * s
+        return out
+
+    def project(self, points_cam: np.ndarray) -> np.ndarray:
+        """Camera-frame points ``(N, 3)`` m -> pixels ``(N, 2)`` px."""
+        p = self.model.project(points_cam)
+        return p + self.deviation(p)
+
+    def unproject(self, px: np.ndarray) -> np.ndarray:
+        """Pixels ``(N, 2)`` px -> undistorted normalised coordinates ``(N, 2)``.
+
+        Inverts the deviation by fixed-point iteration ``y <- px - delta(y)`` (a contraction:
+        ``delta`` varies by far less than a pixel per pixel), then the Brown-Conrady part.
+        """
+        px = np.asarray(px, dtype=np.float64)
+        y = px.copy()
+        for _ in range(8):
+            y = px - self.deviation(y)
+        return self.model.unproject(y)
+
+    def to_dict(self) -> dict:
+        return {"brown_conrady": self.model.to_dict(), "deviation_waves": self.waves.tolist()}
+
+    @classmethod
+    def from_dict(cls, data: dict) -> TrueCamera:
+        return cls(BrownConrady.from_dict(data["brown_conrady"]),
+                   np.asarray(data["deviation_waves"], dtype=np.float64).reshape(-1, 5))
+
+
+def d435i_like_camera(seed: int = 0, deviation_px: float = 0.3) -> TrueCamera:
+    """A 1280x720 camera like a RealSense D435I's infrared imager, with a lens deviation.
+
+    Brown-Conrady intrinsics near the D435I's (fx = fy ~ 645 px, ~90 degree horizontal field),
+    and a deviation of about ``deviation_px`` px peak made of 6 smooth waves of 0.5 to 2.5
+    cycles per image.
+    """
+    rng = np.random.default_rng(seed)
+    model = BrownConrady(fx=645.2, fy=644.6, cx=637.8, cy=361.4, k1=0.041, k2=-0.058,
+                         p1=0.0007, p2=-0.0004, k3=0.019, width=1280, height=720)
+    m = 6
+    directions = rng.uniform(0, 2 * np.pi, m)
+    freq = rng.uniform(0.5, 2.5, m)
+    amps = rng.normal(size=(m, 2))
+    amps *= deviation_px / max(np.abs(amps).sum(axis=0).max(), 1e-9)
+    waves = np.column_stack([amps, freq * np.cos(directions), freq * np.sin(directions),
+                             rng.uniform(0, 2 * np.pi, m)])
+    return TrueCamera(model, waves)
+
+
+# ------------------------------------------------------------------------------------ motion
+def _skew(w: np.ndarray) -> np.ndarray:
+    return np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
+
+
+def se3_exp(xi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Exponential of a twist ``xi = (omega (3,) rad, v (3,) m)``: ``(R (3,3), t (3,))``."""
+    omega, v = xi[:3], xi[3:]
+    theta = float(np.linalg.norm(omega))
+    W = _skew(omega)
+    if theta < 1e-9:
+        return np.eye(3) + W, v + 0.5 * W @ v
+    a = math.sin(theta) / theta
+    b = (1.0 - math.cos(theta)) / theta**2
+    c = (theta - math.sin(theta)) / theta**3
+    R = np.eye(3) + a * W + b * W @ W
+    V = np.eye(3) + b * W + c * W @ W
+    return R, V @ v
+
+
+@dataclass(frozen=True)
+class Motion:
+    """Camera motion during one exposure, in the mid-exposure camera frame.
+
+    Attributes:
+        xi: ``(6,)`` twist ``(omega rad, v m)`` over the whole exposure.
+        xi2: ``(6,)`` curvature term (hand-shake paths that bend and change speed).
+        samples: number of time samples T.
+    """
+
+    xi: np.ndarray
+    xi2: np.ndarray
+    samples: int
+
+    @property
+    def taus(self) -> np.ndarray:
+        """``(T,)`` normalised sample times in ``(-1/2, 1/2)``."""
+        return (np.arange(self.samples) + 0.5) / self.samples - 0.5
+
+    def poses(self, mid: Pose) -> list[Pose]:
+        """The camera pose at every time sample: ``Exp(tau xi + tau^2 xi2) o mid``."""
+        out = []
+        for tau in self.taus:
+            R, t = se3_exp(tau * self.xi + tau * tau * self.xi2)
+            out.append(Pose(R, t).compose(mid))
+        return out
+
+    @staticmethod
+    def still() -> Motion:
+        return Motion(np.zeros(6), np.zeros(6), 1)
+
+
+# ----------------------------------------------------------------------------- ground truth
+@dataclass
+class FrameTruth:
+    """Ground truth of one simulated frame (pixels in the OpenCV convention).
+
+    Attributes:
+        name: file name of the frame (``sharp/0003.png``).
+        kind: ``"sharp"`` or ``"blurry"``.
+        pose: mid-exposure pose (target -> camera).
+        motion: the camera motion during the exposure.
+        defocus_sigma: Gaussian defocus (px).
+        feature_ids: ``(M,)`` ids of all pattern features (``pattern.features`` order).
+        mid: ``(M, 2)`` px mid-exposure image positions.
+        mean: ``(M, 2)`` px time-averaged positions (PSF centroids).
+        visible: ``(M,)`` bool, mid position inside the image and in front of the camera.
+        block_inside: ``(M,)`` bool, the feature's whole star square is inside the image.
+        blur_length: ``(M,)`` px length of the feature's image path during the exposure.
+        illumination: ``(3,)`` gradient ``g0 + gx u + gy v`` over ``u, v in [-1, 1]``.
+        vignetting: strength ``v`` of ``1 - v r^2`` (``r = 1`` at the image corners).
+        levels: ``(black, white)`` grey levels of the ink and the paper.
+        noise: ``(gain, read_sigma)`` of the Poisson-Gaussian noise (grey levels).
+    """
+
+    name: str
+    kind: str
+    pose: Pose
+    motion: Motion
+    defocus_sigma: float
+    feature_ids: np.ndarray
+    mid: np.ndarray
+    mean: np.ndarray
+    visible: np.ndarray
+    block_inside: np.ndarray
+    blur_length: np.ndarray
+    illumination: np.ndarray
+    vignetting: float
+    levels: tuple[float, float]
+    noise: tuple[float, float]
+
+    def psf_at(self, camera: TrueCamera, point_px: np.ndarray, size: int = 17) -> np.ndarray:
+        """The true PSF at an image point: motion path splatted, then defocus.
+
+        The kernel ``k`` is such that the frame near ``point_px`` is ``k * I_mid`` with
+        ``I_mid`` the sharp mid-exposure image: ``k[i, j]`` is the weight of offset
+        ``(j - c, i - c)`` px, ``c = (size - 1) / 2``. It excludes the pixel's own box
+        integration. Its centroid is the time-averaged minus the mid-exposure position.
+
+        Args:
+            camera: the frame's true camera.
+            point_px: ``(2,)`` mid-exposure image point (px).
+            size: odd kernel side (px).
+        Returns:
+            ``(size, size)`` float64 kernel summing to 1 (less if the path leaves the window).
+        """
+        offsets = image_path(camera, self.pose, self.motion, point_px) - np.asarray(point_px)
+        kernel = splat(offsets, size)
+        if self.defocus_sigma > 0:
+            g = cv2.getGaussianKernel(_gauss_ksize(self.defocus_sigma), self.defocus_sigma)
+            kernel = cv2.filter2D(kernel, -1, g @ g.T, borderType=cv2.BORDER_CONSTANT)
+        return kernel
+
+    def to_dict(self) -> dict:
+        return {
+            "name": self.name, "kind": self.kind, "pose": self.pose.to_dict(),
+            "motion": {"xi": self.motion.xi.tolist(), "xi2": self.motion.xi2.tolist(),
+                       "samples": self.motion.samples},
+            "defocus_sigma": self.defocus_sigma,
+            "illumination": self.illumination.tolist(), "vignetting": self.vignetting,
+            "levels": list(self.levels), "noise": list(self.noise),
+            "features": {
+                "feature_id": self.feature_ids.tolist(),
+                "mid": np.round(self.mid, 9).tolist(),
+                "mean": np.round(self.mean, 9).tolist(),
+                "visible": self.visible.astype(int).tolist(),
+                "block_inside": self.block_inside.astype(int).tolist(),
+                "blur_length": np.round(self.blur_length, 6).tolist(),
+            },
+        }
+
+    @classmethod
+    def from_dict(cls, d: dict) -> FrameTruth:
+        f = d["features"]
+        m = d["motion"]
+        return cls(
+            name=d["name"], kind=d["kind"], pose=Pose.from_dict(d["pose"]),
+            motion=Motion(np.asarray(m["xi"], float), np.asarray(m["xi2"], float), int(m["samples"])),
+            defocus_sigma=float(d["defocus_sigma"]),
+            feature_ids=np.asarray(f["feature_id"], dtype=np.int64),
+            mid=np.asarray(f["mid"], dtype=np.float64).reshape(-1, 2),
+            mean=np.asarray(f["mean"], dtype=np.float64).reshape(-1, 2),
+            visible=np.asarray(f["visible"], dtype=bool),
+            block_inside=np.asarray(f["block_inside"], dtype=bool),
+            blur_length=np.asarray(f["blur_length"], dtype=np.float64),
+            illumination=np.asarray(d["illumination"], dtype=np.float64),
+            vignetting=float(d["vignetting"]), levels=tuple(d["levels"]), noise=tuple(d["noise"]))
+
+
+@dataclass
+class DatasetTruth:
+    """Ground truth of a simulated dataset (``ground_truth.json``)."""
+
+    camera: TrueCamera
+    pattern_file: str
+    frames: list[FrameTruth]
+    settings: dict
+
+    def frame(self, name: str) -> FrameTruth:
+        for f in self.frames:
+            if f.name == name:
+                return f
+        raise KeyError(f"no frame {name!r} in the ground truth")
+
+    def to_dict(self) -> dict:
+        return {"format": "blurcalib-synth", "version": GROUND_TRUTH_VERSION,
+                "pixel_convention": "opencv (top-left pixel centre at (0, 0))",
+                "camera": self.camera.to_dict(), "pattern_file": self.pattern_file,
+                "settings": self.settings, "frames": [f.to_dict() for f in self.frames]}
+
+
+def load_ground_truth(path: str | os.PathLike) -> DatasetTruth:
+    """Read ``ground_truth.json`` (a file, or the dataset folder containing it).
+
+    Raises:
+        ValueError: naming the file, when it is missing or not a blurcalib ground truth.
+    """
+    path = Path(path)
+    if path.is_dir():
+        path = path / GROUND_TRUTH_FILE
+    try:
+        doc = json.loads(path.read_text(encoding="utf-8"))
+        if doc.get("format") != "blurcalib-synth":
+            raise ValueError("not a blurcalib synthetic ground truth")
+        return DatasetTruth(TrueCamera.from_dict(doc["camera"]), doc["pattern_file"],
+                            [FrameTruth.from_dict(f) for f in doc["frames"]], doc["settings"])
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        raise ValueError(f"{path}: cannot read ground truth ({exc})") from None
+
+
+# ------------------------------------------------------------------------------- geometry
+def image_path(camera: TrueCamera, pose: Pose, motion: Motion, point_px: np.ndarray) -> np.ndarray:
+    """``(T, 2)`` px: where the target point seen at ``point_px`` at mid-exposure is imaged
+    at each time sample."""
+    P = _backproject_to_plane(camera, pose, np.asarray(point_px, float).reshape(1, 2))
+    return np.stack([camera.project(p.transform(P))[0] for p in motion.poses(pose)])
+
+
+def _backproject_to_plane(camera: TrueCamera, pose: Pose, px: np.ndarray) -> np.ndarray:
+    """Pixels ``(N, 2)`` -> target-plane points ``(N, 3)`` (Z = 0) seen there in ``pose``."""
+    xn = camera.unproject(px)
+    rays = np.concatenate([xn, np.ones((len(xn), 1))], axis=1) @ pose.R  # world directions
+    origin = pose.camera_center
+    s = -origin[2] / rays[:, 2]
+    return origin + s[:, None] * rays
+
+
+def splat(offsets: np.ndarray, size: int) -> np.ndarray:
+    """Bilinearly splat equal-weight points ``(T, 2)`` px into a ``(size, size)`` kernel
+    centred at offset 0 (kernel pixel ``(i, j)`` is offset ``(j - c, i - c)``)."""
+    c = (size - 1) / 2
+    kernel = np.zeros((size, size))
+    w = 1.0 / len(offsets)
+    for dx, dy in offsets:
+        x, y = dx + c, dy + c
+        x0, y0 = math.floor(x), math.floor(y)
+        fx, fy = x - x0, y - y0
+        for yy, wy in ((y0, 1 - fy), (y0 + 1, fy)):
+            for xx, wx in ((x0, 1 - fx), (x0 + 1, fx)):
+                if 0 <= yy < size and 0 <= xx < size:
+                    kernel[yy, xx] += w * wx * wy
+    return kernel
+
+
+def _gauss_ksize(sigma: float) -> int:
+    return 2 * math.ceil(4.0 * sigma) + 1
+
+
+# ------------------------------------------------------------------------------- texture
+@dataclass(frozen=True)
+class Texture:
+    """A planar target's reflectance as an image on the target plane.
+
+    ``texel (j, i)`` (column, row) centre sits at target-plane point
+    ``to_plane @ (j, i, 1)`` (metres, homogeneous); values in [0, 1].
+    """
+
+    image: np.ndarray
+    to_plane: np.ndarray
+    background: float = 0.35
+
+
+def pattern_texture(pattern: StarPattern, texels_per_square: int) -> Texture:
+    """The printed page as an exactly anti-aliased texture.
+
+    The star area is periodic, so one anti-aliased star cell (``texels_per_square`` squared,
+    16 x 16 samples per texel) is tiled; the pattern border and the tag's cells fall on texel
+    boundaries (``texels_per_square`` a multiple of 10), so they are exact too. The page
+    outside the patterned area is white; beyond the page is ``background``.
+    """
+    r = int(texels_per_square)
+    if r % 10:
+        raise ValueError(f"texels_per_square must be a multiple of 10, got {r}")
+    ss = 16
+    o = (np.arange(r * ss) + 0.5) / (r * ss) - 0.5  # cell-local offsets in squares
+    u, v = np.meshgrid(o, o)
+    cell = star_sector_white(u, v, pattern.num_star_segments).astype(np.float32)
+    cell = cell.reshape(r, ss, r, ss).mean(axis=(1, 3))
+    # Page extent in feature coordinates, rounded outwards to whole half squares.
+    x_min = math.floor(float(pattern.page_mm_to_feature(np.zeros(2))[0]) * 2) / 2
+    y_min = math.floor(float(pattern.page_mm_to_feature(np.zeros(2))[1]) * 2) / 2
+    far = pattern.page_mm_to_feature(np.array([pattern.page.width_mm, pattern.page.height_mm]))
+    x_max = math.ceil(float(far[0]) * 2) / 2
+    y_max = math.ceil(float(far[1]) * 2) / 2
+    # The tile starts at a cell boundary (half-integer feature coordinate).
+    nx = round((x_max - x_min) * r)
+    ny = round((y_max - y_min) * r)
+    shift_x = round((x_min + 0.5) % 1.0 * r)
+    shift_y = round((y_min + 0.5) % 1.0 * r)
+    reps = (ny // r + 3, nx // r + 3)
+    image = np.tile(cell, reps)[shift_y:shift_y + ny, shift_x:shift_x + nx].copy()
+    cols = x_min + (np.arange(nx) + 0.5) / r
+    rows = y_min + (np.arange(ny) + 0.5) / r
+    outside = ((cols[None, :] < -1) | (cols[None, :] > pattern.squares_x - 1)
+               | (rows[:, None] < -1) | (rows[:, None] > pattern.squares_y - 1))
+    image[outside] = 1.0
+    for tag in pattern.apriltags:
+        x0, y0, x1, y1 = tag.feature_box
+        c0, r0 = round((x0 - x_min) * r), round((y0 - y_min) * r)
+        c1, r1 = round((x1 - x_min) * r), round((y1 - y_min) * r)
+        cells = pattern.tag_cells(tag).astype(np.float32)
+        image[r0:r1, c0:c1] = cv2.resize(cells, (c1 - c0, r1 - r0), interpolation=cv2.INTER_NEAREST)
+    page_lo = pattern.page_mm_to_feature(np.zeros(2))
+    page_hi = far
+    off_page = ((cols[None, :] < page_lo[0]) | (cols[None, :] > page_hi[0])
+                | (rows[:, None] < page_lo[1]) | (rows[:, None] > page_hi[1]))
+    background = 0.35
+    image[off_page] = background
+    L = pattern.square_length_m
+    to_plane = np.array([[L / r, 0.0, L * (x_min + 0.5 / r)],
+                         [0.0, L / r, L * (y_min + 0.5 / r)],
+                         [0.0, 0.0, 1.0]])
+    return Texture(image, to_plane, background)
+
+
+def dot_texture(center_m: tuple[float, float], radius_m: float, texel_m: float,
+                extent_m: float) -> Texture:
+    """A single bright disc (value 1) of ``radius_m`` on black, centred at ``center_m``.
+
+    Used to check the renderer: the intensity centroid of a small dot's image is the
+    time-averaged projection of its centre.
+    """
+    n = round(2 * extent_m / texel_m) | 1
+    ss = 8
+    o = ((np.arange(n * ss) + 0.5) / ss - n / 2) * texel_m
+    u, v = np.meshgrid(o, o)
+    disc = ((u * u + v * v) <= radius_m**2).astype(np.float32)
+    image = disc.reshape(n, ss, n, ss).mean(axis=(1, 3))
+    half = (n - 1) / 2
+    to_plane = np.array([[texel_m, 0.0, center_m[0] - half * texel_m],
+                         [0.0, texel_m, center_m[1] - half * texel_m],
+                         [0.0, 0.0, 1.0]])
+    return Texture(image, to_plane, 0.0)
+
+
+# ------------------------------------------------------------------------------- renderer
+@dataclass(frozen=True)
+class RenderSettings:
+    """Renderer accuracy settings.
+
+    Attributes:
+        supersample: samples per pixel side (box filter of the pixel area).
+        max_step_px: largest image displacement between consecutive time samples (px).
+        max_time_samples: cap on T.
+    """
+
+    supersample: int = 3
+    max_step_px: float = 0.35
+    max_time_samples: int = 160
+
+
+class Renderer:
+    """Renders frames of one :class:`TrueCamera`; caches the lens remap tables."""
+
+    def __init__(self, camera: TrueCamera, settings: RenderSettings | None = None) -> None:
+        self.camera = camera
+        self.settings = settings or RenderSettings()
+        ss = self.settings.supersample
+        w, h = camera.model.width, camera.model.height
+        # The lens map is smooth: solve it exactly on a coarse lattice of sensor sub-samples
+        # and interpolate with bicubic splines (error far below 1e-3 px).
+        step = 4
+        fine_x = np.arange(w * ss)
+        fine_y = np.arange(h * ss)
+        coarse_x = np.append(fine_x[::step], fine_x[-1])
+        coarse_y = np.append(fine_y[::step], fine_y[-1])
+        gx, gy = np.meshgrid((coarse_x + 0.5) / ss - 0.5, (coarse_y + 0.5) / ss - 0.5)
+        xn = camera.unproject(np.stack([gx.ravel(), gy.ravel()], axis=1))
+        lo = xn.min(axis=0)
+        hi = xn.max(axis=0)
+        f = np.array([camera.model.fx, camera.model.fy]) * ss
+        margin = 4.0
+        self.canvas_K = np.array([[f[0], 0.0, -lo[0] * f[0] + margin],
+                                  [0.0, f[1], -lo[1] * f[1] + margin],
+                                  [0.0, 0.0, 1.0]])
+        self.canvas_size = (math.ceil((hi[0] - lo[0]) * f[0] + 2 * margin),
+                            math.ceil((hi[1] - lo[1]) * f[1] + 2 * margin))
+        maps = []
+        for axis in range(2):
+            coarse = (xn[:, axis] * f[axis] + self.canvas_K[axis, 2]).reshape(len(coarse_y), -1)
+            spline = RectBivariateSpline(coarse_y, coarse_x, coarse, kx=3, ky=3)
+            maps.append(spline(fine_y, fine_x).astype(np.float32))
+        self._map_x, self._map_y = maps
+
+    def irradiance(self, texture: Texture, pose: Pose, motion: Motion) -> np.ndarray:
+        """Time-integrated, lens-mapped, pixel-integrated target image: ``(H, W)`` in [0, 1].
+
+        Each time sample warps the texture onto an undistorted, supersampled canvas with the
+        homography ``K_canvas [r1 r2 t](tau) to_plane`` (``eq:T``); the mean over samples is
+        then mapped through the true lens and box-averaged over each pixel.
+        """
+        acc = np.zeros(self.canvas_size[::-1], dtype=np.float32)
+        for p in motion.poses(pose):
+            H = self.canvas_K @ np.column_stack([p.R[:, 0], p.R[:, 1], p.t]) @ texture.to_plane
+            warped = cv2.warpPerspective(texture.image, H, self.canvas_size, flags=cv2.INTER_LINEAR,
+                                         borderMode=cv2.BORDER_CONSTANT,
+                                         borderValue=float(texture.background))
+            cv2.accumulate(warped, acc)
+        acc /= motion.samples
+        sensor = cv2.remap(acc, self._map_x, self._map_y, cv2.INTER_LINEAR,
+                           borderMode=cv2.BORDER_CONSTANT, borderValue=float(texture.background))
+        w, h = self.camera.model.width, self.camera.model.height
+        return cv2.resize(sensor, (w, h), interpolation=cv2.INTER_AREA)
+
+    def time_samples_for(self, pose: Pose, xi: np.ndarray, xi2: np.ndarray,
+                         probe_points: np.ndarray) -> int:
+        """T such that no probe point moves more than ``max_step_px`` between samples."""
+        dense = Motion(xi, xi2, 64)
+        length = np.zeros(len(probe_points))
+        prev = None
+        for p in dense.poses(pose):
+            cur = self.camera.project(p.transform(probe_points))
+            if prev is not None:
+                length += np.linalg.norm(cur - prev, axis=1)
+            prev = cur
+        longest = float(length.max()) if len(length) else 0.0
+        t = math.ceil(longest / self.settings.max_step_px) + 1
+        return int(np.clip(t, 1, self.settings.max_time_samples))
+
+
+def sensor_image(irradiance: np.ndarray, truth: FrameTruth, rng: np.random.Generator) -> np.ndarray:
+    """Defocus, illumination, vignetting, Poisson-Gaussian noise, 8-bit quantisation.
+
+    ``grey = (black + (white - black) (g_d * E)) G(u, v) V(r)``, then
+    ``noisy = gain Poisson(grey / gain) + N(0, read_sigma^2)``, rounded and clipped to
+    ``[0, 255]``.
+    """
+    img = irradiance.astype(np.float64)
+    if truth.defocus_sigma > 0:
+        k = _gauss_ksize(truth.defocus_sigma)
+        img = cv2.GaussianBlur(img, (k, k), truth.defocus_sigma, borderType=cv2.BORDER_REFLECT)
+    h, w = img.shape
+    u = (np.arange(w) - (w - 1) / 2) / ((w - 1) / 2)
+    v = (np.arange(h) - (h - 1) / 2) / ((h - 1) / 2)
+    U, V = np.meshgrid(u, v)
+    g0, gx, gy = truth.illumination
+    gain_field = (g0 + gx * U + gy * V) * (1.0 - truth.vignetting * (U**2 + V**2) / 2.0)
+    black, white = truth.levels
+    grey = (black + (white - black) * img) * gain_field
+    gain, read_sigma = truth.noise
+    noisy = gain * rng.poisson(np.maximum(grey, 0) / gain) + rng.normal(0, read_sigma, grey.shape)
+    return np.clip(np.round(noisy), 0, 255).astype(np.uint8)
+
+
+# ------------------------------------------------------------------------------ scenarios
+@dataclass(frozen=True)
+class SynthConfig:
+    """What to simulate. Defaults: the README's demo dataset.
+
+    Attributes:
+        sharp, blurry: number of frames of each set.
+        blur_min_px, blur_max_px: range of the median feature blur length of blurry frames.
+        curved_fraction: share of blurry frames with curved hand-shake paths.
+        max_tilt_deg: largest angle between optical axis and target normal.
+        square_px: range of the star square's size in the image (px).
+        defocus_px: range of the Gaussian defocus sigma (px).
+        noise_sigma: approximate noise standard deviation at mid grey (grey levels).
+        seed: random seed; the dataset is a deterministic function of the config.
+    """
+
+    sharp: int = 20
+    blurry: int = 60
+    blur_min_px: float = 2.0
+    blur_max_px: float = 20.0
+    curved_fraction: float = 0.5
+    max_tilt_deg: float = 60.0
+    square_px: tuple[float, float] = (24.0, 42.0)
+    defocus_px: tuple[float, float] = (0.4, 0.9)
+    noise_sigma: float = 2.0
+    seed: int = 0
+    supersample: int = 3
+
+
+def _rotation(axis: np.ndarray, angle: float) -> np.ndarray:
+    R, _ = cv2.Rodrigues(np.asarray(axis, float).reshape(3) * angle)
+    return R
+
+
+def sample_pose(pattern: StarPattern, camera: TrueCamera, rng: np.random.Generator,
+                max_tilt_deg: float, square_px: tuple[float, float],
+                tries: int = 200) -> Pose:
+    """A pose with the tag fully in view, tilt up to ``max_tilt_deg``, anywhere in the image.
+
+    A random target point is placed at a random image point (so that over many frames every
+    image region, corners included, is covered) at the depth giving a random square size.
+    """
+    model = camera.model
+    L = pattern.square_length_m
+    tag_pts = np.concatenate([
+        np.column_stack([pattern.tag_corners(t) * L, np.zeros(4)]) for t in pattern.apriltags])
+    lo = np.array([-1.0, -1.0]) * L
+    hi = np.array([pattern.squares_x - 1, pattern.squares_y - 1]) * L
+    all_pts = pattern.points_3d()
+    for _ in range(tries):
+        tilt = math.radians(max_tilt_deg) * rng.uniform(0.0, 1.0)
+        tilt_axis_angle = rng.uniform(0, 2 * np.pi)
+        tilt_axis = np.array([math.cos(tilt_axis_angle), math.sin(tilt_axis_angle), 0.0])
+        roll = rng.uniform(-0.5, 0.5)
+        R = _rotation(np.array([0.0, 0.0, 1.0]), roll) @ _rotation(tilt_axis, tilt)
+        anchor = np.append(rng.uniform(lo, hi), 0.0)
+        pixel = rng.uniform([0, 0], [model.width - 1, model.height - 1])
+        depth = model.fx * L / rng.uniform(*square_px)
+        xn = camera.unproject(pixel[None])[0]
+        t = depth * np.array([xn[0], xn[1], 1.0]) - R @ anchor
+        pose = Pose(R, t)
+        cam_pts = pose.transform(tag_pts)
+        if np.any(cam_pts[:, 2] <= 0.05):
+            continue
+        tag_px = camera.project(cam_pts)
+        margin = 30.0
+        if not (np.all(tag_px >= margin) and np.all(tag_px[:, 0] <= model.width - 1 - margin)
+                and np.all(tag_px[:, 1] <= model.height - 1 - margin)):
+            continue
+        feat_px = camera.project(pose.transform(all_pts))
+        inside = ((feat_px[:, 0] >= 0) & (feat_px[:, 0] <= model.width - 1)
+                  & (feat_px[:, 1] >= 0) & (feat_px[:, 1] <= model.height - 1))
+        if inside.sum() >= 40:
+            return pose
+    raise RuntimeError("could not sample a pose with the tag in view; check the camera/pattern")
+
+
+def sample_motion(renderer: Renderer, pose: Pose, pattern: StarPattern, rng: np.random.Generator,
+                  blur_px: float, curved: bool) -> Motion:
+    """A hand-shake motion whose median feature blur length over the visible part is ``blur_px``.
+
+    Mostly rotation (as hand shake is), with some roll about the optical axis (blur that grows
+    towards the image border) and some translation (including along the axis: zoom blur).
+    """
+    omega = rng.normal(size=3) * np.array([1.0, 1.0, 0.45])
+    depth = float(pose.t[2])
+    v = rng.normal(size=3) * np.array([0.25, 0.25, 0.35]) * depth
+    xi = np.concatenate([omega, v])
+    xi2 = np.concatenate([rng.normal(size=3), rng.normal(size=3) * 0.3 * depth]) if curved \
+        else np.zeros(6)
+    if curved:
+        xi2 *= rng.uniform(0.4, 1.0) * np.linalg.norm(xi) / max(np.linalg.norm(xi2), 1e-12)
+    pts = _visible_points(renderer.camera, pose, pattern)
+    base = _path_lengths(renderer.camera, pose, Motion(xi, xi2, 33), pts)
+    scale = blur_px / max(float(np.median(base)), 1e-9)
+    # Path length is close to linear in the scale for small motions; refine once.
+    base = _path_lengths(renderer.camera, pose, Motion(xi * scale, xi2 * scale, 33), pts)
+    scale *= blur_px / max(float(np.median(base)), 1e-9)
+    xi, xi2 = xi * scale, xi2 * scale
+    samples = renderer.time_samples_for(pose, xi, xi2, pts)
+    return Motion(xi, xi2, samples)
+
+
+def _visible_points(camera: TrueCamera, pose: Pose, pattern: StarPattern) -> np.ndarray:
+    pts = pattern.points_3d()
+    px = camera.project(pose.transform(pts))
+    m = camera.model
+    inside = (px[:, 0] >= 0) & (px[:, 0] <= m.width - 1) & (px[:, 1] >= 0) & (px[:, 1] <= m.height - 1)
+    return pts[inside]
+
+
+def _path_lengths(camera: TrueCamera, pose: Pose, motion: Motion, pts: np.ndarray) -> np.ndarray:
+    tracks = np.stack([camera.project(p.transform(pts)) for p in motion.poses(pose)])
+    return np.linalg.norm(np.diff(tracks, axis=0), axis=2).sum(axis=0)
+
+
+def frame_truth(name: str, kind: str, pattern: StarPattern, camera: TrueCamera, pose: Pose,
+                motion: Motion, defocus_sigma: float, rng: np.random.Generator,
+                noise_sigma: float) -> FrameTruth:
+    """Ground truth of a frame (feature positions from the exact geometry)."""
+    pts = pattern.points_3d()
+    tracks = np.stack([camera.project(p.transform(pts)) for p in motion.poses(pose)])
+    cam = pose.transform(pts)
+    mid = camera.project(cam)
+    m = camera.model
+    visible = ((cam[:, 2] > 0) & (mid[:, 0] >= 0) & (mid[:, 0] <= m.width - 1)
+               & (mid[:, 1] >= 0) & (mid[:, 1] <= m.height - 1))
+    corners = np.array([[-0.5, -0.5], [0.5, -0.5], [0.5, 0.5], [-0.5, 0.5]])
+    fpts = pattern.features[:, None, :] + corners[None]
+    corner_px = camera.project(pose.transform(np.concatenate(
+        [fpts.reshape(-1, 2) * pattern.square_length_m, np.zeros((fpts.size // 2, 1))], axis=1)))
+    corner_px = corner_px.reshape(-1, 4, 2)
+    block_inside = visible & np.all((corner_px[..., 0] >= 0) & (corner_px[..., 0] <= m.width - 1)
+                                    & (corner_px[..., 1] >= 0) & (corner_px[..., 1] <= m.height - 1),
+                                    axis=1)
+    blur = np.linalg.norm(np.diff(tracks, axis=0), axis=2).sum(axis=0) if len(tracks) > 1 \
+        else np.zeros(len(pts))
+    white = rng.uniform(170, 225)
+    black = rng.uniform(15, 40)
+    gain = noise_sigma**2 / ((white + black) / 2)
+    return FrameTruth(
+        name=name, kind=kind, pose=pose, motion=motion, defocus_sigma=defocus_sigma,
+        feature_ids=np.arange(pattern.num_features), mid=mid, mean=tracks.mean(axis=0),
+        visible=visible, block_inside=block_inside, blur_length=blur,
+        illumination=np.array([1.0, rng.uniform(-0.12, 0.12), rng.uniform(-0.12, 0.12)]),
+        vignetting=float(rng.uniform(0.1, 0.3)), levels=(black, white),
+        noise=(gain, 0.5 * noise_sigma / 2.0))
+
+
+def choose_texels_per_square(camera: TrueCamera, pose: Pose, pattern: StarPattern,
+                             supersample: int) -> int:
+    """Texture resolution: at least one texel per canvas sample at the closest feature."""
+    pts = pattern.points_3d()
+    cam = pose.transform(pts)
+    z = cam[:, 2][cam[:, 2] > 0]
+    px_per_square = camera.model.fx * pattern.square_length_m / float(z.min()) if len(z) else 40.0
+    need = 1.2 * px_per_square * supersample
+    return int(min(max(10 * math.ceil(need / 10.0), 40), 400))
+
+
+@dataclass
+class SimulatedFrame:
+    """A rendered frame and its ground truth."""
+
+    image: np.ndarray
+    truth: FrameTruth
+
+
+class Simulator:
+    """Deterministic generator of a dataset: ``SynthConfig`` + pattern + camera -> frames."""
+
+    def __init__(self, config: SynthConfig | None = None, pattern: StarPattern | None = None,
+                 camera: TrueCamera | None = None) -> None:
+        self.config = config or SynthConfig()
+        self.pattern = pattern or layout_pattern()
+        self.camera = camera or d435i_like_camera(self.config.seed)
+        self.renderer = Renderer(self.camera, RenderSettings(supersample=self.config.supersample))
+        self._textures: dict[int, Texture] = {}
+
+    def texture(self, texels_per_square: int) -> Texture:
+        if texels_per_square not in self._textures:
+            self._textures[texels_per_square] = pattern_texture(self.pattern, texels_per_square)
+        return self._textures[texels_per_square]
+
+    def frame_names(self) -> list[tuple[str, str]]:
+        """``(name, kind)`` of every frame, sharp ones first."""
+        return ([(f"sharp/{i:04d}.png", "sharp") for i in range(self.config.sharp)]
+                + [(f"blurry/{i:04d}.png", "blurry") for i in range(self.config.blurry)])
+
+    def frame(self, index: int) -> SimulatedFrame:
+        """Render frame ``index`` (its randomness depends only on the seed and the index)."""
+        name, kind = self.frame_names()[index]
+        cfg = self.config
+        rng = np.random.default_rng([cfg.seed, index])
+        pose = sample_pose(self.pattern, self.camera, rng, cfg.max_tilt_deg, cfg.square_px)
+        if kind == "blurry":
+            blur = rng.uniform(cfg.blur_min_px, cfg.blur_max_px)
+            motion = sample_motion(self.renderer, pose, self.pattern, rng, blur,
+                                   curved=bool(rng.uniform() < cfg.curved_fraction))
+        else:
+            motion = Motion.still()
+        defocus = float(rng.uniform(*cfg.defocus_px))
+        truth = frame_truth(name, kind, self.pattern, self.camera, pose, motion, defocus, rng,
+                            cfg.noise_sigma)
+        tex = self.texture(choose_texels_per_square(self.camera, pose, self.pattern,
+                                                    cfg.supersample))
+        irradiance = self.renderer.irradiance(tex, pose, motion)
+        return SimulatedFrame(sensor_image(irradiance, truth, rng), truth)
+
+
+def write_dataset(out_dir: str | os.PathLike, config: SynthConfig | None = None,
+                  pattern: StarPattern | None = None,
+                  progress: Callable[[int, int, str], None] | None = None) -> DatasetTruth:
+    """Simulate a dataset into ``out_dir``: ``pattern.yaml``, ``sharp/*.png``,
+    ``blurry/*.png`` and ``ground_truth.json`` (see ``docs/synthetic-data.md``).
+
+    Every file is written atomically; the ground truth is written last, so a folder with a
+    ``ground_truth.json`` is complete.
+    """
+    out = ensure_writable_dir(out_dir)
+    sim = Simulator(config, pattern)
+    sim.pattern.save_yaml(out / "pattern.yaml")
+    frames = []
+    names = sim.frame_names()
+    for i, (name, _) in enumerate(names):
+        frame = sim.frame(i)
+        ensure_writable_dir((out / name).parent)
+        with atomic_path(out / name) as tmp:
+            if not cv2.imwrite(str(tmp), frame.image):
+                raise OSError(f"{out / name}: cannot write image")
+        frames.append(frame.truth)
+        if progress is not None:
+            progress(i + 1, len(names), name)
+    truth = DatasetTruth(sim.camera, "pattern.yaml", frames, asdict(sim.config))
+    atomic_write_text(out / GROUND_TRUTH_FILE, json.dumps(truth.to_dict()))
+    return truth
