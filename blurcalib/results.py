@@ -1,0 +1,698 @@
+"""Results of feature and PSF extraction, and their one on-disk format.
+
+Conventions (see ``docs/results-format.md``):
+
+* Pixel coordinates follow OpenCV: the centre of the top-left pixel is ``(0, 0)``, x right,
+  y down.
+* Feature ``(fx, fy)`` sits at the metric target point ``(fx L, fy L, 0)`` metres.
+* A *block* is the star square around one feature; its homography ``H`` (3 x 3) maps block
+  coordinates ``q in [-1, 1]^2`` (star centre at 0, square corners at ``(+-1, +-1)``, i.e.
+  feature coordinates ``p = (fx, fy) + q / 2``) to pixels.
+* PSF pixel ``(i, j)`` (row, column) of a ``K x K`` kernel sits at offset ``(j - c, i - c)``
+  px from the kernel centre, ``c = (K - 1) / 2``.
+
+One output folder holds ``features.csv`` (one row per feature observation), ``blocks.csv`` (one
+row per fitted block) and ``psfs.npz`` (the blocks' kernels and homographies, in the rows' order).
+Floats are written with ``repr`` so that float64 values round-trip exactly. For resumable runs,
+:func:`write_frame_results` writes the same three files per frame under ``frames/`` plus a
+``<stem>.done`` marker, and :func:`collect_results` concatenates the completed frames into the
+top-level files. Every file is written atomically.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import os
+import re
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from enum import Enum, IntFlag
+from pathlib import Path
+from typing import NamedTuple
+
+import numpy as np
+
+from blurcalib.fileio import atomic_path, atomic_write_text, ensure_writable_dir
+
+FEATURES_FILE = "features.csv"
+BLOCKS_FILE = "blocks.csv"
+PSFS_FILE = "psfs.npz"
+FRAMES_DIR = "frames"
+DONE_SUFFIX = ".done"
+
+FEATURE_COLUMNS: tuple[str, ...] = ("frame", "feature_id", "fx", "fy", "X", "Y", "x", "y", "weight",
+                                    "flags")
+"""Columns of ``features.csv``, in order."""
+
+H_COLUMNS: tuple[str, ...] = tuple(f"h{r}{c}" for r in range(3) for c in range(3))
+COEFF_COLUMNS: tuple[str, ...] = ("a1", "a2", "a3", "b1", "b2", "b3")
+BLOCK_COLUMNS: tuple[str, ...] = (
+    "frame", "feature_id", "fx", "fy", "status", "loss", "boundary_energy", "sigma_major",
+    "sigma_minor", "eccentricity", "orientation", "centroid_x", "centroid_y",
+    *H_COLUMNS, *COEFF_COLUMNS)
+"""Columns of ``blocks.csv``, in order."""
+
+
+class ResultsFileError(ValueError):
+    """A results file is missing or malformed; the message names the file and the column/row."""
+
+
+class BlockStatus(str, Enum):
+    """Outcome of fitting one block: ``accepted`` or the reason it was rejected."""
+
+    ACCEPTED = "accepted"
+    HIGH_LOSS = "high_loss"
+    OUTSIDE_IMAGE = "outside_image"
+    DEGENERATE_HOMOGRAPHY = "degenerate_homography"
+    PSF_TRUNCATED = "psf_truncated"
+    NOT_CONVERGED = "not_converged"
+    FILTERED_BOUNDARY_ENERGY = "filtered_boundary_energy"
+    FILTERED_LOSS = "filtered_loss"
+    DISCONNECTED = "disconnected"
+
+
+class FeatureFlags(IntFlag):
+    """Bit mask describing how a feature observation was obtained."""
+
+    NONE = 0
+    STAR_CENTRE = 1
+    """The observation is a star centre (the only kind of feature so far)."""
+    SHARP_FRAME = 2
+    """Extracted from a sharp frame (PSF close to a delta)."""
+    BLURRY_FRAME = 4
+    """Extracted from a motion-blurred frame with a fitted PSF."""
+    LOCALLY_ALIGNED = 8
+    """Position refined by the per-block (local) alignment."""
+    GLOBALLY_ALIGNED = 16
+    """Position refined by the frame-wide (global) alignment."""
+    FILTERED_OUT = 32
+    """Rejected by a later filter; kept for diagnostics, not to be used for calibration."""
+
+
+@dataclass(eq=False)
+class BlockResult:
+    """The fit of one block (star square) in one frame.
+
+    Attributes:
+        frame: frame name (as given to the extractor, usually the image file name).
+        feature_id: id of the feature in :attr:`StarPattern.features`.
+        fx, fy: integer feature coordinates of the star centre (squares).
+        H: ``(3, 3)`` float64 homography, block coordinates ``q`` -> pixels.
+        psf: ``(K, K)`` float32 kernel, sums to 1; pixel ``(i, j)`` at offset ``(j - c, i - c)``.
+        coeffs: ``(6,)`` float64 ``a1, a2, a3, b1, b2, b3`` of the paper's affine intensity model
+            ``A(p) = a1 u + a2 v + a3``, ``B(p) = b1 u + b2 v + b3``.
+        loss: mean squared residual (8-bit grey levels squared).
+        boundary_energy: share of PSF energy in the kernel's outer two-pixel ring (0..1).
+        sigma_major, sigma_minor: px, square roots of the PSF second-moment eigenvalues.
+        eccentricity: ``sqrt(1 - sigma_minor^2 / sigma_major^2)`` (0 round, 1 a line).
+        orientation: rad in ``(-pi/2, pi/2]``, of the major axis, from +x towards +y.
+        centroid: ``(2,)`` px, PSF intensity centroid ``(x, y)`` relative to the kernel centre.
+        status: accepted, or why the block was rejected.
+
+    Equality is identity (the fields are arrays); compare fields to test values.
+    """
+
+    frame: str
+    feature_id: int
+    fx: int
+    fy: int
+    H: np.ndarray
+    psf: np.ndarray
+    coeffs: np.ndarray
+    loss: float
+    boundary_energy: float
+    sigma_major: float
+    sigma_minor: float
+    eccentricity: float
+    orientation: float
+    centroid: np.ndarray
+    status: BlockStatus
+
+    def __post_init__(self) -> None:
+        self.H = np.asarray(self.H, dtype=np.float64)
+        self.psf = np.asarray(self.psf, dtype=np.float32)
+        self.coeffs = np.asarray(self.coeffs, dtype=np.float64)
+        self.centroid = np.asarray(self.centroid, dtype=np.float64)
+        self.status = BlockStatus(self.status)
+        if self.H.shape != (3, 3):
+            raise ValueError(f"H must be (3, 3), got {self.H.shape}")
+        if self.psf.ndim != 2 or self.psf.shape[0] != self.psf.shape[1]:
+            raise ValueError(f"psf must be square (K, K), got {self.psf.shape}")
+        if self.coeffs.shape != (6,):
+            raise ValueError(f"coeffs must be (6,), got {self.coeffs.shape}")
+        if self.centroid.shape != (2,):
+            raise ValueError(f"centroid must be (2,), got {self.centroid.shape}")
+
+
+@dataclass(frozen=True)
+class FeatureObservation:
+    """One observed feature: a star centre's pixel position in one frame.
+
+    Attributes:
+        frame: frame name.
+        feature_id: id of the feature in :attr:`StarPattern.features`.
+        fx, fy: integer feature coordinates (squares).
+        X, Y: metric target point ``(fx L, fy L)`` in metres (Z = 0).
+        x, y: pixel position, OpenCV convention (top-left pixel centre at (0, 0)).
+        weight: relative confidence, >= 0 (1 nominal).
+        flags: :class:`FeatureFlags` bit mask.
+    """
+
+    frame: str
+    feature_id: int
+    fx: int
+    fy: int
+    X: float
+    Y: float
+    x: float
+    y: float
+    weight: float
+    flags: int
+
+
+# ---------------------------------------------------------------------------------- PSF figures
+class PsfMoments(NamedTuple):
+    """Moment figures of a PSF (or of a batch: each field gains a leading ``B`` axis)."""
+
+    centroid: np.ndarray
+    """``(2,)`` or ``(B, 2)`` px, intensity centroid ``(x, y)`` relative to the kernel centre."""
+    sigma_major: np.ndarray | float
+    """px, square root of the larger eigenvalue of the central second-moment matrix."""
+    sigma_minor: np.ndarray | float
+    """px, square root of the smaller eigenvalue."""
+    eccentricity: np.ndarray | float
+    """``sqrt(1 - sigma_minor^2 / sigma_major^2)``; 0 for a delta."""
+    orientation: np.ndarray | float
+    """rad in ``(-pi/2, pi/2]``, of the major axis, from +x towards +y; 0 for a round PSF."""
+
+
+def psf_moments(psf: np.ndarray) -> PsfMoments:
+    """Centroid and second-moment ellipse of a PSF or a batch of PSFs.
+
+    The kernel is normalised by its sum (which must be non-zero); pixel ``(i, j)`` sits at
+    offset ``(j - c, i - c)`` px, ``c = (K - 1) / 2``.
+
+    Args:
+        psf: ``(K, K)`` or ``(B, K, K)`` kernel(s), non-negative.
+    Returns:
+        :class:`PsfMoments`; floats for one kernel, ``(B,)`` arrays (centroid ``(B, 2)``)
+        for a batch.
+    """
+    k = np.asarray(psf, dtype=np.float64)
+    single = k.ndim == 2
+    if single:
+        k = k[None]
+    if k.ndim != 3 or k.shape[1] != k.shape[2]:
+        raise ValueError(f"psf must be (K, K) or (B, K, K), got {np.shape(psf)}")
+    c = (k.shape[1] - 1) / 2.0
+    offs = np.arange(k.shape[1], dtype=np.float64) - c
+    w = k / k.sum(axis=(1, 2), keepdims=True)
+    wx = w.sum(axis=1)  # (B, K): marginal over rows, indexed by column j
+    wy = w.sum(axis=2)  # (B, K): marginal over columns, indexed by row i
+    mx = wx @ offs
+    my = wy @ offs
+    cxx = wx @ offs**2 - mx**2
+    cyy = wy @ offs**2 - my**2
+    cxy = np.einsum("bij,i,j->b", w, offs, offs) - mx * my
+    half_trace = 0.5 * (cxx + cyy)
+    radius = np.hypot(0.5 * (cxx - cyy), cxy)
+    major = np.sqrt(np.maximum(half_trace + radius, 0.0))
+    minor = np.sqrt(np.maximum(half_trace - radius, 0.0))
+    ratio = np.divide(minor, major, out=np.ones_like(major), where=major > 0)
+    ecc = np.sqrt(np.maximum(1.0 - ratio**2, 0.0))
+    orient = 0.5 * np.arctan2(2.0 * cxy, cxx - cyy)
+    orient = np.where(orient <= -np.pi / 2, orient + np.pi, orient)
+    centroid = np.stack([mx, my], axis=1)
+    if single:
+        return PsfMoments(centroid[0], float(major[0]), float(minor[0]), float(ecc[0]),
+                          float(orient[0]))
+    return PsfMoments(centroid, major, minor, ecc, orient)
+
+
+def boundary_energy(psf: np.ndarray, ring: int = 2) -> np.ndarray | float:
+    """Share of a PSF's energy in its outer ``ring``-pixel border (a truncation indicator).
+
+    Args:
+        psf: ``(K, K)`` or ``(B, K, K)`` kernel(s) with non-zero sum.
+        ring: border width in pixels.
+    Returns:
+        ``sum(border) / sum(all)``: a float for one kernel, ``(B,)`` for a batch.
+    """
+    k = np.asarray(psf, dtype=np.float64)
+    if k.ndim not in (2, 3) or k.shape[-1] != k.shape[-2]:
+        raise ValueError(f"psf must be (K, K) or (B, K, K), got {k.shape}")
+    inner = k[..., ring:k.shape[-1] - ring, ring:k.shape[-1] - ring].sum(axis=(-2, -1))
+    total = k.sum(axis=(-2, -1))
+    share = (total - inner) / total
+    return float(share) if k.ndim == 2 else share
+
+
+# -------------------------------------------------------------------------------- column tables
+def _column(values: Sequence | np.ndarray, dtype: type, n: int | None = None) -> np.ndarray:
+    out = np.asarray(values, dtype=dtype)
+    if out.ndim != 1 or (n is not None and len(out) != n):
+        raise ValueError(f"column must be 1-D of length {n}, got shape {out.shape}")
+    return out
+
+
+@dataclass(eq=False)
+class FeatureTable:
+    """Feature observations as numpy columns (N rows); the fast form for large sets.
+
+    Columns (all ``(N,)``): ``frame`` str, ``feature_id, fx, fy, flags`` int64,
+    ``X, Y`` metres and ``x, y`` px (OpenCV convention) and ``weight``, float64.
+    """
+
+    frame: np.ndarray
+    feature_id: np.ndarray
+    fx: np.ndarray
+    fy: np.ndarray
+    X: np.ndarray
+    Y: np.ndarray
+    x: np.ndarray
+    y: np.ndarray
+    weight: np.ndarray
+    flags: np.ndarray
+
+    def __post_init__(self) -> None:
+        n = len(self.frame)
+        self.frame = _column(self.frame, np.str_, n)
+        for name in ("feature_id", "fx", "fy", "flags"):
+            setattr(self, name, _column(getattr(self, name), np.int64, n))
+        for name in ("X", "Y", "x", "y", "weight"):
+            setattr(self, name, _column(getattr(self, name), np.float64, n))
+
+    def __len__(self) -> int:
+        return len(self.frame)
+
+    @classmethod
+    def empty(cls) -> FeatureTable:
+        """A table with no rows."""
+        return cls(*([] for _ in FEATURE_COLUMNS))
+
+    @classmethod
+    def from_observations(cls, features: Sequence[FeatureObservation]) -> FeatureTable:
+        """Columns of a list of observations (row order kept)."""
+        if not features:
+            return cls.empty()
+        return cls(*(list(col) for col in zip(*((f.frame, f.feature_id, f.fx, f.fy, f.X, f.Y, f.x, f.y,
+                                                 f.weight, f.flags) for f in features), strict=True)))
+
+    def to_observations(self) -> list[FeatureObservation]:
+        """One :class:`FeatureObservation` per row, with plain Python values."""
+        cols = [getattr(self, name).tolist() for name in FEATURE_COLUMNS]
+        return [FeatureObservation(*row) for row in zip(*cols, strict=True)]
+
+    def select(self, rows: np.ndarray) -> FeatureTable:
+        """The rows chosen by a boolean mask or an index array."""
+        return FeatureTable(*(getattr(self, name)[rows] for name in FEATURE_COLUMNS))
+
+    @classmethod
+    def concat(cls, tables: Sequence[FeatureTable]) -> FeatureTable:
+        """Rows of several tables, in order."""
+        if not tables:
+            return cls.empty()
+        return cls(*(np.concatenate([getattr(t, name) for t in tables]) for name in FEATURE_COLUMNS))
+
+
+@dataclass(eq=False)
+class BlockTable:
+    """Block results as numpy columns (B rows, one kernel size K); the fast form of a block list.
+
+    Columns: ``frame`` (B,) str; ``feature_id, fx, fy`` (B,) int64; ``status`` (B,) str (a
+    :class:`BlockStatus` value); ``loss, boundary_energy, sigma_major, sigma_minor,
+    eccentricity, orientation`` (B,) float64; ``centroid`` (B, 2); ``H`` (B, 3, 3);
+    ``coeffs`` (B, 6) float64; ``psf`` (B, K, K) float32. Units as in :class:`BlockResult`.
+    """
+
+    frame: np.ndarray
+    feature_id: np.ndarray
+    fx: np.ndarray
+    fy: np.ndarray
+    status: np.ndarray
+    loss: np.ndarray
+    boundary_energy: np.ndarray
+    sigma_major: np.ndarray
+    sigma_minor: np.ndarray
+    eccentricity: np.ndarray
+    orientation: np.ndarray
+    centroid: np.ndarray
+    H: np.ndarray
+    coeffs: np.ndarray
+    psf: np.ndarray
+
+    _SCALARS = ("loss", "boundary_energy", "sigma_major", "sigma_minor", "eccentricity", "orientation")
+    _FIELDS = ("frame", "feature_id", "fx", "fy", "status", *_SCALARS, "centroid", "H", "coeffs", "psf")
+
+    def __post_init__(self) -> None:
+        n = len(self.frame)
+        self.frame = _column(self.frame, np.str_, n)
+        statuses = self.status.tolist() if isinstance(self.status, np.ndarray) else list(self.status)
+        self.status = _column([BlockStatus(s).value for s in statuses], np.str_, n)
+        for name in ("feature_id", "fx", "fy"):
+            setattr(self, name, _column(getattr(self, name), np.int64, n))
+        for name in self._SCALARS:
+            setattr(self, name, _column(getattr(self, name), np.float64, n))
+        self.centroid = np.asarray(self.centroid, dtype=np.float64).reshape(n, 2)
+        self.H = np.asarray(self.H, dtype=np.float64).reshape(n, 3, 3)
+        self.coeffs = np.asarray(self.coeffs, dtype=np.float64).reshape(n, 6)
+        self.psf = np.asarray(self.psf, dtype=np.float32)
+        if self.psf.ndim != 3 or self.psf.shape[0] != n or self.psf.shape[1] != self.psf.shape[2]:
+            raise ValueError(f"psf must be ({n}, K, K), got {self.psf.shape}")
+
+    def __len__(self) -> int:
+        return len(self.frame)
+
+    @classmethod
+    def empty(cls, kernel_size: int = 0) -> BlockTable:
+        """A table with no rows and kernels of ``kernel_size``."""
+        return cls([], [], [], [], [], *([] for _ in cls._SCALARS), np.zeros((0, 2)),
+                   np.zeros((0, 3, 3)), np.zeros((0, 6)), np.zeros((0, kernel_size, kernel_size)))
+
+    @classmethod
+    def from_blocks(cls, blocks: Sequence[BlockResult]) -> BlockTable:
+        """Columns of a list of block results; all kernels must have the same size."""
+        if not blocks:
+            return cls.empty()
+        sizes = {b.psf.shape for b in blocks}
+        if len(sizes) != 1:
+            raise ValueError(f"all PSFs of a block table must have one size, got {sorted(sizes)}")
+        return cls(*(np.stack([getattr(b, name) for b in blocks])
+                     if name in ("centroid", "H", "coeffs", "psf")
+                     else [getattr(b, name) for b in blocks] for name in cls._FIELDS))
+
+    def to_blocks(self) -> list[BlockResult]:
+        """One :class:`BlockResult` per row (arrays are copies)."""
+        rows = zip(self.frame.tolist(), self.feature_id.tolist(), self.fx.tolist(), self.fy.tolist(),
+                   self.H, self.psf, self.coeffs, *(getattr(self, n).tolist() for n in self._SCALARS),
+                   self.centroid, self.status.tolist(), strict=True)
+        return [BlockResult(f, i, x, y, H.copy(), psf.copy(), co.copy(), *sc, ce.copy(), BlockStatus(st))
+                for f, i, x, y, H, psf, co, *sc, ce, st in rows]
+
+    def select(self, rows: np.ndarray) -> BlockTable:
+        """The rows chosen by a boolean mask or an index array."""
+        return BlockTable(*(getattr(self, name)[rows] for name in self._FIELDS))
+
+    @classmethod
+    def concat(cls, tables: Sequence[BlockTable]) -> BlockTable:
+        """Rows of several tables, in order; non-empty tables must share the kernel size."""
+        nonempty = [t for t in tables if len(t)]
+        if not nonempty:
+            return tables[0] if tables else cls.empty()
+        sizes = {t.psf.shape[1:] for t in nonempty}
+        if len(sizes) != 1:
+            raise ValueError(f"cannot concatenate block tables with PSF sizes {sorted(sizes)}")
+        return cls(*(np.concatenate([getattr(t, name) for t in nonempty]) for name in cls._FIELDS))
+
+
+# ------------------------------------------------------------------------------------- writing
+def _float_strings(values: np.ndarray) -> list[str]:
+    return list(map(repr, np.asarray(values, dtype=np.float64).tolist()))
+
+
+def _int_strings(values: np.ndarray) -> list[str]:
+    return list(map(str, np.asarray(values, dtype=np.int64).tolist()))
+
+
+def _csv_field(text: str) -> str:
+    """A CSV field as the ``csv`` module writes it (quoted only when it must be)."""
+    if any(ch in text for ch in ',"\r\n'):
+        return '"' + text.replace('"', '""') + '"'
+    return text
+
+
+def _str_strings(values: np.ndarray) -> list[str]:
+    names = np.asarray(values).tolist()
+    quoted = {name: _csv_field(name) for name in set(names)}
+    return [quoted[name] for name in names]
+
+
+def _csv_text(header: Sequence[str], columns: Sequence[list[str]]) -> str:
+    lines = [",".join(header), *map(",".join, zip(*columns, strict=True))]
+    return "\n".join(lines) + "\n"
+
+
+def _as_feature_table(features: Sequence[FeatureObservation] | FeatureTable) -> FeatureTable:
+    return features if isinstance(features, FeatureTable) else FeatureTable.from_observations(features)
+
+
+def _as_block_table(blocks: Sequence[BlockResult] | BlockTable) -> BlockTable:
+    return blocks if isinstance(blocks, BlockTable) else BlockTable.from_blocks(blocks)
+
+
+def write_features(path: str | os.PathLike, features: Sequence[FeatureObservation] | FeatureTable) -> Path:
+    """Write ``features.csv`` (columns :data:`FEATURE_COLUMNS`) atomically; return its path."""
+    t = _as_feature_table(features)
+    cols = [_str_strings(t.frame), *(_int_strings(getattr(t, n)) for n in ("feature_id", "fx", "fy")),
+            *(_float_strings(getattr(t, n)) for n in ("X", "Y", "x", "y", "weight")),
+            _int_strings(t.flags)]
+    return atomic_write_text(path, _csv_text(FEATURE_COLUMNS, cols))
+
+
+def write_blocks(csv_path: str | os.PathLike, npz_path: str | os.PathLike,
+                 blocks: Sequence[BlockResult] | BlockTable) -> tuple[Path, Path]:
+    """Write ``blocks.csv`` and ``psfs.npz`` atomically (each on its own); return their paths."""
+    t = _as_block_table(blocks)
+    cols = [_str_strings(t.frame), *(_int_strings(getattr(t, n)) for n in ("feature_id", "fx", "fy")),
+            _str_strings(t.status), *(_float_strings(getattr(t, n)) for n in BlockTable._SCALARS),
+            *(_float_strings(t.centroid[:, i]) for i in range(2)),
+            *(_float_strings(t.H[:, r, c]) for r in range(3) for c in range(3)),
+            *(_float_strings(t.coeffs[:, i]) for i in range(6))]
+    atomic_write_text(csv_path, _csv_text(BLOCK_COLUMNS, cols))
+    with atomic_path(npz_path) as tmp, open(tmp, "wb") as handle:
+        np.savez(handle, frame=t.frame, feature_id=t.feature_id, psf=t.psf, H=t.H)
+    return Path(csv_path), Path(npz_path)
+
+
+def write_results(folder: str | os.PathLike, features: Sequence[FeatureObservation] | FeatureTable,
+                  blocks: Sequence[BlockResult] | BlockTable) -> dict[str, Path]:
+    """Write ``features.csv``, ``blocks.csv`` and ``psfs.npz`` into ``folder`` (created if needed).
+
+    The inputs are validated before anything is written; each file is replaced atomically.
+
+    Returns:
+        ``{"features": ..., "blocks": ..., "psfs": ...}`` paths.
+    Raises:
+        OutputError: the folder cannot be created or written.
+    """
+    feature_table, block_table = _as_feature_table(features), _as_block_table(blocks)
+    out = ensure_writable_dir(folder)
+    paths = {"features": write_features(out / FEATURES_FILE, feature_table)}
+    paths["blocks"], paths["psfs"] = write_blocks(out / BLOCKS_FILE, out / PSFS_FILE, block_table)
+    return paths
+
+
+# ------------------------------------------------------------------------------------- reading
+def _read_csv_columns(path: Path, required: Sequence[str]) -> tuple[dict[str, list[str]], int]:
+    """Columns of a CSV as lists of strings, and the number of data rows."""
+    try:
+        text = path.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise ResultsFileError(f"{path}: results file not found") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise ResultsFileError(f"{path}: cannot read results file ({exc})") from None
+    reader = csv.reader(io.StringIO(text, newline=""))
+    header = next(reader, None)
+    if header is None:
+        raise ResultsFileError(f"{path}: empty file (expected a header with columns {', '.join(required)})")
+    missing = [c for c in required if c not in header]
+    if missing:
+        raise ResultsFileError(f"{path}: missing column(s) {', '.join(repr(c) for c in missing)}")
+    rows = []
+    for row in reader:
+        if len(row) != len(header):
+            raise ResultsFileError(f"{path}: row {len(rows) + 1} (line {reader.line_num}) has "
+                                   f"{len(row)} fields, expected {len(header)}")
+        rows.append(row)
+    by_index = list(zip(*rows, strict=True)) if rows else [() for _ in header]
+    return {name: list(by_index[header.index(name)]) for name in required}, len(rows)
+
+
+def _parse(path: Path, name: str, values: list[str], convert: Callable[[str], object],
+           dtype: type, kind: str) -> np.ndarray:
+    try:
+        return np.array(list(map(convert, values)), dtype=dtype)
+    except ValueError:
+        for row, value in enumerate(values, start=1):
+            try:
+                convert(value)
+            except ValueError:
+                raise ResultsFileError(f"{path}: column '{name}', row {row}: cannot parse {value!r} "
+                                       f"as {kind}") from None
+        raise
+
+
+def _floats(path: Path, cols: dict[str, list[str]], name: str) -> np.ndarray:
+    return _parse(path, name, cols[name], float, np.float64, "a float")
+
+
+def _ints(path: Path, cols: dict[str, list[str]], name: str) -> np.ndarray:
+    return _parse(path, name, cols[name], int, np.int64, "an integer")
+
+
+def read_feature_table(path: str | os.PathLike) -> FeatureTable:
+    """Read a ``features.csv`` into columns.
+
+    Raises:
+        ResultsFileError: missing file, missing column, wrong field count or an unparsable value
+            (the message names the file and the column/row; rows count from 1 after the header).
+    """
+    p = Path(path)
+    cols, _ = _read_csv_columns(p, FEATURE_COLUMNS)
+    return FeatureTable(
+        np.array(cols["frame"], dtype=np.str_),
+        *(_ints(p, cols, n) for n in ("feature_id", "fx", "fy")),
+        *(_floats(p, cols, n) for n in ("X", "Y", "x", "y", "weight")),
+        _ints(p, cols, "flags"))
+
+
+def read_features(path: str | os.PathLike) -> list[FeatureObservation]:
+    """Read a ``features.csv`` into observations (see :func:`read_feature_table`)."""
+    return read_feature_table(path).to_observations()
+
+
+def _status(path: Path, values: list[str]) -> np.ndarray:
+    valid = {s.value for s in BlockStatus}
+    for row, value in enumerate(values, start=1):
+        if value not in valid:
+            raise ResultsFileError(f"{path}: column 'status', row {row}: {value!r} is not one of "
+                                   f"{', '.join(sorted(valid))}")
+    return np.array(values, dtype=np.str_)
+
+
+def _read_psfs(path: Path, n: int) -> dict[str, np.ndarray]:
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            arrays = {k: data[k] for k in data.files}
+    except FileNotFoundError:
+        raise ResultsFileError(f"{path}: results file not found") from None
+    except (OSError, ValueError, EOFError) as exc:
+        raise ResultsFileError(f"{path}: not a readable npz archive ({exc})") from None
+    shapes = {"frame": (n,), "feature_id": (n,), "H": (n, 3, 3)}
+    for key in ("frame", "feature_id", "psf", "H"):
+        if key not in arrays:
+            raise ResultsFileError(f"{path}: missing array '{key}'")
+    for key, shape in shapes.items():
+        if arrays[key].shape != shape:
+            raise ResultsFileError(f"{path}: array '{key}' has shape {arrays[key].shape}, expected {shape}")
+    psf = arrays["psf"]
+    if psf.ndim != 3 or psf.shape[0] != n or psf.shape[1] != psf.shape[2]:
+        raise ResultsFileError(f"{path}: array 'psf' has shape {psf.shape}, expected ({n}, K, K)")
+    return arrays
+
+
+def read_block_table(folder: str | os.PathLike) -> BlockTable:
+    """Read ``blocks.csv`` and ``psfs.npz`` of a results folder into columns.
+
+    The npz rows must match the CSV rows (same frame, feature id and homography).
+
+    Raises:
+        ResultsFileError: a missing file, column or array, an unparsable value or a mismatch
+            between the two files (the message names the file and the column/row).
+    """
+    return _read_block_table(Path(folder) / BLOCKS_FILE, Path(folder) / PSFS_FILE)
+
+
+def _read_block_table(csv_path: Path, npz_path: Path) -> BlockTable:
+    cols, n = _read_csv_columns(csv_path, BLOCK_COLUMNS)
+    frame = np.array(cols["frame"], dtype=np.str_)
+    feature_id = _ints(csv_path, cols, "feature_id")
+    H = np.stack([_floats(csv_path, cols, c) for c in H_COLUMNS], axis=1).reshape(n, 3, 3)
+    arrays = _read_psfs(npz_path, n)
+    for key, ours in (("frame", frame), ("feature_id", feature_id), ("H", H)):
+        differs = arrays[key] != ours
+        if key == "H":
+            differs &= ~(np.isnan(arrays[key]) & np.isnan(ours))
+        bad = np.flatnonzero(differs.reshape(n, -1).any(axis=1)) if n else []
+        if len(bad):
+            raise ResultsFileError(f"{npz_path}: array '{key}' differs from {csv_path.name} at row "
+                                   f"{bad[0] + 1}")
+    return BlockTable(
+        frame, feature_id, _ints(csv_path, cols, "fx"), _ints(csv_path, cols, "fy"),
+        _status(csv_path, cols["status"]), *(_floats(csv_path, cols, c) for c in BlockTable._SCALARS),
+        np.stack([_floats(csv_path, cols, c) for c in ("centroid_x", "centroid_y")], axis=1), H,
+        np.stack([_floats(csv_path, cols, c) for c in COEFF_COLUMNS], axis=1), arrays["psf"])
+
+
+def read_blocks(folder: str | os.PathLike) -> list[BlockResult]:
+    """Read the blocks of a results folder (see :func:`read_block_table`)."""
+    return read_block_table(folder).to_blocks()
+
+
+# ------------------------------------------------------------------------------ per-frame files
+def frame_stem(frame_name: str) -> str:
+    """File-name stem for a frame's per-frame files: the name without its extension, folders
+    joined by ``__`` and characters outside ``[A-Za-z0-9._-]`` replaced by ``_``."""
+    parts = [p for p in re.split(r"[\\/]+", frame_name) if p]
+    if not parts:
+        raise ValueError(f"frame name {frame_name!r} has no file-name part")
+    stem = "__".join([*parts[:-1], Path(parts[-1]).stem or parts[-1]])
+    return re.sub(r"[^A-Za-z0-9._-]", "_", stem)
+
+
+def frame_result_paths(folder: str | os.PathLike, frame_name: str) -> dict[str, Path]:
+    """Paths of a frame's per-frame files: ``features``, ``blocks``, ``psfs`` and ``done``."""
+    base = Path(folder) / FRAMES_DIR / frame_stem(frame_name)
+    return {"features": Path(f"{base}.{FEATURES_FILE}"), "blocks": Path(f"{base}.{BLOCKS_FILE}"),
+            "psfs": Path(f"{base}.{PSFS_FILE}"), "done": Path(f"{base}{DONE_SUFFIX}")}
+
+
+def write_frame_results(folder: str | os.PathLike, frame_name: str,
+                        features: Sequence[FeatureObservation] | FeatureTable,
+                        blocks: Sequence[BlockResult] | BlockTable) -> dict[str, Path]:
+    """Write one frame's results under ``folder/frames/`` for resumable runs.
+
+    Writes ``<stem>.features.csv``, ``<stem>.blocks.csv``, ``<stem>.psfs.npz`` and, last, the
+    marker ``<stem>.done`` holding the frame name (``stem = frame_stem(frame_name)``); a frame
+    counts as done only once its marker exists, so an interrupted write is redone on resume.
+
+    Raises:
+        ValueError: a row belongs to another frame.
+        OutputError: the folder cannot be written.
+    """
+    ft, bt = _as_feature_table(features), _as_block_table(blocks)
+    for kind, frames in (("feature", ft.frame), ("block", bt.frame)):
+        other = frames[frames != frame_name]
+        if len(other):
+            raise ValueError(f"{kind} row of frame {str(other[0])!r} passed for frame {frame_name!r}")
+    ensure_writable_dir(Path(folder) / FRAMES_DIR)
+    paths = frame_result_paths(folder, frame_name)
+    paths["done"].unlink(missing_ok=True)
+    write_features(paths["features"], ft)
+    write_blocks(paths["blocks"], paths["psfs"], bt)
+    atomic_write_text(paths["done"], frame_name + "\n")
+    return paths
+
+
+def completed_frames(folder: str | os.PathLike) -> dict[str, str]:
+    """Frames whose per-frame results are complete: ``{frame name: stem}``, sorted by stem."""
+    frames_dir = Path(folder) / FRAMES_DIR
+    if not frames_dir.is_dir():
+        return {}
+    done = {}
+    for marker in sorted(frames_dir.glob(f"*{DONE_SUFFIX}")):
+        try:
+            name = marker.read_text(encoding="utf-8").rstrip("\n")
+        except (OSError, UnicodeDecodeError) as exc:
+            raise ResultsFileError(f"{marker}: cannot read frame marker ({exc})") from None
+        done[name] = marker.name[:-len(DONE_SUFFIX)]
+    return done
+
+
+def collect_results(folder: str | os.PathLike) -> dict[str, Path]:
+    """Concatenate the completed frames' files under ``folder/frames/`` into the top-level files.
+
+    Frames are taken in stem order; frames without a ``.done`` marker are ignored.
+
+    Returns:
+        The paths written by :func:`write_results`.
+    Raises:
+        ResultsFileError: a per-frame file is missing or malformed.
+    """
+    frames_dir = Path(folder) / FRAMES_DIR
+    stems = completed_frames(folder).values()
+    features = FeatureTable.concat([read_feature_table(frames_dir / f"{s}.{FEATURES_FILE}") for s in stems])
+    blocks = BlockTable.concat([_read_block_table(frames_dir / f"{s}.{BLOCKS_FILE}",
+                                                  frames_dir / f"{s}.{PSFS_FILE}") for s in stems])
+    return write_results(folder, features, blocks)

@@ -1,0 +1,217 @@
+"""Results data model: on-disk round-trips, atomicity, validation, PSF moment figures."""
+
+from __future__ import annotations
+
+import math
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from blurcalib.results import (
+    BlockResult,
+    BlockStatus,
+    BlockTable,
+    FeatureFlags,
+    FeatureObservation,
+    FeatureTable,
+    ResultsFileError,
+    boundary_energy,
+    collect_results,
+    completed_frames,
+    frame_stem,
+    psf_moments,
+    read_block_table,
+    read_blocks,
+    read_feature_table,
+    read_features,
+    write_frame_results,
+    write_results,
+)
+
+AWKWARD_FLOATS = [0.1, 1 / 3, -0.0, 1e-300, 5e-324, 1.7976931348623157e308, math.pi * 1e7, -2.5e-17]
+
+
+def _features(frame: str, n: int, seed: int) -> list[FeatureObservation]:
+    rng = np.random.default_rng(seed)
+    flags = FeatureFlags.STAR_CENTRE | FeatureFlags.BLURRY_FRAME | FeatureFlags.LOCALLY_ALIGNED
+    return [FeatureObservation(frame, int(i), int(i % 7), int(i // 7), float(rng.random()) * 0.3,
+                               AWKWARD_FLOATS[i % len(AWKWARD_FLOATS)], float(rng.random()) * 4000,
+                               float(rng.random()) * 3000, float(rng.random()), int(flags))
+            for i in range(n)]
+
+
+def _blocks(frame: str, n: int, seed: int, k: int = 7) -> list[BlockResult]:
+    rng = np.random.default_rng(seed)
+    statuses = list(BlockStatus)
+    out = []
+    for i in range(n):
+        psf = rng.random((k, k)).astype(np.float32)
+        psf /= psf.sum()
+        m = psf_moments(psf)
+        H = rng.normal(size=(3, 3))
+        H[0, 0] = AWKWARD_FLOATS[i % len(AWKWARD_FLOATS)]
+        out.append(BlockResult(frame, i, i % 5, i // 5, H, psf, rng.normal(size=6), float(rng.random()) * 50,
+                               boundary_energy(psf), m.sigma_major, m.sigma_minor, m.eccentricity,
+                               m.orientation, m.centroid, statuses[i % len(statuses)]))
+    return out
+
+
+def _assert_blocks_equal(a: list[BlockResult], b: list[BlockResult]) -> None:
+    assert len(a) == len(b)
+    for x, y in zip(a, b, strict=True):
+        for name in ("frame", "feature_id", "fx", "fy", "loss", "boundary_energy", "sigma_major",
+                     "sigma_minor", "eccentricity", "orientation", "status"):
+            assert getattr(x, name) == getattr(y, name), name
+        for name in ("H", "psf", "coeffs", "centroid"):
+            assert getattr(x, name).dtype == getattr(y, name).dtype, name
+            assert getattr(x, name).tobytes() == getattr(y, name).tobytes(), name  # bit-exact
+
+
+def test_round_trip_exact(tmp_path: Path) -> None:
+    features = _features("cam0/img 001,a.png", 40, 0) + _features('img"2".png', 5, 1)
+    blocks = _blocks("cam0/img 001,a.png", 12, 2)
+    paths = write_results(tmp_path / "out", features, blocks)
+    assert set(paths) == {"features", "blocks", "psfs"}
+    assert paths["features"].read_text().splitlines()[0] == "frame,feature_id,fx,fy,X,Y,x,y,weight,flags"
+    back = read_features(paths["features"])
+    assert back == features
+    assert all(math.copysign(1, a.Y) == math.copysign(1, b.Y) for a, b in zip(back, features, strict=True))
+    _assert_blocks_equal(read_blocks(tmp_path / "out"), blocks)
+    assert sorted(p.name for p in (tmp_path / "out").iterdir()) == ["blocks.csv", "features.csv", "psfs.npz"]
+
+
+def test_empty_round_trip(tmp_path: Path) -> None:
+    write_results(tmp_path, [], [])
+    assert read_features(tmp_path / "features.csv") == []
+    assert read_blocks(tmp_path) == []
+
+
+def test_tables_convert_and_write_fast(tmp_path: Path) -> None:
+    n = 100_000
+    rng = np.random.default_rng(3)
+    table = FeatureTable(np.array([f"frame_{i // 500:04d}.png" for i in range(n)]), np.arange(n) % 300,
+                         rng.integers(0, 16, n), rng.integers(0, 23, n), rng.random(n), rng.random(n),
+                         rng.random(n) * 4000, rng.random(n) * 3000, rng.random(n), rng.integers(0, 64, n))
+    start = time.perf_counter()
+    write_results(tmp_path, table, BlockTable.empty(7))
+    assert time.perf_counter() - start < 1.5  # ~0.3 s unloaded; slack for a shared CPU
+    back = read_feature_table(tmp_path / "features.csv")
+    for name in ("frame", "feature_id", "fx", "fy", "X", "Y", "x", "y", "weight", "flags"):
+        assert np.array_equal(getattr(back, name), getattr(table, name)), name
+    small = table.select(np.arange(50))
+    observations = small.to_observations()
+    assert FeatureTable.from_observations(observations).to_observations() == observations
+    blocks = _blocks("f", 6, 4)
+    _assert_blocks_equal(BlockTable.from_blocks(blocks).to_blocks(), blocks)
+    assert read_block_table(tmp_path).psf.shape == (0, 7, 7)
+
+
+def test_atomic_writes(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    write_results(tmp_path, _features("a", 3, 0), _blocks("a", 2, 0))
+    before = {p.name: p.read_bytes() for p in tmp_path.iterdir()}
+    with pytest.raises(ValueError, match="one size"):  # invalid input: nothing is written
+        write_results(tmp_path, _features("b", 3, 1), _blocks("b", 1, 0, k=5) + _blocks("b", 1, 0, k=7))
+    assert {p.name: p.read_bytes() for p in tmp_path.iterdir()} == before
+
+    def failing_savez(handle, **arrays) -> None:
+        handle.write(b"partial npz")
+        raise OSError("disk full")
+
+    monkeypatch.setattr(np, "savez", failing_savez)
+    with pytest.raises(OSError, match="disk full"):
+        write_results(tmp_path, _features("b", 3, 1), _blocks("b", 2, 1))
+    after = {p.name: p.read_bytes() for p in tmp_path.iterdir()}
+    assert set(after) == set(before)  # no temporary file left behind
+    assert after["psfs.npz"] == before["psfs.npz"]  # the failed write left the old file intact
+    assert read_features(tmp_path / "features.csv") == _features("b", 3, 1)  # written whole before
+
+
+def test_corrupt_files_raise(tmp_path: Path) -> None:
+    write_results(tmp_path, _features("a", 4, 0), _blocks("a", 3, 0))
+    path = tmp_path / "features.csv"
+    lines = path.read_text().splitlines()
+    fields = lines[2].split(",")
+    fields[6] = "12.5px"
+    path.write_text("\n".join([*lines[:2], ",".join(fields), *lines[3:]]) + "\n")
+    with pytest.raises(ResultsFileError, match=r"features\.csv: column 'x', row 2: cannot parse '12\.5px'"):
+        read_features(path)
+    path.write_text(lines[0].replace(",weight", "") + "\n")
+    with pytest.raises(ResultsFileError, match=r"features\.csv: missing column\(s\) 'weight'"):
+        read_features(path)
+    with pytest.raises(ResultsFileError, match=r"nope\.csv: results file not found"):
+        read_features(tmp_path / "nope.csv")
+    blocks = tmp_path / "blocks.csv"
+    blocks.write_text(blocks.read_text().replace(",accepted,", ",acceptd,"))
+    with pytest.raises(ResultsFileError, match=r"blocks\.csv: column 'status', row 1: 'acceptd'"):
+        read_blocks(tmp_path)
+    (tmp_path / "psfs.npz").unlink()
+    with pytest.raises(ResultsFileError, match=r"psfs\.npz: results file not found"):
+        read_blocks(tmp_path)
+
+
+def test_per_frame_results_resume_and_collect(tmp_path: Path) -> None:
+    write_frame_results(tmp_path, "seq/b.png", _features("seq/b.png", 4, 1), _blocks("seq/b.png", 2, 1))
+    paths = write_frame_results(tmp_path, "a.png", _features("a.png", 3, 0), _blocks("a.png", 2, 0))
+    assert paths["features"] == tmp_path / "frames" / "a.features.csv"
+    assert frame_stem("seq/b.png") == "seq__b"
+    # an interrupted frame (no marker) is not done and is not collected
+    interrupted = write_frame_results(tmp_path, "c.png", _features("c.png", 2, 2), [])
+    interrupted["done"].unlink()
+    assert completed_frames(tmp_path) == {"a.png": "a", "seq/b.png": "seq__b"}
+    with pytest.raises(ValueError, match=r"frame 'a\.png' passed for frame 'c\.png'"):
+        write_frame_results(tmp_path, "c.png", _features("a.png", 1, 0), [])
+    collect_results(tmp_path)
+    assert read_features(tmp_path / "features.csv") == _features("a.png", 3, 0) + _features("seq/b.png", 4, 1)
+    _assert_blocks_equal(read_blocks(tmp_path), _blocks("a.png", 2, 0) + _blocks("seq/b.png", 2, 1))
+
+
+def _gaussian(k: int, sx: float, sy: float, angle: float, shift: tuple[float, float] = (0, 0)) -> np.ndarray:
+    c = (k - 1) / 2
+    y, x = np.mgrid[0:k, 0:k] - c
+    x, y = x - shift[0], y - shift[1]
+    ca, sa = math.cos(angle), math.sin(angle)
+    u, v = ca * x + sa * y, -sa * x + ca * y
+    g = np.exp(-0.5 * ((u / sx) ** 2 + (v / sy) ** 2))
+    return (g / g.sum()).astype(np.float32)
+
+
+def test_psf_moments_gaussian_line_delta() -> None:
+    m = psf_moments(_gaussian(41, 3.0, 1.0, math.radians(30)))
+    assert m.sigma_major == pytest.approx(3.0, rel=0.01)
+    assert m.sigma_minor == pytest.approx(1.0, rel=0.01)
+    assert math.degrees(m.orientation) == pytest.approx(30.0, rel=0.01)
+    assert m.eccentricity == pytest.approx(math.sqrt(1 - 1 / 9), rel=0.01)
+    assert np.allclose(m.centroid, 0, atol=1e-5)
+
+    line = np.zeros((15, 15), np.float32)
+    line[7, 3:12] = 1 / 9
+    m = psf_moments(line)
+    assert m.sigma_major == pytest.approx(math.sqrt((9**2 - 1) / 12), rel=1e-6)  # discrete 9-px line
+    assert m.sigma_major == pytest.approx(9 / math.sqrt(12), rel=0.01)
+    assert (m.sigma_minor, m.eccentricity, m.orientation) == (0.0, 1.0, 0.0)
+    m = psf_moments(line.T)
+    assert m.orientation == pytest.approx(math.pi / 2)
+
+    delta = np.zeros((9, 9), np.float32)
+    delta[2, 6] = 1.0  # row 2, column 6: offset (+2, -2) px
+    m = psf_moments(delta)
+    assert np.array_equal(m.centroid, [2.0, -2.0])
+    assert (m.sigma_major, m.sigma_minor, m.eccentricity) == (0.0, 0.0, 0.0)
+
+    batch = np.stack([_gaussian(41, 3.0, 1.0, math.radians(30)), _gaussian(41, 2.0, 2.0, 0.0, (1.5, -0.5))])
+    mb = psf_moments(batch)
+    assert mb.centroid.shape == (2, 2) and mb.sigma_major.shape == (2,)
+    assert mb.sigma_major[0] == pytest.approx(3.0, rel=0.01)
+    assert np.allclose(mb.centroid[1], [1.5, -0.5], atol=1e-4)
+
+
+def test_boundary_energy() -> None:
+    delta = np.zeros((11, 11), np.float32)
+    delta[5, 5] = 1
+    assert boundary_energy(delta) == 0.0
+    uniform = np.full((11, 11), 1 / 121, np.float32)
+    assert boundary_energy(uniform) == pytest.approx((121 - 49) / 121)
+    assert boundary_energy(uniform, ring=1) == pytest.approx((121 - 81) / 121)
+    assert np.allclose(boundary_energy(np.stack([delta, uniform])), [0.0, 72 / 121])
