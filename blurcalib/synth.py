@@ -26,7 +26,7 @@ from __future__ import annotations
 import json
 import math
 import os
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -363,14 +363,14 @@ def pattern_texture(pattern: StarPattern, texels_per_square: int) -> Texture:
     """The printed page as an exactly anti-aliased texture.
 
     The star area is periodic, so one anti-aliased star cell (``texels_per_square`` squared,
-    16 x 16 samples per texel) is tiled; the pattern border and the tag's cells fall on texel
+    4 x 4 to 16 x 16 samples per texel) is tiled; the pattern border and the tag's cells fall on texel
     boundaries (``texels_per_square`` a multiple of 10), so they are exact too. The page
     outside the patterned area is white; beyond the page is ``background``.
     """
     r = int(texels_per_square)
     if r % 10:
         raise ValueError(f"texels_per_square must be a multiple of 10, got {r}")
-    ss = 16
+    ss = max(4, min(16, 1280 // r))  # samples per texel side
     o = (np.arange(r * ss) + 0.5) / (r * ss) - 0.5  # cell-local offsets in squares
     u, v = np.meshgrid(o, o)
     cell = star_sector_white(u, v, pattern.num_star_segments).astype(np.float32)
@@ -481,25 +481,74 @@ class Renderer:
             maps.append(spline(fine_y, fine_x).astype(np.float32))
         self._map_x, self._map_y = maps
 
-    def irradiance(self, texture: Texture, pose: Pose, motion: Motion) -> np.ndarray:
+    def irradiance(self, levels: Sequence[Texture], pose: Pose, motion: Motion) -> np.ndarray:
         """Time-integrated, lens-mapped, pixel-integrated target image: ``(H, W)`` in [0, 1].
 
         Each time sample warps the texture onto an undistorted, supersampled canvas with the
         homography ``K_canvas [r1 r2 t](tau) to_plane`` (``eq:T``); the mean over samples is
         then mapped through the true lens and box-averaged over each pixel.
+
+        ``levels`` is a mip pyramid of the same target (finest first, each level half the
+        resolution of the previous). Every canvas sample blends the two levels whose texel
+        size is closest to its own footprint (trilinear mip-mapping, weights from the
+        mid-exposure pose), so the texture is neither aliased where the target is far nor
+        blurred where it is near.
         """
+        weights = self._level_weights(levels, pose)
         acc = np.zeros(self.canvas_size[::-1], dtype=np.float32)
-        for p in motion.poses(pose):
-            H = self.canvas_K @ np.column_stack([p.R[:, 0], p.R[:, 1], p.t]) @ texture.to_plane
-            warped = cv2.warpPerspective(texture.image, H, self.canvas_size, flags=cv2.INTER_LINEAR,
-                                         borderMode=cv2.BORDER_CONSTANT,
-                                         borderValue=float(texture.background))
-            cv2.accumulate(warped, acc)
+        for level, (weight, box) in zip(levels, weights, strict=True):
+            if weight is None:
+                continue
+            x0, y0, x1, y1 = box
+            shift = np.array([[1.0, 0.0, -x0], [0.0, 1.0, -y0], [0.0, 0.0, 1.0]])
+            level_acc = np.zeros((y1 - y0, x1 - x0), dtype=np.float32)
+            for p in motion.poses(pose):
+                H = shift @ self.canvas_K @ np.column_stack([p.R[:, 0], p.R[:, 1], p.t]) \
+                    @ level.to_plane
+                warped = cv2.warpPerspective(level.image, H, (x1 - x0, y1 - y0),
+                                             flags=cv2.INTER_LINEAR,
+                                             borderMode=cv2.BORDER_CONSTANT,
+                                             borderValue=float(level.background))
+                cv2.accumulate(warped, level_acc)
+            cv2.accumulateProduct(level_acc, weight, acc[y0:y1, x0:x1])
         acc /= motion.samples
+        background = float(levels[0].background)
         sensor = cv2.remap(acc, self._map_x, self._map_y, cv2.INTER_LINEAR,
-                           borderMode=cv2.BORDER_CONSTANT, borderValue=float(texture.background))
+                           borderMode=cv2.BORDER_CONSTANT, borderValue=background)
         w, h = self.camera.model.width, self.camera.model.height
         return cv2.resize(sensor, (w, h), interpolation=cv2.INTER_AREA)
+
+    def _level_weights(self, levels: Sequence[Texture], pose: Pose
+                       ) -> list[tuple[np.ndarray | None, tuple[int, int, int, int]]]:
+        """Per-level blend weights over the canvas and their bounding boxes.
+
+        The finest level's texels per canvas sample at canvas point ``x`` is
+        ``rho(x) = sqrt(|det G| / |w(x)|^3)`` for the canvas-to-texture homography ``G`` with
+        ``w(x) = G[2] . (x, y, 1)``; level ``lambda = log2 rho`` (clipped to the pyramid) is
+        blended linearly between its two neighbouring integer levels.
+        """
+        cw, ch = self.canvas_size
+        H = self.canvas_K @ np.column_stack([pose.R[:, 0], pose.R[:, 1], pose.t]) \
+            @ levels[0].to_plane
+        G = np.linalg.inv(H)
+        step = 16
+        ys, xs = np.mgrid[0:ch + step:step, 0:cw + step:step].astype(np.float64)
+        w = G[2, 0] * xs + G[2, 1] * ys + G[2, 2]
+        rho = np.sqrt(abs(np.linalg.det(G)) / np.maximum(np.abs(w), 1e-12) ** 3)
+        lam = np.clip(np.log2(np.maximum(rho, 1e-12)), 0, len(levels) - 1)
+        lam = cv2.resize(lam.astype(np.float32), (xs.shape[1] * step, xs.shape[0] * step),
+                         interpolation=cv2.INTER_LINEAR)[:ch, :cw]
+        out: list[tuple[np.ndarray | None, tuple[int, int, int, int]]] = []
+        for k in range(len(levels)):
+            weight = np.maximum(0.0, 1.0 - np.abs(lam - k)).astype(np.float32)
+            rows = np.flatnonzero(weight.max(axis=1) > 0)
+            cols = np.flatnonzero(weight.max(axis=0) > 0)
+            if len(rows) == 0:
+                out.append((None, (0, 0, 0, 0)))
+                continue
+            box = (int(cols[0]), int(rows[0]), int(cols[-1]) + 1, int(rows[-1]) + 1)
+            out.append((np.ascontiguousarray(weight[box[1]:box[3], box[0]:box[2]]), box))
+        return out
 
     def time_samples_for(self, pose: Pose, xi: np.ndarray, xi2: np.ndarray,
                          probe_points: np.ndarray) -> int:
@@ -690,15 +739,22 @@ def frame_truth(name: str, kind: str, pattern: StarPattern, camera: TrueCamera, 
         noise=(gain, 0.5 * noise_sigma / 2.0))
 
 
-def choose_texels_per_square(camera: TrueCamera, pose: Pose, pattern: StarPattern,
-                             supersample: int) -> int:
-    """Texture resolution: at least one texel per canvas sample at the closest feature."""
-    pts = pattern.points_3d()
-    cam = pose.transform(pts)
-    z = cam[:, 2][cam[:, 2] > 0]
+MIP_TEXELS_PER_SQUARE = (320, 160, 80, 40, 20, 10)
+"""Texture resolutions of the mip pyramid, finest first (multiples of 10, halving)."""
+
+
+def mip_levels_for(camera: TrueCamera, pose: Pose, pattern: StarPattern, supersample: int) -> range:
+    """Which pyramid levels a frame needs: from the one whose texels are no larger than a
+    canvas sample at the nearest feature, down to the coarsest."""
+    cam = pattern.points_3d()
+    z = pose.transform(cam)[:, 2]
+    z = z[z > 0]
     px_per_square = camera.model.fx * pattern.square_length_m / float(z.min()) if len(z) else 40.0
-    need = 1.2 * px_per_square * supersample
-    return int(min(max(10 * math.ceil(need / 10.0), 40), 400))
+    need = px_per_square * supersample
+    finest = 0
+    while finest + 1 < len(MIP_TEXELS_PER_SQUARE) and MIP_TEXELS_PER_SQUARE[finest + 1] >= need:
+        finest += 1
+    return range(finest, len(MIP_TEXELS_PER_SQUARE))
 
 
 @dataclass
@@ -721,6 +777,7 @@ class Simulator:
         self._textures: dict[int, Texture] = {}
 
     def texture(self, texels_per_square: int) -> Texture:
+        """The page texture at a resolution (built once, then cached)."""
         if texels_per_square not in self._textures:
             self._textures[texels_per_square] = pattern_texture(self.pattern, texels_per_square)
         return self._textures[texels_per_square]
@@ -745,9 +802,9 @@ class Simulator:
         defocus = float(rng.uniform(*cfg.defocus_px))
         truth = frame_truth(name, kind, self.pattern, self.camera, pose, motion, defocus, rng,
                             cfg.noise_sigma)
-        tex = self.texture(choose_texels_per_square(self.camera, pose, self.pattern,
-                                                    cfg.supersample))
-        irradiance = self.renderer.irradiance(tex, pose, motion)
+        levels = [self.texture(MIP_TEXELS_PER_SQUARE[k])
+                  for k in mip_levels_for(self.camera, pose, self.pattern, cfg.supersample)]
+        irradiance = self.renderer.irradiance(levels, pose, motion)
         return SimulatedFrame(sensor_image(irradiance, truth, rng), truth)
 
 
