@@ -618,6 +618,19 @@ class SynthConfig:
     seed: int = 0
     supersample: int = 3
 
+    def __post_init__(self) -> None:
+        if self.sharp < 0 or self.blurry < 0:
+            raise ValueError(f"frame counts must be >= 0, got {self.sharp} sharp, {self.blurry} blurry")
+        if not 0 <= self.blur_min_px <= self.blur_max_px:
+            raise ValueError(f"need 0 <= blur_min_px <= blur_max_px, got {self.blur_min_px}, "
+                             f"{self.blur_max_px}")
+        if not 0 <= self.max_tilt_deg < 85:
+            raise ValueError(f"max_tilt_deg must be in [0, 85), got {self.max_tilt_deg}")
+        if not 0 < self.square_px[0] <= self.square_px[1]:
+            raise ValueError(f"square_px must be an increasing positive range, got {self.square_px}")
+        if self.supersample < 1:
+            raise ValueError(f"supersample must be >= 1, got {self.supersample}")
+
 
 def _rotation(axis: np.ndarray, angle: float) -> np.ndarray:
     R, _ = cv2.Rodrigues(np.asarray(axis, float).reshape(3) * angle)
@@ -809,7 +822,7 @@ class Simulator:
 
 
 def write_dataset(out_dir: str | os.PathLike, config: SynthConfig | None = None,
-                  pattern: StarPattern | None = None,
+                  pattern: StarPattern | None = None, camera: TrueCamera | None = None,
                   progress: Callable[[int, int, str], None] | None = None) -> DatasetTruth:
     """Simulate a dataset into ``out_dir``: ``pattern.yaml``, ``sharp/*.png``,
     ``blurry/*.png`` and ``ground_truth.json`` (see ``docs/synthetic-data.md``).
@@ -818,7 +831,7 @@ def write_dataset(out_dir: str | os.PathLike, config: SynthConfig | None = None,
     ``ground_truth.json`` is complete.
     """
     out = ensure_writable_dir(out_dir)
-    sim = Simulator(config, pattern)
+    sim = Simulator(config, pattern, camera)
     sim.pattern.save_yaml(out / "pattern.yaml")
     frames = []
     names = sim.frame_names()
