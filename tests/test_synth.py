@@ -52,8 +52,8 @@ def _centroid(img: np.ndarray) -> np.ndarray:
 def _area_scale(camera: TrueCamera, pose: Pose, P: np.ndarray) -> float:
     eps = 1e-5
     a = camera.project(pose.transform(P[None]))[0]
-    bx = camera.project(pose.transform((P + [eps, 0, 0])[None]))[0]
-    by = camera.project(pose.transform((P + [0, eps, 0])[None]))[0]
+    bx = camera.project(pose.transform((P + np.array([eps, 0.0, 0.0]))[None]))[0]
+    by = camera.project(pose.transform((P + np.array([0.0, eps, 0.0]))[None]))[0]
     return abs(np.linalg.det(np.column_stack([bx - a, by - a])))
 
 
