@@ -452,24 +452,34 @@ def layout_pattern(page_size_mm: tuple[float, float] = PAGE_SIZES_MM["A4"],
         raise ValueError(f"num_star_segments must be a multiple of 4 (>= 4), got {num_star_segments}")
     if not 0 <= tag_index < 587:
         raise ValueError(f"tag index must be a tag36h11 id in [0, 586], got {tag_index}")
-    width, height = page_size_mm
-    area_w = width - 2.0 * margin_mm
-    area_h = height - 2.0 * margin_mm
-    if area_w <= 0 or area_h <= 0 or approx_square_length_mm <= 0:
-        raise ValueError(f"page {width} x {height} mm leaves no printable area")
-    length = min(area_w / max(1, round(area_w / approx_square_length_mm)),
-                 area_h / max(1, round(area_h / approx_square_length_mm)))
-    squares_x = math.floor(area_w / length + 1e-9)
-    squares_y = math.floor(area_h / length + 1e-9)
+    # Computed in PDF points exactly as the reference generator does, so that the YAML it
+    # writes is reproduced to the last digit.
+    cm = 72.0 / 2.54
+    mm = cm * 0.1
+    width, height = page_size_mm[0] * mm, page_size_mm[1] * mm
+    margin = margin_mm / 10.0 * cm
+    area_w = (width - margin) - margin
+    area_h = (height - margin) - margin
+    approx = approx_square_length_mm / 10.0 * cm
+    if area_w <= 0 or area_h <= 0 or approx <= 0:
+        raise ValueError(f"page {page_size_mm[0]} x {page_size_mm[1]} mm leaves no printable area")
+    length = min(area_w / max(1, round(area_w / approx)), area_h / max(1, round(area_h / approx)))
+    squares_x = math.floor(area_w / length)
+    squares_y = math.floor(area_h / length)
     if min(squares_x, squares_y) < tag_length_in_squares + 2:
-        raise ValueError(f"page {width} x {height} mm fits only {squares_x} x {squares_y} squares "
-                         f"of {length:.2f} mm: too few for a {tag_length_in_squares}-square tag")
-    start_x = margin_mm + 0.5 * (area_w - squares_x * length)
-    start_y = margin_mm + 0.5 * (area_h - squares_y * length)
+        raise ValueError(f"page {page_size_mm[0]} x {page_size_mm[1]} mm fits only {squares_x} x "
+                         f"{squares_y} squares of {length / mm:.2f} mm: too few for a "
+                         f"{tag_length_in_squares}-square tag")
+    unused_x = area_w - squares_x * length
+    unused_y = area_h - squares_y * length
+    start_x = margin + 0.5 * unused_x
+    start_y_up = height - margin - 0.5 * unused_y  # PDF y axis points up
+    end_x = width - margin - 0.5 * unused_x
+    end_y_up = margin + 0.5 * unused_y
     tag = AprilTagPlacement(tag_x=squares_x // 2 - tag_length_in_squares // 2,
                             tag_y=squares_y // 2 - tag_length_in_squares // 2,
                             width=tag_length_in_squares, height=tag_length_in_squares,
                             index=tag_index)
-    page = PageLayout(width, height, start_x, start_y,
-                      start_x + squares_x * length, start_y + squares_y * length)
-    return StarPattern(num_star_segments, squares_x, squares_y, length / 1000.0, page, (tag,))
+    page = PageLayout(width / mm, height / mm, start_x / mm, (height - start_y_up) / mm,
+                      end_x / mm, (height - end_y_up) / mm)
+    return StarPattern(num_star_segments, squares_x, squares_y, 0.01 * length / cm, page, (tag,))

@@ -25,8 +25,10 @@ from __future__ import annotations
 
 import json
 import math
+import multiprocessing
 import os
 from collections.abc import Callable, Sequence
+from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -821,29 +823,59 @@ class Simulator:
         return SimulatedFrame(sensor_image(irradiance, truth, rng), truth)
 
 
+_WORKER_SIM: Simulator | None = None
+"""The simulator of a worker process of :func:`write_dataset` (never set in the main process)."""
+
+
+def _init_worker(config: SynthConfig, pattern: StarPattern, camera: TrueCamera) -> None:
+    global _WORKER_SIM  # each worker process builds its simulator (lens maps, textures) once
+    cv2.setNumThreads(1)
+    _WORKER_SIM = Simulator(config, pattern, camera)
+
+
+def _render_in_worker(index: int) -> SimulatedFrame:
+    assert _WORKER_SIM is not None
+    return _WORKER_SIM.frame(index)
+
+
 def write_dataset(out_dir: str | os.PathLike, config: SynthConfig | None = None,
                   pattern: StarPattern | None = None, camera: TrueCamera | None = None,
-                  progress: Callable[[int, int, str], None] | None = None) -> DatasetTruth:
+                  progress: Callable[[int, int, str], None] | None = None,
+                  workers: int = 1) -> DatasetTruth:
     """Simulate a dataset into ``out_dir``: ``pattern.yaml``, ``sharp/*.png``,
     ``blurry/*.png`` and ``ground_truth.json`` (see ``docs/synthetic-data.md``).
 
     Every file is written atomically; the ground truth is written last, so a folder with a
-    ``ground_truth.json`` is complete.
+    ``ground_truth.json`` is complete. ``workers > 1`` renders frames in that many processes
+    (the result is identical: each frame's randomness depends only on the seed and its index).
     """
     out = ensure_writable_dir(out_dir)
     sim = Simulator(config, pattern, camera)
     sim.pattern.save_yaml(out / "pattern.yaml")
-    frames = []
     names = sim.frame_names()
-    for i, (name, _) in enumerate(names):
-        frame = sim.frame(i)
+    truths: list[FrameTruth | None] = [None] * len(names)
+
+    def store(index: int, frame: SimulatedFrame) -> None:
+        name = names[index][0]
         ensure_writable_dir((out / name).parent)
         with atomic_path(out / name) as tmp:
             if not cv2.imwrite(str(tmp), frame.image):
                 raise OSError(f"{out / name}: cannot write image")
-        frames.append(frame.truth)
+        truths[index] = frame.truth
         if progress is not None:
-            progress(i + 1, len(names), name)
+            progress(sum(t is not None for t in truths), len(names), name)
+
+    if workers > 1 and len(names) > 1:
+        ctx = multiprocessing.get_context("spawn")
+        with ProcessPoolExecutor(workers, mp_context=ctx, initializer=_init_worker,
+                                 initargs=(sim.config, sim.pattern, sim.camera)) as pool:
+            futures = {pool.submit(_render_in_worker, i): i for i in range(len(names))}
+            for future in as_completed(futures):
+                store(futures[future], future.result())
+    else:
+        for i in range(len(names)):
+            store(i, sim.frame(i))
+    frames = [t for t in truths if t is not None]
     truth = DatasetTruth(sim.camera, "pattern.yaml", frames, asdict(sim.config))
     atomic_write_text(out / GROUND_TRUTH_FILE, json.dumps(truth.to_dict()))
     return truth

@@ -46,8 +46,9 @@ def test_fixture_yaml_fields(fixture_pattern: StarPattern) -> None:
     ("pattern_resolution_50x72_segments_16_apriltag_3.yaml", 4.0, 3),
 ])
 def test_layout_reproduces_reference_generator(shared_fixtures, name, approx_mm, tag) -> None:
-    _assert_same_pattern(layout_pattern(approx_square_length_mm=approx_mm, tag_index=tag),
-                         load_pattern(SCHOPS / name))
+    mine = layout_pattern(approx_square_length_mm=approx_mm, tag_index=tag)
+    _assert_same_pattern(mine, load_pattern(SCHOPS / name))
+    assert mine.to_yaml_text() == (SCHOPS / name).read_text()
 
 
 def test_yaml_round_trip(tmp_path, fixture_pattern: StarPattern) -> None:
