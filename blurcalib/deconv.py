@@ -1,0 +1,1132 @@
+"""Local deconvolution of star blocks: homography, PSF and brightness per block, batched.
+
+The paper's *Local Deconvolution* (``eq:deconvolution``) with the PSF re-centring of its *Local
+Alignment*. For every block (the star square around one feature) we solve::
+
+    argmin_{H, k, p}  sum_{x in square} (I(x) - m(x))^2  +  lambda sum_d rho(d) k(d)^2,   k >= 0
+
+with the model ``m`` in one of two brightness orders (:attr:`DeconvSettings.brightness`)::
+
+    "after_blur" (default):              m = A(p) (k * S(H)) + B(p)
+    "before_blur" (the paper's order):   m = k * (S(H) A(p) + B(p))
+
+``A = a1 u + a2 v + a3`` and ``B = b1 u + b2 v + b3`` over normalised pixel coordinates
+``u = (x - x_c) / s``, ``v = (y - y_c) / s`` (``(x_c, y_c)`` the window centre, ``s`` half the
+window's longer side; both in :class:`BlockFit`), ``p = (a1, a2, a3, b1, b2, b3)`` grey levels.
+
+Conventions (as in ``pattern.py`` and ``results.py``):
+
+* Pixels follow OpenCV: the centre of the top-left pixel is ``(0, 0)``, x right, y down.
+* Block coordinates ``q in [-1, 1]^2``: star centre at 0, square corners at ``(+-1, +-1)``,
+  feature coordinates ``p = (fx, fy) + q / 2``; a block's ``H`` (3 x 3) maps ``(q_x, q_y, 1)`` to
+  homogeneous full-image pixels.
+* The PSF ``k`` is ``K x K`` (``K`` odd), ``k[i, j]`` weighs the offset ``d = (j - c, i - c)`` px,
+  ``c = (K - 1) / 2``, and ``(k * L)(x) = sum_d k(d) L(x - d)``: a PSF centroid at ``+d`` shows
+  the blurred feature displaced by ``+d`` from the latent one.
+
+Latent pattern ``S(H)`` (:attr:`DeconvSettings.pattern`):
+
+* ``"signed_distance"`` (default): ``sigmoid(d_px / tau)``, ``d_px`` the signed distance in
+  pixels from the pixel centre to the nearest pattern edge (sector rays *and* square borders,
+  :func:`blurcalib.pattern.star_signed_distance` divided by its gradient norm through ``H``),
+  positive in white: a pixel-consistent soft edge of width ``tau`` px that ``k`` absorbs.
+* ``"sigmoid_sin"``: the paper's ``sigmoid(-beta sin(N theta / 2))`` (supplement ``eq:soft``,
+  :func:`blurcalib.pattern.smooth_star`) sampled at pixel centres (no square borders).
+
+The latent pattern is periodic: beyond the block's square it continues into the neighbouring
+stars (which have the opposite colour across the square border), so the loss covers only the
+block's own square while the model reaches ``c`` px further out. On the reference target the half
+square between a tag-adjacent block and the tag still carries the star of the tag's boundary
+feature, so the model stays exact next to the tag while ``c`` is below half a square (px).
+Pixels that must not enter the loss (saturation, occluders, a tag nearer than ``c``) are
+excluded with ``pixel_mask``.
+
+Solver (variable projection, Golub-Pereyra with Kaufman's Jacobian). Given ``H`` and the relative
+gradient ``alpha = (a1, a2) / a3`` of ``A``, the model is linear in ``k~ = a3 k`` and in the
+affine offset, which are solved in closed form (ridge least squares, kernel entries that come out
+negative fixed at zero); Levenberg-Marquardt then updates the 8 homography parameters and
+``alpha`` on the reduced problem, every step re-solving the kernel. Stages:
+
+1. a coarse kernel (taps on a 2-px lattice, tent-interpolated) at ``H0``, the PSF only roughly;
+2. ``outer_iterations`` times: integer re-centring of the kernel (``H <- T(n) H``, the
+   translational ambiguity ``k' * L' = k * L``), a kernel support (entries above
+   ``support_threshold`` of the peak, dilated), the loss's pixels from the current ``H``, and
+   ``gn_steps`` LM steps;
+3. sub-pixel re-centring ``H <- T(c) H`` with ``c`` the PSF centroid (:func:`recentre`), so that
+   ``H(0, 0)`` is the centre of the star's time-averaged image.
+
+All blocks of a batch are solved together as padded ``(b, ...)`` tensors on
+:attr:`DeconvSettings.device`: the solver loops over stages, LM steps and kernel entries (one
+batched gather each), never over blocks or pixels. Measurements behind the defaults:
+``docs/deconvolution.md`` and ``scripts/bench_deconv.py``.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Literal, NamedTuple
+
+import cv2
+import numpy as np
+import torch
+import torch.nn.functional as nnf
+from scipy.signal import fftconvolve
+
+from blurcalib.pattern import StarPattern, smooth_star, star_signed_distance
+from blurcalib.results import BlockStatus, boundary_energy, psf_moments
+from blurcalib.synth import splat
+
+__all__ = [
+    "BlockFit",
+    "BlockModel",
+    "DeconvSettings",
+    "SimulatedBlocks",
+    "fit_blocks",
+    "psf_centroid",
+    "recentre",
+    "render_model",
+    "shift_pair",
+    "simulate_blocks",
+    "translation",
+]
+
+Brightness = Literal["after_blur", "before_blur"]
+PatternModel = Literal["signed_distance", "sigmoid_sin"]
+
+_NUM_P = 6
+"""Brightness coefficients ``(a1, a2, a3, b1, b2, b3)``."""
+_NUM_NL = 10
+"""Non-linear parameters: 8 of ``H`` and the 2 of ``alpha``."""
+
+
+@dataclass(frozen=True)
+class DeconvSettings:
+    """Settings of :func:`fit_blocks`; the defaults are the measured choice (docs/deconvolution.md).
+
+    Attributes:
+        kernel_size: ``K`` (odd), PSF window side in px; about 1.5 x the longest blur is best.
+        ridge: ``lambda`` of ``eq:deconvolution``, relative to the mean energy of a kernel
+            entry's column of the design (dimensionless).
+        ridge_border: growth of the ridge towards the kernel's border,
+            ``rho(d) = 1 + ridge_border (|d| / c)^ridge_power``: a pedestal in ``k`` is nearly
+            indistinguishable from the offset ``B`` and would move the PSF centroid.
+        ridge_power: exponent of that growth.
+        tau: soft-edge width of the ``"signed_distance"`` pattern (px).
+        supersample: latent samples per pixel side (1: pixel centres).
+        beta: edge sharpness of the ``"sigmoid_sin"`` pattern (dimensionless).
+        pattern: latent pattern model, ``"signed_distance"`` or ``"sigmoid_sin"``.
+        brightness: model order, ``"after_blur"`` ``A (k * S) + B`` or ``"before_blur"``
+            ``k * (S A + B)`` (the paper's).
+        outer_iterations: stages of (integer re-centring, support, LM steps) after the coarse
+            initial kernel.
+        gn_steps: Levenberg-Marquardt steps per stage (each re-solves the kernel).
+        support_threshold: kernel entries below this share of the previous stage's peak are
+            fixed at zero (0: the whole window).
+        support_dilation: the support is grown by this many px.
+        nonnegative: fix kernel entries that come out negative at zero (active-set passes).
+        nonnegative_passes: active-set passes per kernel solve.
+        centroid_threshold: kernel values below this share of the peak are ignored by the PSF
+            centroid (:func:`psf_centroid`); 0 keeps all (the kernel is non-negative).
+        window_margin: px added around the square's bounding box (room for ``H`` to move).
+        min_square_px: blocks whose square is smaller (sqrt of its area, px) are degenerate.
+        min_contrast: a fit whose paper-ink contrast ``a3`` is below this (grey levels) has
+            failed (no star in the window) and is ``not_converged``.
+        max_window_px: blocks whose window side exceeds this are degenerate.
+        batch_size: blocks solved together (grouped by window size).
+        converge_tol_px: a block has converged when the last accepted LM step moved its star
+            centre by less than this (px).
+        device: torch device of the solve (``"cpu"``, ``"cuda"``, ...).
+        dtype: ``"float32"`` or ``"float64"`` for image-sized tensors; the small systems and
+            ``H`` are always float64.
+    """
+
+    kernel_size: int = 17
+    ridge: float = 1e-3
+    ridge_border: float = 30.0
+    ridge_power: float = 4.0
+    tau: float = 0.25
+    supersample: int = 1
+    beta: float = 5.0
+    pattern: PatternModel = "signed_distance"
+    brightness: Brightness = "after_blur"
+    outer_iterations: int = 2
+    gn_steps: int = 2
+    support_threshold: float = 0.15
+    support_dilation: int = 1
+    nonnegative: bool = True
+    nonnegative_passes: int = 3
+    centroid_threshold: float = 0.0
+    window_margin: int = 2
+    min_square_px: float = 6.0
+    min_contrast: float = 10.0
+    max_window_px: int = 256
+    batch_size: int = 64
+    converge_tol_px: float = 0.05
+    device: str = "cpu"
+    dtype: str = "float32"
+
+    def __post_init__(self) -> None:
+        if self.kernel_size < 3 or self.kernel_size % 2 == 0:
+            raise ValueError(f"kernel_size must be odd and >= 3, got {self.kernel_size}")
+        if self.pattern not in ("signed_distance", "sigmoid_sin"):
+            raise ValueError(f"pattern must be 'signed_distance' or 'sigmoid_sin', got {self.pattern!r}")
+        if self.brightness not in ("after_blur", "before_blur"):
+            raise ValueError(f"brightness must be 'after_blur' or 'before_blur', got {self.brightness!r}")
+        if self.dtype not in ("float32", "float64"):
+            raise ValueError(f"dtype must be 'float32' or 'float64', got {self.dtype!r}")
+        if self.tau <= 0 or self.beta <= 0 or self.ridge < 0 or self.ridge_border < 0:
+            raise ValueError("tau and beta must be positive, ridge and ridge_border non-negative")
+        if min(self.outer_iterations, self.batch_size, self.supersample) < 1 or self.gn_steps < 0:
+            raise ValueError("outer_iterations, batch_size and supersample must be >= 1, gn_steps >= 0")
+        if not 0.0 <= self.support_threshold < 1.0 or self.support_dilation < 0:
+            raise ValueError("support_threshold must be in [0, 1), support_dilation >= 0")
+
+    @property
+    def radius(self) -> int:
+        """Kernel radius ``c = (K - 1) / 2`` px."""
+        return (self.kernel_size - 1) // 2
+
+    @property
+    def torch_dtype(self) -> torch.dtype:
+        """The torch dtype of :attr:`dtype`."""
+        return torch.float32 if self.dtype == "float32" else torch.float64
+
+
+@dataclass(eq=False)
+class BlockFit:
+    """Batched result of :func:`fit_blocks` for ``B`` blocks (``K`` the kernel size).
+
+    Blocks that were not fitted (status ``outside_image`` or ``degenerate_homography``) keep
+    their initial ``H`` and carry NaN in every other float field.
+
+    Attributes:
+        H: ``(B, 3, 3)`` float64, block coordinates -> image px, *after* PSF re-centring, so
+            ``H(0, 0)`` is the centre of the star's time-averaged (blurred) image;
+            ``H[2, 2] = 1``.
+        psf: ``(B, K, K)`` float64 re-centred kernels (centroid at the kernel centre), each
+            non-negative and summing to 1.
+        psf_fit: ``(B, K, K)`` float64 fitted kernels before the sub-pixel re-centring (they go
+            with :attr:`H_fit`).
+        coeffs: ``(B, 6)`` float64 ``(a1, a2, a3, b1, b2, b3)`` grey levels of the fitted model
+            (:attr:`H_fit`, :attr:`psf_fit`).
+        uv_centre: ``(B, 2)`` px, ``(x_c, y_c)`` of the normalised coordinates ``u, v``.
+        uv_scale: ``(B,)`` px, ``s`` of the normalised coordinates.
+        loss: ``(B,)`` mean squared residual over the block's square (grey levels^2).
+        residual_rms: ``(B,)`` ``sqrt(loss)`` (grey levels).
+        centroid: ``(B, 2)`` px, centroid of :attr:`psf_fit` relative to the kernel centre; the
+            re-centring moved ``H`` by it: ``H = T(centroid) H_fit``.
+        boundary_energy: ``(B,)`` share of PSF energy in the kernel's outer two-pixel ring.
+        sigma_major, sigma_minor: ``(B,)`` px, PSF second-moment ellipse axes.
+        eccentricity: ``(B,)``; orientation: ``(B,)`` rad in ``(-pi/2, pi/2]``.
+            The moment figures are those of :attr:`psf_fit` (central moments do not depend on
+            the re-centring, which would widen the kernel slightly).
+        converged: ``(B,)`` bool: fitted, finite, contrast ``a3`` above
+            :attr:`DeconvSettings.min_contrast`, and the last LM step moved the star centre by
+            less than :attr:`DeconvSettings.converge_tol_px`.
+        status: ``B`` :class:`blurcalib.results.BlockStatus`: ``accepted``, ``not_converged``,
+            ``outside_image`` or ``degenerate_homography``.
+        centre_step: ``(B,)`` px, movement of the star centre in the last accepted LM step.
+        origin: ``(B, 2)`` int, ``(x0, y0)`` px of the observed window's top-left pixel.
+        window_size: ``(B, 2)`` int, ``(width, height)`` px of the observed window.
+        num_pixels: ``(B,)`` int, pixels in the loss.
+        masks: ``(B,)`` object array of bool ``(height, width)`` arrays over each window: the
+            loss's pixels (empty for blocks that were not fitted).
+        num_segments: star segments ``N``.
+        settings: the settings used.
+    """
+
+    H: np.ndarray
+    psf: np.ndarray
+    psf_fit: np.ndarray
+    coeffs: np.ndarray
+    uv_centre: np.ndarray
+    uv_scale: np.ndarray
+    loss: np.ndarray
+    residual_rms: np.ndarray
+    centroid: np.ndarray
+    boundary_energy: np.ndarray
+    sigma_major: np.ndarray
+    sigma_minor: np.ndarray
+    eccentricity: np.ndarray
+    orientation: np.ndarray
+    converged: np.ndarray
+    status: tuple[BlockStatus, ...]
+    centre_step: np.ndarray
+    origin: np.ndarray
+    window_size: np.ndarray
+    num_pixels: np.ndarray
+    masks: np.ndarray
+    num_segments: int
+    settings: DeconvSettings = field(default_factory=DeconvSettings)
+
+    def __len__(self) -> int:
+        return int(self.H.shape[0])
+
+    @property
+    def H_fit(self) -> np.ndarray:
+        """``(B, 3, 3)``: the fitted homographies before re-centring, ``T(-centroid) H``."""
+        return translation(-self.centroid) @ self.H
+
+    @property
+    def centre(self) -> np.ndarray:
+        """``(B, 2)`` px: the star centres ``H(0, 0)`` (time-averaged image positions); NaN for a
+        degenerate ``H``."""
+        with np.errstate(invalid="ignore", divide="ignore"):
+            return self.H[:, :2, 2] / self.H[:, 2:, 2]
+
+
+class BlockModel(NamedTuple):
+    """One block's fitted model over its observed window, for display (all ``(height, width)``)."""
+
+    model: np.ndarray
+    """The model image ``m`` (grey levels)."""
+    observed: np.ndarray
+    """The observed window ``I`` (grey levels)."""
+    residual: np.ndarray
+    """``I - m`` (grey levels)."""
+    mask: np.ndarray
+    """bool, the loss's pixels (the block's square)."""
+    origin: np.ndarray
+    """``(2,)`` int, ``(x0, y0)`` px of the window's top-left pixel."""
+
+
+# ----------------------------------------------------------------------------- small helpers
+def translation(t: np.ndarray) -> np.ndarray:
+    """The paper's ``T(x)``: ``(..., 2)`` px -> ``(..., 3, 3)`` translation homographies."""
+    t = np.asarray(t, dtype=np.float64)
+    out = np.broadcast_to(np.eye(3), (*t.shape[:-1], 3, 3)).copy()
+    out[..., :2, 2] = t
+    return out
+
+
+def psf_centroid(psf: np.ndarray, threshold: float = 0.0) -> np.ndarray:
+    """Intensity-weighted centroid of PSFs, px relative to the kernel centre.
+
+    Values below ``threshold`` times the kernel's peak are ignored (a robust variant for
+    kernels with negative ringing or a noise floor; the solver's kernels are non-negative and
+    support-restricted, so its default is 0).
+
+    Args:
+        psf: ``(K, K)`` or ``(B, K, K)`` kernels (pixel ``(i, j)`` at offset ``(j - c, i - c)``).
+        threshold: share of the peak below which values get zero weight (0 keeps all values).
+    Returns:
+        ``(2,)`` or ``(B, 2)`` float64 ``(x, y)`` px.
+    """
+    k = np.asarray(psf, dtype=np.float64)
+    single = k.ndim == 2
+    k = k[None] if single else k
+    c = (k.shape[-1] - 1) / 2.0
+    peak = k.max(axis=(1, 2), keepdims=True)
+    w = np.where(k >= threshold * peak, k, 0.0) if threshold > 0 else k
+    total = w.sum(axis=(1, 2))
+    offs = np.arange(k.shape[-1], dtype=np.float64) - c
+    with np.errstate(invalid="ignore", divide="ignore"):
+        out = np.stack([w.sum(axis=1) @ offs, w.sum(axis=2) @ offs], axis=1) / total[:, None]
+    return out[0] if single else out
+
+
+def _shift_kernels(psf: np.ndarray, shift: np.ndarray) -> np.ndarray:
+    """``k'(d) = k(d + s)`` by separable linear interpolation (zero outside the window).
+
+    Linear interpolation keeps the kernel non-negative, its sum and its centroid (moved by exactly
+    ``-s``) up to weight leaving the window; it widens the kernel by a variance of
+    ``f (1 - f) <= 1/4`` px^2 per axis (``f`` the fractional part of the shift).
+
+    Args:
+        psf: ``(B, K, K)``; shift: ``(B, 2)`` px ``(s_x, s_y)``.
+    """
+    B, K, _ = psf.shape
+    out = psf
+    bi = np.arange(B)[:, None, None, None]
+    ar = np.arange(K)
+    for axis, s in ((2, shift[:, 0]), (1, shift[:, 1])):
+        base = np.floor(s)
+        frac = s - base
+        w = np.stack([1.0 - frac, frac], axis=1)  # (B, 2)
+        idx = ar[None, :, None] + base[:, None, None].astype(np.int64) + np.arange(2)  # (B, K, 2)
+        valid = (idx >= 0) & (idx < K)
+        idx = np.clip(idx, 0, K - 1)
+        if axis == 2:
+            taps = out[bi, ar[None, :, None, None], idx[:, None, :, :]]  # (B, K, K, 2)
+            out = np.sum(taps * (w[:, None, None, :] * valid[:, None]), axis=-1)
+        else:
+            taps = out[bi, idx[:, :, None, :], ar[None, None, :, None]]
+            out = np.sum(taps * (w[:, None, None, :] * valid[:, :, None]), axis=-1)
+    return out
+
+
+def recentre(H: np.ndarray, psf: np.ndarray, threshold: float = 0.0
+             ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """PSF re-centring (end of *Local Alignment*): move each kernel's centroid to its centre.
+
+    With ``c`` the kernel centroid (:func:`psf_centroid`), ``k'(d) = k(d + c)`` (sub-pixel, linear
+    interpolation; sum and non-negativity kept) and ``H' = T(c) H``. By the translational
+    ambiguity ``k' * S(H') = k * S(H)`` the model is unchanged (up to the interpolation), while
+    ``H'(0, 0)`` becomes the centre of the star's time-averaged image. A kernel whose centroid is
+    undefined (zero sum) is returned unchanged with ``c`` NaN.
+
+    Args:
+        H: ``(3, 3)`` or ``(B, 3, 3)`` block homographies (block coords -> px).
+        psf: ``(K, K)`` or ``(B, K, K)`` kernels.
+        threshold: centroid threshold, share of each kernel's peak.
+    Returns:
+        ``(H', psf', c)``: float64, shapes as given, ``c`` ``(2,)`` / ``(B, 2)`` px.
+    """
+    H = np.asarray(H, dtype=np.float64)
+    k = np.asarray(psf, dtype=np.float64)
+    single = k.ndim == 2
+    Hb, kb = (H[None], k[None]) if single else (H, k)
+    c = psf_centroid(kb, threshold)
+    ok = np.all(np.isfinite(c), axis=1)
+    c_safe = np.where(ok[:, None], c, 0.0)
+    k_out = _shift_kernels(kb, c_safe)
+    sums = kb.sum(axis=(1, 2), keepdims=True)
+    out_sums = k_out.sum(axis=(1, 2), keepdims=True)
+    scale = np.divide(sums, out_sums, out=np.ones_like(sums), where=out_sums != 0)
+    k_out = k_out * scale
+    H_out = translation(c_safe) @ Hb
+    if single:
+        return H_out[0], k_out[0], c[0]
+    return H_out, k_out, c
+
+
+def shift_pair(latent: np.ndarray, kernel: np.ndarray, delta: tuple[int, int]
+               ) -> tuple[np.ndarray, np.ndarray]:
+    """The translational ambiguity: ``L'(x) = L(x - delta)``, ``k'(d) = k(d + delta)``.
+
+    Then ``k' * L' = k * L`` (paper, *Translational Ambiguity in Deconvolution*). The latent image
+    is shifted periodically (``np.roll``), the kernel with zero fill; the identity holds exactly
+    for periodic convolution when no kernel weight leaves the window.
+
+    Args:
+        latent: ``(h, w)`` image; kernel: ``(K, K)``; delta: integer ``(dx, dy)`` px.
+    Returns:
+        ``(L', k')``.
+    Raises:
+        ValueError: the shift would push kernel weight out of its window.
+    """
+    dx, dy = int(delta[0]), int(delta[1])
+    k = np.asarray(kernel)
+    K = k.shape[0]
+    shifted = np.zeros_like(k)
+    src = k[max(dy, 0):K + min(dy, 0), max(dx, 0):K + min(dx, 0)]
+    if not np.isclose(np.abs(src).sum(), np.abs(k).sum()):
+        raise ValueError(f"shift {delta} pushes kernel weight out of the {K} x {K} window")
+    shifted[max(-dy, 0):K - max(dy, 0), max(-dx, 0):K - max(dx, 0)] = src
+    return np.roll(np.asarray(latent), (dy, dx), axis=(0, 1)), shifted
+
+
+# ----------------------------------------------------------------------------- block windows
+def _validate_blocks(H0: np.ndarray, image_shape: tuple[int, int], s: DeconvSettings
+                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[BlockStatus]]:
+    """Windows of the blocks and which can be fitted.
+
+    Returns:
+        ``origin (B, 2)`` int ``(x0, y0)``, ``size (B, 2)`` int ``(w, h)`` of the observed
+        window (bounding box of ``H([-1, 1]^2)`` plus the margin), the normalised ``H (B, 3, 3)``
+        and a status per block (``accepted`` for those to fit).
+    """
+    B = H0.shape[0]
+    status = [BlockStatus.ACCEPTED] * B
+    H = H0.copy()
+    origin = np.zeros((B, 2), dtype=np.int64)
+    size = np.zeros((B, 2), dtype=np.int64)
+    corners = np.array([[-1, -1, 1], [1, -1, 1], [1, 1, 1], [-1, 1, 1]], dtype=np.float64)
+    height, width = image_shape
+    for b in range(B):
+        h = H[b]
+        if not np.all(np.isfinite(h)) or abs(h[2, 2]) < 1e-12 * max(np.abs(h).max(), 1e-300):
+            status[b] = BlockStatus.DEGENERATE_HOMOGRAPHY
+            continue
+        h = h / h[2, 2]
+        H[b] = h
+        xs = corners @ h.T
+        if np.any(xs[:, 2] <= 1e-9):
+            status[b] = BlockStatus.DEGENERATE_HOMOGRAPHY
+            continue
+        pts = xs[:, :2] / xs[:, 2:]
+        edges = np.roll(pts, -1, axis=0) - pts
+        nxt = np.roll(edges, -1, axis=0)
+        cross = edges[:, 0] * nxt[:, 1] - edges[:, 1] * nxt[:, 0]
+        area = 0.5 * abs(np.sum(pts[:, 0] * np.roll(pts[:, 1], -1) - np.roll(pts[:, 0], -1) * pts[:, 1]))
+        if not (np.all(cross > 0) or np.all(cross < 0)) or math.sqrt(area) < s.min_square_px:
+            status[b] = BlockStatus.DEGENERATE_HOMOGRAPHY
+            continue
+        lo = np.floor(pts.min(axis=0)).astype(np.int64) - s.window_margin
+        hi = np.ceil(pts.max(axis=0)).astype(np.int64) + s.window_margin
+        if np.any(hi - lo + 1 > s.max_window_px):
+            status[b] = BlockStatus.DEGENERATE_HOMOGRAPHY
+            continue
+        origin[b] = lo
+        size[b] = hi - lo + 1
+        if lo[0] < 0 or lo[1] < 0 or hi[0] > width - 1 or hi[1] > height - 1:
+            status[b] = BlockStatus.OUTSIDE_IMAGE
+    return origin, size, H, status
+
+
+@dataclass
+class _Design:
+    """Index sets of one solver stage (``b`` blocks, ``n`` pixels, ``m`` kernel entries, padded).
+
+    Attributes:
+        mask: ``(b, h, w)`` bool, the loss's pixels (inside the square at the stage's start).
+        pix: ``(b, n)`` flat indices of those pixels in the observed grid; ``pix_w`` 0/1 weights.
+        base: ``(b, n)`` flat latent index of each pixel's patch origin, ``taps``: ``(b, m)`` flat
+            latent offset of each kernel entry; a patch value is ``latent[base + tap]``. Padded
+            pixels and entries point into zeros appended to the latent.
+        taps_w: ``(b, m)`` 0/1 weights of the kernel entries; ``kernel_index`` their flat index
+            ``i K + j`` in the kernel; ``rho`` their ridge weights.
+        coarse: the entries are the 2-px lattice taps of the initial solve (tent-interpolated).
+        u, v: ``(b, n)`` normalised coordinates at the pixels.
+        U: ``(b, 3, n)`` the offset's design rows ``(u, v, 1)`` (0 on padding); ``UU = U U^T``.
+        img: ``(b, n)`` observed grey levels (0 on padding); ``Uimg = U img``.
+    """
+
+    mask: torch.Tensor
+    pix: torch.Tensor
+    pix_w: torch.Tensor
+    base: torch.Tensor
+    taps: torch.Tensor
+    taps_w: torch.Tensor
+    kernel_index: torch.Tensor
+    rho: torch.Tensor
+    coarse: bool
+    u: torch.Tensor
+    v: torch.Tensor
+    U: torch.Tensor
+    UU: torch.Tensor
+    img: torch.Tensor
+    Uimg: torch.Tensor
+
+
+class _Problem:
+    """Tensors of one batch of blocks padded to a common window (``b`` blocks).
+
+    Observed (evaluation) grid ``(h, w)``; latent grid ``(h + 2c, w + 2c)`` whose pixel
+    ``(i, j)`` is image pixel ``origin + (j - c, i - c)``. Homographies are kept in *latent-local*
+    pixels, ``H_loc = T(-(origin - c)) H``, in float64.
+    """
+
+    def __init__(self, image: torch.Tensor, pixel_ok: torch.Tensor | None, origin: np.ndarray,
+                 size: np.ndarray, num_segments: int, s: DeconvSettings) -> None:
+        self.s = s
+        self.N = num_segments
+        dev, dt = image.device, s.torch_dtype
+        self.dt = dt
+        r = self.r = s.radius
+        b = origin.shape[0]
+        h, w = self.h, self.w = int(size[:, 1].max()), int(size[:, 0].max())
+        self.Hl, self.Wl = h + 2 * r, w + 2 * r
+        self.size = size
+        self.lat_origin = origin - r
+        rows = torch.as_tensor(origin[:, 1, None] + np.arange(h), device=dev)
+        cols = torch.as_tensor(origin[:, 0, None] + np.arange(w), device=dev)
+        rows_c = rows.clamp(0, image.shape[0] - 1)[:, :, None]
+        cols_c = cols.clamp(0, image.shape[1] - 1)[:, None, :]
+        img = image[rows_c, cols_c].to(dt)
+        inside = torch.as_tensor((np.arange(h)[None, :, None] < size[:, 1, None, None])
+                                 & (np.arange(w)[None, None, :] < size[:, 0, None, None]), device=dev)
+        inside &= torch.isfinite(img)
+        self.img = torch.where(inside, img, 0.0)
+        self.usable = inside if pixel_ok is None else inside & pixel_ok[rows_c, cols_c]
+        # normalised coordinates u, v on the latent grid (the observed grid is its interior)
+        self.uv_centre = origin + (size - 1) / 2.0
+        self.uv_scale = np.maximum(size.max(axis=1), 2) / 2.0
+        cen = torch.as_tensor(self.uv_centre - self.lat_origin, device=dev, dtype=dt)
+        sc = torch.as_tensor(self.uv_scale, device=dev, dtype=dt)
+        jl = torch.arange(self.Wl, device=dev, dtype=dt)
+        il = torch.arange(self.Hl, device=dev, dtype=dt)
+        shape = (b, self.Hl, self.Wl)
+        self.u_l = ((jl[None, None, :] - cen[:, 0, None, None]) / sc[:, None, None]).expand(shape)
+        self.v_l = ((il[None, :, None] - cen[:, 1, None, None]) / sc[:, None, None]).expand(shape)
+        self.u_e = self.u_l[:, r:r + h, r:r + w]
+        self.v_e = self.v_l[:, r:r + h, r:r + w]
+        d = torch.arange(s.kernel_size, device=dev, dtype=torch.float64) - r
+        rad = torch.sqrt(d[None, :] ** 2 + d[:, None] ** 2) / max(r, 1)
+        self.rho = (1.0 + s.ridge_border * rad**s.ridge_power).reshape(-1)
+        self.offs = d
+
+    # ---------------------------------------------------------------- homography conversions
+    def to_local(self, H: np.ndarray) -> torch.Tensor:
+        """Image-pixel homographies ``(b, 3, 3)`` -> latent-local float64 tensors."""
+        return torch.as_tensor(translation(-self.lat_origin.astype(np.float64)) @ H, device=self.img.device)
+
+    def to_image(self, H_loc: torch.Tensor) -> np.ndarray:
+        """Latent-local homographies -> image-pixel ``(b, 3, 3)`` float64 arrays."""
+        return translation(self.lat_origin.astype(np.float64)) @ H_loc.cpu().numpy()
+
+    # ------------------------------------------------------------------------- latent pattern
+    def latent(self, H_loc: torch.Tensor, with_jac: bool) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """``S(H)`` on the latent grid ``(b, Hl, Wl)`` and, optionally, ``dS / d delta (b, 8, Hl, Wl)``.
+
+        Averaged over ``supersample^2`` sub-pixel samples. ``delta`` parameterises the block-side
+        update ``H <- H (I + Delta)``, ``Delta = [[d1, d2, d3], [d4, d5, d6], [d7, d8, 0]]``.
+        """
+        ss = self.s.supersample
+        offs = [(o + 0.5) / ss - 0.5 for o in range(ss)]
+        samples = [self._latent_at(H_loc, with_jac, ox, oy) for oy in offs for ox in offs]
+        S = torch.stack([smp[0] for smp in samples]).mean(dim=0)
+        dS = torch.stack([smp[1] for smp in samples]).mean(dim=0) if with_jac else None
+        return S, dS
+
+    def _latent_at(self, H_loc: torch.Tensor, with_jac: bool, ox: float, oy: float
+                   ) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """:meth:`latent` sampled at the pixel centres moved by ``(ox, oy)`` px."""
+        M = torch.linalg.inv(H_loc).to(self.dt)
+        dev = M.device
+        j = torch.arange(self.Wl, device=dev, dtype=self.dt)[None, None, :] + ox
+        i = torch.arange(self.Hl, device=dev, dtype=self.dt)[None, :, None] + oy
+
+        def row(k: int) -> torch.Tensor:
+            return M[:, k, 0, None, None] * j + M[:, k, 1, None, None] * i + M[:, k, 2, None, None]
+
+        wq = row(2).clamp_min(1e-6)  # > 0 in front of the camera (H is normalised to H[2, 2] = 1)
+        qx, qy = row(0) / wq, row(1) / wq
+        with torch.enable_grad():
+            q = torch.stack([qx, qy], dim=-1).detach().requires_grad_(True)
+            if self.s.pattern == "signed_distance":
+                dist = star_signed_distance(q, self.N)
+                (n,) = torch.autograd.grad(dist.sum(), q)  # unit normal of the nearest edge (block units)
+                # |grad_x dist| = |J^T n| with J = dq/dx = (M[:2, :2] - q M[2, :2]) / w
+                jx = n[..., 0] * (M[:, 0, 0, None, None] - qx * M[:, 2, 0, None, None]) \
+                    + n[..., 1] * (M[:, 1, 0, None, None] - qy * M[:, 2, 0, None, None])
+                jy = n[..., 0] * (M[:, 0, 1, None, None] - qx * M[:, 2, 1, None, None]) \
+                    + n[..., 1] * (M[:, 1, 1, None, None] - qy * M[:, 2, 1, None, None])
+                scale = (torch.sqrt(jx * jx + jy * jy) / wq).clamp_min(1e-9) * self.s.tau
+                S = torch.sigmoid(dist.detach() / scale)
+                if not with_jac:
+                    return S, None
+                g = (S * (1.0 - S) / scale)[..., None] * n  # dS/dq, the normaliser held fixed
+            else:
+                soft = smooth_star(q, self.N, self.s.beta)
+                if not with_jac:
+                    return soft.detach(), None
+                (g,) = torch.autograd.grad(soft.sum(), q)
+                S = soft.detach()
+        # dq/d delta at delta = 0: -(Delta q~)_xy + q (Delta q~)_w with q~ = (q_x, q_y, 1)
+        gx, gy = g[..., 0], g[..., 1]
+        radial = gx * qx + gy * qy
+        dS = torch.stack([-gx * qx, -gx * qy, -gx, -gy * qx, -gy * qy, -gy, radial * qx, radial * qy], dim=1)
+        return S, dS
+
+    def square_mask(self, H_loc: torch.Tensor) -> torch.Tensor:
+        """Observed pixels inside the block's square ``|q|_inf <= 1`` (and usable), ``(b, h, w)``."""
+        M = torch.linalg.inv(H_loc)
+        dev = M.device
+        j = torch.arange(self.w, device=dev, dtype=M.dtype)[None, None, :] + self.r
+        i = torch.arange(self.h, device=dev, dtype=M.dtype)[None, :, None] + self.r
+        qx, qy, wq = (M[:, k, 0, None, None] * j + M[:, k, 1, None, None] * i + M[:, k, 2, None, None]
+                      for k in range(3))
+        inside = (wq > 0) & (qx.abs() <= wq) & (qy.abs() <= wq)
+        return inside & self.usable
+
+    # ---------------------------------------------------------------------------- convolution
+    def conv(self, L: torch.Tensor, k: torch.Tensor) -> torch.Tensor:
+        """Valid convolution ``(k * L)`` of latent channels ``(b, C, Hl, Wl)`` -> ``(b, C, h, w)``."""
+        size = (self.Hl, self.Wl)
+        kf = torch.fft.rfft2(k, s=size)
+        out = torch.fft.irfft2(torch.fft.rfft2(L, s=size) * kf[:, None], s=size)
+        r2 = 2 * self.r
+        return out[..., r2:r2 + self.h, r2:r2 + self.w]
+
+    # ------------------------------------------------------------------- the linear sub-problem
+    def design(self, H_loc: torch.Tensor, support: torch.Tensor | None) -> _Design:
+        """Index sets of a stage: the square's pixels at ``H`` and the kernel entries.
+
+        ``support`` ``(b, K, K)`` bool selects the kernel entries; None selects the coarse
+        initial kernel (taps on the 2-px lattice, tent-interpolated).
+        """
+        b, K, r = H_loc.shape[0], self.s.kernel_size, self.r
+        dev = H_loc.device
+        mask = self.square_mask(H_loc)
+        flat = mask.reshape(b, -1)
+        n = max(int(flat.sum(dim=1).max()), 1)
+        pix = torch.argsort((~flat).to(torch.int8), dim=1, stable=True)[:, :n]
+        pix_w = torch.gather(flat, 1, pix).to(self.dt)
+        base = (pix // self.w) * self.Wl + pix % self.w
+        if support is None:
+            rc = (r - 1) // 2  # taps at 2 px spacing whose tents stay inside the window
+            c = torch.arange(-rc, rc + 1, device=dev) * 2
+            dy, dx = (t.reshape(-1) for t in torch.meshgrid(c, c, indexing="ij"))
+            kidx = ((dy + r) * K + dx + r)[None].expand(b, -1)
+            taps_w = torch.ones(kidx.shape, dtype=self.dt, device=dev)
+        else:
+            sup = support.reshape(b, -1)
+            m = max(int(sup.sum(dim=1).max()), 1)
+            kidx = torch.argsort((~sup).to(torch.int8), dim=1, stable=True)[:, :m]
+            taps_w = torch.gather(sup, 1, kidx).to(self.dt)
+        # entry (i, j) is the offset d = (j - c, i - c); its patch value at observed pixel x is
+        # the latent at x - d, i.e. latent-local (y + 2c - i, x + 2c - j); padded pixels and
+        # entries read the zeros appended after the latent (:meth:`evaluate`)
+        size = self.Hl * self.Wl
+        taps = torch.where(taps_w > 0, (2 * r - kidx // K) * self.Wl + (2 * r - kidx % K), size)
+        base = torch.where(pix_w > 0, base, size)
+        u = torch.gather(self.u_e.reshape(b, -1), 1, pix)
+        v = torch.gather(self.v_e.reshape(b, -1), 1, pix)
+        U = torch.stack([u, v, torch.ones_like(u)], dim=1) * pix_w[:, None, :]
+        img = torch.gather(self.img.reshape(b, -1), 1, pix) * pix_w
+        return _Design(mask=mask, pix=pix, pix_w=pix_w, base=base, taps=taps, taps_w=taps_w,
+                       kernel_index=kidx, rho=self.rho[kidx], coarse=support is None, u=u, v=v, U=U,
+                       UU=(U @ U.transpose(1, 2)).double(), img=img, Uimg=(U @ img[..., None]).double())
+
+    def _patch_source(self, S: torch.Tensor, alpha: torch.Tensor, des: _Design
+                      ) -> tuple[torch.Tensor, torch.Tensor]:
+        """The latent image whose patches multiply the kernel entries, and the pixel weights
+        (``A / a3`` after the blur, 1 before; 0 off the loss's pixels)."""
+        if self.s.brightness == "after_blur":
+            src = S
+            a_e = 1.0 + alpha[:, 0, None].to(self.dt) * des.u + alpha[:, 1, None].to(self.dt) * des.v
+        else:
+            src = (1.0 + alpha[:, 0, None, None].to(self.dt) * self.u_l
+                   + alpha[:, 1, None, None].to(self.dt) * self.v_l) * S
+            a_e = torch.ones_like(des.u)
+        if des.coarse:
+            tent = torch.tensor([0.5, 1.0, 0.5], dtype=self.dt, device=S.device)
+            src = nnf.conv2d(src[:, None], (tent[:, None] * tent[None, :])[None, None], padding=1)[:, 0]
+        return src, a_e * des.pix_w
+
+    def kernel(self, x: torch.Tensor, des: _Design) -> torch.Tensor:
+        """The kernel ``k~ (b, K, K)`` of a solution ``x`` (unnormalised, ``a3 k``)."""
+        b, K = x.shape[0], self.s.kernel_size
+        m = des.kernel_index.shape[1]
+        k = torch.zeros((b, K * K), dtype=x.dtype, device=x.device)
+        k.scatter_(1, des.kernel_index, x[:, :m] * des.taps_w.to(x.dtype))
+        k = k.reshape(b, K, K)
+        if des.coarse:
+            tent = torch.tensor([0.5, 1.0, 0.5], dtype=x.dtype, device=x.device)
+            k = nnf.conv2d(k[:, None], (tent[:, None] * tent[None, :])[None, None], padding=1)[:, 0]
+        return k
+
+    def evaluate(self, H_loc: torch.Tensor, alpha: torch.Tensor, des: _Design, lam: torch.Tensor | None,
+                 with_jac: bool) -> dict[str, torch.Tensor]:
+        """Solve the kernel sub-problem at ``(H, alpha)`` and, optionally, the reduced Jacobian.
+
+        The model is linear in ``x = (k~, b)``: the stage's kernel entries of ``k~ = a3 k`` and
+        the observed-grid affine offset (3 coefficients of ``u, v, 1``), ``m = D^T x`` with ``D``
+        the ``(m + 3, n)`` design of latent patches (times ``A / a3``). ``x* = (D D^T +
+        Lambda)^{-1} D I`` (the ridge of ``eq:deconvolution``), optionally with kernel entries
+        that come out negative fixed at zero (active-set passes). With ``J`` the ``(10, n)``
+        derivative of ``m`` w.r.t. the non-linear parameters (8 of ``H``, 2 of ``alpha``) at fixed
+        ``x*``, the variable-projection Gauss-Newton system (Kaufman) is
+        ``N = J J^T - Y^T G^{-1} Y`` with ``Y = D J^T``, and the gradient ``g = J r``.
+
+        ``Lambda = lambda rho(d)`` times the mean energy of a kernel column (``lam``; None computes
+        it here, to be kept fixed through a stage so that objectives compare).
+
+        Returns:
+            dict with ``x (b, m + 3)`` float64, ``obj (b,)`` (``sum r^2 + k~^T Lambda k~``),
+            ``sse (b,)``, ``lam (b, m + 3)``, and with ``with_jac`` also ``N (b, 10, 10)`` and
+            ``g (b, 10)`` float64.
+        """
+        b = H_loc.shape[0]
+        S, dS = self.latent(H_loc, with_jac=with_jac)
+        src, w = self._patch_source(S, alpha, des)
+        m, n = des.kernel_index.shape[1], des.pix.shape[1]
+        if lam is None:
+            scale = ((w * w).sum(dim=1) * (src * src).mean(dim=(1, 2))).double().clamp_min(1e-12)
+            tail = torch.full((b, 3), 1e-9, dtype=des.rho.dtype, device=des.rho.device)
+            lam = torch.cat([self.s.ridge * des.rho, tail], dim=1)
+            lam = lam * scale[:, None]
+        padded = torch.cat([src.reshape(b, -1), torch.zeros_like(src.reshape(b, -1)),
+                            torch.zeros_like(src[:, 0, :1])], dim=1)
+        P = torch.empty((b, m, n), dtype=self.dt, device=src.device)
+        for t in range(m):  # one (b, n) gather per kernel entry: no (b, m, n) index tensor
+            torch.gather(padded, 1, des.base + des.taps[:, t, None], out=P[:, t])
+        if self.s.brightness == "after_blur":
+            P.mul_(w[:, None, :])
+        G = torch.empty((b, m + 3, m + 3), dtype=torch.float64, device=P.device)
+        G[:, :m, :m] = P @ P.transpose(1, 2)
+        G[:, :m, m:] = P @ des.U.transpose(1, 2)
+        G[:, m:, :m] = G[:, :m, m:].transpose(1, 2)
+        G[:, m:, m:] = des.UU
+        G.diagonal(dim1=1, dim2=2).add_(lam)
+        rhs = torch.cat([(P @ des.img[..., None]).double(), des.Uimg], dim=1)
+        lu = torch.linalg.lu_factor_ex(G)[:2]  # _ex: a bad block must not stop the batch
+        x = torch.linalg.lu_solve(*lu, rhs)[..., 0]
+        free = None
+        if self.s.nonnegative:
+            free = torch.ones_like(x, dtype=torch.bool)
+            eye = torch.eye(G.shape[1], dtype=G.dtype, device=G.device)
+            for _ in range(self.s.nonnegative_passes):
+                free[:, :m] &= x[:, :m] > 0
+                lu = torch.linalg.lu_factor_ex(torch.where(free[:, :, None] & free[:, None, :], G, eye))[:2]
+                x = torch.linalg.lu_solve(*lu, torch.where(free[..., None], rhs, 0.0))[..., 0]
+            x = torch.where(free, x, 0.0)
+        xf = x.to(self.dt)[..., None]
+        res = des.img - (P.transpose(1, 2) @ xf[:, :m] + des.U.transpose(1, 2) @ xf[:, m:])[..., 0]
+        sse = (res * res).sum(dim=1).double()
+        out = {"x": x, "obj": sse + (x * x * lam).sum(dim=1), "sse": sse, "lam": lam}
+        if not with_jac:
+            return out
+        k = self.kernel(x, des).to(self.dt)
+        if self.s.brightness == "after_blur":
+            conv = self.conv(torch.cat([S[:, None], dS], dim=1), k).reshape(b, 9, -1)
+            conv = torch.gather(conv, 2, des.pix[:, None, :].expand(-1, 9, -1))
+            C = conv[:, 0]
+            J = torch.cat([conv[:, 1:] * w[:, None, :], (des.u * C * des.pix_w)[:, None],
+                           (des.v * C * des.pix_w)[:, None]], dim=1)
+        else:
+            a_l = (1.0 + alpha[:, 0, None, None].to(self.dt) * self.u_l
+                   + alpha[:, 1, None, None].to(self.dt) * self.v_l)
+            chans = torch.cat([dS * a_l[:, None], (self.u_l * S)[:, None], (self.v_l * S)[:, None]], dim=1)
+            J = torch.gather(self.conv(chans, k).reshape(b, _NUM_NL, -1), 2,
+                             des.pix[:, None, :].expand(-1, _NUM_NL, -1)) * des.pix_w[:, None, :]
+        Y = torch.cat([P @ J.transpose(1, 2), des.U @ J.transpose(1, 2)], dim=1).double()
+        if free is not None:
+            Y = torch.where(free[..., None], Y, 0.0)
+        Z = torch.linalg.lu_solve(*lu, Y)
+        out["N"] = (J @ J.transpose(1, 2)).double() - Y.transpose(1, 2) @ Z
+        out["g"] = (J @ res[..., None]).double()[..., 0]
+        return out
+
+    def model(self, H_loc: torch.Tensor, k: torch.Tensor, coeffs: torch.Tensor) -> torch.Tensor:
+        """The model image ``m (b, h, w)`` for ``H``, a kernel ``k (b, K, K)`` and ``p (b, 6)``."""
+        S, _ = self.latent(H_loc, with_jac=False)
+        p = coeffs.to(self.dt)
+        if self.s.brightness == "after_blur":
+            A = p[:, 0, None, None] * self.u_e + p[:, 1, None, None] * self.v_e + p[:, 2, None, None]
+            Bm = p[:, 3, None, None] * self.u_e + p[:, 4, None, None] * self.v_e + p[:, 5, None, None]
+            return A * self.conv(S[:, None], k)[:, 0] + Bm
+        A = p[:, 0, None, None] * self.u_l + p[:, 1, None, None] * self.v_l + p[:, 2, None, None]
+        Bl = p[:, 3, None, None] * self.u_l + p[:, 4, None, None] * self.v_l + p[:, 5, None, None]
+        return self.conv((A * S + Bl)[:, None], k)[:, 0]
+
+    def centre_estimate(self, H_loc: torch.Tensor, x: torch.Tensor, des: _Design) -> torch.Tensor:
+        """``H(0, 0) + centroid(k)`` ``(b, 2)`` in latent-local px: the time-averaged star centre."""
+        k = self.kernel(x, des).double()
+        if self.s.centroid_threshold > 0:
+            k = torch.where(k >= self.s.centroid_threshold * k.amax(dim=(1, 2), keepdim=True), k, 0.0)
+        tot = k.sum(dim=(1, 2)).clamp_min(1e-300)
+        c = torch.stack([k.sum(dim=1) @ self.offs, k.sum(dim=2) @ self.offs], dim=1) / tot[:, None]
+        return H_loc[:, :2, 2] / H_loc[:, 2:, 2] + c
+
+    # -------------------------------------------------------------------------- recentring
+    def recentre_int(self, H_loc: torch.Tensor, k: torch.Tensor) -> tuple[torch.Tensor, np.ndarray]:
+        """Integer re-centring ``H' = T(n) H``, ``n = round(centroid(k))``; the next solve re-centres k."""
+        kn = k.detach().cpu().numpy()
+        with np.errstate(invalid="ignore", divide="ignore"):
+            c = psf_centroid(kn / kn.sum(axis=(1, 2), keepdims=True), self.s.centroid_threshold)
+        n = np.where(np.isfinite(c), np.round(c), 0.0)
+        return torch.as_tensor(translation(n), device=H_loc.device) @ H_loc, n
+
+    def support(self, k: torch.Tensor, n: np.ndarray) -> torch.Tensor:
+        """Kernel support ``(b, K, K)`` bool of the next stage: ``k`` moved by the integer
+        re-centring ``n`` (``k'(d) = k(d + n)``), entries above ``support_threshold`` of the peak,
+        dilated by ``support_dilation`` px."""
+        K = self.s.kernel_size
+        b = k.shape[0]
+        dev = k.device
+        nt = torch.as_tensor(n.astype(np.int64), device=dev)
+        ar = torch.arange(K, device=dev)
+        ri = ar[None, :] + nt[:, 1, None]
+        cj = ar[None, :] + nt[:, 0, None]
+        ok = ((ri >= 0) & (ri < K))[:, :, None] & ((cj >= 0) & (cj < K))[:, None, :]
+        k = k[torch.arange(b, device=dev)[:, None, None], ri.clamp(0, K - 1)[:, :, None],
+              cj.clamp(0, K - 1)[:, None, :]] * ok
+        peak = k.amax(dim=(1, 2), keepdim=True)
+        core = (k >= self.s.support_threshold * peak).to(torch.float32)
+        d = self.s.support_dilation
+        return nnf.max_pool2d(core[:, None], 2 * d + 1, stride=1, padding=d)[:, 0] > 0
+
+    # --------------------------------------------------------------------------- the LM loop
+    def lm_stage(self, H_loc: torch.Tensor, alpha: torch.Tensor, des: _Design, steps: int
+                 ) -> tuple[torch.Tensor, torch.Tensor, dict[str, torch.Tensor]]:
+        """Levenberg-Marquardt on ``(H, alpha)`` with ``(k~, b)`` projected out (variable projection).
+
+        Each step costs one kernel solve; a step that does not lower the objective is undone and
+        retried from the best point with a larger damping. ``best["move"] (b,)`` is how far the
+        last accepted step moved the star-centre estimate (px; 0 if none was accepted).
+        """
+        b = H_loc.shape[0]
+        dev = H_loc.device
+        best = self.evaluate(H_loc, alpha, des, None, with_jac=steps > 0)
+        lam = best["lam"]
+        H_best, a_best = H_loc, alpha
+        c_best = self.centre_estimate(H_best, best["x"], des)
+        move = torch.zeros(b, dtype=torch.float64, device=dev)
+        mu = torch.full((b,), 1e-3, device=dev, dtype=torch.float64)
+        eye3 = torch.eye(3, device=dev, dtype=torch.float64)
+        for it in range(steps):
+            diag = best["N"].diagonal(dim1=1, dim2=2)
+            A = best["N"] + torch.diag_embed(mu[:, None] * diag + 1e-12 * diag.mean(1, keepdim=True) + 1e-30)
+            delta = torch.nan_to_num(torch.linalg.solve_ex(A, best["g"][..., None])[0][..., 0])
+            step = torch.zeros((b, 3, 3), device=dev, dtype=torch.float64)
+            step[:, 0] = delta[:, 0:3]
+            step[:, 1] = delta[:, 3:6]
+            step[:, 2, :2] = delta[:, 6:8]
+            H_try = H_best @ (eye3 + step)
+            H_try = H_try / H_try[:, 2:, 2:]
+            a_try = a_best + delta[:, 8:10]
+            cur = self.evaluate(H_try, a_try, des, lam, with_jac=it < steps - 1)
+            accept = torch.isfinite(cur["obj"]) & (cur["obj"] < best["obj"])
+            H_best = torch.where(accept[:, None, None], H_try, H_best)
+            a_best = torch.where(accept[:, None], a_try, a_best)
+            c_try = self.centre_estimate(H_try, cur["x"], des)
+            move = torch.where(accept, torch.linalg.norm(c_try - c_best, dim=1), move)
+            c_best = torch.where(accept[:, None], c_try, c_best)
+            for key in cur:
+                sel = accept.reshape(-1, *([1] * (best[key].ndim - 1)))
+                best[key] = torch.where(sel, cur[key], best[key])
+            mu = torch.where(accept, mu / 3.0, mu * 4.0)
+        best["move"] = move
+        return H_best, a_best, best
+
+
+# ----------------------------------------------------------------------------------- fitting
+def _fit_chunk(prob: _Problem, H: np.ndarray) -> dict:
+    """The solver schedule (module docstring) on one padded batch; per-block numpy results."""
+    s = prob.s
+    K = s.kernel_size
+    b = H.shape[0]
+    H_loc = prob.to_local(H)
+    alpha = torch.zeros((b, 2), dtype=torch.float64, device=H_loc.device)
+    des = prob.design(H_loc, None)
+    best = prob.evaluate(H_loc, alpha, des, None, with_jac=False)
+    k = prob.kernel(best["x"], des)
+    for _ in range(s.outer_iterations):
+        H_loc, n = prob.recentre_int(H_loc, k)
+        des = prob.design(H_loc, prob.support(k, n))
+        H_loc, alpha, best = prob.lm_stage(H_loc, alpha, des, s.gn_steps)
+        k = prob.kernel(best["x"], des)
+    x = best["x"].cpu().numpy()
+    H_fit = prob.to_image(H_loc)
+    k_t = k.cpu().numpy()
+    a3 = k_t.sum(axis=(1, 2))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        k_fit = k_t / a3[:, None, None]
+    H_rc, psf, centroid = recentre(H_fit, k_fit, s.centroid_threshold)
+    alpha_np = alpha.cpu().numpy()
+    coeffs = np.stack([alpha_np[:, 0] * a3, alpha_np[:, 1] * a3, a3, x[:, -3], x[:, -2], x[:, -1]], axis=1)
+    if s.brightness == "before_blur":
+        # x holds k * B (an affine after the blur); B itself is shifted back by the kernel's mean
+        offs = np.arange(K) - prob.r
+        mean = np.stack([k_fit.sum(axis=1) @ offs, k_fit.sum(axis=2) @ offs], axis=1) / prob.uv_scale[:, None]
+        coeffs[:, 5] += coeffs[:, 3] * mean[:, 0] + coeffs[:, 4] * mean[:, 1]
+    npix = des.mask.sum(dim=(1, 2)).cpu().numpy()
+    loss = best["sse"].cpu().numpy() / np.maximum(npix, 1)
+    masks = des.mask.cpu().numpy()
+    return {"H": H_rc / H_rc[:, 2:, 2:], "psf": psf, "psf_fit": k_fit, "coeffs": coeffs, "loss": loss,
+            "centroid": centroid, "num_pixels": npix, "centre_step": best["move"].cpu().numpy(),
+            "masks": [masks[i, :sz[1], :sz[0]] for i, sz in enumerate(prob.size)]}
+
+
+def fit_blocks(image: np.ndarray, H0: np.ndarray, num_segments: int,
+               settings: DeconvSettings | None = None, pixel_mask: np.ndarray | None = None) -> BlockFit:
+    """Fit ``eq:deconvolution`` to ``B`` star blocks of one grey image, all blocks batched.
+
+    Each block's observed window is the bounding box of its square ``H0([-1, 1]^2)`` plus
+    :attr:`DeconvSettings.window_margin` px. The loss covers the window's pixels inside the square
+    ``|H^{-1} x|_inf <= 1`` (taken at the start of every stage), the latent pattern the window
+    grown by the kernel radius (periodic pattern, see the module docstring). Blocks are grouped by
+    window size into batches of :attr:`DeconvSettings.batch_size`.
+
+    Args:
+        image: ``(height, width)`` grey levels (uint8 or float; 0..255 expected).
+        H0: ``(B, 3, 3)`` initial homographies, block coordinates -> image px; the solver tolerates
+            errors of a few px and a few percent of scale.
+        num_segments: star segments ``N``.
+        settings: solver settings (default :class:`DeconvSettings`).
+        pixel_mask: optional ``(height, width)`` bool, False for pixels that must not enter any
+            loss (saturation, occluders, a tag nearer to the square than the kernel radius).
+            Non-finite pixels never enter a loss.
+    Returns:
+        :class:`BlockFit`. A block whose window leaves the image is ``outside_image``; one whose
+        ``H0`` is non-finite, crosses the horizon, is not convex or is too small or large is
+        ``degenerate_homography``. Neither is fitted, neither stops the batch. A fit without
+        contrast (no star in the window), with non-finite results or still moving is
+        ``not_converged``.
+    """
+    s = settings or DeconvSettings()
+    img_np = np.asarray(image)
+    if img_np.ndim != 2:
+        raise ValueError(f"image must be (height, width), got shape {img_np.shape}")
+    if pixel_mask is not None and np.shape(pixel_mask) != img_np.shape:
+        raise ValueError(f"pixel_mask must have the image's shape {img_np.shape}, got {np.shape(pixel_mask)}")
+    H0 = np.asarray(H0, dtype=np.float64).reshape(-1, 3, 3)
+    B, K = H0.shape[0], s.kernel_size
+    origin, size, Hn, status = _validate_blocks(H0, img_np.shape, s)
+    out = {"H": H0.copy(), "psf": np.full((B, K, K), np.nan), "psf_fit": np.full((B, K, K), np.nan),
+           "coeffs": np.full((B, _NUM_P), np.nan), "loss": np.full(B, np.nan),
+           "centroid": np.full((B, 2), np.nan), "num_pixels": np.zeros(B, dtype=np.int64),
+           "centre_step": np.full(B, np.nan), "uv_centre": np.full((B, 2), np.nan),
+           "uv_scale": np.full(B, np.nan)}
+    masks = np.empty(B, dtype=object)
+    masks[:] = [np.zeros((0, 0), dtype=bool)] * B
+    todo = np.array([st == BlockStatus.ACCEPTED for st in status], dtype=bool)
+    idx = np.flatnonzero(todo)
+    if idx.size:
+        dev = torch.device(s.device)
+        img_t = torch.as_tensor(img_np.astype(np.float64 if s.dtype == "float64" else np.float32), device=dev)
+        ok_t = None if pixel_mask is None else torch.as_tensor(np.asarray(pixel_mask, dtype=bool), device=dev)
+        order = idx[np.argsort(size[idx].prod(axis=1), kind="stable")]
+        for start in range(0, order.size, s.batch_size):
+            sel = order[start:start + s.batch_size]
+            prob = _Problem(img_t, ok_t, origin[sel], size[sel], num_segments, s)
+            res = _fit_chunk(prob, Hn[sel])
+            for i, m in zip(sel, res.pop("masks"), strict=True):
+                masks[i] = m
+            for key, val in res.items():
+                out[key][sel] = val
+            out["uv_centre"][sel] = prob.uv_centre
+            out["uv_scale"][sel] = prob.uv_scale
+    k_fit = out["psf_fit"]
+    fitted = (todo & np.isfinite(out["loss"]) & np.all(np.isfinite(out["H"]), axis=(1, 2))
+              & np.all(np.isfinite(k_fit), axis=(1, 2)) & (out["coeffs"][:, 2] > s.min_contrast)
+              & (out["num_pixels"] > 0))
+    converged = fitted & (out["centre_step"] < s.converge_tol_px)
+    status = [BlockStatus.NOT_CONVERGED if todo[b] and not converged[b] else status[b] for b in range(B)]
+    figures = {name: np.full(B, np.nan) for name in
+               ("boundary_energy", "sigma_major", "sigma_minor", "eccentricity", "orientation")}
+    if fitted.any():
+        mom = psf_moments(k_fit[fitted])
+        for name in ("sigma_major", "sigma_minor", "eccentricity", "orientation"):
+            figures[name][fitted] = getattr(mom, name)
+        figures["boundary_energy"][fitted] = boundary_energy(k_fit[fitted])
+    return BlockFit(
+        H=out["H"], psf=out["psf"], psf_fit=k_fit, coeffs=out["coeffs"], uv_centre=out["uv_centre"],
+        uv_scale=out["uv_scale"], loss=out["loss"], residual_rms=np.sqrt(out["loss"]),
+        centroid=out["centroid"], converged=converged, status=tuple(status),
+        centre_step=out["centre_step"], origin=origin, window_size=size, num_pixels=out["num_pixels"],
+        masks=masks, num_segments=num_segments, settings=s, **figures)
+
+
+def render_model(fit: BlockFit, image: np.ndarray, index: int) -> BlockModel:
+    """The fitted model, the observed window and the residual of block ``index`` (for a GUI).
+
+    The model is evaluated from :attr:`BlockFit.H_fit`, :attr:`BlockFit.psf_fit` and
+    :attr:`BlockFit.coeffs` (no re-fit), so ``mean(residual[mask]^2)`` reproduces
+    :attr:`BlockFit.loss`.
+
+    Args:
+        fit: a result of :func:`fit_blocks`.
+        image: the image that was fitted.
+        index: the block.
+    Raises:
+        ValueError: the block was not fitted (status ``outside_image`` or
+            ``degenerate_homography``).
+    """
+    if not np.all(np.isfinite(fit.psf_fit[index])):
+        raise ValueError(f"block {index} was not fitted (status {fit.status[index].value})")
+    s = fit.settings
+    dev = torch.device(s.device)
+    img_t = torch.as_tensor(np.asarray(image, dtype=np.float64 if s.dtype == "float64" else np.float32),
+                            device=dev)
+    sel = slice(index, index + 1)
+    prob = _Problem(img_t, None, fit.origin[sel], fit.window_size[sel], fit.num_segments, s)
+    k = torch.as_tensor(fit.psf_fit[sel], device=dev, dtype=prob.dt)
+    p = torch.as_tensor(fit.coeffs[sel], device=dev, dtype=torch.float64)
+    model = prob.model(prob.to_local(fit.H_fit[sel]), k, p)[0].double().cpu().numpy()
+    obs = prob.img[0].double().cpu().numpy()
+    return BlockModel(model, obs, obs - model, fit.masks[index].copy(), fit.origin[index].copy())
+
+
+# --------------------------------------------------------------------------- simulated blocks
+@dataclass(eq=False)
+class SimulatedBlocks:
+    """Synthetic blocks with ground truth (for tests and ``scripts/bench_deconv.py``).
+
+    Attributes:
+        image: ``(height, width)`` uint8, the blocks' tiles side by side.
+        H_true: ``(B, 3, 3)`` true block homographies (block coords -> image px).
+        H0: ``(B, 3, 3)`` perturbed initial homographies.
+        psf_true: ``(B, Kt, Kt)`` true kernels (sum 1).
+        centre_true: ``(B, 2)`` px, ``H_true(0, 0)`` plus the true kernel's centroid: the star
+            centre's time-averaged position.
+        features: ``(B, 2)`` int feature coordinates of the blocks.
+    """
+
+    image: np.ndarray
+    H_true: np.ndarray
+    H0: np.ndarray
+    psf_true: np.ndarray
+    centre_true: np.ndarray
+    features: np.ndarray
+
+
+def _motion_kernel(rng: np.random.Generator, length: float, size: int, gauss_sigma: float) -> np.ndarray:
+    """A curved, unevenly travelled motion path of ``length`` px splatted into ``size x size``."""
+    theta = rng.uniform(0, 2 * np.pi)
+    d = np.array([math.cos(theta), math.sin(theta)])
+    nrm = np.array([-d[1], d[0]])
+    bend = rng.uniform(-0.25, 0.25) * length
+    t = np.linspace(0.0, 1.0, 400) ** rng.uniform(0.7, 1.4)  # uneven speed
+    pts = ((t - 0.5)[:, None] * length * d[None] + (4 * t * (1 - t))[:, None] * bend * nrm[None])
+    pts = pts - pts.mean(axis=0) + rng.uniform(-1.0, 1.0, 2)
+    k = splat(pts, size)
+    if gauss_sigma > 0:
+        k = cv2.GaussianBlur(k, (0, 0), gauss_sigma, borderType=cv2.BORDER_CONSTANT)
+    return k / k.sum()
+
+
+def simulate_blocks(pattern: StarPattern, num_blocks: int, rng: np.random.Generator, *,
+                    square_px: tuple[float, float] = (26.0, 34.0), blur_px: tuple[float, float] = (4.0, 15.0),
+                    gauss_sigma: tuple[float, float] = (0.0, 0.6), noise_sigma: float = 2.0,
+                    init_shift_px: float = 1.5, init_scale: float = 0.03, supersample: int = 8,
+                    tile_px: int = 96, ink: float = 30.0, paper: float = 200.0,
+                    truth_kernel_size: int = 31, psf: np.ndarray | None = None) -> SimulatedBlocks:
+    """Render ``num_blocks`` blurred star blocks with known ``H`` and PSF, one per tile.
+
+    Each tile shows the exact pattern (:meth:`StarPattern.intensity`, box-filtered over
+    ``supersample^2`` samples per pixel) around a random valid feature through a random
+    perspective homography (square side in ``square_px``), blurred by a random curved motion
+    path of ``blur_px`` length (:func:`blurcalib.synth.splat`) and a Gaussian, scaled to
+    ``ink..paper`` with gain and offset gradients applied after the blur (as ``synth.py`` does),
+    with Gaussian noise of ``noise_sigma`` grey levels, quantised to 8 bits. ``H0`` is ``H_true``
+    moved by up to ``init_shift_px`` px and scaled by up to ``init_scale`` about the centre.
+    ``psf`` (``(Kt, Kt)`` or ``(B, Kt, Kt)``, odd ``Kt``) replaces the random motion kernels.
+    """
+    if psf is not None:
+        given = np.broadcast_to(np.asarray(psf, dtype=np.float64), (num_blocks, *np.shape(psf)[-2:]))
+        truth_kernel_size = given.shape[-1]
+    cols = math.ceil(math.sqrt(num_blocks))
+    rows = math.ceil(num_blocks / cols)
+    image = np.zeros((rows * tile_px, cols * tile_px))
+    feats = pattern.features[rng.choice(pattern.num_features, num_blocks, replace=False)]
+    H_true = np.zeros((num_blocks, 3, 3))
+    H0 = np.zeros_like(H_true)
+    kernels = np.zeros((num_blocks, truth_kernel_size, truth_kernel_size))
+    centre = np.zeros((num_blocks, 2))
+    offs = (np.arange(supersample) + 0.5) / supersample - 0.5
+    yy, xx = np.mgrid[0:tile_px, 0:tile_px].astype(np.float64)
+    for b in range(num_blocks):
+        ty, tx = divmod(b, cols)
+        half = 0.5 * rng.uniform(*square_px)
+        ang = rng.uniform(0, 2 * np.pi)
+        R = np.array([[math.cos(ang), -math.sin(ang)], [math.sin(ang), math.cos(ang)]])
+        Aff = half * R @ np.array([[1.0 + rng.uniform(-0.1, 0.1), rng.uniform(-0.1, 0.1)], [0.0, 1.0]])
+        Hb = np.eye(3)
+        Hb[:2, :2] = Aff
+        Hb[:2, 2] = tile_px / 2 - 0.5 + rng.uniform(-0.5, 0.5, 2)
+        Hb = Hb @ np.array([[1, 0, 0], [0, 1, 0], [*rng.uniform(-0.08, 0.08, 2), 1.0]])
+        Hb /= Hb[2, 2]
+        fx, fy = feats[b]
+        to_feature = np.array([[0.5, 0, fx], [0, 0.5, fy], [0, 0, 1.0]]) @ np.linalg.inv(Hb)
+        acc = np.zeros((tile_px, tile_px))
+        for oy in offs:
+            for ox in offs:
+                X = np.stack([xx + ox, yy + oy, np.ones_like(xx)], axis=-1) @ to_feature.T
+                acc += pattern.intensity(X[..., :2] / X[..., 2:])
+        latent = acc / supersample**2
+        if psf is None:
+            k = _motion_kernel(rng, rng.uniform(*blur_px), truth_kernel_size, rng.uniform(*gauss_sigma))
+        else:
+            k = given[b] / given[b].sum()
+        blurred = fftconvolve(latent, k, mode="same")
+        u = (xx - tile_px / 2) / (tile_px / 2)
+        v = (yy - tile_px / 2) / (tile_px / 2)
+        gain = (paper - ink) * (1.0 + rng.uniform(-0.08, 0.08) * u + rng.uniform(-0.08, 0.08) * v)
+        offset = ink * (1.0 + rng.uniform(-0.2, 0.2) * u + rng.uniform(-0.2, 0.2) * v)
+        tile = offset + gain * blurred + rng.normal(0.0, noise_sigma, blurred.shape)
+        image[ty * tile_px:(ty + 1) * tile_px, tx * tile_px:(tx + 1) * tile_px] = tile
+        Hi = translation(np.array([tx * tile_px, ty * tile_px], dtype=np.float64)) @ Hb
+        H_true[b] = Hi
+        kernels[b] = k
+        centre[b] = Hi[:2, 2] / Hi[2, 2] + psf_centroid(k, 0.0)
+        c0 = Hi[:2, 2] / Hi[2, 2]
+        shift = rng.normal(size=2)
+        shift *= rng.uniform(0, init_shift_px) / np.linalg.norm(shift)
+        sc = 1.0 + rng.uniform(-init_scale, init_scale)
+        H0[b] = translation(c0 + shift) @ np.diag([sc, sc, 1.0]) @ translation(-c0) @ Hi
+    img8 = np.clip(np.round(image), 0, 255).astype(np.uint8)
+    return SimulatedBlocks(img8, H_true, H0, kernels, centre, feats)

@@ -1,0 +1,269 @@
+"""Local deconvolution of star blocks: recovery of known blocks, the translational ambiguity,
+PSF re-centring, PSF figures, batching, and per-block flags for invalid input."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+from scipy.ndimage import convolve
+
+from blurcalib.deconv import (
+    BlockFit,
+    DeconvSettings,
+    SimulatedBlocks,
+    fit_blocks,
+    psf_centroid,
+    recentre,
+    render_model,
+    shift_pair,
+    simulate_blocks,
+    translation,
+)
+from blurcalib.pattern import layout_pattern
+from blurcalib.results import BlockStatus, boundary_energy, psf_moments
+
+SEGMENTS = 16
+SETTINGS = DeconvSettings(kernel_size=13)
+
+
+def _simulate(num: int, seed: int, **kw) -> SimulatedBlocks:
+    opts = {"supersample": 4, "tile_px": 80, "blur_px": (3.0, 7.0)}
+    opts.update(kw)
+    return simulate_blocks(layout_pattern(), num, np.random.default_rng(seed), **opts)
+
+
+def _centre_error(fit: BlockFit, sim: SimulatedBlocks) -> np.ndarray:
+    return np.linalg.norm(fit.centre - sim.centre_true, axis=1)
+
+
+def _centred_truth(psf_true: np.ndarray, K: int) -> np.ndarray:
+    """The true kernels moved so that their centroids sit at the centre, cropped to ``K x K``."""
+    _, centred, _ = recentre(np.broadcast_to(np.eye(3), (len(psf_true), 3, 3)), psf_true)
+    c = (psf_true.shape[-1] - K) // 2
+    return centred[:, c:c + K, c:c + K]
+
+
+@pytest.fixture(scope="module")
+def sim() -> SimulatedBlocks:
+    return _simulate(6, seed=3)
+
+
+@pytest.fixture(scope="module")
+def fit(sim: SimulatedBlocks) -> BlockFit:
+    return fit_blocks(sim.image, sim.H0, SEGMENTS, SETTINGS)
+
+
+# ----------------------------------------------------------------------------------- recovery
+def test_known_blocks_are_recovered(sim: SimulatedBlocks, fit: BlockFit) -> None:
+    # H0 is off by up to 1.5 px and 3 % scale; blur 3-7 px, noise 2 grey levels
+    err = _centre_error(fit, sim)
+    assert err.max() < 0.05, err
+    assert all(st is BlockStatus.ACCEPTED for st in fit.status)
+    assert fit.converged.all()
+    # noise is 2; sharp edges leave up to ~3.5 (the soft-edge model, tau = 0.25 px)
+    assert np.all((fit.residual_rms > 1.8) & (fit.residual_rms < 4.0)), fit.residual_rms
+    truth = _centred_truth(sim.psf_true, SETTINGS.kernel_size)
+    a = fit.psf - fit.psf.mean(axis=(1, 2), keepdims=True)
+    b = truth - truth.mean(axis=(1, 2), keepdims=True)
+    ncc = (a * b).sum(axis=(1, 2)) / np.sqrt((a * a).sum(axis=(1, 2)) * (b * b).sum(axis=(1, 2)))
+    assert ncc.min() > 0.9, ncc
+    # gain ~170 and offset ~30 grey levels (after the blur, the default order)
+    assert np.all(np.abs(fit.coeffs[:, 2] - 170.0) < 20.0) and np.all(np.abs(fit.coeffs[:, 5] - 30.0) < 10.0)
+
+
+def test_result_arrays_are_consistent(fit: BlockFit) -> None:
+    K = SETTINGS.kernel_size
+    assert fit.H.shape == (6, 3, 3) and fit.psf.shape == (6, K, K) and fit.coeffs.shape == (6, 6)
+    np.testing.assert_allclose(fit.H[:, 2, 2], 1.0)
+    np.testing.assert_allclose(fit.psf.sum(axis=(1, 2)), 1.0, atol=1e-9)
+    np.testing.assert_allclose(fit.psf_fit.sum(axis=(1, 2)), 1.0, atol=1e-9)
+    assert fit.psf.min() >= 0.0 and fit.psf_fit.min() >= 0.0
+    np.testing.assert_allclose(fit.H, translation(fit.centroid) @ fit.H_fit, atol=1e-9)
+    np.testing.assert_allclose(fit.centroid, psf_centroid(fit.psf_fit), atol=1e-9)
+    np.testing.assert_allclose(fit.residual_rms ** 2, fit.loss)
+    assert np.all(fit.num_pixels == [m.sum() for m in fit.masks])
+
+
+@pytest.mark.parametrize("brightness", ["after_blur", "before_blur"])
+def test_render_model_reproduces_the_loss(sim: SimulatedBlocks, brightness: str) -> None:
+    settings = dataclasses.replace(SETTINGS, brightness=brightness)
+    fit = fit_blocks(sim.image, sim.H0[:2], SEGMENTS, settings)
+    for i in range(2):
+        shown = render_model(fit, sim.image, i)
+        shape = tuple(fit.window_size[i][::-1])
+        assert shown.model.shape == shown.observed.shape == shown.mask.shape == shape
+        x0, y0 = shown.origin
+        h, w = shown.observed.shape
+        np.testing.assert_array_equal(shown.observed, sim.image[y0:y0 + h, x0:x0 + w])
+        assert np.mean(shown.residual[shown.mask] ** 2) == pytest.approx(fit.loss[i], rel=1e-4)
+    assert _centre_error(fit, dataclasses.replace(sim, centre_true=sim.centre_true[:2])).max() < 0.05
+
+
+@pytest.mark.parametrize("kernel_size", [3, 7])
+def test_small_kernels_for_nearly_sharp_frames(kernel_size: int) -> None:
+    sim = _simulate(3, seed=9, blur_px=(0.5, 2.0))
+    fit = fit_blocks(sim.image, sim.H0, SEGMENTS, DeconvSettings(kernel_size=kernel_size))
+    assert fit.psf.shape == (3, kernel_size, kernel_size)
+    assert all(st is BlockStatus.ACCEPTED for st in fit.status)
+    assert _centre_error(fit, sim).max() < 0.05
+
+
+def test_paper_pattern_model_runs_but_is_less_accurate(sim: SimulatedBlocks, fit: BlockFit) -> None:
+    paper = fit_blocks(sim.image, sim.H0[:3], SEGMENTS, dataclasses.replace(SETTINGS, pattern="sigmoid_sin"))
+    assert np.all(np.isfinite(paper.centre)) and np.all(paper.residual_rms > fit.residual_rms[:3])
+
+
+# ---------------------------------------------------------------------- translational ambiguity
+def test_shift_pair_leaves_the_blurred_image_unchanged() -> None:
+    rng = np.random.default_rng(0)
+    latent = rng.uniform(size=(40, 50))
+    kernel = np.zeros((9, 9))
+    kernel[3:6, 2:7] = rng.uniform(size=(3, 5))
+    for delta in [(1, 0), (-2, 1), (2, -3)]:
+        shifted_latent, shifted_kernel = shift_pair(latent, kernel, delta)
+        np.testing.assert_allclose(convolve(shifted_latent, shifted_kernel, mode="wrap"),
+                                   convolve(latent, kernel, mode="wrap"), atol=1e-12)
+        # the kernel's centroid moved by -delta, the latent by +delta
+        np.testing.assert_allclose(psf_centroid(shifted_kernel), psf_centroid(kernel) - np.array(delta))
+    with pytest.raises(ValueError, match="out of the 9 x 9 window"):
+        shift_pair(latent, kernel, (4, 0))
+
+
+def test_shifted_start_gives_the_same_recentred_centre(sim: SimulatedBlocks, fit: BlockFit) -> None:
+    # a shift of the initial H by (2, -1) px is absorbed by the kernel, and the re-centring brings
+    # both fits to the same star centre and PSF; what differs is the optimisation path (kernel
+    # support, LM steps), measured at <= 0.025 px over three seeds
+    H0 = translation(np.array([2.0, -1.0])) @ sim.H0[:3]
+    moved = fit_blocks(sim.image, H0, SEGMENTS, SETTINGS)
+    assert np.abs(moved.centre - fit.centre[:3]).max() < 0.03
+    assert np.abs(moved.psf - fit.psf[:3]).max() < 0.1 * fit.psf[:3].max()
+    assert _centre_error(moved, dataclasses.replace(sim, centre_true=sim.centre_true[:3])).max() < 0.05
+
+
+# ------------------------------------------------------------------------------------ recentring
+def test_recentre_moves_centroid_and_homography_by_the_same_amount() -> None:
+    psf = np.zeros((2, 15, 15))
+    psf[0, 7, 3:9] = 1.0  # horizontal line, centroid (-1.5, 0)
+    psf[1, 2:6, 9:11] = [[1.0, 2.0], [1.0, 2.0], [3.0, 1.0], [1.0, 1.0]]
+    psf /= psf.sum(axis=(1, 2), keepdims=True)
+    rng = np.random.default_rng(1)
+    H = np.eye(3) + 0.01 * rng.normal(size=(2, 3, 3))
+    H[:, :2, 2] = [[40.0, 30.0], [12.0, 55.0]]
+    c = psf_centroid(psf)
+    H2, psf2, c2 = recentre(H, psf)
+    np.testing.assert_allclose(c2, c)
+    np.testing.assert_allclose(psf_centroid(psf2), 0.0, atol=1e-12)
+    np.testing.assert_allclose(psf2.sum(axis=(1, 2)), 1.0)
+    assert psf2.min() >= 0.0
+    np.testing.assert_allclose(H2, translation(c) @ H)
+    # H(0, 0) moves by exactly the centroid
+    np.testing.assert_allclose(H2[:, :2, 2] / H2[:, 2:, 2] - H[:, :2, 2] / H[:, 2:, 2], c, atol=1e-12)
+    # single kernels work too
+    H1, psf1, c1 = recentre(H[0], psf[0])
+    np.testing.assert_allclose(H1, H2[0])
+    np.testing.assert_allclose(psf1, psf2[0])
+    np.testing.assert_allclose(c1, c[0])
+
+
+# --------------------------------------------------------------------------------- PSF figures
+def test_psf_figures_of_a_known_line_blur() -> None:
+    length = 7
+    line = np.zeros((21, 21))
+    line[10, 10 - length // 2:10 + length // 2 + 1] = 1.0  # horizontal, 7 px
+    sim = _simulate(3, seed=5, psf=line)
+    fit = fit_blocks(sim.image, sim.H0, SEGMENTS, SETTINGS)
+    assert _centre_error(fit, sim).max() < 0.05
+    # a 7-px box has sigma sqrt((7^2 - 1) / 12) = 2 px; the fit also absorbs the pixel area
+    assert np.all(np.abs(fit.sigma_major - 2.0) < 0.25), fit.sigma_major
+    assert np.all(fit.sigma_minor < 0.7), fit.sigma_minor
+    assert np.all(np.abs(np.sin(fit.orientation)) < 0.1), fit.orientation
+    assert np.all(fit.eccentricity > 0.9)
+    assert np.all(fit.boundary_energy < 0.02)
+    mom = psf_moments(fit.psf_fit)
+    np.testing.assert_allclose(fit.sigma_major, mom.sigma_major)
+    np.testing.assert_allclose(fit.boundary_energy, boundary_energy(fit.psf_fit))
+
+
+def test_boundary_energy_flags_a_kernel_reaching_the_border() -> None:
+    long_line = np.zeros((21, 21))
+    long_line[10, 1:20] = 1.0  # 19 px: longer than the 13 x 13 window
+    sim = _simulate(2, seed=6, psf=long_line)
+    fit = fit_blocks(sim.image, sim.H0, SEGMENTS, SETTINGS)
+    assert np.all(fit.boundary_energy > 0.15), fit.boundary_energy
+
+
+# ------------------------------------------------------------------------------------- batching
+def test_batch_equals_one_by_one(sim: SimulatedBlocks, fit: BlockFit) -> None:
+    for i in (0, 4):
+        single = fit_blocks(sim.image, sim.H0[i:i + 1], SEGMENTS, SETTINGS)
+        assert np.abs(single.centre[0] - fit.centre[i]).max() < 2e-3
+        assert np.abs(single.psf[0] - fit.psf[i]).max() < 2e-3
+        assert single.loss[0] == pytest.approx(fit.loss[i], rel=1e-2)
+    small_batches = fit_blocks(sim.image, sim.H0, SEGMENTS, dataclasses.replace(SETTINGS, batch_size=4))
+    assert np.abs(small_batches.centre - fit.centre).max() < 2e-3
+
+
+def test_float64_agrees_with_float32(sim: SimulatedBlocks, fit: BlockFit) -> None:
+    fit64 = fit_blocks(sim.image, sim.H0[:2], SEGMENTS, dataclasses.replace(SETTINGS, dtype="float64"))
+    assert np.abs(fit64.centre - fit.centre[:2]).max() < 2e-3
+
+
+# ------------------------------------------------------------------------------- invalid input
+def test_invalid_blocks_are_flagged_per_block(sim: SimulatedBlocks, fit: BlockFit) -> None:
+    good = sim.H0[0]
+    nan_h = np.full((3, 3), np.nan)
+    flat = good.copy()
+    flat[:, 1] = 0.0  # the square collapses to a segment
+    behind = good.copy()
+    behind[2] = [2.0, 0.0, 1.0]  # the horizon crosses the square
+    outside = translation(np.array([-60.0, 0.0])) @ good  # the window leaves the image
+    H0 = np.stack([good, nan_h, flat, behind, outside, np.zeros((3, 3))])
+    out = fit_blocks(sim.image, H0, SEGMENTS, SETTINGS)
+    assert out.status == (BlockStatus.ACCEPTED, BlockStatus.DEGENERATE_HOMOGRAPHY,
+                          BlockStatus.DEGENERATE_HOMOGRAPHY, BlockStatus.DEGENERATE_HOMOGRAPHY,
+                          BlockStatus.OUTSIDE_IMAGE, BlockStatus.DEGENERATE_HOMOGRAPHY)
+    assert out.converged.tolist() == [True, False, False, False, False, False]
+    assert np.abs(out.centre[0] - fit.centre[0]).max() < 2e-3
+    assert np.all(np.isnan(out.loss[1:])) and np.all(np.isnan(out.psf[1:]))
+    np.testing.assert_array_equal(out.H[4], outside)  # unfitted blocks keep their H0
+    with pytest.raises(ValueError, match="not fitted"):
+        render_model(out, sim.image, 4)
+
+
+def test_a_window_without_a_star_fails_alone(sim: SimulatedBlocks, fit: BlockFit) -> None:
+    image = sim.image.astype(np.float64)
+    x0, y0 = fit.origin[1]
+    w, h = fit.window_size[1]
+    image[y0:y0 + h, x0:x0 + w] = 120.0  # block 1: a blank window
+    cx, cy = np.round(fit.centre[2]).astype(int)
+    image[cy + 3, cx] = np.nan  # block 2: one non-finite pixel in the square, ignored
+    out = fit_blocks(image, sim.H0[:3], SEGMENTS, SETTINGS)
+    assert out.status == (BlockStatus.ACCEPTED, BlockStatus.NOT_CONVERGED, BlockStatus.ACCEPTED)
+    assert np.abs(out.centre[[0, 2]] - fit.centre[[0, 2]]).max() < 0.01
+    assert out.num_pixels[2] == fit.num_pixels[2] - 1
+
+
+def test_pixel_mask_removes_pixels_from_the_loss(sim: SimulatedBlocks, fit: BlockFit) -> None:
+    mask = np.ones(sim.image.shape, dtype=bool)
+    x0, y0 = fit.origin[0]
+    w, h = fit.window_size[0]
+    mask[y0:y0 + h // 4, x0:x0 + w] = False  # the top quarter of block 0's window
+    out = fit_blocks(sim.image, sim.H0[:2], SEGMENTS, SETTINGS, pixel_mask=mask)
+    assert out.num_pixels[0] < fit.num_pixels[0] and out.num_pixels[1] == fit.num_pixels[1]
+    assert not out.masks[0][: h // 4].any()
+    assert _centre_error(out, dataclasses.replace(sim, centre_true=sim.centre_true[:2])).max() < 0.05
+
+
+def test_bad_arguments_raise() -> None:
+    with pytest.raises(ValueError, match="odd"):
+        DeconvSettings(kernel_size=12)
+    with pytest.raises(ValueError, match="brightness"):
+        DeconvSettings(brightness="sideways")  # type: ignore[arg-type]
+    with pytest.raises(ValueError, match="pattern"):
+        DeconvSettings(pattern="checker")  # type: ignore[arg-type]
+    with pytest.raises(ValueError, match=r"\(height, width\)"):
+        fit_blocks(np.zeros((4, 4, 3)), np.eye(3)[None], SEGMENTS)
+    with pytest.raises(ValueError, match="pixel_mask"):
+        fit_blocks(np.zeros((40, 40)), np.eye(3)[None], SEGMENTS, pixel_mask=np.ones((4, 4), dtype=bool))
