@@ -173,9 +173,9 @@ def cmd_extract(args: argparse.Namespace) -> int:
 
 def cmd_experiment(args: argparse.Namespace) -> int:
     """``blurcalib experiment NAME``: reproduce one of the paper's experiments."""
-    from blurcalib.experiments import patterns
+    from blurcalib.experiments import alignment, patterns
 
-    runners = {"patterns": patterns.main}
+    runners = {"patterns": patterns.main, "alignment": alignment.main}
     return runners[args.name](args.rest)
 
 
@@ -246,8 +246,9 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("experiment", help="reproduce one of the paper's experiments",
                        description=cmd_experiment.__doc__)
-    p.add_argument("name", choices=["patterns"],
-                   help="patterns: star vs checkerboard PSF recovery (fig:exp2_test)")
+    p.add_argument("name", choices=["patterns", "alignment"],
+                   help="patterns: star vs checkerboard PSF recovery (fig:exp2_test); "
+                        "alignment: global alignment verification (tab:exp4, fig:exp41, fig:exp42)")
     p.add_argument("rest", nargs=argparse.REMAINDER,
                    help="options of the experiment (see blurcalib experiment NAME --help)")
     p.set_defaults(func=cmd_experiment)
