@@ -283,15 +283,19 @@ def write_frames_table(out: Path, summaries: Sequence[dict]) -> Path:
 def extract_to_folder(paths: Sequence[Path], pattern: StarPattern, out_dir: str | os.PathLike,
                       settings: ExtractSettings | None = None, workers: int = 1,
                       progress: Callable[[int, int, dict], None] | None = None,
-                      expected_size: tuple[int, int] | None = None) -> FolderSummary:
+                      expected_size: tuple[int, int] | None = None,
+                      names: Sequence[str] | None = None) -> FolderSummary:
     """Extract every frame of ``paths`` into ``out_dir`` (resumable).
 
     Frames already done in ``out_dir`` are skipped. An unreadable frame, a frame that cannot
-    be seeded or fails is recorded with its status and message; the others go on.
+    be seeded or fails is recorded with its status and message; the others go on. Frames are
+    named by :func:`frame_names` unless ``names`` gives one per path.
     """
     settings = settings or ExtractSettings()
     out = ensure_writable_dir(out_dir)
-    names = frame_names(list(paths))
+    names = list(names) if names is not None else frame_names(list(paths))
+    if len(names) != len(paths) or len(set(names)) != len(names):
+        raise ValueError("frame names must be unique, one per path")
     done = completed_frames(out)
     summaries = {n: _read_summary(out, n) for n in names if n in done}
     todo = [(p, n) for p, n in zip(paths, names, strict=True) if n not in done]

@@ -50,7 +50,8 @@ class FrameFilter:
             ``disconnected``, or the growth's own rejection.
         kept: ``(B,)`` bool, the blocks that survive.
         seed: index of the BFS seed block (-1 when none survived).
-        centre_sigma_major: median sigma_major of the accepted blocks in the centre region (px).
+        centre_sigma_major: median sigma_major of the accepted blocks in the centre region (px;
+            of all accepted blocks when none lies in the centre region).
         frame_ok: the frame passes the blur pre-filter.
     """
 
@@ -95,6 +96,8 @@ def filter_frame(fx: np.ndarray, fy: np.ndarray, centre: np.ndarray, status: np.
     centre = np.asarray(centre, dtype=np.float64).reshape(-1, 2)
     in_centre = _in_centre(centre, image_size, s.centre_fraction)
     central = grown & in_centre & np.isfinite(sigma_major)
+    if not central.any():  # the target does not reach the centre region: use every block
+        central = grown & np.isfinite(sigma_major)
     centre_sigma = float(np.median(sigma_major[central])) if central.any() else float("nan")
     frame_ok = s.min_sigma_major <= 0 or (np.isfinite(centre_sigma)
                                           and centre_sigma >= s.min_sigma_major)
