@@ -1,0 +1,140 @@
+"""blurcalib's browser app: watch features and PSFs being extracted, tune the quality filter,
+inspect blocks, see the error field and the frames' poses, and learn the translational ambiguity.
+
+    python app.py [FOLDER] [--pattern P.yaml] [--port N]
+
+With no folder it opens a small simulated dataset, rendered on first use into
+``out/app_default/``. The app serves on 127.0.0.1 (port 8080 by default, the next free one if
+taken) and prints its URL. All browser tabs share one state (``state/``); each panel is a module of
+``views/``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import signal
+import sys
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Protocol
+
+import viser
+
+from state import AppState, RunSettings, default_dataset
+from views.ambiguity import AmbiguityPanel
+from views.errors import ErrorsPanel
+from views.frame_view import FrameViewPanel
+from views.frames import FramesPanel
+from views.inspect import InspectPanel
+from views.psf_field import PsfFieldPanel
+from views.tuning import TuningPanel
+
+DEFAULT_FOLDER = Path(__file__).resolve().parent / "out" / "app_default"
+VIEWS_WIDTH = 760
+"""Width (px) of the docked panel holding the frame, PSF, block, error and demo views."""
+
+
+class Panel(Protocol):
+    def close(self) -> None: ...
+
+
+@dataclass
+class App:
+    """A running app: its state and its panels."""
+
+    state: AppState
+    panels: list[Panel] = field(default_factory=list)
+
+    def close(self) -> None:
+        """Cancel a run and stop the panels' threads (the server is stopped by its owner)."""
+        self.state.cancel()
+        self.state.wait(30.0)
+        for panel in self.panels:
+            panel.close()
+
+
+def _progress(done: int, total: int, name: str) -> None:
+    print(f"  simulated {done}/{total}: {name}", flush=True)
+
+
+def serve(folder: str | os.PathLike | None = None, pattern: str | os.PathLike | None = None,
+          port: int = 8080, *, host: str = "127.0.0.1", settings: RunSettings | None = None
+          ) -> tuple[viser.ViserServer, App]:
+    """Start the app on ``host:port`` (``port`` 0: any free port; read the real one with
+    ``server.get_port()``) and open ``folder`` (default: the built-in simulated dataset).
+
+    A folder that cannot be opened leaves the app running with an error in its status line.
+
+    Args:
+        folder: dataset folder (frames, or sub-folders of frames, and ``pattern.yaml``).
+        pattern: the pattern YAML (default: ``pattern.yaml`` in the folder or its parent).
+        port: TCP port.
+        host: interface to listen on.
+        settings: extraction settings per frame kind.
+    Returns:
+        The viser server and the app; stop with ``app.close()`` then ``server.stop()``.
+    """
+    if folder is None:
+        if not (DEFAULT_FOLDER / "ground_truth.json").is_file():
+            print(f"rendering the built-in dataset into {DEFAULT_FOLDER} (first use only)", flush=True)
+        folder = default_dataset(DEFAULT_FOLDER, progress=_progress)
+    state = AppState(settings)
+    server = viser.ViserServer(host=host, port=port, label="blurcalib", verbose=False)
+    server.gui.configure_theme(control_width="large", show_share_button=False, dark_mode=False,
+                               brand_color=(40, 110, 200))
+    server.gui.main_panel.dock_right()
+    app = App(state)
+    app.panels.append(FramesPanel(state, server))
+    with server.gui.add_folder("Quality filter"):
+        app.panels.append(TuningPanel(state, server))
+    views = server.gui.add_panel()
+    with views.add_tab("Frame", viser.Icon.PHOTO):
+        app.panels.append(FrameViewPanel(state, server))
+    with views.add_tab("PSF field", viser.Icon.GRID_DOTS):
+        app.panels.append(PsfFieldPanel(state, server))
+    with views.add_tab("Block", viser.Icon.ZOOM_IN):
+        app.panels.append(InspectPanel(state, server))
+    with views.add_tab("Errors", viser.Icon.ARROWS_MOVE):
+        app.panels.append(ErrorsPanel(state, server))
+    with views.add_tab("Ambiguity", viser.Icon.SCHOOL):
+        app.panels.append(AmbiguityPanel(server))
+    views.dock_left()
+    views.set_width(VIEWS_WIDTH)
+    state.load_folder(folder, pattern)
+    return server, app
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The command line of ``python app.py``."""
+    p = argparse.ArgumentParser(prog="app.py", description=__doc__.split("\n\n")[0])
+    p.add_argument("folder", nargs="?", help="dataset folder (default: a built-in simulated dataset)")
+    p.add_argument("--pattern", help="pattern YAML (default: pattern.yaml in the folder or its parent)")
+    p.add_argument("--port", type=int, default=8080,
+                   help="TCP port (%(default)s; the next free one if taken)")
+    p.add_argument("--host", default="127.0.0.1",
+                   help="interface to listen on (%(default)s; 0.0.0.0 exposes the app to the network)")
+    return p
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Run the app until interrupted."""
+    args = build_parser().parse_args(argv)
+    server, app = serve(args.folder, args.pattern, args.port, host=args.host)
+    for notice in app.state.notices:
+        if notice.level == "error":
+            print(f"{notice.title}: {notice.text}", file=sys.stderr)
+    print(f"blurcalib app: http://{args.host}:{server.get_port()}/  (Ctrl+C to stop)", flush=True)
+    try:
+        server.sleep_forever()
+    except KeyboardInterrupt:
+        signal.signal(signal.SIGINT, signal.SIG_IGN)  # a second Ctrl+C must not cut the clean-up short
+    finally:
+        app.close()
+        server.stop()
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,11 @@
+"""The browser app's state: plain, thread-safe dataclasses with no viser import.
+
+:class:`AppState` holds the folder, the frames and their per-frame results, the quality
+thresholds, the selection and the run queue; views subscribe to its :class:`Topic` changes.
+"""
+
+from state.app_state import AppState, FrameEntry, FrameView, Notice, RunProgress, RunSettings, Topic
+from state.folder import Dataset, DatasetError, default_dataset, discover
+
+__all__ = ["AppState", "Dataset", "DatasetError", "FrameEntry", "FrameView", "Notice", "RunProgress",
+           "RunSettings", "Topic", "default_dataset", "discover"]

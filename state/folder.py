@@ -1,0 +1,159 @@
+"""Finding a dataset on disk: its frames, its pattern and, for simulated data, its ground truth.
+
+A folder holds frames directly (``images/*.png``) or in sub-folders (a simulated dataset's
+``sharp/`` and ``blurry/``). The pattern is ``--pattern`` when given, else ``pattern.yaml`` in the
+folder or its parent. Frame names are paths relative to the folder (``blurry/0003.png``), the
+names the ground truth uses.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+from blurcalib.frames import FrameError, list_frames
+from blurcalib.pattern import PatternFileError, StarPattern, load_pattern
+from blurcalib.synth import (
+    GROUND_TRUTH_FILE,
+    DatasetTruth,
+    SynthConfig,
+    TrueCamera,
+    d435i_like_camera,
+    load_ground_truth,
+    write_dataset,
+)
+
+PATTERN_FILE = "pattern.yaml"
+
+DEFAULT_CONFIG = SynthConfig(sharp=2, blurry=4, blur_min_px=3.0, blur_max_px=8.0, square_px=(26.0, 34.0),
+                             max_tilt_deg=35.0, seed=0)
+"""The built-in dataset: 2 sharp and 4 blurry 640 x 360 frames (a D435I-like camera at half size)."""
+
+
+class DatasetError(ValueError):
+    """A folder cannot be opened as a dataset; the message names the path and the problem."""
+
+
+@dataclass(frozen=True)
+class FrameFile:
+    """One frame file: its name (relative to the dataset folder), path and kind."""
+
+    name: str
+    path: Path
+    kind: str
+
+
+@dataclass(frozen=True)
+class Dataset:
+    """A folder opened for the app.
+
+    Attributes:
+        folder: the dataset folder.
+        pattern_path: the pattern YAML used.
+        pattern: the target.
+        frames: the frame files, in order.
+        truth: the ground truth of a simulated dataset (None for real data).
+        warnings: problems that did not stop the load (an unreadable ground truth).
+    """
+
+    folder: Path
+    pattern_path: Path
+    pattern: StarPattern
+    frames: tuple[FrameFile, ...]
+    truth: DatasetTruth | None
+    warnings: tuple[str, ...] = ()
+
+
+def find_pattern(folder: Path, pattern: str | os.PathLike | None) -> Path:
+    """The pattern file: ``pattern`` when given, else ``pattern.yaml`` in ``folder`` or its parent."""
+    if pattern is not None:
+        return Path(pattern)
+    for candidate in (folder / PATTERN_FILE, folder.parent / PATTERN_FILE):
+        if candidate.is_file():
+            return candidate
+    raise DatasetError(f"{folder}: no {PATTERN_FILE} in the folder or its parent; name the pattern file")
+
+
+def frame_files(folder: Path) -> list[Path]:
+    """Image files of ``folder``, or, when it has none, of its sub-folders (in name order)."""
+    try:
+        return list_frames([folder])
+    except FrameError:
+        subdirs = sorted(p for p in folder.iterdir() if p.is_dir() and not p.name.startswith("."))
+        found = []
+        for sub in subdirs:
+            try:
+                found.extend(list_frames([sub]))
+            except FrameError:
+                continue
+        if not found:
+            raise DatasetError(f"{folder}: no image files (png, jpg, tif, bmp) in the folder or its "
+                               "sub-folders") from None
+        return found
+
+
+def _kind(name: str, truth: DatasetTruth | None) -> str:
+    if truth is not None:
+        for f in truth.frames:
+            if f.name == name:
+                return f.kind
+    return "sharp" if "sharp" in (part.lower() for part in Path(name).parts[:-1]) else "blurry"
+
+
+def discover(folder: str | os.PathLike, pattern: str | os.PathLike | None = None) -> Dataset:
+    """Open ``folder`` as a dataset.
+
+    Raises:
+        DatasetError: the folder is missing, holds no images, or the pattern is missing or
+            malformed (the message names the path).
+    """
+    root = Path(folder).expanduser()
+    if not root.is_dir():
+        raise DatasetError(f"{root}: no such folder" if not root.exists() else f"{root}: not a folder")
+    pattern_path = find_pattern(root, pattern)
+    try:
+        star = load_pattern(pattern_path)
+    except PatternFileError as exc:
+        raise DatasetError(str(exc)) from None
+    paths = frame_files(root)
+    warnings: list[str] = []
+    truth = None
+    if (root / GROUND_TRUTH_FILE).is_file():
+        try:
+            truth = load_ground_truth(root)
+        except ValueError as exc:
+            warnings.append(str(exc))
+    names = [p.relative_to(root).as_posix() for p in paths]
+    if truth is not None:
+        order = {f.name: i for i, f in enumerate(truth.frames)}
+        ranked = sorted(range(len(names)), key=lambda i: (order.get(names[i], len(order)), i))
+        names, paths = [names[i] for i in ranked], [paths[i] for i in ranked]
+    frames = tuple(FrameFile(n, p, _kind(n, truth)) for n, p in zip(names, paths, strict=True))
+    return Dataset(root, pattern_path, star, frames, truth, tuple(warnings))
+
+
+def default_camera() -> TrueCamera:
+    """The built-in dataset's camera: the D435I-like camera at half resolution (640 x 360)."""
+    full = d435i_like_camera(DEFAULT_CONFIG.seed)
+    waves = full.waves.copy()
+    waves[:, :2] *= 0.5
+    return TrueCamera(full.model.scaled(0.5), waves)
+
+
+def default_dataset(root: str | os.PathLike, config: SynthConfig = DEFAULT_CONFIG,
+                    camera: TrueCamera | None = None,
+                    progress: Callable[[int, int, str], None] | None = None) -> Path:
+    """The simulated dataset in ``root``, rendered on first use (a complete one is reused).
+
+    Args:
+        root: its folder (``out/app_default`` for the app).
+        config: what to simulate.
+        camera: the camera (default :func:`default_camera`).
+        progress: called after each rendered frame with ``(done, total, name)``.
+    """
+    out = Path(root)
+    if not (out / GROUND_TRUTH_FILE).is_file():
+        write_dataset(out, config, camera=camera or default_camera(), progress=progress)
+    return out

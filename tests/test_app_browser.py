@@ -1,0 +1,124 @@
+"""End to end in a real headless Chromium (Playwright): open the app, run a frame, tune, inspect.
+
+Needs Debian's ``/usr/bin/chromium`` and the ``playwright`` package (no ``playwright install``:
+the test launches the system browser); it is skipped, saying which is missing, otherwise. It also
+writes ``docs/app_screenshot.png``, the screenshot the README shows.
+"""
+
+from __future__ import annotations
+
+import re
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import pytest
+
+from blurcalib.extract import ExtractSettings
+from blurcalib.grow import GrowSettings
+from state import RunSettings
+from tests.test_app_state import SMALL_CONFIG, make_dataset
+
+CHROMIUM = Path("/usr/bin/chromium")
+if not CHROMIUM.exists():
+    pytest.skip(f"{CHROMIUM} not found: apt-get install chromium", allow_module_level=True)
+sync_api = pytest.importorskip("playwright.sync_api",
+                               reason="playwright not installed: pip install playwright")
+pytest.importorskip("viser", reason="viser not installed: pip install 'viser>=1.1,<1.2'")
+
+FLAGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
+         "--disable-background-networking", "--disable-component-update", "--disable-sync",
+         "--enable-unsafe-swiftshader"]
+SCREENSHOT = Path(__file__).resolve().parents[1] / "docs" / "app_screenshot.png"
+SETTINGS = RunSettings(blurry=ExtractSettings(grow=GrowSettings(max_blocks=25)))
+"""Blurry frames grow two fronts (the ring around the tag and the next one): a few seconds."""
+
+
+def _row(page, label: str):
+    """The GUI row (label and input) whose label reads ``label``."""
+    return page.locator("label", has_text=re.compile(f"^{re.escape(label)}$")).locator(
+        "xpath=ancestor::div[contains(@class,'Flex-root')][1]")
+
+
+def _kept(page) -> int:
+    text = page.get_by_text(re.compile(r"kept: \d+ blocks")).inner_text()
+    return int(re.search(r"kept: (\d+) blocks", text).group(1))
+
+
+def test_run_tune_and_inspect_in_chromium(tmp_path: Path) -> None:
+    from app import serve
+
+    t0 = time.perf_counter()
+    folder = make_dataset(tmp_path / "data", replace(SMALL_CONFIG, sharp=0, blurry=1))
+    server, app = serve(folder, None, 0, settings=SETTINGS)
+    expect = sync_api.expect
+    try:
+        with sync_api.sync_playwright() as p:
+            browser = p.chromium.launch(executable_path=str(CHROMIUM), headless=True, args=FLAGS)
+            page = browser.new_page(viewport={"width": 1600, "height": 1000})
+            errors: list[str] = []
+            page.on("console", lambda m: errors.append(m.text) if m.type == "error" else None)
+            page.goto(f"http://127.0.0.1:{server.get_port()}/")
+            page.wait_for_function("() => !document.body.innerText.includes('Connecting...')", timeout=30_000)
+            frame_image = page.get_by_text("Frame", exact=True).locator("xpath=..").locator("img")
+            expect(frame_image.first).to_have_attribute("src", re.compile("^blob:"), timeout=20_000)
+            before = frame_image.first.get_attribute("src")
+            expect(page.get_by_text("not extracted yet")).to_be_visible()
+
+            run = page.get_by_role("button", name="Run frame")
+            run.click()
+            expect(page.get_by_text(re.compile(r"done: \d+ blocks accepted"))).to_be_visible(timeout=120_000)
+            expect(run).to_be_enabled()
+            expect(page.get_by_role("button", name="Cancel")).to_be_disabled()
+            assert frame_image.first.get_attribute("src") != before
+            accepted = int(re.search(r"done: (\d+)", page.get_by_text(re.compile("done: ")).inner_text())[1])
+            assert accepted == sum(b.status.value == "accepted" for b in app.state.view().result.blocks) > 10
+
+            kept = _kept(page)
+            assert kept > 0
+            slider = _row(page, "τ_L").get_by_role("slider")
+            slider.focus()
+            slider.press("Home")
+            expect(slider).to_have_attribute("aria-valuenow", "0")
+            expect(page.get_by_text("kept: 0 blocks")).to_be_visible()
+            assert app.state.quality.tau_loss == 0.0
+            page.get_by_role("button", name="Paper defaults").click()
+            expect(page.get_by_text(f"kept: {kept} blocks")).to_be_visible()
+
+            page.set_input_files("input[type='file']", str(folder / "blurry" / "0000.png"))
+            expect(_row(page, "Frame").locator("input:not([type='hidden'])")).to_have_value("upload/0000.png")
+            expect(page.get_by_text("not extracted yet")).to_be_visible()
+            assert [e.name for e in app.state.entries()] == ["blurry/0000.png", "upload/0000.png"]
+            _row(page, "Frame").locator("input:not([type='hidden'])").click()
+            page.get_by_role("option", name="blurry/0000.png").click()
+            expect(page.get_by_text(f"kept: {kept} blocks")).to_be_visible()
+
+            page.get_by_role("tab", name="Block").click()
+            _row(page, "Jump to").locator("input:not([type='hidden'])").click()
+            page.get_by_role("option", name="highest loss").click()
+            expect(page.get_by_text(re.compile(r"block #\d+ feature"))).to_be_visible()
+            assert app.state.selected is not None
+            page.get_by_role("tab", name="Frame").click()
+            page.add_style_tag(content=".mantine-Notification-root { display: none !important; }")
+            page.wait_for_timeout(500)
+            page.screenshot(path=str(SCREENSHOT))
+
+            folder_field = _row(page, "Folder").locator("input")
+            folder_field.fill(str(tmp_path / "missing"))
+            page.get_by_role("button", name="Open folder").click()
+            expect(page.get_by_text("no such folder").filter(visible=True).first).to_be_visible()
+            assert app.state.dataset.folder == folder and len(app.state.entries()) == 2
+            expect(folder_field).to_have_value(str(folder))
+
+            other = browser.new_page(viewport={"width": 1280, "height": 800})
+            other.goto(f"http://127.0.0.1:{server.get_port()}/")
+            expect(other.get_by_text(f"kept: {kept} blocks")).to_be_visible(timeout=30_000)
+            expect(other.get_by_text(re.compile(r"done: \d+ blocks accepted"))).to_be_visible()
+            other.close()
+
+            assert not errors, errors
+            browser.close()
+    finally:
+        app.close()
+        server.stop()
+    assert time.perf_counter() - t0 < 120

@@ -1,0 +1,258 @@
+"""The browser app's state and drawing, without a browser: folders, runs, cancel, tuning, errors."""
+
+from __future__ import annotations
+
+import threading
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from blurcalib.camera import BrownConrady
+from blurcalib.extract import ExtractSettings
+from blurcalib.grow import GrowSettings
+from blurcalib.quality import QualitySettings
+from blurcalib.results import BlockStatus
+from blurcalib.synth import SynthConfig, TrueCamera
+from state import AppState, DatasetError, RunSettings, Topic, default_dataset, discover
+from state.app_state import filter_counts
+from state.demo import MAX_SHIFT, TILE_PX, ambiguity_demo
+from state.figures import error_field, feature_poses, truth_poses
+
+SMALL_CAMERA = BrownConrady(fx=360.0, fy=360.0, cx=207.5, cy=155.5, k1=0.02, k2=-0.03, p1=0.0003,
+                            p2=-0.0002, k3=0.0, width=416, height=312)
+SMALL_CONFIG = SynthConfig(sharp=1, blurry=1, square_px=(36.0, 42.0), max_tilt_deg=30.0, blur_min_px=3.0,
+                           blur_max_px=4.0, seed=3)
+FAST = RunSettings(blurry=ExtractSettings(grow=GrowSettings(max_blocks=25)),
+                   sharp=ExtractSettings.sharp(grow=GrowSettings(max_blocks=25)))
+"""Grow two fronts (the ring around the tag and the next one, about 45 blocks): the state logic,
+not the engine, is under test."""
+
+
+def make_dataset(root: Path, config: SynthConfig = SMALL_CONFIG) -> Path:
+    """A tiny simulated dataset (416 x 312 frames) with ground truth."""
+    return default_dataset(root, config, TrueCamera(SMALL_CAMERA))
+
+
+@pytest.fixture(scope="module")
+def dataset(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return make_dataset(tmp_path_factory.mktemp("app") / "tiny")
+
+
+@pytest.fixture(scope="module")
+def finished(dataset: Path) -> tuple[AppState, list[Topic]]:
+    """A state with both frames of the tiny dataset extracted, and the topics it emitted."""
+    state = AppState(FAST)
+    topics: list[Topic] = []
+    state.subscribe(topics.append)
+    assert state.load_folder(dataset)
+    assert state.view().image.shape == (312, 416) and state.view().result is None
+    assert state.run_all()
+    assert state.wait(300) and not state.is_running
+    return state, topics
+
+
+def test_discover_orders_frames_and_finds_pattern_and_truth(dataset: Path) -> None:
+    d = discover(dataset)
+    assert [(f.name, f.kind) for f in d.frames] == [("sharp/0000.png", "sharp"),
+                                                    ("blurry/0000.png", "blurry")]
+    assert d.pattern_path == dataset / "pattern.yaml" and d.truth is not None
+    # The pattern is also found beside a folder of frames.
+    assert discover(dataset / "blurry").pattern_path == dataset / "pattern.yaml"
+
+
+def test_bad_folders_give_an_error_and_keep_the_state(dataset: Path, tmp_path: Path) -> None:
+    state = AppState(FAST)
+    notices = []
+    state.subscribe_notices(notices.append)
+    assert state.load_folder(dataset)
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    (empty / "pattern.yaml").write_text((dataset / "pattern.yaml").read_text())
+    no_pattern = tmp_path / "no_pattern" / "frames"
+    no_pattern.mkdir(parents=True)
+    cv2.imwrite(str(no_pattern / "a.png"), np.zeros((20, 20), np.uint8))
+    bad_pattern = tmp_path / "bad_pattern.yaml"
+    bad_pattern.write_text("num_star_segments: 7\n")
+    cases = [(tmp_path / "missing", None, "no such folder"), (empty, None, "no image files"),
+             (no_pattern, None, "no pattern.yaml"), (dataset, bad_pattern, "num_star_segments")]
+    for folder, pattern, message in cases:
+        assert not state.load_folder(folder, pattern)
+        assert notices[-1].level == "error" and message in notices[-1].text
+        assert state.dataset.folder == dataset and len(state.frames) == 2 and state.current == 0
+    with pytest.raises(DatasetError, match="no image files"):
+        discover(empty)
+
+
+def test_run_updates_live_then_result_and_refilter_changes_counts(finished: tuple[AppState, list[Topic]]
+                                                                   ) -> None:
+    state, topics = finished
+    state.select_frame(1)
+    view = state.view()
+    assert view.entry.status == "ok" and view.entry.blocks == len(view.result.blocks) >= 30
+    assert len(view.live) == len(view.result.blocks)
+    assert topics.count(Topic.LIVE) >= len(view.live) and Topic.RESULT in topics
+    progress = state.progress()
+    assert progress.frames_done == progress.frames_total == 2 and progress.fraction == 1.0
+    kept = filter_counts(view.filter).kept
+    assert 0 < kept <= view.entry.accepted
+    try:
+        state.refilter(tau_loss=0.0)
+        assert filter_counts(state.view().filter).kept == 0
+        assert filter_counts(state.view().filter).removed_loss == view.entry.accepted
+        state.refilter(tau_loss=1e6, tau_be=1.0)
+        assert filter_counts(state.view().filter).kept >= kept
+        state.refilter(min_sigma_major=0.0)
+        assert state.view().filter.frame_ok
+    finally:
+        defaults = QualitySettings()
+        state.refilter(defaults.tau_be, defaults.tau_loss, defaults.min_sigma_major)
+    assert filter_counts(state.view().filter).kept == kept
+    assert state.select_block(3) and state.view().selected == 3
+    assert not state.select_block(10_000) and state.view().selected == 3
+    assert state.select_block(None) and state.view().selected is None
+
+
+def test_cancel_stops_after_the_first_front(dataset: Path) -> None:
+    state = AppState()
+    assert state.load_folder(dataset)
+    first = threading.Event()
+
+    def on_change(topic: Topic) -> None:
+        if topic is Topic.LIVE and state.progress().frame_blocks > 0 and not first.is_set():
+            first.set()
+            state.cancel()
+
+    state.subscribe(on_change)
+    assert state.run_all()
+    assert state.wait(300)
+    entries = state.entries()
+    assert entries[0].status == "cancelled" and entries[1].status == "pending"
+    assert {e.front for e in state.view().live} == {0}
+    assert state.view().result is not None and entries[0].blocks == len(state.view().live)
+    assert not state.is_running and not state.progress().cancelling
+
+
+def test_bad_frames_get_a_status_and_a_notice(dataset: Path, tmp_path: Path) -> None:
+    folder = tmp_path / "mixed"
+    folder.mkdir()
+    (folder / "pattern.yaml").write_text((dataset / "pattern.yaml").read_text())
+    good = (dataset / "sharp" / "0000.png").read_bytes()
+    (folder / "a_truncated.png").write_bytes(good[: len(good) // 2])
+    cv2.imwrite(str(folder / "b_notag.png"), np.full((312, 416), 128, np.uint8))
+    (folder / "c_good.png").write_bytes(good)
+    state = AppState(FAST)
+    notices = []
+    state.subscribe_notices(notices.append)
+    assert state.load_folder(folder)
+    assert state.entries()[0].status == "unreadable" and "truncated" in state.entries()[0].message
+    assert notices[-1].level == "error" and state.view().image is None
+    assert state.run_all()
+    assert state.wait(300)
+    status = {e.name: e.status for e in state.entries()}
+    assert status == {"a_truncated.png": "unreadable", "b_notag.png": "not_seeded", "c_good.png": "ok"}
+    assert any(n.level == "warning" and "no AprilTag" in n.text for n in notices)
+    assert not state.run_all() and notices[-1].title == "Nothing to run"
+
+
+def test_pattern_that_matches_nothing_leaves_frames_unseeded(dataset: Path, tmp_path: Path) -> None:
+    other = tmp_path / "other_tag.yaml"
+    other.write_text((dataset / "pattern.yaml").read_text().replace("index: 0", "index: 5"))
+    state = AppState(FAST)
+    assert state.load_folder(dataset / "sharp", other)
+    assert state.run_frame()
+    assert state.wait(300)
+    entry = state.entries()[0]
+    assert entry.status == "not_seeded" and "found tag ids [0], the pattern has [5]" in entry.message
+    assert state.notices[-1].level == "warning" and state.view().result.blocks == []
+
+
+def test_current_frame_survives_the_image_cache(dataset: Path) -> None:
+    state = AppState(FAST, image_cache=1)
+    assert state.load_folder(dataset)
+    state.image("blurry/0000.png")
+    assert state.view().image is not None and state.view().entry.name == "sharp/0000.png"
+
+
+def test_uploaded_frame_joins_the_open_dataset(dataset: Path, tmp_path: Path) -> None:
+    state = AppState(FAST)
+    with pytest.raises(DatasetError, match="open a folder first"):
+        state.add_frame(tmp_path / "x.png", "upload/x.png")
+    assert state.load_folder(dataset)
+    path = tmp_path / "x.png"
+    path.write_bytes((dataset / "sharp" / "0000.png").read_bytes())
+    assert state.add_frame(path, "upload/x.png", "sharp") == 2
+    assert state.add_frame(path, "upload/x.png") == 3
+    assert [e.name for e in state.entries()][2:] == ["upload/x.png", "upload/x-2.png"]
+    assert state.current == 3 and state.view().image is not None
+
+
+def test_error_field_and_poses(finished: tuple[AppState, list[Topic]]) -> None:
+    finished, _ = finished
+    results = finished.results()
+    assert set(results) == {"sharp/0000.png", "blurry/0000.png"}
+    truth = finished.dataset.truth
+    for name, (result, flt, _) in results.items():
+        field = error_field(result, flt, truth.frame(name))
+        assert field.source == "ground truth" and len(field.index) > 10 and field.rms < 0.3
+        local = error_field(result, flt, None)
+        assert local.source == "local alignment" and local.quad.shape == (len(local.index), 4, 2)
+    poses = feature_poses(finished.dataset.pattern, results)
+    true = truth_poses(truth)
+    assert poses.source == "approximate camera" and set(poses.poses) == set(true.poses)
+    for name, pose in poses.poses.items():
+        assert np.linalg.norm(pose.camera_center - true.poses[name].camera_center) < 0.01
+    assert abs(poses.fov - true.fov) < 0.05
+
+
+def test_ambiguity_demo_keeps_the_image_and_moves_the_star() -> None:
+    for delta in ((0, 0), (MAX_SHIFT, -2), (-MAX_SHIFT, MAX_SHIFT)):
+        demo = ambiguity_demo(delta)
+        assert np.abs(demo.residual).max() < 1e-9
+        assert np.allclose(demo.star_centre, np.array([TILE_PX / 2, TILE_PX / 2]) + delta)
+        assert np.allclose(demo.centroid, ambiguity_demo((0, 0)).centroid - np.array(delta), atol=1e-9)
+    with pytest.raises(ValueError, match="pushes kernel weight"):
+        ambiguity_demo((MAX_SHIFT + 5, 0))
+
+
+def test_views_draw_rgb_images(finished: tuple[AppState, list[Topic]]) -> None:
+    pytest.importorskip("viser")
+    finished, _ = finished
+    from views.ambiguity import demo_image
+    from views.errors import colour_wheel, direction_colours, draw_errors
+    from views.frame_view import draw_frame
+    from views.inspect import block_images, jump_target, scatter_plots
+    from views.psf_field import psf_mosaic
+
+    finished.select_frame(1)
+    view = finished.view()
+    worst = jump_target(view, "highest loss")
+    assert view.result.blocks[worst].loss == max(b.loss for b in view.result.blocks if np.isfinite(b.loss))
+    assert finished.select_block(worst)
+    view = finished.view()
+    images = [draw_frame(view, mode, True, True) for mode in ("kept / removed", "loss", "boundary energy")]
+    images += [psf_mosaic(view, 0.9, "kept blocks"), block_images(view, worst), scatter_plots(view),
+               demo_image(ambiguity_demo((2, 1))),
+               draw_errors(view.image, error_field(view.result, view.filter, view.truth), 0.2)]
+    for image in images:
+        assert image.dtype == np.uint8 and image.ndim == 3 and image.shape[2] == 3 and image.std() > 5
+    outside = next(i for i, b in enumerate(view.result.blocks) if b.status is BlockStatus.OUTSIDE_IMAGE)
+    assert block_images(view, outside).shape[2] == 3
+    colours = direction_colours(np.array([[1.0, 0.0], [0.0, 1.0], [0.0, 0.0]]), 1.0)
+    assert colours.tolist() == [[127, 254, 127], [254, 127, 127], [0, 0, 0]]
+    assert colour_wheel().shape == (90, 90, 3)
+
+
+def test_serve_opens_the_folder_without_a_browser(dataset: Path, tmp_path: Path) -> None:
+    pytest.importorskip("viser")
+    from app import serve
+
+    server, app = serve(dataset, None, 0, settings=FAST)
+    try:
+        assert server.get_port() > 0 and app.state.dataset.folder == dataset
+        assert len(app.panels) == 7
+        assert not app.state.load_folder(tmp_path / "missing") and app.state.dataset.folder == dataset
+    finally:
+        app.close()
+        server.stop()

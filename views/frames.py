@@ -1,0 +1,163 @@
+"""Frames panel: the folder and pattern fields, an upload button, the frame list, the run
+controls (Run frame, Run all, Cancel, progress) and the status line with the latest message."""
+
+from __future__ import annotations
+
+import tempfile
+from pathlib import Path
+
+import viser
+
+from blurcalib.frames import IMAGE_EXTENSIONS
+from state import AppState, FrameView, Notice, RunProgress, Topic
+from state.app_state import FRAME_KINDS
+from state.folder import DatasetError
+from views.common import Coalescer
+
+NOTICE_COLOURS = {"info": "blue", "warning": "yellow", "error": "red"}
+NO_FRAMES = "(no frames)"
+
+
+def _md(text: str) -> str:
+    """Text safe inside markdown (paths contain underscores and stars)."""
+    return text.replace("\\", "\\\\").replace("_", "\\_").replace("*", "\\*").replace("|", "\\|")
+
+
+class FramesPanel:
+    """The data and run controls; also shows every notice as a notification to all clients."""
+
+    def __init__(self, state: AppState, server: viser.ViserServer) -> None:
+        self.state = state
+        self.server = server
+        self._uploads = tempfile.TemporaryDirectory(prefix="blurcalib-uploads-")
+        self._last_notice: Notice | None = None
+        gui = server.gui
+        folder = state.dataset.folder if state.dataset is not None else ""
+        with gui.add_folder("Data"):
+            self.path = gui.add_text("Folder", initial_value=str(folder))
+            self.pattern = gui.add_text("Pattern", initial_value="",
+                                        hint="pattern YAML; empty: pattern.yaml in the folder or its parent")
+            self.open = gui.add_button("Open folder", icon=viser.Icon.FOLDER_OPEN)
+            self.upload = gui.add_upload_button("Upload frame", icon=viser.Icon.UPLOAD, mime_type="image/*",
+                                                hint="add an image file to the open dataset")
+            self.frame = gui.add_dropdown("Frame", options=(NO_FRAMES,))
+            self.kind = gui.add_dropdown("Kind", options=FRAME_KINDS,
+                                         hint="sharp frames use a 7 px PSF window, blurry ones 17 px")
+            self.run = gui.add_button("Run frame", icon=viser.Icon.PLAYER_PLAY)
+            self.run_all = gui.add_button("Run all", icon=viser.Icon.PLAYER_TRACK_NEXT)
+            self.cancel = gui.add_button("Cancel", icon=viser.Icon.PLAYER_STOP, color="red", disabled=True)
+            self.progress = gui.add_progress_bar(0.0, animated=False)
+            self.status = gui.add_markdown("")
+        with gui.add_folder("All frames", expand_by_default=False):
+            self.table = gui.add_markdown("")
+        self.open.on_click(lambda _: self.state.load_folder(self.path.value.strip(),
+                                                            self.pattern.value.strip() or None))
+        self.upload.on_upload(self._on_upload)
+        self.frame.on_update(self._on_frame)
+        self.kind.on_update(self._on_kind)
+        self.run.on_click(lambda _: self.state.run_frame())
+        self.run_all.on_click(lambda _: self.state.run_all())
+        self.cancel.on_click(lambda _: self.state.cancel())
+        self._redraw = Coalescer(self._refresh, 0.1, "frames-panel")
+        state.subscribe(self._on_change)
+        state.subscribe_notices(self._on_notice)
+        self._redraw.request()
+
+    def close(self) -> None:
+        """Stop the redraw thread and delete uploaded files."""
+        self._redraw.close()
+        self._uploads.cleanup()
+
+    def _on_change(self, topic: Topic) -> None:
+        if topic in (Topic.FOLDER, Topic.FRAMES, Topic.CURRENT, Topic.RUN, Topic.RESULT):
+            self._redraw.request()
+
+    def _on_frame(self, event: viser.GuiEvent) -> None:
+        if event.client is None:
+            return
+        names = [f.name for f in self.state.entries()]
+        if self.frame.value in names:
+            self.state.select_frame(names.index(self.frame.value))
+
+    def _on_kind(self, event: viser.GuiEvent) -> None:
+        if event.client is not None and self.state.current >= 0:
+            self.state.set_kind(self.state.current, self.kind.value)
+
+    def _on_upload(self, event: viser.GuiEvent) -> None:
+        uploaded = self.upload.value
+        name = Path(uploaded.name).name
+        if Path(name).suffix.lower() not in IMAGE_EXTENSIONS:
+            self.state.notify("error", "Upload refused",
+                              f"{name}: not an image file (expected {', '.join(IMAGE_EXTENSIONS)})")
+            return
+        folder = Path(tempfile.mkdtemp(dir=self._uploads.name))
+        path = folder / name
+        path.write_bytes(uploaded.content)
+        try:
+            self.state.add_frame(path, f"upload/{name}")
+        except DatasetError as exc:
+            self.state.notify("error", "Upload refused", str(exc))
+
+    def _on_notice(self, notice: Notice) -> None:
+        self._last_notice = notice
+        for client in self.server.get_clients().values():
+            client.add_notification(notice.title, notice.text, auto_close_seconds=8.0,
+                                    color=NOTICE_COLOURS.get(notice.level, "blue"))
+        self._redraw.request()
+
+    def _refresh(self) -> None:
+        state = self.state
+        progress = state.progress()
+        view = state.view()
+        frames = [(f.name, f.kind, f.status, f.accepted, f.blocks) for f in state.entries()]
+        dataset = state.dataset
+        folder = dataset.folder if dataset is not None else None
+        names = tuple(f[0] for f in frames) or (NO_FRAMES,)
+        with self.server.atomic():
+            if folder is not None and self.path.value != str(folder):
+                self.path.value = str(folder)
+            if self.frame.options != names:
+                self.frame.options = names
+            if view is not None:
+                self.frame.value = view.entry.name
+                self.kind.value = view.entry.kind
+            busy = progress.running
+            self.run.disabled = busy or view is None
+            self.run_all.disabled = busy or view is None
+            self.cancel.disabled = not busy or progress.cancelling
+            self.open.disabled = busy
+            self.progress.value = 100.0 * progress.fraction
+            self.progress.animated = busy
+            self.status.content = self._status_text(view, progress)
+            self.table.content = self._table(frames)
+
+    def _status_text(self, view: FrameView | None, progress: RunProgress) -> str:
+        lines = []
+        if progress.running:
+            expected = f" of ~{progress.frame_expected}" if progress.frame_expected else ""
+            what = "cancelling" if progress.cancelling else "running"
+            lines.append(f"**{what}** {_md(progress.frame)}: {progress.frame_blocks}{expected} blocks "
+                         f"decided (frame {min(progress.frames_done + 1, progress.frames_total)} of "
+                         f"{progress.frames_total})")
+        if view is not None:
+            e = view.entry
+            if e.status == "ok":
+                lines.append(f"**done**: {e.accepted} blocks accepted of {e.blocks} "
+                             f"({_md(e.name)}, {e.seconds:.1f} s)")
+            elif e.status == "cancelled":
+                lines.append(f"**cancelled**: {e.accepted} blocks accepted of {e.blocks} ({_md(e.name)})")
+            elif e.status in ("pending", "queued", "running"):
+                if not progress.running:
+                    lines.append(f"{_md(e.name)} ({e.kind}): not extracted yet, press **Run frame**")
+            else:
+                lines.append(f"**{e.status.replace('_', ' ')}**: {_md(e.message)}")
+        notice = self._last_notice
+        if notice is not None:
+            lines.append(f"*{_md(notice.title)}*: {_md(notice.text)}")
+        return "\n\n".join(lines)
+
+    @staticmethod
+    def _table(frames: list[tuple[str, str, str, int, int]]) -> str:
+        rows = ["| frame | kind | status | accepted |", "|---|---|---|---|"]
+        rows += [f"| {_md(n)} | {k} | {s.replace('_', ' ')} | {a}/{b} |" for n, k, s, a, b in frames]
+        return "\n".join(rows)

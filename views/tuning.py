@@ -1,0 +1,87 @@
+"""Tuning panel: the quality filter's thresholds as sliders, with kept and removed counts.
+
+Moving a slider re-filters every finished frame from its stored figures
+(:func:`blurcalib.quality.filter_frame`, milliseconds per frame); the frame view shows the
+result (kept blocks are the ones breadth-first connected to the seed block).
+"""
+
+from __future__ import annotations
+
+import viser
+
+from blurcalib.quality import QualitySettings
+from state import AppState, Topic
+from state.app_state import filter_counts
+from views.common import Coalescer
+
+
+class TuningPanel:
+    """Sliders for tau_BE, tau_L and the sigma_major pre-filter, and the counts they give."""
+
+    def __init__(self, state: AppState, server: viser.ViserServer) -> None:
+        self.state = state
+        q = state.quality
+        gui = server.gui
+        self.tau_be = gui.add_slider("τ_BE", min=0.0, max=0.5, step=0.01, initial_value=q.tau_be,
+                                     hint="remove blocks whose PSF has more than this share of its energy "
+                                          "in the kernel's outer two-pixel ring")
+        self.tau_loss = gui.add_slider("τ_L", min=0.0, max=200.0, step=1.0, initial_value=q.tau_loss,
+                                       hint="remove blocks whose mean squared residual exceeds this "
+                                            "(grey levels²)")
+        self.sigma = gui.add_slider("σ_major pre-filter", min=0.0, max=10.0, step=0.1,
+                                    initial_value=q.min_sigma_major,
+                                    hint="drop frames whose median PSF σ_major in the centre region is "
+                                         "below this (px): too little blur for a reliable PSF")
+        self.reset = gui.add_button("Paper defaults")
+        self.counts = gui.add_markdown("")
+        self._apply = Coalescer(self._refilter, 0.05, "tuning-refilter")
+        self._redraw = Coalescer(self._show, 0.1, "tuning-counts")
+        for slider in (self.tau_be, self.tau_loss, self.sigma):
+            slider.on_update(self._on_slider)
+        self.reset.on_click(self._on_reset)
+        state.subscribe(self._on_change)
+        self._redraw.request()
+
+    def close(self) -> None:
+        """Stop the threads."""
+        self._apply.close()
+        self._redraw.close()
+
+    def _on_slider(self, event: viser.GuiEvent) -> None:
+        if event.client is not None:
+            self._apply.request()
+
+    def _on_reset(self, _: viser.GuiEvent) -> None:
+        d = QualitySettings()
+        self.tau_be.value, self.tau_loss.value, self.sigma.value = d.tau_be, d.tau_loss, d.min_sigma_major
+        self._apply.request()
+
+    def _refilter(self) -> None:
+        self.state.refilter(self.tau_be.value, self.tau_loss.value, self.sigma.value)
+
+    def _on_change(self, topic: Topic) -> None:
+        if topic in (Topic.FILTER, Topic.RESULT, Topic.CURRENT, Topic.FOLDER):
+            self._redraw.request()
+
+    def _show(self) -> None:
+        view = self.state.view()
+        q = self.state.quality
+        lines = []
+        if view is None or view.filter is None:
+            lines.append("**kept**: – (run the frame to get its blocks)")
+        else:
+            c = filter_counts(view.filter)
+            lines.append(f"**kept: {c.kept}** blocks · **removed: {c.removed}** "
+                         f"(BE > τ_BE: {c.removed_be}, loss > τ_L: {c.removed_loss}, "
+                         f"not connected: {c.disconnected}) · rejected by growth: {c.rejected}")
+            sigma = view.filter.centre_sigma_major
+            verdict = "used" if view.filter.frame_ok else "**dropped** (too little blur)"
+            lines.append(f"frame pre-filter: median σ_major in the centre {sigma:.2f} px "
+                         f"vs {q.min_sigma_major:g} px: frame {verdict}")
+        totals = [(flt, name) for name, (_, flt, _) in self.state.results().items() if flt is not None]
+        if totals:
+            kept = sum(int(f.kept.sum()) for f, _ in totals)
+            used = [f for f, _ in totals if f.frame_ok]
+            lines.append(f"all {len(totals)} finished frames: {kept} blocks kept; {len(used)} frames pass "
+                         f"the pre-filter ({sum(int(f.kept.sum()) for f in used)} blocks)")
+        self.counts.content = "\n\n".join(lines)
