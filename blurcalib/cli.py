@@ -255,6 +255,18 @@ def cmd_experiment(args: argparse.Namespace) -> int:
     return runners[args.name](args.rest)
 
 
+def cmd_view(args: argparse.Namespace) -> int:
+    """``blurcalib view``: start the browser app (``app.py`` of the source checkout)."""
+    import subprocess
+
+    app = Path(__file__).resolve().parents[1] / "app.py"
+    if not app.is_file():
+        raise CliError("the browser app (app.py, views/, state/) ships with the source checkout; "
+                       "run blurcalib from a checkout with `pip install -e .[gui]`")
+    argv = [sys.executable, str(app), *args.rest]
+    return subprocess.call(argv)
+
+
 # --------------------------------------------------------------------------------- parser
 def _add_synth_options(p: argparse.ArgumentParser, sharp: int, blurry: int) -> None:
     p.add_argument("--sharp", type=int, default=sharp, help="number of sharp frames (%(default)s)")
@@ -359,6 +371,12 @@ def build_parser() -> argparse.ArgumentParser:
                    help="options of the experiment (see blurcalib experiment NAME --help)")
     p.set_defaults(func=cmd_experiment)
 
+    p = sub.add_parser("view", help="start the browser app (viser)", description=cmd_view.__doc__,
+                       add_help=False)
+    p.add_argument("rest", nargs=argparse.REMAINDER,
+                   help="[FOLDER] [--pattern P.yaml] [--port N] (see python app.py --help)")
+    p.set_defaults(func=cmd_view)
+
     p = sub.add_parser("synth", help="simulate sharp and blurry frames with ground truth",
                        description=cmd_synth.__doc__)
     p.add_argument("--out", required=True, help="output folder")
@@ -371,7 +389,11 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``blurcalib`` console script and ``python -m blurcalib``."""
     parser = build_parser()
-    args = parser.parse_args(argv)
+    argv = list(sys.argv[1:] if argv is None else argv)
+    if argv[:1] == ["view"]:  # every option goes to the app, --help included
+        args = argparse.Namespace(func=cmd_view, rest=argv[1:])
+    else:
+        args = parser.parse_args(argv)
     try:
         return int(args.func(args))
     except (CliError, PatternFileError, OutputError) as exc:

@@ -54,3 +54,8 @@ def test_synth_command_writes_dataset(tmp_path) -> None:
     assert [f["name"] for f in truth["frames"]] == ["sharp/0000.png", "blurry/0000.png"]
     assert (out / "sharp" / "0000.png").is_file() and (out / "blurry" / "0000.png").is_file()
     assert "simulated 2 frames" in proc.stdout
+
+
+def test_view_passes_options_to_the_app(capfd) -> None:
+    assert main(["view", "--help"]) == 0
+    assert "usage: app.py" in capfd.readouterr().out
