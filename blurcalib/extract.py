@@ -28,7 +28,7 @@ from pathlib import Path
 import numpy as np
 
 from blurcalib.deconv import DeconvSettings
-from blurcalib.fileio import atomic_write_text, ensure_writable_dir
+from blurcalib.fileio import atomic_write_csv, atomic_write_text, ensure_writable_dir
 from blurcalib.frames import FrameError, load_frame
 from blurcalib.grow import GrowSettings, Growth, GrowthEvent, grow
 from blurcalib.local_alignment import LocalAlignment, align_locally
@@ -272,12 +272,8 @@ def write_frames_table(out: Path, summaries: Sequence[dict]) -> Path:
     """``frames.csv``: one row per frame (frame, status, message, blocks, accepted, features,
     seconds)."""
     cols = ["frame", "status", "message", "blocks", "accepted", "features", "seconds"]
-    lines = [",".join(cols)]
-    for s in sorted(summaries, key=lambda r: r["frame"]):
-        cells = [str(s.get(c, "")) for c in cols]
-        lines.append(",".join('"' + c.replace('"', '""') + '"' if ("," in c or '"' in c) else c
-                              for c in cells))
-    return atomic_write_text(out / FRAMES_TABLE, "\n".join(lines) + "\n")
+    rows = [[s.get(c, "") for c in cols] for s in sorted(summaries, key=lambda r: r["frame"])]
+    return atomic_write_csv(out / FRAMES_TABLE, cols, rows)
 
 
 def extract_to_folder(paths: Sequence[Path], pattern: StarPattern, out_dir: str | os.PathLike,

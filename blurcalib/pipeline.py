@@ -32,7 +32,7 @@ import numpy as np
 
 from blurcalib.calibrate import Calibration, calibrate_sharp, save_calibration
 from blurcalib.extract import ExtractSettings, extract_to_folder, frame_names
-from blurcalib.fileio import atomic_path, atomic_write_text, ensure_writable_dir
+from blurcalib.fileio import atomic_path, atomic_write_csv, atomic_write_text, ensure_writable_dir
 from blurcalib.global_alignment import align_global, grid_coordinates, loss_weights
 from blurcalib.pattern import StarPattern
 from blurcalib.quality import QualitySettings, filter_frame
@@ -272,12 +272,8 @@ def _write_outputs(out: Path, pattern: StarPattern, size: tuple[int, int],
     outputs["reference_features"] = write_ref_dataset(out / "features.bin", ref)
     cols = ["frame", "status", "extraction", "blocks", "kept", "centre_sigma_major",
             "median_error", "mean_error", "angle_deg", "message"]
-    lines = [",".join(cols)]
-    for r in rows:
-        cells = [str(r.get(c, "")) for c in cols]
-        lines.append(",".join('"' + c.replace('"', '""') + '"' if ("," in c or '"' in c) else c
-                              for c in cells))
-    outputs["frames"] = atomic_write_text(out / "frames.csv", "\n".join(lines) + "\n")
+    outputs["frames"] = atomic_write_csv(out / "frames.csv", cols,
+                                         [[r.get(c, "") for c in cols] for r in rows])
     # Figures: reprojection-error directions of the aligned blurry features and of the sharp set.
     if aligned:
         xy = np.concatenate([np.stack([t.x, t.y], axis=1) for t in aligned])
