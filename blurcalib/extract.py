@@ -9,12 +9,14 @@ of the star's time-averaged image), optionally solve the local alignment
 A folder run (:func:`extract_to_folder`) writes each frame's results as soon as it is done
 (``frames/<stem>.*``, see ``docs/results-format.md``), so an interrupted run loses at most the
 frame in progress and a re-run skips finished frames; at the end the per-frame files are
-collected into ``features.csv``, ``blocks.csv``, ``psfs.npz`` and ``frames.csv`` (per-frame
+collected into ``features.csv``, ``blocks.csv``, ``psfs.npz``, ``corners.csv`` (the square
+corners shared by neighbouring blocks, after local alignment) and ``frames.csv`` (per-frame
 status).
 """
 
 from __future__ import annotations
 
+import csv
 import json
 import multiprocessing
 import os
@@ -31,7 +33,7 @@ from blurcalib.deconv import DeconvSettings
 from blurcalib.fileio import atomic_write_csv, atomic_write_text, ensure_writable_dir
 from blurcalib.frames import FrameError, load_frame
 from blurcalib.grow import GrowSettings, Growth, GrowthEvent, grow
-from blurcalib.local_alignment import LocalAlignment, align_locally
+from blurcalib.local_alignment import LocalAlignment, align_locally, shared_corners
 from blurcalib.pattern import StarPattern
 from blurcalib.results import (
     BlockResult,
@@ -92,6 +94,8 @@ class FrameResult:
         status: outcome; ``message`` says why when not ok.
         blocks: every attempted block with its figures and status.
         features: one star-centre observation per accepted block.
+        corners: the square corners shared by accepted neighbouring blocks, after local
+            alignment (:func:`corner_rows`), one row each.
         seed, growth, local: the intermediate results (None where not reached).
         seconds: time spent in ``seed``, ``fit`` (growth) and ``align``.
     """
@@ -101,6 +105,7 @@ class FrameResult:
     message: str = ""
     blocks: list[BlockResult] = field(default_factory=list)
     features: list[FeatureObservation] = field(default_factory=list)
+    corners: list[list] = field(default_factory=list)
     seed: Seed | None = None
     growth: Growth | None = None
     local: LocalAlignment | None = None
@@ -158,7 +163,32 @@ def extract_frame(image: np.ndarray, pattern: StarPattern, frame: str,
     seconds["align"] = time.perf_counter() - t2
     blocks = _block_results(frame, pattern, growth, local if settings.local_alignment else None)
     features = _features(frame, pattern, blocks, settings)
-    return FrameResult(frame, FrameStatus.OK, "", blocks, features, seed, growth, local, seconds)
+    f = pattern.features[growth.feature_id[acc]]
+    corners = corner_rows(frame, pattern, local.H, f[:, 0], f[:, 1])
+    return FrameResult(frame, FrameStatus.OK, "", blocks, features, corners, seed, growth, local,
+                       seconds)
+
+
+CORNER_COLUMNS = ("frame", "cx2", "cy2", "X", "Y", "x", "y", "blocks")
+"""Columns of ``corners.csv``: the corner's feature coordinates doubled (``cx2 = 2 fx + 1`` for
+the corner half a square right of feature ``fx``), its metric point ``(cx2 L / 2, cy2 L / 2)``
+(m), its image position (px, OpenCV convention) and the number of blocks that share it."""
+
+
+def corner_rows(frame: str, pattern: StarPattern, H: np.ndarray, fx: np.ndarray,
+                fy: np.ndarray) -> list[list]:
+    """Rows of ``corners.csv`` for the square corners shared by at least two blocks.
+
+    Args:
+        frame: frame name.
+        pattern: the target.
+        H: ``(B, 3, 3)`` block homographies after local alignment.
+        fx, fy: ``(B,)`` feature coordinates of the blocks.
+    """
+    corner2, xy, count = shared_corners(H, fx, fy)
+    half = pattern.square_length_m / 2.0
+    return [[frame, int(c[0]), int(c[1]), c[0] * half, c[1] * half, float(p[0]), float(p[1]), int(n)]
+            for c, p, n in zip(corner2, xy, count, strict=True)]
 
 
 def _block_results(frame: str, pattern: StarPattern, growth: Growth,
@@ -255,8 +285,25 @@ def _write_frame(out: Path, result: FrameResult) -> dict:
     status_path = paths["done"].with_name(paths["done"].name.replace(".done", ".status.json"))
     ensure_writable_dir(status_path.parent)
     atomic_write_text(status_path, json.dumps(summary))
+    atomic_write_csv(_corners_path(status_path), CORNER_COLUMNS, result.corners)
     write_frame_results(out, result.frame, result.features, result.blocks)
     return summary
+
+
+def _corners_path(status_path: Path) -> Path:
+    return status_path.with_name(status_path.name.replace(".status.json", ".corners.csv"))
+
+
+def _collect_corners(out: Path, names: Sequence[str]) -> Path:
+    """Concatenate the per-frame corner tables of ``names`` into ``corners.csv``."""
+    rows: list[list[str]] = []
+    for name in names:
+        done = frame_result_paths(out, name)["done"]
+        path = _corners_path(done.with_name(done.name.replace(".done", ".status.json")))
+        if path.is_file():
+            with open(path, newline="", encoding="utf-8") as handle:
+                rows += list(csv.reader(handle))[1:]
+    return atomic_write_csv(out / "corners.csv", CORNER_COLUMNS, rows)
 
 
 def _read_summary(out: Path, name: str) -> dict:
@@ -315,5 +362,6 @@ def extract_to_folder(paths: Sequence[Path], pattern: StarPattern, out_dir: str 
             finish(_process(p, n, pattern, settings, expected_size))
     write_frames_table(out, list(summaries.values()))
     outputs = collect_results(out)
+    outputs["corners"] = _collect_corners(out, [n for n in names if n in summaries])
     outputs["frames"] = out / FRAMES_TABLE
     return FolderSummary([summaries[n] for n in names if n in summaries], skipped, outputs)

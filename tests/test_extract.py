@@ -86,6 +86,12 @@ def test_sharp_frame_features_match_truth(sim: Simulator, sharp_frame) -> None:
             assert sim.pattern.is_valid_feature(b.fx, b.fy)
             corners = apply_homography(b.H, np.array([[-1.0, -1], [1, -1], [1, 1], [-1, 1]]))
             assert np.all(corners >= -0.5) and np.all(corners <= np.array([479.5, 359.5]))
+    # Square corners shared by neighbouring blocks land on the projected corners.
+    corners = np.array([[r[3], r[4], 0.0] for r in result.corners])
+    corner_xy = np.array([[r[5], r[6]] for r in result.corners])
+    assert len(corners) > 50
+    true_xy = sim.camera.project(truth.pose.transform(corners))
+    assert np.median(np.linalg.norm(corner_xy - true_xy, axis=1)) < 0.15
     f0 = result.features[0]
     assert (f0.X, f0.Y) == pytest.approx((f0.fx * sim.pattern.square_length_m,
                                           f0.fy * sim.pattern.square_length_m))
@@ -130,6 +136,8 @@ def test_folder_run_records_bad_frames_and_resumes(tmp_path, sim: Simulator, sha
                       "e_notag.png": "not_seeded"}
     features = read_features(out / "features.csv")
     assert len(features) > 50 and {f.frame for f in features} == {"a_good.png"}
+    corner_lines = (out / "corners.csv").read_text().splitlines()
+    assert corner_lines[0] == "frame,cx2,cy2,X,Y,x,y,blocks" and len(corner_lines) > 50
     table = (out / "frames.csv").read_text()
     assert "truncated" in table and "expected 480x360" in table
     again = extract_to_folder(paths, sim.pattern, out, ExtractSettings.sharp(),
