@@ -1,12 +1,14 @@
 """End to end in a real headless Chromium (Playwright): open the app, run a frame, tune, inspect.
 
 Needs Debian's ``/usr/bin/chromium`` and the ``playwright`` package (no ``playwright install``:
-the test launches the system browser); it is skipped, saying which is missing, otherwise. It also
-writes ``docs/app_screenshot.png``, the screenshot the README shows.
+the test launches the system browser); it is skipped, saying which is missing, otherwise. It saves
+a screenshot to ``out/app_screenshot.png`` (ignored by git); with ``BLURCALIB_UPDATE_SCREENSHOT=1``
+it updates ``docs/app_screenshot.png``, the screenshot the README shows.
 """
 
 from __future__ import annotations
 
+import os
 import re
 import time
 from dataclasses import replace
@@ -29,7 +31,9 @@ pytest.importorskip("viser", reason="viser not installed: pip install 'viser>=1.
 FLAGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
          "--disable-background-networking", "--disable-component-update", "--disable-sync",
          "--enable-unsafe-swiftshader"]
-SCREENSHOT = Path(__file__).resolve().parents[1] / "docs" / "app_screenshot.png"
+ROOT = Path(__file__).resolve().parents[1]
+SCREENSHOT = (ROOT / "docs" / "app_screenshot.png" if os.environ.get("BLURCALIB_UPDATE_SCREENSHOT")
+              else ROOT / "out" / "app_screenshot.png")
 SETTINGS = RunSettings(blurry=ExtractSettings(grow=GrowSettings(max_blocks=25)))
 """Blurry frames grow two fronts (the ring around the tag and the next one): a few seconds."""
 
@@ -101,6 +105,7 @@ def test_run_tune_and_inspect_in_chromium(tmp_path: Path) -> None:
             page.get_by_role("tab", name="Frame").click()
             page.add_style_tag(content=".mantine-Notification-root { display: none !important; }")
             page.wait_for_timeout(500)
+            SCREENSHOT.parent.mkdir(parents=True, exist_ok=True)
             page.screenshot(path=str(SCREENSHOT))
 
             folder_field = _row(page, "Folder").locator("input")
