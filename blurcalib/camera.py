@@ -57,6 +57,7 @@ __all__ = [
     "rodrigues_torch",
     "save_camera_json",
     "save_camera_yaml",
+    "translation",
     "undistort_torch",
 ]
 
@@ -509,6 +510,14 @@ def plane_homography(K: ArrayLike, pose: Pose) -> np.ndarray:
     if K.shape != (3, 3):
         raise ValueError(f"K must have shape (3, 3), got {K.shape}")
     return K @ np.column_stack([pose.R[:, 0], pose.R[:, 1], pose.t])
+
+
+def translation(x: ArrayLike) -> np.ndarray:
+    """The paper's 2-D translation ``T(x)``: ``(..., 2)`` px -> ``(..., 3, 3)`` homographies."""
+    x = np.asarray(x, dtype=np.float64)
+    T = np.broadcast_to(np.eye(3), (*x.shape[:-1], 3, 3)).copy()
+    T[..., :2, 2] = x
+    return T
 
 
 def apply_homography(H: ArrayLike, pts: ArrayLike) -> np.ndarray:

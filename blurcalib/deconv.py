@@ -73,6 +73,7 @@ import torch
 import torch.nn.functional as nnf
 from scipy.signal import fftconvolve
 
+from blurcalib.camera import translation
 from blurcalib.pattern import StarPattern, smooth_star, star_signed_distance
 from blurcalib.results import BlockStatus, boundary_energy, psf_moments
 from blurcalib.synth import splat
@@ -88,7 +89,6 @@ __all__ = [
     "render_model",
     "shift_pair",
     "simulate_blocks",
-    "translation",
 ]
 
 Brightness = Literal["after_blur", "before_blur"]
@@ -292,14 +292,6 @@ class BlockModel(NamedTuple):
 
 
 # ----------------------------------------------------------------------------- small helpers
-def translation(t: np.ndarray) -> np.ndarray:
-    """The paper's ``T(x)``: ``(..., 2)`` px -> ``(..., 3, 3)`` translation homographies."""
-    t = np.asarray(t, dtype=np.float64)
-    out = np.broadcast_to(np.eye(3), (*t.shape[:-1], 3, 3)).copy()
-    out[..., :2, 2] = t
-    return out
-
-
 def psf_centroid(psf: np.ndarray, threshold: float = 0.0) -> np.ndarray:
     """Intensity-weighted centroid of PSFs, px relative to the kernel centre.
 

@@ -23,7 +23,7 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 from scipy.sparse.csgraph import connected_components
 
-from blurcalib.camera import apply_homography
+from blurcalib.camera import apply_homography, translation
 
 _CORNERS_RIGHT = (np.array([[1.0, -1.0], [1.0, 1.0]]), np.array([[-1.0, -1.0], [-1.0, 1.0]]))
 _CORNERS_DOWN = (np.array([[-1.0, 1.0], [1.0, 1.0]]), np.array([[-1.0, -1.0], [1.0, -1.0]]))
@@ -47,14 +47,6 @@ class LocalAlignment:
     rms_after: float
     num_pairs: int
     component: np.ndarray
-
-
-def translation_matrix(x: np.ndarray) -> np.ndarray:
-    """``T(x)``: ``(..., 2)`` px -> ``(..., 3, 3)`` translations of the image plane."""
-    x = np.asarray(x, dtype=np.float64)
-    T = np.broadcast_to(np.eye(3), (*x.shape[:-1], 3, 3)).copy()
-    T[..., :2, 2] = x
-    return T
 
 
 def neighbour_pairs(fx: np.ndarray, fy: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -119,7 +111,7 @@ def align_locally(H: np.ndarray, fx: np.ndarray, fy: np.ndarray,
     for axis in range(2):
         rhs = np.concatenate([-sw * gaps[:, :, axis].ravel(), np.zeros(ncomp)])
         x[:, axis] = spla.lsqr(A, rhs, atol=1e-12, btol=1e-12, iter_lim=10 * n + 100)[0]
-    aligned = translation_matrix(x) @ H
+    aligned = translation(x) @ H
     after = corner_gaps(aligned, a, b, kind)
     return LocalAlignment(
         x, aligned,

@@ -21,13 +21,13 @@ import time
 
 import numpy as np
 
+from blurcalib.camera import translation
 from blurcalib.deconv import (
     BlockFit,
     DeconvSettings,
     SimulatedBlocks,
     fit_blocks,
     simulate_blocks,
-    translation,
 )
 from blurcalib.pattern import layout_pattern
 

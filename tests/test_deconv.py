@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 from scipy.ndimage import convolve
 
+from blurcalib.camera import translation
 from blurcalib.deconv import (
     BlockFit,
     DeconvSettings,
@@ -19,7 +20,6 @@ from blurcalib.deconv import (
     render_model,
     shift_pair,
     simulate_blocks,
-    translation,
 )
 from blurcalib.pattern import layout_pattern
 from blurcalib.results import BlockStatus, boundary_energy, psf_moments

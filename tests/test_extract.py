@@ -6,10 +6,10 @@ import cv2
 import numpy as np
 import pytest
 
-from blurcalib.camera import BrownConrady, apply_homography
+from blurcalib.camera import BrownConrady, apply_homography, translation
 from blurcalib.extract import ExtractSettings, FrameStatus, extract_frame, extract_to_folder
 from blurcalib.frames import load_frame
-from blurcalib.local_alignment import align_locally, shared_corners, translation_matrix
+from blurcalib.local_alignment import align_locally, shared_corners
 from blurcalib.pattern import load_pattern
 from blurcalib.refformat import read_ref_dataset
 from blurcalib.results import BlockStatus, read_features
@@ -104,7 +104,7 @@ def test_local_alignment_recovers_block_translations() -> None:
     fx, fy = fx.ravel(), fy.ravel()
     H_true = block_homography(H_feature, fx, fy)
     shift = rng.normal(0, 0.3, (len(fx), 2))
-    H_noisy = translation_matrix(shift) @ H_true
+    H_noisy = translation(shift) @ H_true
     la = align_locally(H_noisy, fx, fy)
     expected = -(shift - shift.mean(axis=0))
     assert np.allclose(la.translation, expected, atol=1e-6)
