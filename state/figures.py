@@ -1,23 +1,29 @@
-"""Derived figures the views draw: the error field of a frame and the poses of the frames.
+"""Derived figures the views draw: error fields of frames and the poses of the frames.
 
-Pure functions of results (no viser, no drawing), so they are tested on their own.
+Pure functions of results (no viser, no drawing), so they are tested on their own. Pixels follow
+OpenCV's convention: the top-left pixel's centre is ``(0, 0)``, x right, y down.
 """
 
 from __future__ import annotations
 
 from collections import Counter
+from collections.abc import Mapping
 from dataclasses import dataclass
 
 import cv2
 import numpy as np
 
-from blurcalib.camera import Pose, apply_homography
-from blurcalib.extract import FrameResult
+from blurcalib.camera import BrownConrady, Pose, apply_homography
+from blurcalib.extract import FrameResult, FrameStatus
 from blurcalib.pattern import StarPattern
 from blurcalib.quality import FrameFilter
 from blurcalib.results import BlockStatus
 from blurcalib.synth import DatasetTruth, FrameTruth
-from state.app_state import block_centres
+from state.alignment import AlignmentCache, FrameAlignment
+from state.app_state import AppState, block_centres
+
+ERROR_SOURCES = ("global alignment", "ground truth", "local alignment")
+"""Where an error field comes from, in the order ``auto`` tries them."""
 
 SQUARE_CORNERS = np.array([[-1.0, -1.0], [1.0, -1.0], [1.0, 1.0], [-1.0, 1.0]])
 """A block's square corners in block coordinates, in drawing order."""
@@ -37,9 +43,11 @@ class ErrorField:
         centre: ``(N, 2)`` px, the blocks' star centres.
         quad: ``(N, 4, 2)`` px, the blocks' squares ``H([-1, 1]^2)``.
         error: ``(N, 2)`` px.
-        source: ``"ground truth"`` (estimate minus the true time-averaged position) or
-            ``"local alignment"`` (the block's disagreement with its neighbours' shared corners:
-            minus its local-alignment translation).
+        source: one of :data:`ERROR_SOURCES`: ``"global alignment"`` (the residual after the
+            frame's pose and translation ``x_G`` are fitted to the reference camera,
+            ``p - x_G - pi_d(M, P)``), ``"ground truth"`` (estimate minus the true
+            time-averaged position) or ``"local alignment"`` (the block's disagreement with its
+            neighbours' shared corners: minus its local-alignment translation).
     """
 
     index: np.ndarray
@@ -62,33 +70,160 @@ def used_blocks(result: FrameResult, flt: FrameFilter | None) -> np.ndarray:
                     dtype=np.int64)
 
 
-def error_field(result: FrameResult, flt: FrameFilter | None, truth: FrameTruth | None
-                ) -> ErrorField | None:
-    """The error of each used block: against the ground truth when there is one, else the
-    local-alignment disagreement (None when neither is available)."""
-    idx = used_blocks(result, flt)
-    if len(idx) == 0:
-        return None
-    centres = block_centres(result)
-    if truth is not None:
-        position = {int(fid): truth.mean[k] for k, fid in enumerate(truth.feature_ids)}
-        idx = np.array([i for i in idx if result.blocks[i].feature_id in position], dtype=np.int64)
-        if len(idx) == 0:
+def error_field(result: FrameResult, flt: FrameFilter | None, truth: FrameTruth | None,
+                alignment: FrameAlignment | None = None, source: str | None = None) -> ErrorField | None:
+    """The error of each used block of a frame.
+
+    Args:
+        result, flt: the frame's result and quality filter.
+        truth: its ground truth (None for real data).
+        alignment: its global alignment (:func:`state.alignment.align_frame` of the same result
+            and filter), or None.
+        source: one of :data:`ERROR_SOURCES`; None takes the first available in that order.
+
+    Returns:
+        The field, or None when the source (any source, for None) is not available.
+    """
+    if source is not None and source not in ERROR_SOURCES:
+        raise ValueError(f"source must be one of {ERROR_SOURCES} or None, got {source!r}")
+    for candidate in ERROR_SOURCES if source is None else (source,):
+        field = _field(candidate, result, flt, truth, alignment)
+        if field is not None:
+            return field
+    return None
+
+
+def _field(source: str, result: FrameResult, flt: FrameFilter | None, truth: FrameTruth | None,
+           alignment: FrameAlignment | None) -> ErrorField | None:
+    if source == "global alignment":
+        if alignment is None or alignment.num_blocks == 0:
             return None
-        error = centres[idx] - np.stack([position[result.blocks[i].feature_id] for i in idx])
-        source = "ground truth"
-    elif result.local is not None and result.growth is not None:
-        accepted = np.flatnonzero(result.growth.accepted)
-        row = {int(b): r for r, b in enumerate(accepted)}
-        idx = np.array([i for i in idx if int(i) in row], dtype=np.int64)
-        if len(idx) == 0:
-            return None
-        error = -result.local.translation[[row[int(i)] for i in idx]]
-        source = "local alignment"
+        idx, error = alignment.index, alignment.residuals
     else:
-        return None
+        idx = used_blocks(result, flt)
+        if source == "ground truth":
+            if truth is None:
+                return None
+            position = {int(fid): truth.mean[k] for k, fid in enumerate(truth.feature_ids)}
+            idx = np.array([i for i in idx if result.blocks[i].feature_id in position], dtype=np.int64)
+            if len(idx) == 0:
+                return None
+            error = block_centres(result)[idx] - np.stack([position[result.blocks[i].feature_id]
+                                                           for i in idx])
+        else:
+            if result.local is None or result.growth is None:
+                return None
+            accepted = np.flatnonzero(result.growth.accepted)
+            row = {int(b): r for r, b in enumerate(accepted)}
+            idx = np.array([i for i in idx if int(i) in row], dtype=np.int64)
+            if len(idx) == 0:
+                return None
+            error = -result.local.translation[[row[int(i)] for i in idx]]
     H = np.stack([result.blocks[i].H for i in idx])
-    return ErrorField(idx, centres[idx], block_quads(H), error, source)
+    return ErrorField(idx, block_centres(result)[idx], block_quads(H), error, source)
+
+
+@dataclass(frozen=True)
+class ErrorFields:
+    """The error fields of several frames, from one source.
+
+    Attributes:
+        fields: frame name -> its field.
+        source: one of :data:`ERROR_SOURCES`.
+        image_size: the frames' ``(width, height)`` px (frames of other sizes are left out).
+        note: which frames were left out and why.
+    """
+
+    fields: dict[str, ErrorField]
+    source: str
+    image_size: tuple[int, int]
+    note: str = ""
+
+    def stacked(self) -> tuple[np.ndarray, np.ndarray]:
+        """``(N, 2)`` px star centres and ``(N, 2)`` px errors of every frame's blocks."""
+        if not self.fields:
+            return np.zeros((0, 2)), np.zeros((0, 2))
+        return (np.concatenate([f.centre for f in self.fields.values()]),
+                np.concatenate([f.error for f in self.fields.values()]))
+
+
+def used_frame_fields(state: AppState, alignments: AlignmentCache, source: str | None = None
+                      ) -> ErrorFields | None:
+    """The error fields of every used frame: finished, and passing the blur pre-filter.
+
+    ``source`` None takes the first *available* source of :data:`ERROR_SOURCES` (global
+    alignment when there is a reference camera, ground truth on simulated data, else local
+    alignment), so all frames share one. For global alignment, frames failing the orientation
+    filter are left out, as in the pipeline. Returns None when the source is not available.
+    """
+    dataset = state.dataset
+    if dataset is None:
+        return None
+    if source is not None and source not in ERROR_SOURCES:
+        raise ValueError(f"source must be one of {ERROR_SOURCES} or None, got {source!r}")
+    overview = alignments.overview()
+    available = [s for s in ERROR_SOURCES if s != "global alignment" or overview is not None]
+    available = [s for s in available if s != "ground truth" or dataset.truth is not None]
+    chosen = available[0] if source is None else source
+    if chosen not in available:
+        return None
+    results = state.results()
+    ok = {e.name for e in state.entries() if e.status == FrameStatus.OK.value}
+    used = {name: r for name, r in results.items() if name in ok and r[1] is not None and r[1].frame_ok}
+    sizes = Counter(size for _, _, size in used.values())
+    size = sizes.most_common(1)[0][0] if sizes else (0, 0)
+    fields: dict[str, ErrorField] = {}
+    notes = []
+    if chosen == "global alignment":
+        for name, alignment in overview.aligned.items():
+            if name in used and used[name][2] == size:
+                fields[name] = _field(chosen, used[name][0], used[name][1], None, alignment)
+        if overview.ill_conditioned:
+            notes.append(f"{len(overview.ill_conditioned)} ill-conditioned (orientation filter)")
+        if overview.failed:
+            notes.append(f"{len(overview.failed)} not aligned")
+    else:
+        for name, (result, flt, frame_size) in sorted(used.items()):
+            truth = None
+            if chosen == "ground truth":
+                truth = next((f for f in dataset.truth.frames if f.name == name), None)
+            field = _field(chosen, result, flt, truth, None) if frame_size == size else None
+            if field is not None:
+                fields[name] = field
+    dropped = sum(1 for name in ok if name in results and name not in used)
+    if dropped:
+        notes.append(f"{dropped} dropped by the blur pre-filter")
+    other = sum(1 for _, _, s in used.values() if s != size)
+    if other:
+        notes.append(f"{other} of another image size")
+    return ErrorFields(dict(sorted(fields.items())), chosen, size, "; ".join(notes))
+
+
+def cell_means(xy: np.ndarray, error: np.ndarray, image_size: tuple[int, int], cell_px: int
+               ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Errors averaged over square image cells (as the reference tool draws its error field).
+
+    Args:
+        xy: ``(N, 2)`` px positions.
+        error: ``(N, 2)`` px error vectors.
+        image_size: ``(width, height)`` px.
+        cell_px: cell side (px); cell ``(i, j)`` covers x in ``[j c - 0.5, (j + 1) c - 0.5)``.
+
+    Returns:
+        The occupied cells' top-left corners ``(K, 2)`` px (as x, y of the cell's first pixel),
+        their mean errors ``(K, 2)`` px and their counts ``(K,)``.
+    """
+    w, h = image_size
+    gw, gh = -(-w // cell_px), -(-h // cell_px)
+    ok = np.all(np.isfinite(xy), axis=1) & np.all(np.isfinite(error), axis=1)
+    cx = np.clip((xy[ok, 0] + 0.5) // cell_px, 0, gw - 1).astype(np.int64)
+    cy = np.clip((xy[ok, 1] + 0.5) // cell_px, 0, gh - 1).astype(np.int64)
+    cell = cy * gw + cx
+    count = np.bincount(cell, minlength=gw * gh).astype(np.float64)
+    sums = np.stack([np.bincount(cell, error[ok, k], minlength=gw * gh) for k in range(2)], axis=1)
+    occupied = np.flatnonzero(count)
+    corner = np.stack([occupied % gw, occupied // gw], axis=1) * float(cell_px)
+    return corner, sums[occupied] / count[occupied, None], count[occupied].astype(np.int64)
 
 
 @dataclass(frozen=True)
@@ -99,8 +234,9 @@ class FramePoses:
         poses: frame name -> pose (target -> camera).
         fov: vertical field of view (rad).
         aspect: width / height.
-        source: ``"ground truth"`` or ``"approximate camera"`` (poses from the frames' features
-            with a camera of unknown distortion fitted to them).
+        source: ``"ground truth"``, ``"global alignment"`` (the poses fitted with the reference
+            camera) or ``"approximate camera"`` (poses from the frames' features with a camera of
+            unknown distortion fitted to them).
     """
 
     poses: dict[str, Pose]
@@ -115,6 +251,16 @@ def truth_poses(truth: DatasetTruth) -> FramePoses:
     fov = 2.0 * float(np.arctan2(model.height / 2.0, model.fy))
     return FramePoses({f.name: f.pose for f in truth.frames}, fov, model.width / model.height,
                       "ground truth")
+
+
+def alignment_poses(alignments: Mapping[str, FrameAlignment], camera: BrownConrady) -> FramePoses | None:
+    """The poses that global alignment fitted to frames, with the reference ``camera`` (None
+    when there are none)."""
+    if not alignments:
+        return None
+    fov = 2.0 * float(np.arctan2(camera.height / 2.0, camera.fy))
+    return FramePoses({name: a.pose for name, a in alignments.items()}, fov, camera.width / camera.height,
+                      "global alignment")
 
 
 def feature_poses(pattern: StarPattern,

@@ -16,9 +16,10 @@ from blurcalib.quality import QualitySettings
 from blurcalib.results import BlockStatus
 from blurcalib.synth import SynthConfig, TrueCamera
 from state import AppState, DatasetError, RunSettings, Topic, default_dataset, discover
+from state.alignment import AlignmentCache, AlignmentError
 from state.app_state import filter_counts
 from state.demo import MAX_SHIFT, TILE_PX, ambiguity_demo
-from state.figures import error_field, feature_poses, truth_poses
+from state.figures import alignment_poses, error_field, feature_poses, truth_poses, used_frame_fields
 
 SMALL_CAMERA = BrownConrady(fx=360.0, fy=360.0, cx=207.5, cy=155.5, k1=0.02, k2=-0.03, p1=0.0003,
                             p2=-0.0002, k3=0.0, width=416, height=312)
@@ -204,6 +205,41 @@ def test_error_field_and_poses(finished: tuple[AppState, list[Topic]]) -> None:
     for name, pose in poses.poses.items():
         assert np.linalg.norm(pose.camera_center - true.poses[name].camera_center) < 0.01
     assert abs(poses.fov - true.fov) < 0.05
+
+
+def test_alignment_follows_the_thresholds_and_covers_the_used_frames(
+        finished: tuple[AppState, list[Topic]]) -> None:
+    state, _ = finished
+    cache = AlignmentCache(state)
+    assert cache.reference().reference.source == "ground-truth camera"
+    name = "blurry/0000.png"
+    flt = state.results()[name][1]
+    a = cache.frame(name)
+    assert a.num_blocks == filter_counts(flt).kept >= 12 and a.median_error < 0.1
+    assert cache.frame(name) is a
+    losses = sorted(state.results()[name][0].blocks[i].loss for i in a.index)
+    defaults = QualitySettings()
+    try:
+        state.refilter(tau_loss=losses[-3])
+        assert cache.frame(name).num_blocks < a.num_blocks
+        state.refilter(tau_loss=0.0)
+        with pytest.raises(AlignmentError, match="0 blocks kept"):
+            cache.frame(name)
+        state.refilter(tau_loss=defaults.tau_loss, min_sigma_major=0.0)
+        assert cache.frame(name) is a
+        overview = cache.overview()
+        assert set(overview.aligned) | set(overview.ill_conditioned) == {"sharp/0000.png", name}
+        assert overview.dropped == 0 and 0 < overview.median_error < 0.1
+        fields = used_frame_fields(state, cache)
+        assert fields.source == "global alignment" and set(fields.fields) == set(overview.aligned)
+        assert used_frame_fields(state, cache, "ground truth").source == "ground truth"
+    finally:
+        state.refilter(defaults.tau_be, defaults.tau_loss, defaults.min_sigma_major)
+    poses = alignment_poses({n: cache.frame(n) for n in state.results()}, cache.reference().reference.camera)
+    true = truth_poses(state.dataset.truth)
+    assert poses.source == "global alignment" and set(poses.poses) == set(true.poses)
+    for n, pose in poses.poses.items():
+        assert np.linalg.norm(pose.camera_center - true.poses[n].camera_center) < 0.001
 
 
 def test_ambiguity_demo_keeps_the_image_and_moves_the_star() -> None:
