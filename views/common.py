@@ -86,6 +86,11 @@ class Coalescer:
                 return
 
 
+def md(text: str) -> str:
+    """Text safe inside markdown (paths contain underscores and stars)."""
+    return text.replace("\\", "\\\\").replace("_", "\\_").replace("*", "\\*").replace("|", "\\|")
+
+
 def grey_rgb(image: np.ndarray, gain: float = 1.0) -> np.ndarray:
     """``(H, W)`` grey levels 0..255 -> ``(H, W, 3)`` uint8 RGB, multiplied by ``gain``."""
     grey = np.clip(np.asarray(image, dtype=np.float32) * gain, 0, 255).astype(np.uint8)

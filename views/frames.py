@@ -12,15 +12,10 @@ from blurcalib.frames import IMAGE_EXTENSIONS
 from state import AppState, FrameView, Notice, RunProgress, Topic
 from state.app_state import FRAME_KINDS
 from state.folder import DatasetError
-from views.common import Coalescer
+from views.common import Coalescer, md
 
 NOTICE_COLOURS = {"info": "blue", "warning": "yellow", "error": "red"}
 NO_FRAMES = "(no frames)"
-
-
-def _md(text: str) -> str:
-    """Text safe inside markdown (paths contain underscores and stars)."""
-    return text.replace("\\", "\\\\").replace("_", "\\_").replace("*", "\\*").replace("|", "\\|")
 
 
 class FramesPanel:
@@ -136,28 +131,28 @@ class FramesPanel:
         if progress.running:
             expected = f" of ~{progress.frame_expected}" if progress.frame_expected else ""
             what = "cancelling" if progress.cancelling else "running"
-            lines.append(f"**{what}** {_md(progress.frame)}: {progress.frame_blocks}{expected} blocks "
+            lines.append(f"**{what}** {md(progress.frame)}: {progress.frame_blocks}{expected} blocks "
                          f"decided (frame {min(progress.frames_done + 1, progress.frames_total)} of "
                          f"{progress.frames_total})")
         if view is not None:
             e = view.entry
             if e.status == "ok":
                 lines.append(f"**done**: {e.accepted} blocks accepted of {e.blocks} "
-                             f"({_md(e.name)}, {e.seconds:.1f} s)")
+                             f"({md(e.name)}, {e.seconds:.1f} s)")
             elif e.status == "cancelled":
-                lines.append(f"**cancelled**: {e.accepted} blocks accepted of {e.blocks} ({_md(e.name)})")
+                lines.append(f"**cancelled**: {e.accepted} blocks accepted of {e.blocks} ({md(e.name)})")
             elif e.status in ("pending", "queued", "running"):
                 if not progress.running:
-                    lines.append(f"{_md(e.name)} ({e.kind}): not extracted yet, press **Run frame**")
+                    lines.append(f"{md(e.name)} ({e.kind}): not extracted yet, press **Run frame**")
             else:
-                lines.append(f"**{e.status.replace('_', ' ')}**: {_md(e.message)}")
+                lines.append(f"**{e.status.replace('_', ' ')}**: {md(e.message)}")
         notice = self._last_notice
         if notice is not None:
-            lines.append(f"*{_md(notice.title)}*: {_md(notice.text)}")
+            lines.append(f"*{md(notice.title)}*: {md(notice.text)}")
         return "\n\n".join(lines)
 
     @staticmethod
     def _table(frames: list[tuple[str, str, str, int, int]]) -> str:
         rows = ["| frame | kind | status | accepted |", "|---|---|---|---|"]
-        rows += [f"| {_md(n)} | {k} | {s.replace('_', ' ')} | {a}/{b} |" for n, k, s, a, b in frames]
+        rows += [f"| {md(n)} | {k} | {s.replace('_', ' ')} | {a}/{b} |" for n, k, s, a, b in frames]
         return "\n".join(rows)
