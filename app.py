@@ -23,6 +23,7 @@ from typing import Protocol
 import viser
 
 from state import AppState, RunSettings, default_dataset
+from state.alignment import AlignmentCache
 from views.ambiguity import AmbiguityPanel
 from views.errors import ErrorsPanel
 from views.frame_view import FrameViewPanel
@@ -42,9 +43,10 @@ class Panel(Protocol):
 
 @dataclass
 class App:
-    """A running app: its state and its panels."""
+    """A running app: its state, the global alignments of its frames and its panels."""
 
     state: AppState
+    alignments: AlignmentCache
     panels: list[Panel] = field(default_factory=list)
 
     def close(self) -> None:
@@ -85,10 +87,10 @@ def serve(folder: str | os.PathLike | None = None, pattern: str | os.PathLike | 
     server.gui.configure_theme(control_width="large", show_share_button=False, dark_mode=False,
                                brand_color=(40, 110, 200))
     server.gui.main_panel.dock_right()
-    app = App(state)
+    app = App(state, AlignmentCache(state))
     app.panels.append(FramesPanel(state, server))
     with server.gui.add_folder("Quality filter"):
-        app.panels.append(TuningPanel(state, server))
+        app.panels.append(TuningPanel(state, server, app.alignments))
     views = server.gui.add_panel()
     with views.add_tab("Frame", viser.Icon.PHOTO):
         app.panels.append(FrameViewPanel(state, server))
@@ -97,7 +99,7 @@ def serve(folder: str | os.PathLike | None = None, pattern: str | os.PathLike | 
     with views.add_tab("Block", viser.Icon.ZOOM_IN):
         app.panels.append(InspectPanel(state, server))
     with views.add_tab("Errors", viser.Icon.ARROWS_MOVE):
-        app.panels.append(ErrorsPanel(state, server))
+        app.panels.append(ErrorsPanel(state, server, app.alignments))
     with views.add_tab("Ambiguity", viser.Icon.SCHOOL):
         app.panels.append(AmbiguityPanel(server))
     views.dock_left()

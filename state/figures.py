@@ -210,8 +210,8 @@ def cell_means(xy: np.ndarray, error: np.ndarray, image_size: tuple[int, int], c
         cell_px: cell side (px); cell ``(i, j)`` covers x in ``[j c - 0.5, (j + 1) c - 0.5)``.
 
     Returns:
-        The occupied cells' top-left corners ``(K, 2)`` px (as x, y of the cell's first pixel),
-        their mean errors ``(K, 2)`` px and their counts ``(K,)``.
+        The occupied cells' first (top-left) pixel centres ``(K, 2)`` px, ``(j c, i c)``, their
+        mean errors ``(K, 2)`` px and their block counts ``(K,)``.
     """
     w, h = image_size
     gw, gh = -(-w // cell_px), -(-h // cell_px)

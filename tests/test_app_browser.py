@@ -1,5 +1,8 @@
 """End to end in a real headless Chromium (Playwright): open the app, run a frame, tune, inspect.
 
+After the run the tuning panel shows the frame's error after global alignment (the same median
+as the state's), which follows the τ_L slider, and the Errors tab shows the residuals.
+
 Needs Debian's ``/usr/bin/chromium`` and the ``playwright`` package (no ``playwright install``:
 the test launches the system browser); it is skipped, saying which is missing, otherwise. It saves
 a screenshot to ``out/app_screenshot.png`` (ignored by git); with ``BLURCALIB_UPDATE_SCREENSHOT=1``
@@ -80,11 +83,17 @@ def test_run_tune_and_inspect_in_chromium(tmp_path: Path) -> None:
 
             kept = _kept(page)
             assert kept > 0
+            aligned = page.get_by_text(re.compile(r"after global alignment: median [\d.]+ px"))
+            expect(aligned).to_be_visible(timeout=30_000)
+            median = float(re.search(r"median ([\d.]+) px", aligned.inner_text())[1])
+            assert abs(median - app.alignments.frame("blurry/0000.png").median_error) < 1e-3
+            assert f"over {kept} blocks (reference: ground-truth camera)" in aligned.inner_text()
             slider = _row(page, "τ_L").get_by_role("slider")
             slider.focus()
             slider.press("Home")
             expect(slider).to_have_attribute("aria-valuenow", "0")
             expect(page.get_by_text("kept: 0 blocks")).to_be_visible()
+            expect(page.get_by_text("0 blocks kept by the filter, alignment needs 12")).to_be_visible()
             assert app.state.quality.tau_loss == 0.0
             page.get_by_role("button", name="Paper defaults").click()
             expect(page.get_by_text(f"kept: {kept} blocks")).to_be_visible()
@@ -102,6 +111,9 @@ def test_run_tune_and_inspect_in_chromium(tmp_path: Path) -> None:
             page.get_by_role("option", name="highest loss").click()
             expect(page.get_by_text(re.compile(r"block #\d+ feature"))).to_be_visible()
             assert app.state.selected is not None
+            page.get_by_role("tab", name="Errors").click()
+            expect(page.get_by_text(re.compile(r"global alignment \(reference: ground-truth camera\): star "
+                                               r"centre minus x_G"))).to_be_visible()
             page.get_by_role("tab", name="Frame").click()
             page.add_style_tag(content=".mantine-Notification-root { display: none !important; }")
             page.wait_for_timeout(500)

@@ -155,6 +155,10 @@ def test_bad_frames_get_a_status_and_a_notice(dataset: Path, tmp_path: Path) -> 
     assert status == {"a_truncated.png": "unreadable", "b_notag.png": "not_seeded", "c_good.png": "ok"}
     assert any(n.level == "warning" and "no AprilTag" in n.text for n in notices)
     assert not state.run_all() and notices[-1].title == "Nothing to run"
+    # Real data without a calibration folder or five sharp frames: no reference camera, and why.
+    with pytest.raises(AlignmentError, match=r"needs ≥5 finished sharp frames, a calibration/ folder, or "
+                                             r"ground truth \(0 sharp frames finished\)"):
+        AlignmentCache(state).frame("c_good.png")
 
 
 def test_pattern_that_matches_nothing_leaves_frames_unseeded(dataset: Path, tmp_path: Path) -> None:
@@ -256,10 +260,11 @@ def test_views_draw_rgb_images(finished: tuple[AppState, list[Topic]]) -> None:
     pytest.importorskip("viser")
     finished, _ = finished
     from views.ambiguity import demo_image
-    from views.errors import colour_wheel, direction_colours, draw_errors
+    from views.errors import colour_wheel, direction_colours, draw_cells, draw_errors, draw_quiver
     from views.frame_view import draw_frame
     from views.inspect import block_images, jump_target, scatter_plots
     from views.psf_field import psf_mosaic
+    from views.tuning import alignment_lines
 
     finished.select_frame(1)
     view = finished.view()
@@ -271,6 +276,15 @@ def test_views_draw_rgb_images(finished: tuple[AppState, list[Topic]]) -> None:
     images += [psf_mosaic(view, 0.9, "kept blocks"), block_images(view, worst), scatter_plots(view),
                demo_image(ambiguity_demo((2, 1))),
                draw_errors(view.image, error_field(view.result, view.filter, view.truth), 0.2)]
+    field = error_field(view.result, view.filter, view.truth, AlignmentCache(finished).frame(view.entry.name))
+    assert field.source == "global alignment"
+    lines = alignment_lines(AlignmentCache(finished), view.entry.name)
+    assert lines[0].startswith("**alignment error** after global alignment: median ")
+    assert "(reference: ground-truth camera)" in lines[0]
+    assert lines[1] == "all frames: no used frame aligned (2 dropped by the pre-filter)"
+    images += [draw_quiver(view.image, (416, 312), field.centre, field.error, 0.02),
+               draw_quiver(None, (416, 312), field.centre, field.error, 0.02),
+               draw_cells((416, 312), field.centre, field.error, 0.02, 8)]
     for image in images:
         assert image.dtype == np.uint8 and image.ndim == 3 and image.shape[2] == 3 and image.std() > 5
     outside = next(i for i, b in enumerate(view.result.blocks) if b.status is BlockStatus.OUTSIDE_IMAGE)

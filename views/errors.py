@@ -1,18 +1,27 @@
-"""Reprojection-error direction field of the current frame, and the frames' poses in 3D.
+"""Reprojection-error fields of the current frame and of all used frames, and the frames' poses in 3D.
 
-Each used block's square is filled with a colour whose hue gives the error's direction ``a``
-(``atan2(e_y, e_x)`` in the image, y down) as ``(127 + 127 sin a, 127 + 127 cos a, 127)`` and whose
-brightness gives its length (full brightness at a chosen number of pixels). The error is the
-estimate minus the ground truth's time-averaged position on a simulated dataset, else the
-block's local-alignment disagreement with its neighbours (the global-alignment error comes
-later).
+The error of a block is, by default, its residual after global alignment (``eq:global_align``):
+its star centre minus the frame's translation ``x_G`` minus the projection of its target point
+with the reference camera at the fitted pose (:mod:`state.alignment`). The *Error source*
+dropdown also offers the estimate minus the ground truth's time-averaged position (simulated
+data) and the block's local-alignment disagreement with its neighbours; *auto* takes the first
+available of global alignment, ground truth and local alignment.
+
+Errors are drawn as the reference tool draws them: each block's square (or, over all frames,
+each image cell, averaging the blocks inside it) is filled with a colour whose hue gives the
+error's direction ``a = atan2(e_y, e_x)`` (image y down) as ``(127 + 127 sin a, 127 + 127 cos a,
+127)`` and whose brightness gives its length (full brightness at a chosen number of pixels); or
+as a quiver of arrows, ``ARROW_PX`` display pixels long at that length.
 
 The 3D scene shows the target page in its plane (``Z = 0``, metres, x right and y down the page)
-and a camera frustum per frame pose: the ground truth when there is one, else poses solved
-from the finished frames' star centres with an approximate camera.
+and a camera frustum per frame pose: the ground truth when there is one, else the poses fitted by
+global alignment, else poses solved from the finished frames' star centres with an approximate
+camera. Clicking a frustum opens its frame.
 """
 
 from __future__ import annotations
+
+from functools import partial
 
 import cv2
 import numpy as np
@@ -21,13 +30,34 @@ import viser.transforms as vtf
 
 from blurcalib.pattern import StarPattern
 from state import AppState, Topic
-from state.figures import ErrorField, FramePoses, error_field, feature_poses, truth_poses
-from views.common import Coalescer, fit_width, grey_rgb, label, placeholder, to_draw
+from state.alignment import AlignmentCache, AlignmentError, FrameAlignment
+from state.figures import (
+    ERROR_SOURCES,
+    ErrorField,
+    FramePoses,
+    alignment_poses,
+    cell_means,
+    error_field,
+    feature_poses,
+    truth_poses,
+    used_frame_fields,
+)
+from views.common import SHIFT, Coalescer, fit_width, grey_rgb, label, md, placeholder, scaled, to_draw
 from views.frame_view import DISPLAY_WIDTH
 
 WHEEL_PX = 90
+ARROW_PX = 40
+"""Display length (px) of an arrow whose error is the full-brightness length."""
 FRUSTUM_COLOURS = {"sharp": (40, 160, 40), "blurry": (60, 90, 220)}
 PAGE_DPI = 40.0
+SOURCES = ("auto", *ERROR_SOURCES)
+SCOPES = ("current frame", "all used frames")
+STYLES = ("direction colours", "quiver")
+DESCRIPTIONS = {
+    "global alignment": "star centre minus x_G minus the projection of its target point at the fitted pose",
+    "ground truth": "estimate minus the ground truth's time-averaged position",
+    "local alignment": "the block's disagreement with its neighbours (minus its local-alignment translation)",
+}
 
 
 def direction_colours(error: np.ndarray, full: float) -> np.ndarray:
@@ -49,12 +79,7 @@ def colour_wheel(size: int = WHEEL_PX) -> np.ndarray:
     return rgb
 
 
-def draw_errors(image: np.ndarray, field: ErrorField, full: float, width: int = DISPLAY_WIDTH) -> np.ndarray:
-    """The frame (dimmed) with each block's square filled by its error colour, and the legend."""
-    canvas, s = fit_width(grey_rgb(image, 0.3), width)
-    canvas = np.ascontiguousarray(canvas)
-    for quad, colour in zip(to_draw(field.quad, s), direction_colours(field.error, full), strict=True):
-        cv2.fillPoly(canvas, [quad], tuple(int(v) for v in colour), cv2.LINE_AA, 4)
+def _wheel_legend(canvas: np.ndarray, full: float) -> None:
     wheel = colour_wheel()
     h, w = canvas.shape[:2]
     y0, x0 = h - WHEEL_PX - 8, w - WHEEL_PX - 8
@@ -64,6 +89,56 @@ def draw_errors(image: np.ndarray, field: ErrorField, full: float, width: int = 
     label(canvas, f"full = {full:.2g} px", (x0 - 20, y0 - 6), 0.45)
     label(canvas, "+x", (x0 + WHEEL_PX - 16, y0 + WHEEL_PX // 2 + 4), 0.4)
     label(canvas, "+y", (x0 + WHEEL_PX // 2 - 8, y0 + WHEEL_PX - 2), 0.4)
+
+
+def draw_errors(image: np.ndarray, field: ErrorField, full: float, width: int = DISPLAY_WIDTH) -> np.ndarray:
+    """The frame (dimmed) with each block's square filled by its error colour, and the legend."""
+    canvas, s = fit_width(grey_rgb(image, 0.3), width)
+    canvas = np.ascontiguousarray(canvas)
+    for quad, colour in zip(to_draw(field.quad, s), direction_colours(field.error, full), strict=True):
+        cv2.fillPoly(canvas, [quad], tuple(int(v) for v in colour), cv2.LINE_AA, SHIFT)
+    _wheel_legend(canvas, full)
+    return canvas
+
+
+def _background(image: np.ndarray | None, image_size: tuple[int, int], width: int
+                ) -> tuple[np.ndarray, float]:
+    """The dimmed frame, or black of the frame's size, resized to ``width``."""
+    if image is None:
+        image = np.zeros((image_size[1], image_size[0]))
+    canvas, s = fit_width(grey_rgb(image, 0.3), width)
+    return np.ascontiguousarray(canvas), s
+
+
+def draw_cells(image_size: tuple[int, int], xy: np.ndarray, error: np.ndarray, full: float, cell_px: int,
+               width: int = DISPLAY_WIDTH) -> np.ndarray:
+    """Errors of many frames: image cells of ``cell_px`` px filled with the colour of their blocks'
+    mean error (black where no block falls), and the legend."""
+    canvas, s = _background(None, image_size, width)
+    corner, mean, _ = cell_means(xy, error, image_size, cell_px)
+    for (x, y), colour in zip(corner, direction_colours(mean, full), strict=True):
+        quad = np.array([[x, y], [x + cell_px, y], [x + cell_px, y + cell_px], [x, y + cell_px]]) - 0.5
+        cv2.fillPoly(canvas, [to_draw(quad, s)], tuple(int(v) for v in colour), cv2.LINE_AA, SHIFT)
+    _wheel_legend(canvas, full)
+    return canvas
+
+
+def draw_quiver(image: np.ndarray | None, image_size: tuple[int, int], xy: np.ndarray, error: np.ndarray,
+                full: float, width: int = DISPLAY_WIDTH) -> np.ndarray:
+    """Arrows from ``xy (N, 2)`` px along ``error (N, 2)`` px, :data:`ARROW_PX` display pixels long
+    at ``full`` px and coloured by direction, over the dimmed frame (black without one)."""
+    canvas, s = _background(image, image_size, width)
+    start = scaled(xy, s)
+    end = start + error * (ARROW_PX / max(full, 1e-9))
+    colours = direction_colours(error, 1e-9)
+    for a, b, colour in zip(start, end, colours, strict=True):
+        cv2.arrowedLine(canvas, tuple(int(v) for v in np.round(a * (1 << SHIFT))),
+                        tuple(int(v) for v in np.round(b * (1 << SHIFT))), tuple(int(v) for v in colour), 1,
+                        cv2.LINE_AA, SHIFT, 0.25)
+    h, w = canvas.shape[:2]
+    y = h - 14
+    cv2.arrowedLine(canvas, (w - ARROW_PX - 12, y), (w - 12, y), (255, 255, 255), 2, cv2.LINE_AA, 0, 0.25)
+    label(canvas, f"{full:.2g} px", (w - ARROW_PX - 80, y + 5), 0.45)
     return canvas
 
 
@@ -75,14 +150,20 @@ def page_placement(pattern: StarPattern) -> tuple[np.ndarray, float, float]:
 
 
 class ErrorsPanel:
-    """The error field image, its scale, and the 3D scene of the frames' poses."""
+    """The error field image, its source, scope, style and scale, and the 3D scene of the poses."""
 
-    def __init__(self, state: AppState, server: viser.ViserServer) -> None:
+    def __init__(self, state: AppState, server: viser.ViserServer, alignments: AlignmentCache) -> None:
         self.state = state
         self.server = server
+        self.alignments = alignments
         gui = server.gui
-        self.image = gui.add_image(placeholder("no result"), label="Error direction field", format="jpeg",
+        self.image = gui.add_image(placeholder("no result"), label="Error field", format="jpeg",
                                    jpeg_quality=90)
+        self.source = gui.add_dropdown("Error source", options=SOURCES,
+                                       hint="auto: global alignment when there is a reference camera, "
+                                            "else ground truth, else local alignment")
+        self.scope = gui.add_dropdown("Over", options=SCOPES)
+        self.style = gui.add_dropdown("Draw as", options=STYLES)
         self.auto = gui.add_checkbox("Auto scale (2 × RMS)", initial_value=True)
         self.full = gui.add_slider("Full brightness at (px)", min=0.01, max=2.0, step=0.01, initial_value=0.2)
         self.text = gui.add_markdown("")
@@ -93,7 +174,8 @@ class ErrorsPanel:
         server.scene.set_up_direction("-y")
         self._redraw = Coalescer(self._draw, 0.2, "errors")
         self._rescene = Coalescer(self._draw_scene, 0.5, "poses")
-        self.auto.on_update(self._redraw.request)
+        for control in (self.auto, self.source, self.scope, self.style):
+            control.on_update(self._redraw.request)
         self.full.on_update(self._on_full)
         state.subscribe(self._on_change)
         self._redraw.request()
@@ -110,29 +192,93 @@ class ErrorsPanel:
             self._redraw.request()
 
     def _on_change(self, topic: Topic) -> None:
-        if topic in (Topic.CURRENT, Topic.RESULT, Topic.FILTER, Topic.FOLDER):
+        if topic in (Topic.CURRENT, Topic.RESULT, Topic.FILTER, Topic.FOLDER, Topic.FRAMES):
             self._redraw.request()
         if topic in (Topic.FOLDER, Topic.RESULT, Topic.FILTER, Topic.CURRENT):
             self._rescene.request()
 
+    def _scale(self, error: np.ndarray) -> float:
+        if self.auto.value and len(error):
+            rms = float(np.sqrt(np.mean(np.sum(error**2, axis=1))))
+            self.full.value = float(np.clip(round(2.0 * rms, 2), 0.01, 2.0))
+        return self.full.value
+
     def _draw(self) -> None:
+        if self.scope.value == SCOPES[0]:
+            self._draw_frame()
+        else:
+            self._draw_all()
+
+    def _draw_frame(self) -> None:
         view = self.state.view()
-        field = None
-        if view is not None and view.result is not None and view.entry.status != "running":
-            field = error_field(view.result, view.filter, view.truth)
-        if view is None or view.image is None or field is None:
+        if view is None or view.image is None or view.result is None or view.entry.status == "running":
             self.image.image = placeholder("run the frame to see its error field")
             self.text.content = ""
             return
-        if self.auto.value:
-            self.full.value = float(np.clip(round(2.0 * field.rms, 2), 0.01, 2.0))
-        self.image.image = draw_errors(view.image, field, self.full.value)
+        alignment: FrameAlignment | None = None
+        why = ""
+        try:
+            alignment = self.alignments.frame(view.entry.name)
+        except AlignmentError as exc:
+            why = str(exc)
+        requested = None if self.source.value == "auto" else self.source.value
+        field = error_field(view.result, view.filter, view.truth, alignment, requested)
+        if field is None:
+            self.image.image = placeholder(f"no {requested or 'error'} field for this frame")
+            self.text.content = md(why) if requested == "global alignment" else ""
+            return
+        full = self._scale(field.error)
+        if self.style.value == STYLES[0]:
+            self.image.image = draw_errors(view.image, field, full)
+        else:
+            h, w = view.image.shape
+            self.image.image = draw_quiver(view.image, (w, h), field.centre, field.error, full)
         length = np.hypot(field.error[:, 0], field.error[:, 1])
-        what = ("estimate minus the ground truth's time-averaged position" if field.source == "ground truth"
-                else "the block's disagreement with its neighbours (minus its local-alignment translation)")
-        self.text.content = (f"**{field.source}**: {what}. {len(length)} blocks, RMS {field.rms:.3f} px, "
-                             f"median {np.median(length):.3f} px, max {length.max():.3f} px. Hue: direction, "
-                             "brightness: length.")
+        lines = [f"**{field.source}**{self._reference_note(field.source)}: {DESCRIPTIONS[field.source]}. "
+                 f"{len(length)} blocks, RMS {field.rms:.3f} px, median {np.median(length):.3f} px, "
+                 f"max {length.max():.3f} px."]
+        if field.source == "global alignment":
+            lines.append(f"x_G = ({alignment.translation[0]:+.3f}, {alignment.translation[1]:+.3f}) px"
+                         + ("" if alignment.orientation_ok else
+                            "; **ill-conditioned**: the optical axis is near the target normal"))
+        elif why and requested is None:
+            lines.append(f"(global alignment not shown: {md(why)})")
+        self.text.content = "\n\n".join(lines)
+
+    def _reference_note(self, source: str) -> str:
+        if source != "global alignment":
+            return ""
+        reference = self.alignments.reference().reference
+        return f" (reference: {md(reference.source)})" if reference is not None else ""
+
+    def _draw_all(self) -> None:
+        requested = None if self.source.value == "auto" else self.source.value
+        fields = used_frame_fields(self.state, self.alignments, requested)
+        if fields is None:
+            reason = self.alignments.reference().reason if requested == "global alignment" else ""
+            self.image.image = placeholder(f"no {requested} fields")
+            self.text.content = md(reason)
+            return
+        xy, error = fields.stacked()
+        note = f" Left out: {md(fields.note)}." if fields.note else ""
+        if not fields.fields:
+            self.image.image = placeholder("no used frame has an error field yet")
+            self.text.content = f"**{fields.source}**{self._reference_note(fields.source)}: no frame.{note}"
+            return
+        full = self._scale(error)
+        cell = max(8, round(fields.image_size[0] / 64))
+        if self.style.value == STYLES[0]:
+            self.image.image = draw_cells(fields.image_size, xy, error, full, cell)
+        else:
+            cell *= 2
+            corner, mean, _ = cell_means(xy, error, fields.image_size, cell)
+            self.image.image = draw_quiver(None, fields.image_size, corner + cell / 2 - 0.5, mean, full)
+        length = np.hypot(error[:, 0], error[:, 1])
+        self.text.content = (
+            f"**{fields.source}**{self._reference_note(fields.source)} over {len(fields.fields)} used "
+            f"frames: {DESCRIPTIONS[fields.source]}. {len(length)} blocks, RMS "
+            f"{float(np.sqrt(np.mean(length**2))):.3f} px, median {np.median(length):.3f} px, max "
+            f"{length.max():.3f} px. Each {cell} px cell shows the mean of its blocks.{note}")
 
     def _poses(self) -> FramePoses | None:
         dataset = self.state.dataset
@@ -140,7 +286,23 @@ class ErrorsPanel:
             return None
         if dataset.truth is not None:
             return truth_poses(dataset.truth)
+        reference = self.alignments.reference().reference
+        if reference is not None:
+            aligned = {}
+            for name in self.state.results():
+                try:
+                    aligned[name] = self.alignments.frame(name)
+                except AlignmentError:
+                    continue
+            poses = alignment_poses(aligned, reference.camera)
+            if poses is not None:
+                return poses
         return feature_poses(dataset.pattern, self.state.results())
+
+    def _open_frame(self, name: str, _: viser.SceneNodePointerEvent) -> None:
+        names = [e.name for e in self.state.entries()]
+        if name in names:
+            self.state.select_frame(names.index(name))
 
     def _draw_scene(self) -> None:
         dataset = self.state.dataset
@@ -175,10 +337,12 @@ class ErrorsPanel:
             thumb = None
             if name == current and view is not None and view.image is not None:
                 thumb = fit_width(grey_rgb(view.image), 200)[0]
-            self._frustums.append(scene.add_camera_frustum(
+            frustum = scene.add_camera_frustum(
                 f"/cameras/{i}", fov=poses.fov, aspect=poses.aspect, scale=scale, color=colour,
                 image=thumb, wxyz=vtf.SO3.from_matrix(inv.R).wxyz, position=inv.t,
-                thickness=3.0 if name == current else 1.5, thickness_units="screen"))
+                thickness=3.0 if name == current else 1.5, thickness_units="screen")
+            frustum.on_click(partial(self._open_frame, name))
+            self._frustums.append(frustum)
         self.poses_text.content = (f"3D view: {len(poses.poses)} frame poses from the **{poses.source}** "
                                    "(orange: current frame, green: sharp, blue: blurry), target page in its "
-                                   "plane Z = 0")
+                                   "plane Z = 0. Click a frustum to open its frame.")

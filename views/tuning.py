@@ -1,25 +1,72 @@
-"""Tuning panel: the quality filter's thresholds as sliders, with kept and removed counts.
+"""Tuning panel: the quality filter's thresholds as sliders, with kept and removed counts and the
+alignment error they give.
 
 Moving a slider re-filters every finished frame from its stored figures
 (:func:`blurcalib.quality.filter_frame`, milliseconds per frame); the frame view shows the
-result (kept blocks are the ones breadth-first connected to the seed block).
+result (kept blocks are the ones breadth-first connected to the seed block). The kept blocks are
+then aligned globally to the reference camera (:mod:`state.alignment`, a few milliseconds per
+frame, cached), and the panel reports the residual error after alignment (px) for the current
+frame and over every used frame.
 """
 
 from __future__ import annotations
+
+import math
 
 import viser
 
 from blurcalib.quality import QualitySettings
 from state import AppState, Topic
+from state.alignment import AlignmentCache, AlignmentError
 from state.app_state import filter_counts
-from views.common import Coalescer
+from views.common import Coalescer, md
+
+
+def alignment_lines(alignments: AlignmentCache, frame: str | None) -> list[str]:
+    """Markdown lines: the alignment error of ``frame`` (None: no frame) and over the used frames."""
+    choice = alignments.reference()
+    if choice.reference is None:
+        return [f"**alignment error**: – {md(choice.reason)}"]
+    source = md(choice.reference.source)
+    lines = []
+    if frame is not None:
+        try:
+            a = alignments.frame(frame)
+        except AlignmentError as exc:
+            lines.append(f"**alignment error**: – {md(str(exc))} (reference: {source})")
+        else:
+            angle = math.degrees(a.angle_to_normal)
+            lines.append(f"**alignment error** after global alignment: median {a.median_error:.3f} px, "
+                         f"RMS {a.rms_error:.3f} px over {a.num_blocks} blocks (reference: {source}) · "
+                         f"x_G ({a.translation[0]:+.3f}, {a.translation[1]:+.3f}) px, optical axis "
+                         f"{angle:.1f}° from the target normal"
+                         + ("" if a.orientation_ok else ": **ill-conditioned** (orientation filter)"))
+    overview = alignments.overview()
+    if overview is None:
+        return lines
+    left_out = []
+    if overview.ill_conditioned:
+        left_out.append(f"{len(overview.ill_conditioned)} ill-conditioned")
+    if overview.failed:
+        left_out.append(f"{len(overview.failed)} not aligned")
+    if overview.dropped:
+        left_out.append(f"{overview.dropped} dropped by the pre-filter")
+    rest = f" ({', '.join(left_out)})" if left_out else ""
+    if overview.aligned:
+        lines.append(f"all {len(overview.aligned)} used frames: alignment median "
+                     f"{overview.median_error:.3f} px, RMS {overview.rms_error:.3f} px over "
+                     f"{overview.num_blocks} blocks{rest}")
+    else:
+        lines.append(f"all frames: no used frame aligned{rest}")
+    return lines
 
 
 class TuningPanel:
     """Sliders for tau_BE, tau_L and the sigma_major pre-filter, and the counts they give."""
 
-    def __init__(self, state: AppState, server: viser.ViserServer) -> None:
+    def __init__(self, state: AppState, server: viser.ViserServer, alignments: AlignmentCache) -> None:
         self.state = state
+        self.alignments = alignments
         q = state.quality
         gui = server.gui
         self.tau_be = gui.add_slider("τ_BE", min=0.0, max=0.5, step=0.01, initial_value=q.tau_be,
@@ -34,6 +81,7 @@ class TuningPanel:
                                          "below this (px): too little blur for a reliable PSF")
         self.reset = gui.add_button("Paper defaults")
         self.counts = gui.add_markdown("")
+        self.alignment = gui.add_markdown("")
         self._apply = Coalescer(self._refilter, 0.05, "tuning-refilter")
         self._redraw = Coalescer(self._show, 0.1, "tuning-counts")
         for slider in (self.tau_be, self.tau_loss, self.sigma):
@@ -60,7 +108,7 @@ class TuningPanel:
         self.state.refilter(self.tau_be.value, self.tau_loss.value, self.sigma.value)
 
     def _on_change(self, topic: Topic) -> None:
-        if topic in (Topic.FILTER, Topic.RESULT, Topic.CURRENT, Topic.FOLDER):
+        if topic in (Topic.FILTER, Topic.RESULT, Topic.CURRENT, Topic.FOLDER, Topic.FRAMES):
             self._redraw.request()
 
     def _show(self) -> None:
@@ -85,3 +133,5 @@ class TuningPanel:
             lines.append(f"all {len(totals)} finished frames: {kept} blocks kept; {len(used)} frames pass "
                          f"the pre-filter ({sum(int(f.kept.sum()) for f in used)} blocks)")
         self.counts.content = "\n\n".join(lines)
+        frame = view.entry.name if view is not None and view.result is not None else None
+        self.alignment.content = "\n\n".join(alignment_lines(self.alignments, frame))
