@@ -348,8 +348,9 @@ class AlignmentCache:
         self._dataset: Dataset | None = None
         self._sharp: dict[str, tuple[FrameResult, tuple[int, int]]] = {}
         self._choice = ReferenceChoice(None, "no dataset open")
-        self._frames: OrderedDict[tuple[str, bytes], tuple[FrameResult, Reference,
-                                                           FrameAlignment | AlignmentError]] = OrderedDict()
+        # (frame, packed kept mask) -> the result and reference aligned, and the alignment or why not.
+        self._frames: OrderedDict[tuple[str, bytes],
+                                  tuple[FrameResult, Reference, FrameAlignment | str]] = OrderedDict()
 
     def reference(self) -> ReferenceChoice:
         """The current reference (:func:`find_reference`), or why there is none."""
@@ -388,7 +389,7 @@ class AlignmentCache:
 
     def _align(self, name: str, reference: Reference, result: FrameResult, flt: FrameFilter | None,
                size: tuple[int, int]) -> FrameAlignment:
-        key = (name, b"" if flt is None else np.packbits(flt.kept).tobytes() + bytes([len(flt.kept) % 8]))
+        key = (name, b"" if flt is None else np.packbits(flt.kept).tobytes())
         with self._lock:
             hit = self._frames.get(key)
             if hit is not None and hit[0] is result and hit[1] is reference:
@@ -401,13 +402,13 @@ class AlignmentCache:
                 outcome = align_frame(reference, self.state.dataset.pattern, result, flt, size,
                                       loss=self.loss, bias=self.bias)
             except AlignmentError as exc:
-                outcome = exc
+                outcome = str(exc)
             with self._lock:
                 self._frames[key] = (result, reference, outcome)
                 while len(self._frames) > self._size:
                     self._frames.popitem(last=False)
-        if isinstance(outcome, AlignmentError):
-            raise outcome
+        if isinstance(outcome, str):
+            raise AlignmentError(outcome)
         return outcome
 
     def overview(self) -> AlignmentOverview | None:
