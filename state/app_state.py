@@ -26,7 +26,7 @@ from blurcalib.camera import apply_homography
 from blurcalib.extract import ExtractSettings, FrameResult, FrameStatus, extract_frame
 from blurcalib.frames import FrameError, load_frame
 from blurcalib.grow import GrowthEvent
-from blurcalib.pattern import StarPattern
+from blurcalib.pattern import PatternFileError, StarPattern, load_pattern
 from blurcalib.quality import FrameFilter, QualitySettings, filter_frame
 from blurcalib.results import BlockStatus
 from blurcalib.seed import block_homography
@@ -317,6 +317,52 @@ class AppState:
         self.select_frame(0)
         return True
 
+    def set_pattern(self, path: str | os.PathLike) -> bool:
+        """Extract with the pattern YAML ``path`` (an upload) from now on.
+
+        With a dataset open, its pattern is replaced and every frame's result is cleared (the
+        results belong to the old target); the ground truth is kept only when the new pattern
+        equals the dataset's. With none open, an empty dataset of uploads is started, to which
+        :meth:`add_frame` adds frames. A run in progress or a bad YAML gives an error notice and
+        keeps the previous state.
+
+        Returns:
+            Whether the pattern is now in use.
+        """
+        if self.is_running:
+            self.notify("error", "Cannot change the pattern", "a run is in progress: cancel it first")
+            return False
+        path = Path(path)
+        try:
+            pattern = load_pattern(path)
+        except PatternFileError as exc:
+            self.notify("error", "Pattern refused", str(exc))
+            return False
+        with self._lock:
+            old = self.dataset
+            if old is None:
+                dataset = Dataset(path.parent, path, pattern, (), None)
+            else:
+                dataset = replace(old, pattern_path=path, pattern=pattern,
+                                  truth=old.truth if pattern == old.pattern else None)
+            dropped_truth = old is not None and old.truth is not None and dataset.truth is None
+            self.dataset = dataset
+            self.frames = [FrameEntry(f.name, f.path, f.kind) for f in self.frames]
+            self.selected = None
+            self._results.clear()
+            self._filters.clear()
+            self._live.clear()
+            self._progress = RunProgress()
+        if dropped_truth:
+            self.notify("warning", "Ground truth not used", f"{path.name} is not the pattern the dataset was "
+                                                            "simulated with")
+        then = "frames to extract again" if self.frames else "upload frames next"
+        self.notify("info", "Pattern in use", f"{path.name}: {pattern.squares_x} x {pattern.squares_y} "
+                                              f"squares, {pattern.num_features} features; {then}")
+        self._emit(Topic.FOLDER, Topic.FRAMES, Topic.RUN, Topic.RESULT, Topic.FILTER, Topic.CURRENT,
+                   Topic.SELECTION)
+        return True
+
     def add_frame(self, path: str | os.PathLike, name: str, kind: str = "blurry") -> int:
         """Add a frame file (an upload) to the open dataset and select it; returns its index.
 
@@ -325,7 +371,8 @@ class AppState:
         """
         with self._lock:
             if self.dataset is None:
-                raise DatasetError("open a folder first: an uploaded frame needs its pattern")
+                raise DatasetError("open a folder or upload a pattern YAML first: an uploaded frame "
+                                   "needs its pattern")
             taken = {f.name for f in self.frames}
             unique, n = name, 1
             while unique in taken:

@@ -182,7 +182,7 @@ def test_current_frame_survives_the_image_cache(dataset: Path) -> None:
 
 def test_uploaded_frame_joins_the_open_dataset(dataset: Path, tmp_path: Path) -> None:
     state = AppState(FAST)
-    with pytest.raises(DatasetError, match="open a folder first"):
+    with pytest.raises(DatasetError, match="open a folder or upload a pattern YAML first"):
         state.add_frame(tmp_path / "x.png", "upload/x.png")
     assert state.load_folder(dataset)
     path = tmp_path / "x.png"
@@ -191,6 +191,46 @@ def test_uploaded_frame_joins_the_open_dataset(dataset: Path, tmp_path: Path) ->
     assert state.add_frame(path, "upload/x.png") == 3
     assert [e.name for e in state.entries()][2:] == ["upload/x.png", "upload/x-2.png"]
     assert state.current == 3 and state.view().image is not None
+
+
+def test_uploaded_pattern_starts_a_dataset_of_uploads(dataset: Path, tmp_path: Path) -> None:
+    state = AppState(FAST)
+    notices = []
+    state.subscribe_notices(notices.append)
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("num_star_segments: 7\n")
+    assert not state.set_pattern(bad)
+    assert state.dataset is None and notices[-1].level == "error" and "bad.yaml" in notices[-1].text
+    pattern = tmp_path / "uploaded.yaml"
+    pattern.write_text((dataset / "pattern.yaml").read_text())
+    assert state.set_pattern(pattern)
+    assert state.dataset.pattern_path == pattern and state.entries() == [] and state.dataset.truth is None
+    frame = tmp_path / "frame.png"
+    frame.write_bytes((dataset / "sharp" / "0000.png").read_bytes())
+    assert state.add_frame(frame, "upload/frame.png", "sharp") == 0
+    assert state.run_frame() and state.wait(300)
+    entry = state.entries()[0]
+    assert entry.status == "ok" and entry.accepted > 10
+
+
+def test_replacing_the_pattern_clears_results_and_keeps_truth_only_for_the_same_target(
+        dataset: Path, tmp_path: Path) -> None:
+    state = AppState(FAST)
+    assert state.load_folder(dataset) and state.run_frame() and state.wait(300)
+    assert state.results()
+    same = tmp_path / "same.yaml"
+    same.write_text("# the same target\n" + (dataset / "pattern.yaml").read_text())
+    assert state.set_pattern(same)
+    assert state.results() == {} and {e.status for e in state.entries()} == {"pending"}
+    assert state.dataset.truth is not None and len(state.entries()) == 2
+    other = tmp_path / "other.yaml"
+    other.write_text((dataset / "pattern.yaml").read_text().replace("squares_x: ", "squares_x: 1"))
+    before = state.dataset.pattern
+    notices = []
+    state.subscribe_notices(notices.append)
+    assert state.set_pattern(other)
+    assert state.dataset.pattern.squares_x == int(f"1{before.squares_x}") and state.dataset.truth is None
+    assert [n.title for n in notices] == ["Ground truth not used", "Pattern in use"]
 
 
 def test_error_field_and_poses(finished: tuple[AppState, list[Topic]]) -> None:

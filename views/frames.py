@@ -1,4 +1,4 @@
-"""Frames panel: the folder and pattern fields, an upload button, the frame list, the run
+"""Frames panel: the folder and pattern fields, upload buttons (frames, pattern YAML), the frame list, the run
 controls (Run frame, Run all, Cancel, progress) and the status line with the latest message."""
 
 from __future__ import annotations
@@ -35,6 +35,10 @@ class FramesPanel:
             self.open = gui.add_button("Open folder", icon=viser.Icon.FOLDER_OPEN)
             self.upload = gui.add_upload_button("Upload frame", icon=viser.Icon.UPLOAD, mime_type="image/*",
                                                 hint="add an image file to the open dataset")
+            self.upload_pattern = gui.add_upload_button(
+                "Upload pattern", icon=viser.Icon.UPLOAD, mime_type=".yaml,.yml",
+                hint="extract with this pattern YAML (the reference tool's format); with no folder "
+                     "open, start a dataset of uploaded frames")
             self.frame = gui.add_dropdown("Frame", options=(NO_FRAMES,))
             self.kind = gui.add_dropdown("Kind", options=FRAME_KINDS,
                                          hint="sharp frames use a 7 px PSF window, blurry ones 17 px")
@@ -48,6 +52,7 @@ class FramesPanel:
         self.open.on_click(lambda _: self.state.load_folder(self.path.value.strip(),
                                                             self.pattern.value.strip() or None))
         self.upload.on_upload(self._on_upload)
+        self.upload_pattern.on_upload(self._on_upload_pattern)
         self.frame.on_update(self._on_frame)
         self.kind.on_update(self._on_kind)
         self.run.on_click(lambda _: self.state.run_frame())
@@ -92,6 +97,16 @@ class FramesPanel:
             self.state.add_frame(path, f"upload/{name}")
         except DatasetError as exc:
             self.state.notify("error", "Upload refused", str(exc))
+
+    def _on_upload_pattern(self, event: viser.GuiEvent) -> None:
+        uploaded = self.upload_pattern.value
+        name = Path(uploaded.name).name
+        if Path(name).suffix.lower() not in (".yaml", ".yml"):
+            self.state.notify("error", "Pattern refused", f"{name}: not a YAML file (expected .yaml or .yml)")
+            return
+        path = Path(tempfile.mkdtemp(dir=self._uploads.name)) / name
+        path.write_bytes(uploaded.content)
+        self.state.set_pattern(path)
 
     def _on_notice(self, notice: Notice) -> None:
         self._last_notice = notice
