@@ -98,7 +98,7 @@ def test_run_tune_and_inspect_in_chromium(tmp_path: Path) -> None:
             page.get_by_role("button", name="Paper defaults").click()
             expect(page.get_by_text(f"kept: {kept} blocks")).to_be_visible()
 
-            page.set_input_files("input[type='file']", str(folder / "blurry" / "0000.png"))
+            page.set_input_files("input[type='file'][accept='image/*']", str(folder / "blurry" / "0000.png"))
             expect(_row(page, "Frame").locator("input:not([type='hidden'])")).to_have_value("upload/0000.png")
             expect(page.get_by_text("not extracted yet")).to_be_visible()
             assert [e.name for e in app.state.entries()] == ["blurry/0000.png", "upload/0000.png"]
@@ -126,6 +126,13 @@ def test_run_tune_and_inspect_in_chromium(tmp_path: Path) -> None:
             expect(page.get_by_text("no such folder").filter(visible=True).first).to_be_visible()
             assert app.state.dataset.folder == folder and len(app.state.entries()) == 2
             expect(folder_field).to_have_value(str(folder))
+
+            bad_pattern = tmp_path / "bad.yaml"
+            bad_pattern.write_text("num_star_segments: 7\n")
+            page.set_input_files("input[type='file'][accept='.yaml,.yml']", str(bad_pattern))
+            refused = page.get_by_text(re.compile("Pattern refused.*num_star_segments"))
+            expect(refused.filter(visible=True).first).to_be_visible()
+            assert app.state.dataset.pattern_path == folder / "pattern.yaml" and app.state.results()
 
             other = browser.new_page(viewport={"width": 1280, "height": 800})
             other.goto(f"http://127.0.0.1:{server.get_port()}/")
