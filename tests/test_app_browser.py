@@ -134,6 +134,14 @@ def test_run_tune_and_inspect_in_chromium(tmp_path: Path) -> None:
             expect(refused.filter(visible=True).first).to_be_visible()
             assert app.state.dataset.pattern_path == folder / "pattern.yaml" and app.state.results()
 
+            page.get_by_role("tab", name="Ambiguity").click()
+            expect(page.get_by_text(re.compile(r"own shift within ±1\.5 px"))).to_be_visible()
+            scatter = _row(page, "per-block shift (px)").get_by_role("slider")
+            scatter.focus()
+            scatter.press("Home")
+            expect(page.get_by_text(re.compile(r"own shift within ±0 px"))).to_be_visible()
+            expect(page.get_by_text(re.compile(r"after global alignment: x_G = "))).to_be_visible()
+
             other = browser.new_page(viewport={"width": 1280, "height": 800})
             other.goto(f"http://127.0.0.1:{server.get_port()}/")
             expect(other.get_by_text(f"kept: {kept} blocks")).to_be_visible(timeout=30_000)

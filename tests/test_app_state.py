@@ -18,7 +18,7 @@ from blurcalib.synth import SynthConfig, TrueCamera
 from state import AppState, DatasetError, RunSettings, Topic, default_dataset, discover
 from state.alignment import AlignmentCache, AlignmentError
 from state.app_state import filter_counts
-from state.demo import MAX_SHIFT, TILE_PX, ambiguity_demo
+from state.demo import MAX_SHIFT, TILE_PX, alignment_demo, ambiguity_demo
 from state.figures import alignment_poses, error_field, feature_poses, truth_poses, used_frame_fields
 
 SMALL_CAMERA = BrownConrady(fx=360.0, fy=360.0, cx=207.5, cy=155.5, k1=0.02, k2=-0.03, p1=0.0003,
@@ -296,10 +296,26 @@ def test_ambiguity_demo_keeps_the_image_and_moves_the_star() -> None:
         ambiguity_demo((MAX_SHIFT + 5, 0))
 
 
+def test_alignment_demo_local_then_global_alignment_pins_the_shift_down() -> None:
+    exact = alignment_demo((3, -2), scatter_px=1.5, noise_px=0.0)
+    deconv, local, aligned = exact.steps
+    assert deconv.corner_gap_rms > 0.5 and deconv.rms > 3.0
+    # Local alignment removes the per-block shifts up to one common shift of the target (up to
+    # the float32 of cv2.getPerspectiveTransform)...
+    assert local.corner_gap_rms < 1e-4
+    assert np.allclose(local.error, local.error.mean(axis=0), atol=1e-4)
+    assert np.linalg.norm(local.error.mean(axis=0) - (3, -2)) < 0.5
+    # ...which global alignment, against an exact camera, finds.
+    assert np.allclose(exact.x_g, local.error.mean(axis=0), atol=1e-3) and aligned.rms < 1e-3
+    noisy = [alignment_demo((3, -2), seed=seed) for seed in range(3)]
+    for demo in noisy:
+        assert demo.steps[1].corner_gap_rms < 0.1 and demo.steps[2].rms < 0.25 < 3.0 < demo.steps[1].rms
+
+
 def test_views_draw_rgb_images(finished: tuple[AppState, list[Topic]]) -> None:
     pytest.importorskip("viser")
     finished, _ = finished
-    from views.ambiguity import demo_image
+    from views.ambiguity import alignment_image, demo_image
     from views.errors import colour_wheel, direction_colours, draw_cells, draw_errors, draw_quiver
     from views.frame_view import draw_frame
     from views.inspect import block_images, jump_target, scatter_plots
@@ -314,7 +330,7 @@ def test_views_draw_rgb_images(finished: tuple[AppState, list[Topic]]) -> None:
     view = finished.view()
     images = [draw_frame(view, mode, True, True) for mode in ("kept / removed", "loss", "boundary energy")]
     images += [psf_mosaic(view, 0.9, "kept blocks"), block_images(view, worst), scatter_plots(view),
-               demo_image(ambiguity_demo((2, 1))),
+               demo_image(ambiguity_demo((2, 1))), alignment_image(alignment_demo((1, 0))),
                draw_errors(view.image, error_field(view.result, view.filter, view.truth), 0.2)]
     field = error_field(view.result, view.filter, view.truth, AlignmentCache(finished).frame(view.entry.name))
     assert field.source == "global alignment"

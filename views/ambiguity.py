@@ -2,7 +2,10 @@
 
 A slider shifts the latent star image by delta and the kernel by -delta; the blurred image does
 not change (its residual against delta = 0 is shown: zero up to rounding), while the star centre
-moves with delta. The text explains how blurcalib pins the shift down.
+moves with delta. A second figure shows how blurcalib pins the shift down on a whole target:
+blocks whose star centres carry that delta plus a free shift each, after local alignment and
+after global alignment (:func:`state.demo.alignment_demo`, which runs the engine's own
+alignments).
 """
 
 from __future__ import annotations
@@ -11,10 +14,14 @@ import cv2
 import numpy as np
 import viser
 
-from state.demo import MAX_SHIFT, TILE_PX, AmbiguityDemo, ambiguity_demo
+from state.demo import MAX_SHIFT, TILE_PX, AlignmentDemo, AmbiguityDemo, alignment_demo, ambiguity_demo
 from views.common import Coalescer, grey_rgb, heat, hstack, label, upscale
 
 PANEL_PX = 192
+ERROR_GAIN = 5.0
+"""The alignment figure draws each block at its true place plus this many times its error."""
+STEP_SCALE = 0.55
+"""Scale of the alignment figure's panels relative to the demo camera's 640 x 480 px."""
 
 EXPLANATION = """\
 **Why the star centre is ambiguous.** A blurred star is `k * L`: the latent star `L` convolved with
@@ -29,8 +36,11 @@ cannot say where the star is: any δ explains the pixels equally well.
 2. **Local alignment**: neighbouring blocks share square corners. One translation per block makes
    the shared corners agree, removing the blocks' independent δ up to one shift of the whole
    frame.
-3. **Global alignment** (next step): one camera model and pose must explain every block of every
-   frame, which fixes the remaining per-frame shift against the sharp frames' calibration.
+3. **Global alignment**: one camera model (calibrated from the sharp frames) and a pose must
+   explain every block of the frame, which fixes the remaining shift `x_G`.
+
+The figure below runs both alignments of the engine on a tilted target whose blocks carry the δ
+above plus a shift of their own.
 """
 
 
@@ -61,6 +71,52 @@ def demo_image(demo: AmbiguityDemo) -> np.ndarray:
     return hstack([latent, kernel, blurred, residual])
 
 
+def alignment_image(demo: AlignmentDemo, gain: float = ERROR_GAIN) -> np.ndarray:
+    """The blocks after deconvolution, local alignment and global alignment, errors x ``gain``.
+
+    True squares in grey, estimated squares in orange (drawn at ``truth + gain * error``), star
+    centres as red dots.
+    """
+    w, h = demo.size
+    panels = []
+    for step in demo.steps:
+        canvas = np.full((round(h * STEP_SCALE), round(w * STEP_SCALE), 3), 255, np.uint8)
+        shown = demo.true_quads + gain * (step.quads - demo.true_quads)
+        centres = demo.true_centres + gain * step.error
+        for quad in demo.true_quads:
+            cv2.polylines(canvas, [_pts(quad)], True, (190, 190, 190), 1, cv2.LINE_AA)
+        for quad in shown:
+            cv2.polylines(canvas, [_pts(quad)], True, (255, 140, 0), 1, cv2.LINE_AA)
+        for c in centres:
+            cv2.circle(canvas, tuple(int(v) for v in _pts(c[None])[0]), 2, (220, 30, 30), -1, cv2.LINE_AA)
+        for text, y in ((step.name, 20), (f"RMS error {step.rms:.3f} px", canvas.shape[0] - 10)):
+            cv2.putText(canvas, text, (8, y), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (40, 40, 40), 1, cv2.LINE_AA)
+        panels.append(canvas)
+    return hstack(panels, background=255)
+
+
+def _pts(xy: np.ndarray) -> np.ndarray:
+    """px of the demo camera -> int32 canvas points (pixel centres at +0.5 before scaling)."""
+    return np.round((np.asarray(xy) + 0.5) * STEP_SCALE - 0.5).astype(np.int32)
+
+
+def alignment_caption(demo: AlignmentDemo) -> str:
+    """The figures behind :func:`alignment_image`, one line per step."""
+    deconv, local, aligned = demo.steps
+    mean_left = local.error.mean(axis=0)
+    return (f"{len(demo.true_centres)} blocks; each star centre carries δ = ({demo.shift[0]:+.0f}, "
+            f"{demo.shift[1]:+.0f}) px plus its own shift within ±{demo.scatter_px:g} px. Errors drawn "
+            f"×{ERROR_GAIN:g}.\n\n"
+            f"- **after deconvolution**: RMS error {deconv.rms:.3f} px; shared corners disagree by "
+            f"{deconv.corner_gap_rms:.3f} px RMS.\n"
+            f"- **after local alignment**: corners agree to {local.corner_gap_rms:.3f} px, but the whole "
+            f"target is still off by ({mean_left[0]:+.3f}, {mean_left[1]:+.3f}) px: RMS error "
+            f"{local.rms:.3f} px.\n"
+            f"- **after global alignment**: x_G = ({demo.x_g[0]:+.3f}, {demo.x_g[1]:+.3f}) px removed; "
+            f"RMS error {aligned.rms:.3f} px (what is left is the fits' own corner noise, integrated "
+            f"by the local alignment and amplified by how much a translation looks like a pose).")
+
+
 class AmbiguityPanel:
     """The delta sliders, the demo image and the explanation."""
 
@@ -73,17 +129,36 @@ class AmbiguityPanel:
                                    label="star shifted by δ, PSF by −δ", format="png")
         self.caption = gui.add_markdown("")
         gui.add_markdown(EXPLANATION)
+        self.scatter = gui.add_slider("per-block shift (px)", min=0.0, max=3.0, step=0.1, initial_value=1.5,
+                                      hint="each block's deconvolution may also pick its own shift, "
+                                           "uniform within ± this")
+        self.noise = gui.add_slider("corner noise (px)", min=0.0, max=0.1, step=0.005, initial_value=0.02,
+                                    hint="error of each block's fitted square corners (std per axis)")
+        self.draw_again = gui.add_button("New draw")
+        self.steps = gui.add_image(alignment_image(alignment_demo((0, 0))), format="png",
+                                   label="local and global alignment on a tilted target")
+        self.steps_caption = gui.add_markdown("")
+        self._seed = 0
         self._redraw = Coalescer(self._draw, 0.05, "ambiguity")
-        self.dx.on_update(self._redraw.request)
-        self.dy.on_update(self._redraw.request)
+        for slider in (self.dx, self.dy, self.scatter, self.noise):
+            slider.on_update(self._redraw.request)
+        self.draw_again.on_click(self._on_draw_again)
         self._redraw.request()
 
     def close(self) -> None:
         """Stop the redraw thread."""
         self._redraw.close()
 
+    def _on_draw_again(self, _: viser.GuiEvent) -> None:
+        self._seed += 1
+        self._redraw.request()
+
     def _draw(self) -> None:
-        demo = ambiguity_demo((int(self.dx.value), int(self.dy.value)), self.num_segments)
+        delta = (int(self.dx.value), int(self.dy.value))
+        steps = alignment_demo(delta, float(self.scatter.value), float(self.noise.value), self._seed)
+        self.steps.image = alignment_image(steps)
+        self.steps_caption.content = alignment_caption(steps)
+        demo = ambiguity_demo(delta, self.num_segments)
         self.image.image = demo_image(demo)
         x, y = demo.star_centre
         worst = float(np.abs(demo.residual).max())
