@@ -1,4 +1,5 @@
-"""End to end in a real headless Chromium (Playwright): open the app, run a frame, tune, inspect.
+"""End to end in a real headless Chromium (Playwright): open the app, run a frame, tune, inspect,
+click a camera frustum in the 3D view.
 
 After the run the tuning panel shows the frame's error after global alignment (the same median
 as the state's), which follows the τ_L slider, and the Errors tab shows the residuals.
@@ -102,8 +103,18 @@ def test_run_tune_and_inspect_in_chromium(tmp_path: Path) -> None:
             expect(_row(page, "Frame").locator("input:not([type='hidden'])")).to_have_value("upload/0000.png")
             expect(page.get_by_text("not extracted yet")).to_be_visible()
             assert [e.name for e in app.state.entries()] == ["blurry/0000.png", "upload/0000.png"]
-            _row(page, "Frame").locator("input:not([type='hidden'])").click()
-            page.get_by_role("option", name="blurry/0000.png").click()
+            # A click on blurry/0000.png's camera frustum in the 3D view opens it again: the
+            # viewer is put behind that camera, looking at its centre, and the canvas centre clicked.
+            truth = {f.name: f.pose for f in app.state.dataset.truth.frames}
+            camera = truth["blurry/0000.png"].inverse()
+            d = 25.0 * app.state.dataset.pattern.square_length_m
+            for client in server.get_clients().values():
+                client.camera.position = camera.t - d * camera.R[:, 2] + 0.15 * d * camera.R[:, 0]
+                client.camera.look_at = camera.t
+            page.wait_for_timeout(1000)
+            box = page.locator("canvas").first.bounding_box()
+            page.mouse.click(box["x"] + box["width"] / 2, box["y"] + box["height"] / 2)
+            expect(_row(page, "Frame").locator("input:not([type='hidden'])")).to_have_value("blurry/0000.png")
             expect(page.get_by_text(f"kept: {kept} blocks")).to_be_visible()
 
             page.get_by_role("tab", name="Block").click()
