@@ -51,8 +51,6 @@ Residuals are reported as ``observed - predicted`` (the paper's ``p - pi_d(M, P)
 
 from __future__ import annotations
 
-import csv
-import io
 import itertools
 import json
 import math
@@ -76,7 +74,7 @@ from blurcalib.camera import (
     save_camera_json,
     save_camera_yaml,
 )
-from blurcalib.fileio import atomic_write_text, ensure_writable_dir
+from blurcalib.fileio import atomic_write_csv, atomic_write_text, ensure_writable_dir, read_csv_columns
 from blurcalib.pattern import StarPattern
 from blurcalib.results import FeatureFlags, FeatureObservation, FeatureTable
 
@@ -610,14 +608,6 @@ def solve_pose(camera: BrownConrady, points: ArrayLike, obs_xy: ArrayLike, *,
 
 
 # --------------------------------------------------------------------------------------- files
-def _csv_text(header: Sequence[str], rows: Sequence[Sequence[Any]]) -> str:
-    buffer = io.StringIO()
-    writer = csv.writer(buffer, lineterminator="\n")
-    writer.writerow(header)
-    writer.writerows(rows)
-    return buffer.getvalue()
-
-
 def save_calibration(folder: str | os.PathLike, calibration: Calibration) -> dict[str, Path]:
     """Write a calibration into ``folder`` (created if needed); every file atomically.
 
@@ -638,34 +628,15 @@ def save_calibration(folder: str | os.PathLike, calibration: Calibration) -> dic
     save_camera_json(paths["camera_json"], calibration.camera)
     point_rows = [(i, *map(repr, p.tolist()), int(r))
                   for i, (p, r) in enumerate(zip(calibration.points, calibration.point_refined, strict=True))]
-    atomic_write_text(paths["points"], _csv_text(_POINT_COLUMNS, point_rows))
+    atomic_write_csv(paths["points"], _POINT_COLUMNS, point_rows)
     residual_rows = [(f, int(i), repr(o[0]), repr(o[1]), repr(r[0]), repr(r[1]), int(k))
                      for f, i, o, r, k in zip(calibration.frame.tolist(), calibration.feature_id,
                                               calibration.observed.tolist(), calibration.residuals.tolist(),
                                               calibration.inlier, strict=True)]
-    atomic_write_text(paths["residuals"], _csv_text(_RESIDUAL_COLUMNS, residual_rows))
+    atomic_write_csv(paths["residuals"], _RESIDUAL_COLUMNS, residual_rows)
     text = json.dumps(calibration.to_dict(), indent=2, allow_nan=False)
     atomic_write_text(paths["calibration"], text + "\n")
     return paths
-
-
-def _read_csv(path: Path, columns: Sequence[str]) -> dict[str, list[str]]:
-    try:
-        text = path.read_text(encoding="utf-8")
-    except FileNotFoundError:
-        raise CalibrationFileError(f"{path}: calibration file not found") from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise CalibrationFileError(f"{path}: cannot read ({exc})") from None
-    reader = csv.reader(io.StringIO(text, newline=""))
-    header = next(reader, None) or []
-    missing = [c for c in columns if c not in header]
-    if missing:
-        raise CalibrationFileError(f"{path}: missing column(s) {', '.join(missing)}")
-    rows = list(reader)
-    bad = [n for n, row in enumerate(rows, start=1) if len(row) != len(header)]
-    if bad:
-        raise CalibrationFileError(f"{path}: row {bad[0]} has the wrong number of fields")
-    return {c: [row[header.index(c)] for row in rows] for c in columns}
 
 
 def _parse(path: Path, values: list[str], kind: type, name: str) -> np.ndarray:
@@ -709,13 +680,13 @@ def load_calibration(folder: str | os.PathLike) -> Calibration:
     except (KeyError, TypeError, ValueError, AttributeError) as exc:
         raise CalibrationFileError(f"{path}: malformed calibration report ({exc!r})") from None
     pts_path = base / POINTS_FILE
-    cols = _read_csv(pts_path, _POINT_COLUMNS)
+    cols, _ = read_csv_columns(pts_path, _POINT_COLUMNS, CalibrationFileError, "calibration file")
     ids = _parse(pts_path, cols["feature_id"], int, "feature_id")
     if not np.array_equal(ids, np.arange(len(ids))):
         raise CalibrationFileError(f"{pts_path}: feature ids must run 0, 1, 2, ... in order")
     points = np.column_stack([_parse(pts_path, cols[c], float, c) for c in ("X", "Y", "Z")])
     res_path = base / RESIDUALS_FILE
-    rcols = _read_csv(res_path, _RESIDUAL_COLUMNS)
+    rcols, _ = read_csv_columns(res_path, _RESIDUAL_COLUMNS, CalibrationFileError, "calibration file")
     return Calibration(
         camera=camera, poses=poses, points=points.reshape(-1, 3),
         point_ids=np.flatnonzero(np.isfinite(points).all(axis=1)) if len(points) else np.zeros(0, np.int64),

@@ -98,3 +98,37 @@ def atomic_write_csv(path: str | os.PathLike, header: Sequence[str],
     writer.writerow(header)
     writer.writerows(rows)
     return atomic_write_text(path, buffer.getvalue())
+
+
+def read_csv_columns(path: Path, required: Sequence[str], error: type[Exception], what: str
+                     ) -> tuple[dict[str, list[str]], int]:
+    """The ``required`` columns of a CSV with a header, as lists of strings, and its row count.
+
+    Args:
+        path: the file.
+        required: column names that must be in the header (others are ignored).
+        error: the exception raised for a missing, unreadable or malformed file; its message
+            starts with the path.
+        what: what the file is, for the messages (``"results file"``, ``"calibration file"``).
+    """
+    try:
+        text = path.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise error(f"{path}: {what} not found") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise error(f"{path}: cannot read {what} ({exc})") from None
+    reader = csv.reader(io.StringIO(text, newline=""))
+    header = next(reader, None)
+    if header is None:
+        raise error(f"{path}: empty file (expected a header with columns {', '.join(required)})")
+    missing = [c for c in required if c not in header]
+    if missing:
+        raise error(f"{path}: missing column(s) {', '.join(repr(c) for c in missing)}")
+    rows = []
+    for row in reader:
+        if len(row) != len(header):
+            raise error(f"{path}: row {len(rows) + 1} (line {reader.line_num}) has "
+                        f"{len(row)} fields, expected {len(header)}")
+        rows.append(row)
+    by_index = list(zip(*rows, strict=True)) if rows else [() for _ in header]
+    return {name: list(by_index[header.index(name)]) for name in required}, len(rows)

@@ -21,8 +21,6 @@ top-level files. Every file is written atomically.
 
 from __future__ import annotations
 
-import csv
-import io
 import os
 import re
 from collections.abc import Callable, Sequence
@@ -33,7 +31,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from blurcalib.fileio import atomic_path, atomic_write_text, ensure_writable_dir
+from blurcalib.fileio import atomic_path, atomic_write_text, ensure_writable_dir, read_csv_columns
 
 FEATURES_FILE = "features.csv"
 BLOCKS_FILE = "blocks.csv"
@@ -484,31 +482,6 @@ def write_results(folder: str | os.PathLike, features: Sequence[FeatureObservati
 
 
 # ------------------------------------------------------------------------------------- reading
-def _read_csv_columns(path: Path, required: Sequence[str]) -> tuple[dict[str, list[str]], int]:
-    """Columns of a CSV as lists of strings, and the number of data rows."""
-    try:
-        text = path.read_text(encoding="utf-8")
-    except FileNotFoundError:
-        raise ResultsFileError(f"{path}: results file not found") from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise ResultsFileError(f"{path}: cannot read results file ({exc})") from None
-    reader = csv.reader(io.StringIO(text, newline=""))
-    header = next(reader, None)
-    if header is None:
-        raise ResultsFileError(f"{path}: empty file (expected a header with columns {', '.join(required)})")
-    missing = [c for c in required if c not in header]
-    if missing:
-        raise ResultsFileError(f"{path}: missing column(s) {', '.join(repr(c) for c in missing)}")
-    rows = []
-    for row in reader:
-        if len(row) != len(header):
-            raise ResultsFileError(f"{path}: row {len(rows) + 1} (line {reader.line_num}) has "
-                                   f"{len(row)} fields, expected {len(header)}")
-        rows.append(row)
-    by_index = list(zip(*rows, strict=True)) if rows else [() for _ in header]
-    return {name: list(by_index[header.index(name)]) for name in required}, len(rows)
-
-
 def _parse(path: Path, name: str, values: list[str], convert: Callable[[str], object],
            dtype: type, kind: str) -> np.ndarray:
     try:
@@ -539,7 +512,7 @@ def read_feature_table(path: str | os.PathLike) -> FeatureTable:
             (the message names the file and the column/row; rows count from 1 after the header).
     """
     p = Path(path)
-    cols, _ = _read_csv_columns(p, FEATURE_COLUMNS)
+    cols, _ = read_csv_columns(p, FEATURE_COLUMNS, ResultsFileError, "results file")
     return FeatureTable(
         np.array(cols["frame"], dtype=np.str_),
         *(_ints(p, cols, n) for n in ("feature_id", "fx", "fy")),
@@ -595,7 +568,7 @@ def read_block_table(folder: str | os.PathLike) -> BlockTable:
 
 
 def _read_block_table(csv_path: Path, npz_path: Path) -> BlockTable:
-    cols, n = _read_csv_columns(csv_path, BLOCK_COLUMNS)
+    cols, n = read_csv_columns(csv_path, BLOCK_COLUMNS, ResultsFileError, "results file")
     frame = np.array(cols["frame"], dtype=np.str_)
     feature_id = _ints(csv_path, cols, "feature_id")
     H = np.stack([_floats(csv_path, cols, c) for c in H_COLUMNS], axis=1).reshape(n, 3, 3)
