@@ -83,30 +83,31 @@ class FramesPanel:
         if event.client is not None and self.state.current >= 0:
             self.state.set_kind(self.state.current, self.kind.value)
 
-    def _on_upload(self, event: viser.GuiEvent) -> None:
-        uploaded = self.upload.value
+    def _store(self, uploaded: viser.UploadedFile, suffixes: tuple[str, ...], title: str, kind: str
+               ) -> Path | None:
+        """Save an upload in its own temporary folder; None (and an error notice) for a file of
+        another type."""
         name = Path(uploaded.name).name
-        if Path(name).suffix.lower() not in IMAGE_EXTENSIONS:
-            self.state.notify("error", "Upload refused",
-                              f"{name}: not an image file (expected {', '.join(IMAGE_EXTENSIONS)})")
-            return
-        folder = Path(tempfile.mkdtemp(dir=self._uploads.name))
-        path = folder / name
+        if Path(name).suffix.lower() not in suffixes:
+            self.state.notify("error", title, f"{name}: not {kind} (expected {', '.join(suffixes)})")
+            return None
+        path = Path(tempfile.mkdtemp(dir=self._uploads.name)) / name
         path.write_bytes(uploaded.content)
+        return path
+
+    def _on_upload(self, event: viser.GuiEvent) -> None:
+        path = self._store(self.upload.value, IMAGE_EXTENSIONS, "Upload refused", "an image file")
+        if path is None:
+            return
         try:
-            self.state.add_frame(path, f"upload/{name}")
+            self.state.add_frame(path, f"upload/{path.name}")
         except DatasetError as exc:
             self.state.notify("error", "Upload refused", str(exc))
 
     def _on_upload_pattern(self, event: viser.GuiEvent) -> None:
-        uploaded = self.upload_pattern.value
-        name = Path(uploaded.name).name
-        if Path(name).suffix.lower() not in (".yaml", ".yml"):
-            self.state.notify("error", "Pattern refused", f"{name}: not a YAML file (expected .yaml or .yml)")
-            return
-        path = Path(tempfile.mkdtemp(dir=self._uploads.name)) / name
-        path.write_bytes(uploaded.content)
-        self.state.set_pattern(path)
+        path = self._store(self.upload_pattern.value, (".yaml", ".yml"), "Pattern refused", "a YAML file")
+        if path is not None:
+            self.state.set_pattern(path)
 
     def _on_notice(self, notice: Notice) -> None:
         self._last_notice = notice
