@@ -17,6 +17,22 @@ import numpy as np
 from blurcalib.fileio import atomic_path
 
 
+def direction_colours(error: np.ndarray, full_px: float | None = None) -> np.ndarray:
+    """RGB (0..255, float) of error vectors ``error (..., 2)`` (px, x right, y down), the
+    reference tool's ``(127 + 127 sin a, 127 + 127 cos a, 127)`` for ``a = atan2(e_y, e_x)``.
+
+    With ``full_px`` the colour is scaled by the error's length, full brightness at ``full_px``
+    px and black at zero; without it every colour has full brightness.
+    """
+    e = np.asarray(error, dtype=np.float64)
+    a = np.arctan2(e[..., 1], e[..., 0])
+    rgb = np.stack([127 + 127 * np.sin(a), 127 + 127 * np.cos(a), np.full_like(a, 127.0)], axis=-1)
+    if full_px is None:
+        return rgb
+    bright = np.clip(np.hypot(e[..., 0], e[..., 1]) / max(full_px, 1e-12), 0.0, 1.0)
+    return rgb * bright[..., None]
+
+
 def error_direction_image(xy: np.ndarray, residuals: np.ndarray, image_size: tuple[int, int],
                           cell_px: int = 8, saturate_px: float = 0.5) -> np.ndarray:
     """Render residual directions and magnitudes as a BGR ``uint8`` image of ``image_size``.
@@ -42,10 +58,7 @@ def error_direction_image(xy: np.ndarray, residuals: np.ndarray, image_size: tup
     np.add.at(sums, (cy, cx), res[ok])
     np.add.at(count, (cy, cx), 1.0)
     mean = sums / np.maximum(count, 1)[..., None]
-    angle = np.arctan2(mean[..., 1], mean[..., 0])
-    bright = np.clip(np.hypot(mean[..., 0], mean[..., 1]) / saturate_px, 0, 1) * (count > 0)
-    rgb = np.stack([127 + 127 * np.sin(angle), 127 + 127 * np.cos(angle),
-                    np.full_like(angle, 127.0)], axis=-1) * bright[..., None]
+    rgb = direction_colours(mean, saturate_px) * (count > 0)[..., None]
     cells = np.round(rgb[..., ::-1]).astype(np.uint8)
     return np.repeat(np.repeat(cells, cell_px, axis=0), cell_px, axis=1)[:h, :w]
 

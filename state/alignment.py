@@ -42,7 +42,7 @@ from blurcalib.calibrate import (
 )
 from blurcalib.camera import BrownConrady, Pose
 from blurcalib.extract import FrameResult, FrameStatus
-from blurcalib.global_alignment import align_global, grid_coordinates, loss_weights, orientation_ok
+from blurcalib.global_alignment import AlignmentError, AlignmentSettings, align_blocks, orientation_ok
 from blurcalib.pattern import StarPattern
 from blurcalib.quality import FrameFilter
 from blurcalib.results import FeatureTable
@@ -52,19 +52,12 @@ from state.folder import Dataset
 MIN_SHARP_FRAMES = 5
 """Finished sharp frames needed to calibrate a reference camera in the app (as the pipeline)."""
 
-MIN_BLOCKS = 12
-"""Fewest kept blocks a frame needs to be aligned (the pipeline's ``too_few_blocks`` limit)."""
-
 CALIBRATION_SUBFOLDERS = ("calibration", "calibration/calibration")
 """Where a saved calibration is looked for, in the opened folder and then in its parent."""
 
 NO_REFERENCE = (f"needs ≥{MIN_SHARP_FRAMES} finished sharp frames, a calibration/ folder, "
                 "or ground truth")
 """Why there is no reference camera, in short."""
-
-
-class AlignmentError(ValueError):
-    """A frame cannot be aligned; the message says why."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -283,13 +276,12 @@ def find_reference(dataset: Dataset, sharp: Mapping[str, tuple[FrameResult, tupl
 
 # ------------------------------------------------------------------------------- one frame
 def align_frame(reference: Reference, pattern: StarPattern, result: FrameResult, flt: FrameFilter | None,
-                image_size: tuple[int, int], *, loss: str = "huber", bias: str = "translation",
-                min_blocks: int = MIN_BLOCKS) -> FrameAlignment:
+                image_size: tuple[int, int], settings: AlignmentSettings | None = None) -> FrameAlignment:
     """Align a frame's blocks kept by the quality filter to the reference (``eq:global_align``).
 
-    As the pipeline does: the kept blocks' star centres ``H(0, 0)`` (px) against the
-    reference's points, each weighted by ``1 / (loss + 1e-3)`` (its deconvolution loss), with
-    the robust ``loss`` and the ``bias`` model of :func:`blurcalib.global_alignment.align_global`.
+    As the pipeline does (:func:`blurcalib.global_alignment.align_blocks`): the kept blocks'
+    finite star centres ``H(0, 0)`` (px) against the reference's points, each weighted by its
+    deconvolution loss.
 
     Args:
         reference: the camera and points.
@@ -297,9 +289,7 @@ def align_frame(reference: Reference, pattern: StarPattern, result: FrameResult,
         result: the frame's extraction result.
         flt: its quality filter (None: no blocks).
         image_size: the frame's ``(width, height)`` px.
-        loss: ``huber``, ``mean`` or ``median``.
-        bias: ``translation``, ``bilinear``, ``quadrants`` or ``none``.
-        min_blocks: fewest kept blocks aligned.
+        settings: loss, bias and fewest blocks (the engine's defaults).
 
     Raises:
         AlignmentError: too few kept blocks, a frame of another size than the reference
@@ -312,18 +302,9 @@ def align_frame(reference: Reference, pattern: StarPattern, result: FrameResult,
     centres = block_centres(result)
     kept = np.zeros(len(result.blocks), dtype=bool) if flt is None else flt.kept
     index = np.flatnonzero(kept & np.all(np.isfinite(centres), axis=1))
-    if len(index) < min_blocks:
-        raise AlignmentError(f"{len(index)} blocks kept by the filter, alignment needs {min_blocks}")
     ids = np.array([result.blocks[i].feature_id for i in index], dtype=np.int64)
-    points = reference.points[ids]
-    points = np.where(np.isfinite(points), points, pattern.points_3d(ids))
-    fxy = np.array([[result.blocks[i].fx, result.blocks[i].fy] for i in index], dtype=np.float64)
-    weights = loss_weights(np.array([result.blocks[i].loss for i in index]))
-    try:
-        ga = align_global(camera, points, centres[index], weights, grid_coordinates(pattern, fxy),
-                          loss=loss, bias=bias)
-    except ValueError as exc:
-        raise AlignmentError(f"global alignment failed: {exc}") from None
+    ga = align_blocks(camera, pattern, reference.points, ids, centres[index],
+                      np.array([result.blocks[i].loss for i in index]), settings)
     return FrameAlignment(result.frame, index, ids, centres[index], ga.residuals, ga.translation, ga.pose,
                           ga.angle_to_normal, orientation_ok(ga.pose), ga.converged, reference)
 
@@ -400,7 +381,7 @@ class AlignmentCache:
         if outcome is None:
             try:
                 outcome = align_frame(reference, self.state.dataset.pattern, result, flt, size,
-                                      loss=self.loss, bias=self.bias)
+                                      AlignmentSettings(loss=self.loss, bias=self.bias))
             except AlignmentError as exc:
                 outcome = str(exc)
             with self._lock:

@@ -12,8 +12,9 @@ import pytest
 
 from blurcalib.calibrate import Calibration
 from blurcalib.camera import BrownConrady
-from blurcalib.experiments import psf_quality, threshold_sweep
-from blurcalib.experiments.psf_quality import ExtractedFrame, PsfQualitySettings
+from blurcalib.experiments import common, psf_quality, threshold_sweep
+from blurcalib.experiments.common import ExtractedFrame
+from blurcalib.experiments.psf_quality import PsfQualitySettings
 from blurcalib.experiments.threshold_sweep import BIASES, CONFIGS, SweepExperiment, SweepSettings
 from blurcalib.synth import Simulator, SynthConfig, TrueCamera
 
@@ -33,8 +34,8 @@ def sim() -> Simulator:
 @pytest.fixture(scope="module")
 def frames(sim: Simulator) -> list[ExtractedFrame]:
     """The blurry frames, extracted once (13 x 13 window, growth capped for speed)."""
-    return psf_quality.extract_frames(sim, range(SHARP, SHARP + BLURRY),
-                                      psf_quality.extract_settings(kernel_size=13, max_blocks=40))
+    return common.extract_frames(sim, range(SHARP, SHARP + BLURRY),
+                                 common.extract_settings(kernel_size=13, max_blocks=40))
 
 
 @pytest.fixture(scope="module")

@@ -16,7 +16,6 @@ from blurcalib.camera import BrownConrady, Pose, project_points
 from blurcalib.experiments.alignment import (
     ROWS,
     AlignmentSettings,
-    direction_colours,
     format_table,
     main,
     run_alignment_experiment,
@@ -32,6 +31,7 @@ from blurcalib.global_alignment import (
     orientation_ok,
 )
 from blurcalib.pattern import StarPattern, layout_pattern
+from blurcalib.report import direction_colours
 from blurcalib.synth import d435i_like_camera, sample_pose
 
 SHIFT = np.array([3.0, -2.0])
@@ -319,5 +319,9 @@ def test_experiment_main_errors(tmp_path: Path, capsys):
 
 def test_direction_colours_follow_the_reference_tool():
     colours = direction_colours(np.array([[1.0, 0.0], [0.0, 1.0]]))
-    assert colours[0] == pytest.approx(np.array([127, 254, 127]) / 255)
-    assert colours[1] == pytest.approx(np.array([254, 127, 127]) / 255)
+    assert colours[0] == pytest.approx(np.array([127, 254, 127]))
+    assert colours[1] == pytest.approx(np.array([254, 127, 127]))
+    scaled = direction_colours(np.array([[0.25, 0.0], [0.0, 2.0], [0.0, 0.0]]), full_px=0.5)
+    assert scaled[0] == pytest.approx(np.array([127, 254, 127]) / 2)
+    assert scaled[1] == pytest.approx(np.array([254, 127, 127]))
+    assert scaled[2] == pytest.approx(np.zeros(3))

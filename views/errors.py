@@ -28,6 +28,7 @@ import numpy as np
 import viser
 import viser.transforms as vtf
 
+from blurcalib import report
 from blurcalib.pattern import StarPattern
 from state import AppState, Topic
 from state.alignment import AlignmentCache, AlignmentError, FrameAlignment
@@ -63,10 +64,7 @@ DESCRIPTIONS = {
 def direction_colours(error: np.ndarray, full: float) -> np.ndarray:
     """``(N, 3)`` uint8 RGB: hue from the direction of ``error (N, 2)``, brightness from its length
     (full at ``full`` px)."""
-    a = np.arctan2(error[:, 1], error[:, 0])
-    base = np.stack([127 + 127 * np.sin(a), 127 + 127 * np.cos(a), np.full_like(a, 127.0)], axis=1)
-    m = np.clip(np.hypot(error[:, 0], error[:, 1]) / max(full, 1e-9), 0.0, 1.0)
-    return np.clip(base * m[:, None], 0, 255).astype(np.uint8)
+    return np.clip(report.direction_colours(error, max(full, 1e-9)), 0, 255).astype(np.uint8)
 
 
 def colour_wheel(size: int = WHEEL_PX) -> np.ndarray:

@@ -45,7 +45,6 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import sys
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -57,9 +56,11 @@ from matplotlib.figure import Figure
 from scipy.stats import spearmanr
 
 from blurcalib.camera import BrownConrady
-from blurcalib.fileio import OutputError, atomic_path, atomic_write_text, ensure_writable_dir
+from blurcalib.experiments.common import experiment_parser, run_experiment_cli
+from blurcalib.fileio import atomic_path, atomic_write_text, ensure_writable_dir
 from blurcalib.global_alignment import LOSSES, align_global, alignment_covariance
 from blurcalib.pattern import StarPattern, layout_pattern
+from blurcalib.report import direction_colours
 from blurcalib.synth import TrueCamera, d435i_like_camera, sample_pose
 
 THRESHOLDS: tuple[float, ...] = (0.0, math.pi / 10)
@@ -461,13 +462,6 @@ def save_fig_exp41(experiment: AlignmentExperiment, path: str | Path, loss: str 
     return Path(path)
 
 
-def direction_colours(residuals: np.ndarray) -> np.ndarray:
-    """RGB in ``[0, 1]`` of residual directions ``a = atan2(dy, dx)``, drawn as the reference tool
-    does: ``(127 + 127 sin a, 127 + 127 cos a, 127) / 255``."""
-    a = np.arctan2(residuals[:, 1], residuals[:, 0])
-    return np.stack([127 + 127 * np.sin(a), 127 + 127 * np.cos(a), np.full_like(a, 127.0)], axis=1) / 255.0
-
-
 def save_fig_exp42(experiment: AlignmentExperiment, path: str | Path, loss: str = "huber",
                    max_px: float = 0.3) -> Path:
     """``fig:exp42``: direction (hue) and magnitude of the residuals over the image, before
@@ -482,7 +476,7 @@ def save_fig_exp42(experiment: AlignmentExperiment, path: str | Path, loss: str 
     image = None
     for col, (name, res) in enumerate((("random shifted", before), ("global aligned", after))):
         mag = np.hypot(res[:, 0], res[:, 1])
-        axes[0, col].scatter(pix[:, 0], pix[:, 1], s=2, c=direction_colours(res), linewidths=0)
+        axes[0, col].scatter(pix[:, 0], pix[:, 1], s=2, c=direction_colours(res) / 255.0, linewidths=0)
         image = axes[1, col].scatter(pix[:, 0], pix[:, 1], s=2, c=mag, cmap="viridis", vmin=0.0,
                                      vmax=max_px, linewidths=0)
         axes[0, col].set_title(f"{name}: direction (median {np.median(mag):.3f} px)", fontsize=8)
@@ -504,13 +498,10 @@ def save_fig_exp42(experiment: AlignmentExperiment, path: str | Path, loss: str 
 def build_parser() -> argparse.ArgumentParser:
     """Options of ``blurcalib experiment alignment``."""
     d = AlignmentSettings()
-    parser = argparse.ArgumentParser(
-        prog="blurcalib experiment alignment",
-        description="Reproduce the paper's global alignment verification (tab:exp4, fig:exp41, "
-                    "fig:exp42) on simulated ground-truth features.")
-    parser.add_argument("--out", default=str(Path("out") / "experiments"),
-                        help="output folder for alignment.json and the figures (%(default)s)")
-    parser.add_argument("--seed", type=int, default=0, help="seed of camera, poses and noise (%(default)s)")
+    parser = experiment_parser(
+        "alignment", "Reproduce the paper's global alignment verification (tab:exp4, fig:exp41, "
+                     "fig:exp42) on simulated ground-truth features.",
+        "alignment.json and the figures")
     parser.add_argument("--frames", type=int, default=d.frames, help="test frames (%(default)s)")
     parser.add_argument("--calibration-frames", type=int, default=d.calibration_frames,
                         help="frames calibrating the reference (%(default)s)")
@@ -525,6 +516,22 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _run(args: argparse.Namespace) -> list[Path]:
+    settings = AlignmentSettings(frames=args.frames, calibration_frames=args.calibration_frames,
+                                 shift_px=args.shift_px, noise_px=args.noise_px,
+                                 deviation_px=args.deviation_px, huber_px=args.huber_px)
+    out = ensure_writable_dir(args.out)
+    experiment = run_alignment_experiment(settings, args.seed)
+    print(f"reference calibrated from {settings.calibration_frames} frames: RMS "
+          f"{experiment.calibration_rms:.4f} px")
+    print(format_table(experiment))
+    print(format_exp41(exp41_statistics(experiment)))
+    json_path = atomic_write_text(out / "alignment.json",
+                                  json.dumps(results_json(experiment, settings, args.seed), indent=1) + "\n")
+    return [save_fig_exp41(experiment, out / "fig_exp41.png"),
+            save_fig_exp42(experiment, out / "fig_exp42.png"), json_path]
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """``blurcalib experiment alignment [--out DIR] [--seed N] [--frames N] ...``.
 
@@ -532,24 +539,4 @@ def main(argv: Sequence[str] | None = None) -> int:
     ``DIR/fig_exp42.png`` atomically. Returns 0, or 2 (with ``blurcalib: error: ...`` on
     stderr) for bad options or an unwritable output folder.
     """
-    args = build_parser().parse_args(argv)
-    try:
-        settings = AlignmentSettings(frames=args.frames, calibration_frames=args.calibration_frames,
-                                     shift_px=args.shift_px, noise_px=args.noise_px,
-                                     deviation_px=args.deviation_px, huber_px=args.huber_px)
-        out = ensure_writable_dir(args.out)
-        experiment = run_alignment_experiment(settings, args.seed)
-        print(f"reference calibrated from {settings.calibration_frames} frames: RMS "
-              f"{experiment.calibration_rms:.4f} px")
-        print(format_table(experiment))
-        print(format_exp41(exp41_statistics(experiment)))
-        json_path = atomic_write_text(out / "alignment.json",
-                                      json.dumps(results_json(experiment, settings, args.seed), indent=1)
-                                      + "\n")
-        fig41 = save_fig_exp41(experiment, out / "fig_exp41.png")
-        fig42 = save_fig_exp42(experiment, out / "fig_exp42.png")
-    except (OutputError, ValueError) as exc:
-        print(f"blurcalib: error: {exc}", file=sys.stderr)
-        return 2
-    print(f"  figures: {fig41}, {fig42}\n  results: {json_path}")
-    return 0
+    return run_experiment_cli(build_parser(), argv, _run)

@@ -21,7 +21,6 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import sys
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -36,7 +35,8 @@ from matplotlib.textpath import TextPath
 from scipy.ndimage import gaussian_filter
 from scipy.signal import convolve2d, correlate2d
 
-from blurcalib.fileio import OutputError, atomic_path, atomic_write_text, ensure_writable_dir
+from blurcalib.experiments.common import experiment_parser, run_experiment_cli
+from blurcalib.fileio import atomic_path, atomic_write_text, ensure_writable_dir
 from blurcalib.pattern import star_sector_white
 
 PATTERNS: tuple[str, ...] = ("star", "checkerboard")
@@ -555,18 +555,32 @@ def save_figure(results: Sequence[PatternResult], kernels: dict[str, np.ndarray]
 # --------------------------------------------------------------------------------- command
 def build_parser() -> argparse.ArgumentParser:
     """Options of ``blurcalib experiment patterns``."""
-    parser = argparse.ArgumentParser(
-        prog="blurcalib experiment patterns",
-        description="Reproduce the paper's pattern comparison (fig:exp2_test): recover 15x15 "
-                    "glyph kernels from star and checkerboard images with the geometry fixed.")
-    parser.add_argument("--out", default=str(Path("out") / "experiments"),
-                        help="output folder for patterns.png and patterns.json (%(default)s)")
-    parser.add_argument("--seed", type=int, default=0, help="noise seed (%(default)s)")
+    parser = experiment_parser(
+        "patterns", "Reproduce the paper's pattern comparison (fig:exp2_test): recover 15x15 "
+                    "glyph kernels from star and checkerboard images with the geometry fixed.",
+        "patterns.png and patterns.json")
     parser.add_argument("--lam", type=float, default=PatternSettings.lam,
                         help="ridge weight on ||k||^2 against the mean squared residual (%(default)s)")
     parser.add_argument("--square-px", type=float, default=PatternSettings.square_px,
                         help="pattern square side in pixels (%(default)s)")
     return parser
+
+
+def _run(args: argparse.Namespace) -> list[Path]:
+    settings = PatternSettings(lam=args.lam, square_px=args.square_px)
+    out = ensure_writable_dir(args.out)
+    solvers = pattern_solvers(settings=settings)
+    results = run_pattern_experiment(seed=args.seed, settings=settings, solvers=solvers)
+    gains = noise_gains(solvers)
+    kernels = {g: glyph_kernel(g, settings.kernel_size, settings.glyph_sigma,
+                               settings.glyph_margin_px) for g in GLYPHS}
+    print(format_table(results))
+    print("\nNoise gain of the unregularised solve (RMS kernel error per unit noise sigma):")
+    for (pattern, crop), gain in gains.items():
+        print(f"  {pattern:<13} {crop:>4} px: {gain:.3g}")
+    payload = results_json(results, settings, args.seed, gains)
+    json_path = atomic_write_text(out / "patterns.json", json.dumps(payload, indent=2) + "\n")
+    return [save_figure(results, kernels, out / "patterns.png"), json_path]
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -576,25 +590,4 @@ def main(argv: Sequence[str] | None = None) -> int:
     Returns 0, or 2 (with ``blurcalib: error: ...`` on stderr) for bad options or an
     unwritable output folder.
     """
-    args = build_parser().parse_args(argv)
-    try:
-        settings = PatternSettings(lam=args.lam, square_px=args.square_px)
-        out = ensure_writable_dir(args.out)
-        solvers = pattern_solvers(settings=settings)
-        results = run_pattern_experiment(seed=args.seed, settings=settings, solvers=solvers)
-        gains = noise_gains(solvers)
-        kernels = {g: glyph_kernel(g, settings.kernel_size, settings.glyph_sigma,
-                                   settings.glyph_margin_px) for g in GLYPHS}
-        print(format_table(results))
-        print("\nNoise gain of the unregularised solve (RMS kernel error per unit noise sigma):")
-        for (pattern, crop), gain in gains.items():
-            print(f"  {pattern:<13} {crop:>4} px: {gain:.3g}")
-        json_path = atomic_write_text(out / "patterns.json",
-                                      json.dumps(results_json(results, settings, args.seed, gains),
-                                                 indent=2) + "\n")
-        png_path = save_figure(results, kernels, out / "patterns.png")
-    except (OutputError, ValueError) as exc:
-        print(f"blurcalib: error: {exc}", file=sys.stderr)
-        return 2
-    print(f"  figure: {png_path}\n  results: {json_path}")
-    return 0
+    return run_experiment_cli(build_parser(), argv, _run)

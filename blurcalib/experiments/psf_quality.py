@@ -3,9 +3,10 @@
 
 Protocol, adapted from the paper's 204 hand-held D435I frames to the simulator:
 
-1. The camera is :func:`experiment_camera`: the D435I-like Brown-Conrady camera of
-   :func:`blurcalib.synth.d435i_like_camera` resized by ``scale`` (0.5: 640 x 360 px, to keep a
-   run within minutes on two cores) with a non-parametric lens deviation of ``deviation_px``.
+1. The camera is :func:`blurcalib.experiments.common.experiment_camera`: the D435I-like
+   Brown-Conrady camera of :func:`blurcalib.synth.d435i_like_camera` resized by ``scale``
+   (0.5: 640 x 360 px, to keep a run within minutes on two cores) with a non-parametric lens
+   deviation of ``deviation_px``.
    The target is the reference A4 pattern; frames are :class:`blurcalib.synth.Simulator`'s
    blurry frames (``SynthConfig(sharp=0, blurry=frames)``, median blur length uniform in
    ``[blur_min_px, blur_max_px]``, hand-shake motion with roll and zoom, defocus, noise).
@@ -42,27 +43,31 @@ import argparse
 import itertools
 import json
 import math
-import sys
-import time
 from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import cv2
 import numpy as np
-import torch
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 from matplotlib.patches import Rectangle
 from scipy.stats import spearmanr
 
 from blurcalib.camera import apply_homography
-from blurcalib.deconv import DeconvSettings
-from blurcalib.extract import ExtractSettings, FrameResult, FrameStatus, extract_frame
-from blurcalib.fileio import OutputError, atomic_path, atomic_write_text, ensure_writable_dir
-from blurcalib.grow import GrowSettings
+from blurcalib.experiments.common import (
+    ExtractedFrame,
+    check_device,
+    experiment_parser,
+    experiment_simulator,
+    extract_frames,
+    extract_settings,
+    finite,
+    run_experiment_cli,
+)
+from blurcalib.fileio import atomic_path, atomic_write_text, ensure_writable_dir
 from blurcalib.pattern import StarPattern
-from blurcalib.synth import FrameTruth, Simulator, SynthConfig, TrueCamera, d435i_like_camera
+from blurcalib.synth import Simulator, TrueCamera
 
 SQUARE_CORNERS = np.array([[-1.0, -1.0], [1.0, -1.0], [1.0, 1.0], [-1.0, 1.0]])
 """A block's square corners in block coordinates ``q``."""
@@ -75,94 +80,6 @@ PAPER_CLAIMS: dict[str, str] = {
                           "and more variable loss than motion-blur dominated ones",
 }
 """The paper's qualitative observations, quoted in the JSON beside the measurements."""
-
-
-# ------------------------------------------------------------------------------ shared scene
-def experiment_camera(seed: int = 0, scale: float = 0.5, deviation_px: float = 0.01) -> TrueCamera:
-    """The simulated camera of the real-world experiments.
-
-    :func:`blurcalib.synth.d435i_like_camera` (1280 x 720 px) resized by ``scale``
-    (:meth:`BrownConrady.scaled`), with its smooth non-parametric deviation of ``deviation_px``
-    px peak in the resized image (the paper's sharp-set calibration fits its camera to about
-    0.03 px, so the deviation is kept small, as in the alignment experiment).
-    """
-    full = d435i_like_camera(seed, deviation_px)
-    return TrueCamera(full.model.scaled(scale), full.waves)
-
-
-def extract_settings(kernel_size: int = 17, max_blocks: int = 5000, device: str = "cpu") -> ExtractSettings:
-    """Blurry-frame extraction settings: ``K x K`` PSF window (px), growth capped at about
-    ``max_blocks`` attempted blocks, solve on the torch ``device``."""
-    return ExtractSettings(deconv=DeconvSettings(kernel_size=kernel_size, device=device),
-                           grow=GrowSettings(max_blocks=max_blocks))
-
-
-def check_device(device: str) -> None:
-    """Raise ValueError unless ``device`` names a usable torch device (``cpu``, ``cuda:0``...)."""
-    try:
-        dev = torch.device(device)
-    except RuntimeError as exc:
-        raise ValueError(f"unknown torch device {device!r} ({exc})") from None
-    if dev.type == "cuda" and not torch.cuda.is_available():
-        raise ValueError(f"device {device!r} requested but CUDA is not available")
-
-
-@dataclass(eq=False)
-class ExtractedFrame:
-    """One simulated blurry frame and its extraction (kept in memory, extracted once).
-
-    Attributes:
-        name: the frame's name (``blurry/0003.png``).
-        truth: its ground truth.
-        result: :func:`blurcalib.extract.extract_frame`'s result (``growth.fit`` holds every
-            attempted block's figures, ``local`` the local alignment of the accepted ones).
-        image_size: ``(width, height)`` px.
-        seconds: render and extraction time (s).
-    """
-
-    name: str
-    truth: FrameTruth = field(repr=False)
-    result: FrameResult = field(repr=False)
-    image_size: tuple[int, int]
-    seconds: float
-
-    @property
-    def ok(self) -> bool:
-        """Extraction succeeded with at least one accepted block."""
-        return self.result.status is FrameStatus.OK and self.result.growth is not None
-
-    def summary(self) -> str:
-        """One progress line: status, block counts, true median blur, time."""
-        growth = self.result.growth
-        blocks = 0 if growth is None else len(growth.feature_id)
-        accepted = 0 if growth is None else int(growth.accepted.sum())
-        blur = float(np.median(self.truth.blur_length[self.truth.visible]))
-        return (f"  {self.name}: {self.result.status.value}, {accepted}/{blocks} blocks accepted, "
-                f"median blur {blur:.1f} px, {self.seconds:.1f} s")
-
-
-def extract_frames(sim: Simulator, indices: Sequence[int], settings: ExtractSettings,
-                   progress: Callable[[str], None] | None = None) -> list[ExtractedFrame]:
-    """Render and extract the simulator's frames ``indices`` once each.
-
-    A frame whose extraction raises (ValueError, RuntimeError, LinAlgError) is kept with status
-    ``failed`` and its message, as :func:`blurcalib.extract.extract_to_folder` records it.
-    """
-    out = []
-    size = (sim.camera.model.width, sim.camera.model.height)
-    for index in indices:
-        t0 = time.perf_counter()
-        frame = sim.frame(index)
-        name = frame.truth.name
-        try:
-            result = extract_frame(frame.image.astype(np.float32), sim.pattern, name, settings)
-        except (ValueError, RuntimeError, np.linalg.LinAlgError) as exc:
-            result = FrameResult(name, FrameStatus.FAILED, f"{type(exc).__name__}: {exc}")
-        extracted = ExtractedFrame(name, frame.truth, result, size, time.perf_counter() - t0)
-        out.append(extracted)
-        if progress is not None:
-            progress(extracted.summary())
-    return out
 
 
 # ------------------------------------------------------------------------------ block figures
@@ -259,10 +176,6 @@ def block_figures(frames: Sequence[ExtractedFrame], pattern: StarPattern) -> Blo
 
 
 # ------------------------------------------------------------------------------- statistics
-def _finite(v: float) -> float | None:
-    return round(float(v), 6) if v is not None and math.isfinite(v) else None
-
-
 def _spearman(a: np.ndarray, b: np.ndarray) -> float:
     ok = np.isfinite(a) & np.isfinite(b)
     if ok.sum() < 3 or np.ptp(a[ok]) == 0 or np.ptp(b[ok]) == 0:
@@ -275,8 +188,8 @@ def _group(loss: np.ndarray) -> dict[str, float | int | None]:
     if len(loss) == 0:
         return {"count": 0, "median_loss": None, "q25_loss": None, "q75_loss": None}
     q25, q50, q75 = np.percentile(loss, [25, 50, 75])
-    return {"count": len(loss), "median_loss": _finite(q50), "q25_loss": _finite(q25),
-            "q75_loss": _finite(q75)}
+    return {"count": len(loss), "median_loss": finite(q50), "q25_loss": finite(q25),
+            "q75_loss": finite(q75)}
 
 
 def _split(loss: np.ndarray, key: np.ndarray, threshold: float) -> dict:
@@ -284,7 +197,7 @@ def _split(loss: np.ndarray, key: np.ndarray, threshold: float) -> dict:
     ratio = (above["median_loss"] / below["median_loss"]
              if above["median_loss"] is not None and below["median_loss"] else None)
     return {"threshold": threshold, "below": below, "above": above,
-            "median_ratio_above_below": _finite(ratio) if ratio is not None else None}
+            "median_ratio_above_below": finite(ratio) if ratio is not None else None}
 
 
 @dataclass(frozen=True)
@@ -374,7 +287,7 @@ def quality_statistics(blocks: BlockFigures, settings: PsfQualitySettings) -> di
     err_fit, err_rc = blocks.error_fit[acc], blocks.error_recentred[acc]
 
     def pct(v: np.ndarray, q: float) -> float | None:
-        return _finite(np.percentile(v, q)) if len(v) else None
+        return finite(np.percentile(v, q)) if len(v) else None
 
     err_all = blocks.error_recentred
     bins = []
@@ -401,17 +314,17 @@ def quality_statistics(blocks: BlockFigures, settings: PsfQualitySettings) -> di
                                   settings.be_split),
         "be_bins": bins,
         "within_frame_spearman_loss_be": {"frames": len(within),
-                                          "median": _finite(np.median(within)) if within else None},
-        "spearman": {"loss_boundary_energy": _finite(_spearman(loss, be)),
-                     "loss_sigma_major": _finite(_spearman(loss, sig)),
-                     "eccentricity_sigma_major": _finite(_spearman(blocks.eccentricity, sig)),
-                     "sigma_major_true_blur": _finite(_spearman(sig, blocks.true_blur))},
-        "filter": {"share_high_be": _finite(high_be.sum() / n_acc),
-                   "share_high_loss": _finite(high_loss.sum() / n_acc),
-                   "share_kept": _finite((acc & ~high_be & ~high_loss).sum() / n_acc)},
+                                          "median": finite(np.median(within)) if within else None},
+        "spearman": {"loss_boundary_energy": finite(_spearman(loss, be)),
+                     "loss_sigma_major": finite(_spearman(loss, sig)),
+                     "eccentricity_sigma_major": finite(_spearman(blocks.eccentricity, sig)),
+                     "sigma_major_true_blur": finite(_spearman(sig, blocks.true_blur))},
+        "filter": {"share_high_be": finite(high_be.sum() / n_acc),
+                   "share_high_loss": finite(high_loss.sum() / n_acc),
+                   "share_kept": finite((acc & ~high_be & ~high_loss).sum() / n_acc)},
         "recentring": {"median_centroid_px": pct(cmag[acc], 50), "p90_centroid_px": pct(cmag[acc], 90),
                        "max_centroid_px": pct(cmag[acc], 100),
-                       "spearman_centroid_radius": _finite(_spearman(cmag[acc], blocks.radius[acc])),
+                       "spearman_centroid_radius": finite(_spearman(cmag[acc], blocks.radius[acc])),
                        "median_error_before_px": pct(err_fit, 50), "p90_error_before_px": pct(err_fit, 90),
                        "median_error_after_px": pct(err_rc, 50), "p90_error_after_px": pct(err_rc, 90)},
     }
@@ -426,19 +339,19 @@ def frame_rows(frames: Sequence[ExtractedFrame], blocks: BlockFigures, settings:
         sel = (blocks.frame == i) & blocks.accepted
         row: dict = {"frame": f.name, "status": f.result.status.value, "message": f.result.message,
                      "seconds": round(f.seconds, 2),
-                     "true_median_blur_px": _finite(np.median(f.truth.blur_length[f.truth.visible])),
-                     "defocus_sigma_px": _finite(f.truth.defocus_sigma),
+                     "true_median_blur_px": finite(np.median(f.truth.blur_length[f.truth.visible])),
+                     "defocus_sigma_px": finite(f.truth.defocus_sigma),
                      "blocks": int((blocks.frame == i).sum()), "accepted": int(sel.sum())}
         if sel.any():
             kept = (blocks.boundary_energy[sel] <= settings.tau_be) & (blocks.loss[sel] <= settings.tau_loss)
             row.update(
-                median_sigma_major_px=_finite(np.median(blocks.sigma_major[sel])),
-                median_loss=_finite(np.median(blocks.loss[sel])),
-                median_boundary_energy=_finite(np.median(blocks.boundary_energy[sel])),
-                share_kept=_finite(kept.mean()),
-                median_centroid_px=_finite(np.median(np.linalg.norm(blocks.centroid[sel], axis=1))),
-                median_error_before_px=_finite(np.median(blocks.error_fit[sel])),
-                median_error_after_px=_finite(np.median(blocks.error_recentred[sel])))
+                median_sigma_major_px=finite(np.median(blocks.sigma_major[sel])),
+                median_loss=finite(np.median(blocks.loss[sel])),
+                median_boundary_energy=finite(np.median(blocks.boundary_energy[sel])),
+                share_kept=finite(kept.mean()),
+                median_centroid_px=finite(np.median(np.linalg.norm(blocks.centroid[sel], axis=1))),
+                median_error_before_px=finite(np.median(blocks.error_fit[sel])),
+                median_error_after_px=finite(np.median(blocks.error_recentred[sel])))
         rows.append(row)
     return rows
 
@@ -709,9 +622,8 @@ def analyse_psf_quality(frames: Sequence[ExtractedFrame], camera: TrueCamera, pa
 
 def simulator(settings: PsfQualitySettings, seed: int) -> Simulator:
     """The experiment's simulator: ``settings.frames`` blurry frames, no sharp ones."""
-    config = SynthConfig(sharp=0, blurry=settings.frames, blur_min_px=settings.blur_min_px,
-                         blur_max_px=settings.blur_max_px, seed=seed)
-    return Simulator(config, camera=experiment_camera(seed, settings.scale, settings.deviation_px))
+    return experiment_simulator(0, settings.frames, (settings.blur_min_px, settings.blur_max_px), seed,
+                                settings.scale, settings.deviation_px)
 
 
 def run_psf_quality(settings: PsfQualitySettings | None = None, seed: int = 0,
@@ -779,7 +691,7 @@ def results_json(experiment: PsfQualityExperiment, seed: int) -> dict:
     frames = experiment.frames
 
     def column(values: np.ndarray) -> list:
-        return [_finite(v) for v in np.asarray(values, dtype=np.float64).tolist()]
+        return [finite(v) for v in np.asarray(values, dtype=np.float64).tolist()]
 
     choice = experiment.field
     return {
@@ -793,9 +705,9 @@ def results_json(experiment: PsfQualityExperiment, seed: int) -> dict:
         "statistics": experiment.statistics,
         "frames": experiment.rows,
         "field_frame": None if choice is None else {
-            "frame": frames[choice.frame].name, "variation": _finite(choice.variation),
+            "frame": frames[choice.frame].name, "variation": finite(choice.variation),
             "region_features": [int(frames[choice.frame].result.growth.feature_id[k]) for k in choice.region],
-            "region_box_px": [_finite(v) for v in choice.box]},
+            "region_box_px": [finite(v) for v in choice.box]},
         "blocks": {
             "frame": [frames[i].name for i in b.frame.tolist()],
             "feature_id": b.feature_id.tolist(), "fx": b.fx.tolist(), "fy": b.fy.tolist(),
@@ -824,15 +736,11 @@ def write_outputs(experiment: PsfQualityExperiment, out: str | Path, seed: int) 
 def build_parser() -> argparse.ArgumentParser:
     """Options of ``blurcalib experiment psf-quality``."""
     d = PsfQualitySettings()
-    parser = argparse.ArgumentParser(
-        prog="blurcalib experiment psf-quality",
-        description="Reproduce the paper's PSF field and PSF quality figures (fig:exp_real1, "
-                    "fig:exp_real2) on simulated motion-blurred frames.")
-    parser.add_argument("--out", default=str(Path("out") / "experiments"),
-                        help="output folder for psf_quality.json and the figures (%(default)s)")
+    parser = experiment_parser(
+        "psf-quality", "Reproduce the paper's PSF field and PSF quality figures (fig:exp_real1, "
+                       "fig:exp_real2) on simulated motion-blurred frames.",
+        "psf_quality.json and the figures")
     parser.add_argument("--frames", type=int, default=d.frames, help="blurry frames (%(default)s)")
-    parser.add_argument("--seed", type=int, default=0,
-                        help="seed of camera, poses, motion and noise (%(default)s)")
     parser.add_argument("--blur-min", type=float, default=d.blur_min_px,
                         help="smallest median blur length of a frame, px (%(default)s)")
     parser.add_argument("--blur-max", type=float, default=d.blur_max_px,
@@ -846,6 +754,18 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _run(args: argparse.Namespace) -> list[Path]:
+    settings = PsfQualitySettings(frames=args.frames, blur_min_px=args.blur_min,
+                                  blur_max_px=args.blur_max, scale=args.scale, kernel_size=args.kernel,
+                                  max_blocks=args.max_blocks, device=args.device)
+    out = ensure_writable_dir(args.out)
+    print(f"extracting {settings.frames} blurry frames ({settings.kernel_size}x{settings.kernel_size} "
+          f"PSF window)")
+    experiment = run_psf_quality(settings, args.seed, progress=print)
+    print(format_table(experiment))
+    return write_outputs(experiment, out, args.seed)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """``blurcalib experiment psf-quality [--out DIR] [--frames N] [--seed N] ...``.
 
@@ -853,19 +773,4 @@ def main(argv: Sequence[str] | None = None) -> int:
     ``DIR/fig_exp_real1.png`` and ``DIR/fig_exp_real2.png`` atomically. Returns 0, or 2 (with
     ``blurcalib: error: ...`` on stderr) for bad options or an unwritable output folder.
     """
-    args = build_parser().parse_args(argv)
-    try:
-        settings = PsfQualitySettings(frames=args.frames, blur_min_px=args.blur_min,
-                                      blur_max_px=args.blur_max, scale=args.scale, kernel_size=args.kernel,
-                                      max_blocks=args.max_blocks, device=args.device)
-        out = ensure_writable_dir(args.out)
-        print(f"extracting {settings.frames} blurry frames ({settings.kernel_size}x{settings.kernel_size} "
-              f"PSF window)")
-        experiment = run_psf_quality(settings, args.seed, progress=print)
-        print(format_table(experiment))
-        paths = write_outputs(experiment, out, args.seed)
-    except (OutputError, ValueError) as exc:
-        print(f"blurcalib: error: {exc}", file=sys.stderr)
-        return 2
-    print("  outputs: " + ", ".join(str(p) for p in paths))
-    return 0
+    return run_experiment_cli(build_parser(), argv, _run)

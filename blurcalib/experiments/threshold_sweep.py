@@ -31,7 +31,7 @@ translation, and two errors are measured per frame (px):
 Reported are the median over frames of the per-frame medians and their interquartile range (the
 figure's error bars).
 
-Protocol: the camera is :func:`blurcalib.experiments.psf_quality.experiment_camera` (the
+Protocol: the camera is :func:`blurcalib.experiments.common.experiment_camera` (the
 D435I-like camera at half resolution, 0.01 px lens deviation). The parametric camera ``pi_d`` and
 the target points come from :func:`blurcalib.calibrate.calibrate_sharp` on ``sharp`` frames: by
 default the true projections of their (simulator-identical) poses plus Gaussian noise of
@@ -49,7 +49,6 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import sys
 from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -63,21 +62,24 @@ from blurcalib.calibrate import Calibration, calibrate_sharp
 from blurcalib.camera import apply_homography
 from blurcalib.deconv import DeconvSettings
 from blurcalib.evaluate import refit_pose
-from blurcalib.experiments.psf_quality import (
+from blurcalib.experiments.common import (
     ExtractedFrame,
     check_device,
-    experiment_camera,
+    experiment_parser,
+    experiment_simulator,
     extract_frames,
     extract_settings,
+    finite,
+    run_experiment_cli,
 )
 from blurcalib.extract import ExtractSettings, extract_frame
-from blurcalib.fileio import OutputError, atomic_path, atomic_write_text, ensure_writable_dir
-from blurcalib.global_alignment import align_global, grid_coordinates, loss_weights
+from blurcalib.fileio import atomic_path, atomic_write_text, ensure_writable_dir
+from blurcalib.global_alignment import MIN_BLOCKS, AlignmentError, AlignmentSettings, align_blocks
 from blurcalib.local_alignment import align_locally
 from blurcalib.pattern import StarPattern
 from blurcalib.quality import QualitySettings, filter_frame
 from blurcalib.results import FeatureFlags, FeatureObservation
-from blurcalib.synth import Simulator, SynthConfig, TrueCamera, sample_pose
+from blurcalib.synth import Simulator, TrueCamera, sample_pose
 
 CONFIGS: tuple[str, ...] = ("raw", "be_filtered", "local_aligned", "local_aligned_kept")
 """The configurations (see the module docstring); the first three are the paper's."""
@@ -114,7 +116,8 @@ class SweepSettings:
             extracted sharp frames) for the calibration.
         sharp_noise_px: noise per axis of the ``"truth"`` sharp features (px).
         loss: robust loss of the global alignment.
-        min_blocks: a frame is aligned only with at least this many kept blocks (the pipeline's 12).
+        min_blocks: a frame is aligned only with at least this many kept blocks (the engine's
+            :data:`blurcalib.global_alignment.MIN_BLOCKS`).
         max_blocks: growth stops after about this many attempted blocks per frame.
         device: torch device of the deconvolution.
     """
@@ -131,7 +134,7 @@ class SweepSettings:
     sharp_source: str = "truth"
     sharp_noise_px: float = 0.02
     loss: str = "huber"
-    min_blocks: int = 12
+    min_blocks: int = MIN_BLOCKS
     max_blocks: int = 5000
     device: str = "cpu"
 
@@ -256,13 +259,10 @@ def _align(frame: ExtractedFrame, kept: np.ndarray, centre: np.ndarray, bias: st
            camera: TrueCamera, pattern: StarPattern, settings: SweepSettings) -> FrameAlignment:
     fit = frame.result.growth.fit
     ids = frame.result.growth.feature_id[kept]
-    points = calibration.points[ids]
-    points = np.where(np.isfinite(points), points, pattern.points_3d(ids))
-    grid = grid_coordinates(pattern, pattern.features[ids])
     try:
-        ga = align_global(calibration.camera, points, centre[kept], loss_weights(fit.loss[kept]), grid,
-                          loss=settings.loss, bias=bias)
-    except ValueError:
+        ga = align_blocks(calibration.camera, pattern, calibration.points, ids, centre[kept], fit.loss[kept],
+                          AlignmentSettings(loss=settings.loss, bias=bias, min_blocks=settings.min_blocks))
+    except AlignmentError:
         return FrameAlignment(len(kept), "failed")
     P = pattern.points_3d(ids)
     pose = refit_pose(camera, P, ga.corrected, frame.truth.pose)
@@ -340,13 +340,9 @@ class SweepExperiment:
         for name in ("alignment_px", "true_px"):
             values = np.array([getattr(a, name) for a in cells])
             q = np.percentile(values, [25, 50, 75]) if len(values) else [math.nan] * 3
-            row.update({f"{name}_median": _finite(q[1]), f"{name}_q25": _finite(q[0]),
-                        f"{name}_q75": _finite(q[2])})
+            row.update({f"{name}_median": finite(q[1]), f"{name}_q25": finite(q[0]),
+                        f"{name}_q75": finite(q[2])})
         return row
-
-
-def _finite(v: float) -> float | None:
-    return round(float(v), 6) if math.isfinite(v) else None
 
 
 def _tau_json(tau: float) -> float | str:
@@ -368,9 +364,8 @@ def analyse_sweep(frames: Sequence[ExtractedFrame], calibration: Calibration, ca
 
 def simulator(settings: SweepSettings, seed: int) -> Simulator:
     """The sequence: ``sharp`` sharp frames (indices first) then ``blurry`` blurry ones."""
-    config = SynthConfig(sharp=settings.sharp, blurry=settings.blurry, blur_min_px=settings.blur_min_px,
-                         blur_max_px=settings.blur_max_px, seed=seed)
-    return Simulator(config, camera=experiment_camera(seed, settings.scale, settings.deviation_px))
+    return experiment_simulator(settings.sharp, settings.blurry, (settings.blur_min_px, settings.blur_max_px),
+                                seed, settings.scale, settings.deviation_px)
 
 
 def calibrate(sim: Simulator, settings: SweepSettings, seed: int,
@@ -439,13 +434,13 @@ def results_json(experiment: SweepExperiment, seed: int) -> dict:
     frames = []
     for i, f in enumerate(experiment.frames):
         row: dict = {"frame": f.name, "status": f.result.status.value, "seconds": round(f.seconds, 2),
-                     "true_median_blur_px": _finite(np.median(f.truth.blur_length[f.truth.visible])),
-                     "true_floor_px": _finite(experiment.floors[i])}
+                     "true_median_blur_px": finite(np.median(f.truth.blur_length[f.truth.visible])),
+                     "true_floor_px": finite(experiment.floors[i])}
         if f.ok:
             row["accepted"] = int(f.result.growth.accepted.sum())
             if f.result.local is not None:
-                row["local_alignment_rms_px"] = [_finite(f.result.local.rms_before),
-                                                 _finite(f.result.local.rms_after)]
+                row["local_alignment_rms_px"] = [finite(f.result.local.rms_before),
+                                                 finite(f.result.local.rms_after)]
         frames.append(row)
     names = [experiment.frames[i].name for i in experiment.aligned_frames]
     return {
@@ -462,8 +457,8 @@ def results_json(experiment: SweepExperiment, seed: int) -> dict:
                   for t in experiment.settings.tau_losses],
         "per_frame": [{"config": c, "tau_loss": _tau_json(t), "bias": b,
                        "frames": [{"frame": n, "kept": a.kept, "status": a.status,
-                                   "alignment_px": _finite(a.alignment_px), "true_px": _finite(a.true_px),
-                                   "angle_rad": _finite(a.angle)}
+                                   "alignment_px": finite(a.alignment_px), "true_px": finite(a.true_px),
+                                   "angle_rad": finite(a.angle)}
                                   for n, a in zip(names, cells, strict=True)]}
                       for (c, t, b), cells in experiment.cells.items()],
     }
@@ -545,16 +540,13 @@ def write_outputs(experiment: SweepExperiment, out: str | Path, seed: int) -> li
 def build_parser() -> argparse.ArgumentParser:
     """Options of ``blurcalib experiment threshold-sweep``."""
     d = SweepSettings()
-    parser = argparse.ArgumentParser(
-        prog="blurcalib experiment threshold-sweep",
-        description="Reproduce the paper's loss-threshold sweep (fig:exp_real3): median reprojection "
-                    "error after global alignment against tau_L, on a simulated sequence.")
-    parser.add_argument("--out", default=str(Path("out") / "experiments"),
-                        help="output folder for threshold_sweep.json and fig_exp_real3.png (%(default)s)")
+    parser = experiment_parser(
+        "threshold-sweep",
+        "Reproduce the paper's loss-threshold sweep (fig:exp_real3): median reprojection error after "
+        "global alignment against tau_L, on a simulated sequence.",
+        "threshold_sweep.json and fig_exp_real3.png")
     parser.add_argument("--sharp", type=int, default=d.sharp, help="sharp calibration frames (%(default)s)")
     parser.add_argument("--blurry", type=int, default=d.blurry, help="blurry frames (%(default)s)")
-    parser.add_argument("--seed", type=int, default=0,
-                        help="seed of camera, poses, motion and noise (%(default)s)")
     parser.add_argument("--blur-min", type=float, default=d.blur_min_px,
                         help="smallest median blur length of a blurry frame, px (%(default)s)")
     parser.add_argument("--blur-max", type=float, default=d.blur_max_px,
@@ -574,6 +566,18 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _run(args: argparse.Namespace) -> list[Path]:
+    settings = SweepSettings(sharp=args.sharp, blurry=args.blurry, blur_min_px=args.blur_min,
+                             blur_max_px=args.blur_max, tau_be=args.tau_be, scale=args.scale,
+                             kernel_size=args.kernel,
+                             sharp_source="extract" if args.extract_sharp else "truth",
+                             max_blocks=args.max_blocks, device=args.device)
+    out = ensure_writable_dir(args.out)
+    experiment = run_threshold_sweep(settings, args.seed, progress=print)
+    print(format_table(experiment))
+    return write_outputs(experiment, out, args.seed)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """``blurcalib experiment threshold-sweep [--out DIR] [--sharp N] [--blurry N] [--seed N] ...``.
 
@@ -581,19 +585,4 @@ def main(argv: Sequence[str] | None = None) -> int:
     ``DIR/fig_exp_real3.png`` atomically. Returns 0, or 2 (with ``blurcalib: error: ...`` on
     stderr) for bad options, an unwritable output folder or a failed calibration.
     """
-    args = build_parser().parse_args(argv)
-    try:
-        settings = SweepSettings(sharp=args.sharp, blurry=args.blurry, blur_min_px=args.blur_min,
-                                 blur_max_px=args.blur_max, tau_be=args.tau_be, scale=args.scale,
-                                 kernel_size=args.kernel,
-                                 sharp_source="extract" if args.extract_sharp else "truth",
-                                 max_blocks=args.max_blocks, device=args.device)
-        out = ensure_writable_dir(args.out)
-        experiment = run_threshold_sweep(settings, args.seed, progress=print)
-        print(format_table(experiment))
-        paths = write_outputs(experiment, out, args.seed)
-    except (OutputError, ValueError) as exc:
-        print(f"blurcalib: error: {exc}", file=sys.stderr)
-        return 2
-    print("  outputs: " + ", ".join(str(p) for p in paths))
-    return 0
+    return run_experiment_cli(build_parser(), argv, _run)
