@@ -71,6 +71,8 @@ from blurcalib.camera import (
     CameraFileError,
     Pose,
     load_camera_json,
+    project_poses,
+    rodrigues_jacobian,
     save_camera_json,
     save_camera_yaml,
 )
@@ -223,73 +225,6 @@ class Calibration:
 
 
 # ------------------------------------------------------------------------------------ projection
-def _rotations(rvecs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Rodrigues: ``rvecs (F, 3)`` -> ``R (F, 3, 3)`` and ``dR (F, 3, 3, 3)``, ``dR[f, k] = dR_f / dr_k``."""
-    R = np.empty((len(rvecs), 3, 3))
-    dR = np.empty((len(rvecs), 3, 3, 3))
-    for f, rvec in enumerate(rvecs):
-        rot, jac = cv2.Rodrigues(np.ascontiguousarray(rvec, dtype=np.float64))
-        R[f] = rot
-        dR[f] = jac.reshape(3, 3, 3)
-    return R, dR
-
-
-def _project(intr: np.ndarray, rvecs: np.ndarray, tvecs: np.ndarray, points: np.ndarray,
-             frame_idx: np.ndarray, jacobian: bool
-             ) -> tuple[np.ndarray, tuple[np.ndarray, np.ndarray, np.ndarray] | None]:
-    """``pi_d(M_f, P)`` of ``N`` observations and, optionally, its Jacobian.
-
-    Args:
-        intr: ``(9,)`` ``fx, fy, cx, cy, k1, k2, p1, p2, k3``.
-        rvecs, tvecs: ``(F, 3)`` poses (rad, m).
-        points: ``(N, 3)`` target point of each observation (m).
-        frame_idx: ``(N,)`` frame index of each observation.
-        jacobian: whether to return the derivatives.
-
-    Returns:
-        ``(N, 2)`` px and, if asked, ``(J_intr (N, 2, 9), J_pose (N, 2, 6), J_point (N, 2, 3))``.
-    """
-    fx, fy, cx, cy, k1, k2, p1, p2, k3 = intr
-    R, dR = _rotations(rvecs)
-    Rn = R[frame_idx]
-    cam = np.einsum("nab,nb->na", Rn, points) + tvecs[frame_idx]
-    inv_z = 1.0 / cam[:, 2]
-    x, y = cam[:, 0] * inv_z, cam[:, 1] * inv_z
-    r2 = x * x + y * y
-    r4 = r2 * r2
-    r6 = r4 * r2
-    radial = 1.0 + k1 * r2 + k2 * r4 + k3 * r6
-    xy2 = 2.0 * x * y
-    xd = radial * x + p1 * xy2 + p2 * (r2 + 2.0 * x * x)
-    yd = radial * y + p1 * (r2 + 2.0 * y * y) + p2 * xy2
-    pred = np.stack([fx * xd + cx, fy * yd + cy], axis=1)
-    if not jacobian:
-        return pred, None
-    n = len(points)
-    zero, one = np.zeros(n), np.ones(n)
-    J_intr = np.stack([
-        np.stack([xd, zero, one, zero, fx * x * r2, fx * x * r4, fx * xy2, fx * (r2 + 2 * x * x),
-                  fx * x * r6], axis=1),
-        np.stack([zero, yd, zero, one, fy * y * r2, fy * y * r4, fy * (r2 + 2 * y * y), fy * xy2,
-                  fy * y * r6], axis=1)], axis=1)
-    dradial = k1 + 2.0 * k2 * r2 + 3.0 * k3 * r4
-    jxx = radial + 2.0 * x * x * dradial + 2.0 * p1 * y + 6.0 * p2 * x
-    jxy = xy2 * dradial + 2.0 * p1 * x + 2.0 * p2 * y
-    jyy = radial + 2.0 * y * y * dradial + 6.0 * p1 * y + 2.0 * p2 * x
-    # d(u, v)/d(X_cam) = diag(fx, fy) J_d d(x, y)/d(X_cam)
-    dnorm = np.zeros((n, 2, 3))
-    dnorm[:, 0, 0] = inv_z
-    dnorm[:, 1, 1] = inv_z
-    dnorm[:, 0, 2] = -x * inv_z
-    dnorm[:, 1, 2] = -y * inv_z
-    Jd = np.stack([np.stack([fx * jxx, fx * jxy], axis=1), np.stack([fy * jxy, fy * jyy], axis=1)], axis=1)
-    A = Jd @ dnorm
-    dcam_dr = np.einsum("nkab,nb->nak", dR[frame_idx], points)
-    J_pose = np.concatenate([A @ dcam_dr, A], axis=2)
-    J_point = A @ Rn
-    return pred, (J_intr, J_pose, J_point)
-
-
 # ------------------------------------------------------------------------------ the adjustment
 @dataclass
 class _Problem:
@@ -319,7 +254,7 @@ class _Problem:
 
     def predict(self, params: np.ndarray, rows: np.ndarray) -> np.ndarray:
         intr, rvecs, tvecs, pts = self.unpack(params)
-        return _project(intr, rvecs, tvecs, self.obs_points(pts, rows), self.frame_idx[rows], False)[0]
+        return project_poses(intr, rvecs, tvecs, self.obs_points(pts, rows), self.frame_idx[rows]).pixels
 
     def residual_fn(self, rows: np.ndarray):
         """Residuals ``(2 n + 3 Q,)``: ``pi_d - p`` of the rows (px), then the point prior."""
@@ -354,7 +289,8 @@ class _Problem:
 
         def jac(params: np.ndarray) -> scipy.sparse.csr_matrix:
             intr, rvecs, tvecs, pts = self.unpack(params)
-            _, parts = _project(intr, rvecs, tvecs, self.obs_points(pts, rows), fi, True)
+            proj = project_poses(intr, rvecs, tvecs, self.obs_points(pts, rows), fi, jacobian=True)
+            parts = (proj.d_intrinsics, proj.d_pose, proj.d_point)
             values = np.concatenate(parts if self.refine_points else parts[:2], axis=2).ravel()
             if self.refine_points:
                 values = np.concatenate([values, np.full(3 * len(self.nominal), 1.0 / self.point_sigma)])
@@ -411,21 +347,21 @@ def _initialise(obj: list[np.ndarray], img: list[np.ndarray], image_size: tuple[
     def run(o: list[np.ndarray], i: list[np.ndarray]):
         _, K, dist, rvecs, tvecs = cv2.calibrateCamera(
             [a.astype(np.float32) for a in o], [a.astype(np.float32) for a in i], image_size, None, None)
-        return K, dist.ravel(), np.array(rvecs).reshape(-1, 3), np.array(tvecs).reshape(-1, 3)
+        intr = np.array([K[0, 0], K[1, 1], K[0, 2], K[1, 2], *dist.ravel()[:5]])
+        return intr, np.array(rvecs).reshape(-1, 3), np.array(tvecs).reshape(-1, 3)
 
     try:
-        K, dist, rvecs, tvecs = run(obj, img)
+        intr, rvecs, tvecs = run(obj, img)
     except cv2.error as exc:
         raise CalibrationError(f"cv2.calibrateCamera failed on {len(obj)} frames: {str(exc).strip()}"
                                ) from exc
-    errors = [np.linalg.norm(cv2.projectPoints(o, r, t, K, dist)[0].reshape(-1, 2) - i, axis=1)
+    errors = [np.linalg.norm(project_poses(intr, r, t, o).pixels - i, axis=1)
               for o, i, r, t in zip(obj, img, rvecs, tvecs, strict=True)]
     limit = _robust_threshold(np.concatenate(errors), outlier_sigmas, 9 + 6 * len(obj))
     keep = [e <= limit for e in errors]
     if not all(k.all() for k in keep) and all(k.sum() >= 6 for k in keep):
-        K, dist, rvecs, tvecs = run([o[k] for o, k in zip(obj, keep, strict=True)],
-                                    [i[k] for i, k in zip(img, keep, strict=True)])
-    intr = np.array([K[0, 0], K[1, 1], K[0, 2], K[1, 2], dist[0], dist[1], dist[2], dist[3], dist[4]])
+        intr, rvecs, tvecs = run([o[k] for o, k in zip(obj, keep, strict=True)],
+                                 [i[k] for i, k in zip(img, keep, strict=True)])
     return intr, rvecs, tvecs, np.concatenate(keep)
 
 
@@ -521,7 +457,7 @@ def calibrate_sharp(observations: FeatureTable | Sequence[FeatureObservation], p
         inlier = new_inlier
 
     intr, rvecs, tvecs, pts = problem.unpack(params)
-    rotations = _rotations(rvecs)[0]
+    rotations = rodrigues_jacobian(rvecs)[0]
     if refine_points:
         s, Q, b = _umeyama(pts, problem.nominal)
         pts = s * pts @ Q.T + b

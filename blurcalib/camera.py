@@ -19,9 +19,8 @@ Conventions
 * The target-plane homography (paper equation ``eq:T``) is ``H = K [r1 r2 t]``; it maps
   target-plane metres ``(X, Y, 1)`` to *undistorted* pixel coordinates.
 
-NumPy functions work in float64 on arrays of shape ``(..., N, 2)`` / ``(..., N, 3)``.
-The ``*_torch`` functions are batched, differentiable with respect to every input, and run
-on any device and floating dtype (float32 or float64).
+Functions work in float64 on arrays of shape ``(..., N, 2)`` / ``(..., N, 3)``;
+:func:`project_poses` is the one projection with its analytic Jacobian, batched over frames.
 """
 
 from __future__ import annotations
@@ -30,14 +29,13 @@ import dataclasses
 import json
 import math
 import os
-from collections.abc import Callable, Mapping
+from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, TypeVar
+from typing import Any
 
 import cv2
 import numpy as np
-import torch
 from numpy.typing import ArrayLike
 
 from blurcalib.fileio import atomic_write_text
@@ -46,22 +44,19 @@ __all__ = [
     "BrownConrady",
     "CameraFileError",
     "Pose",
+    "Projection",
     "apply_homography",
-    "apply_homography_torch",
-    "distort_torch",
     "load_camera_json",
     "load_camera_yaml",
     "plane_homography",
     "project_points",
-    "project_torch",
-    "rodrigues_torch",
+    "project_poses",
+    "rodrigues_jacobian",
     "save_camera_json",
     "save_camera_yaml",
     "translation",
-    "undistort_torch",
 ]
 
-_Arr = TypeVar("_Arr", np.ndarray, torch.Tensor)
 
 MODEL_NAME = "Brown_Conrady"
 _INTRINSIC_FIELDS = ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3")
@@ -71,11 +66,12 @@ _RODRIGUES_SMALL_THETA2 = 1e-6
 
 
 # ---------------------------------------------------------------------------
-# Distortion kernels shared by the NumPy and torch code paths (pure arithmetic).
+# Distortion kernels (pure arithmetic).
 # ---------------------------------------------------------------------------
 
 
-def _distort_xy(x: _Arr, y: _Arr, k1: Any, k2: Any, p1: Any, p2: Any, k3: Any) -> tuple[_Arr, _Arr]:
+def _distort_xy(x: np.ndarray, y: np.ndarray, k1: float, k2: float, p1: float, p2: float, k3: float
+                ) -> tuple[np.ndarray, np.ndarray]:
     """Brown-Conrady distortion ``d(x)`` of normalised coordinates, component-wise."""
     r2 = x * x + y * y
     radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
@@ -86,8 +82,8 @@ def _distort_xy(x: _Arr, y: _Arr, k1: Any, k2: Any, p1: Any, p2: Any, k3: Any) -
 
 
 def _distort_jacobian(
-    x: _Arr, y: _Arr, k1: Any, k2: Any, p1: Any, p2: Any, k3: Any
-) -> tuple[_Arr, _Arr, _Arr]:
+    x: np.ndarray, y: np.ndarray, k1: Any, k2: Any, p1: Any, p2: Any, k3: Any
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Entries ``(J_xx, J_xy, J_yy)`` of the symmetric Jacobian ``dd/dx`` of ``d(x)``."""
     r2 = x * x + y * y
     radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
@@ -99,13 +95,12 @@ def _distort_jacobian(
 
 
 def _undistort_step(
-    x: _Arr,
-    y: _Arr,
-    xd: _Arr,
-    yd: _Arr,
+    x: np.ndarray,
+    y: np.ndarray,
+    xd: np.ndarray,
+    yd: np.ndarray,
     coeffs: tuple[Any, ...],
-    where: Callable[[Any, Any, Any], Any],
-) -> tuple[_Arr, _Arr, _Arr]:
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """One safeguarded step towards the solution of ``d(x) = xd``.
 
     Three candidates are evaluated per point: a full Newton step, a half Newton step and
@@ -134,13 +129,13 @@ def _undistort_step(
         cey = cdy - yd
         cand_err = cex * cex + cey * cey
         better = cand_err < best_err
-        best_x = where(better, cand_x, best_x)
-        best_y = where(better, cand_y, best_y)
-        best_err = where(better, cand_err, best_err)
+        best_x = np.where(better, cand_x, best_x)
+        best_y = np.where(better, cand_y, best_y)
+        best_err = np.where(better, cand_err, best_err)
     return best_x, best_y, best_err
 
 
-def _homography_xy(H: _Arr, pts: _Arr) -> tuple[_Arr, _Arr]:
+def _homography_xy(H: np.ndarray, pts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Apply ``H (..., 3, 3)`` to ``pts (..., N, 2)``; returns the two output components."""
     x = pts[..., 0]
     y = pts[..., 1]
@@ -280,6 +275,12 @@ class BrownConrady:
         return np.array([self.k1, self.k2, self.p1, self.p2, self.k3])
 
     @property
+    def params(self) -> np.ndarray:
+        """``(9,)`` ``fx, fy, cx, cy, k1, k2, p1, p2, k3``: the intrinsics of
+        :func:`project_poses` and of the calibration's parameter vector."""
+        return np.array([self.fx, self.fy, self.cx, self.cy, self.k1, self.k2, self.p1, self.p2, self.k3])
+
+    @property
     def _coeffs(self) -> tuple[float, float, float, float, float]:
         return self.k1, self.k2, self.p1, self.p2, self.k3
 
@@ -327,7 +328,7 @@ class BrownConrady:
         err = np.full(tx.shape, np.inf)
         with np.errstate(all="ignore"):
             for _ in range(max_iter):
-                x, y, new_err = _undistort_step(x, y, tx, ty, self._coeffs, np.where)
+                x, y, new_err = _undistort_step(x, y, tx, ty, self._coeffs)
                 if not np.any(new_err < err):
                     break
                 err = new_err
@@ -501,6 +502,83 @@ def project_points(camera: BrownConrady, pose: Pose, points_world: ArrayLike) ->
     return camera.project(pose.transform(points_world))
 
 
+def rodrigues_jacobian(rvecs: ArrayLike) -> tuple[np.ndarray, np.ndarray]:
+    """Rodrigues: ``rvecs (F, 3)`` rad -> ``R (F, 3, 3)`` and ``dR (F, 3, 3, 3)``,
+    ``dR[f, k] = dR_f / dr_k``."""
+    rvecs = np.asarray(rvecs, dtype=np.float64).reshape(-1, 3)
+    R = np.empty((len(rvecs), 3, 3))
+    dR = np.empty((len(rvecs), 3, 3, 3))
+    for f, rvec in enumerate(rvecs):
+        rot, jac = cv2.Rodrigues(np.ascontiguousarray(rvec))
+        R[f] = rot
+        dR[f] = jac.reshape(3, 3, 3)
+    return R, dR
+
+
+@dataclass(frozen=True, eq=False)
+class Projection:
+    """Pixels of :func:`project_poses` and, when asked, their Jacobians.
+
+    Attributes:
+        pixels: ``(N, 2)`` px, OpenCV convention.
+        d_intrinsics: ``(N, 2, 9)`` w.r.t. ``fx, fy, cx, cy, k1, k2, p1, p2, k3``.
+        d_pose: ``(N, 2, 6)`` w.r.t. the observation's ``(rvec, tvec)`` (rad, m).
+        d_point: ``(N, 2, 3)`` w.r.t. the target point (m).
+    """
+
+    pixels: np.ndarray
+    d_intrinsics: np.ndarray | None = None
+    d_pose: np.ndarray | None = None
+    d_point: np.ndarray | None = None
+
+
+def project_poses(intrinsics: ArrayLike, rvecs: ArrayLike, tvecs: ArrayLike, points: ArrayLike,
+                  frame_idx: ArrayLike | None = None, *, jacobian: bool = False) -> Projection:
+    """``pi_d(M_f, P) = K (d([R_f P + t_f]~), 1)`` of ``N`` observations, batched over frames,
+    with its analytic Jacobian (the one projection of the calibration and alignment solvers).
+
+    Args:
+        intrinsics: ``(9,)`` ``fx, fy, cx, cy, k1, k2, p1, p2, k3`` (px and unitless), the
+            order of :data:`BrownConrady.params`.
+        rvecs, tvecs: ``(F, 3)`` poses, target -> camera (rad, m).
+        points: ``(N, 3)`` target point of each observation (m).
+        frame_idx: ``(N,)`` frame of each observation (None: all frame 0).
+        jacobian: whether to return the derivatives.
+    """
+    fx, fy, cx, cy, k1, k2, p1, p2, k3 = np.asarray(intrinsics, dtype=np.float64)
+    points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    fi = np.zeros(len(points), dtype=np.int64) if frame_idx is None else np.asarray(frame_idx)
+    R, dR = rodrigues_jacobian(rvecs)
+    Rn = R[fi]
+    cam = np.einsum("nab,nb->na", Rn, points) + np.asarray(tvecs, dtype=np.float64).reshape(-1, 3)[fi]
+    inv_z = 1.0 / cam[:, 2]
+    x, y = cam[:, 0] * inv_z, cam[:, 1] * inv_z
+    xd, yd = _distort_xy(x, y, k1, k2, p1, p2, k3)
+    pixels = np.stack([fx * xd + cx, fy * yd + cy], axis=1)
+    if not jacobian:
+        return Projection(pixels)
+    n = len(points)
+    r2 = x * x + y * y
+    r4 = r2 * r2
+    xy2 = 2.0 * x * y
+    zero, one = np.zeros(n), np.ones(n)
+    d_intr = np.stack([
+        np.stack([xd, zero, one, zero, fx * x * r2, fx * x * r4, fx * xy2, fx * (r2 + 2 * x * x),
+                  fx * x * r4 * r2], axis=1),
+        np.stack([zero, yd, zero, one, fy * y * r2, fy * y * r4, fy * (r2 + 2 * y * y), fy * xy2,
+                  fy * y * r4 * r2], axis=1)], axis=1)
+    jxx, jxy, jyy = _distort_jacobian(x, y, k1, k2, p1, p2, k3)
+    dnorm = np.zeros((n, 2, 3))
+    dnorm[:, 0, 0] = inv_z
+    dnorm[:, 1, 1] = inv_z
+    dnorm[:, 0, 2] = -x * inv_z
+    dnorm[:, 1, 2] = -y * inv_z
+    Jd = np.stack([np.stack([fx * jxx, fx * jxy], axis=1), np.stack([fy * jxy, fy * jyy], axis=1)], axis=1)
+    A = Jd @ dnorm  # d(u, v) / d(X_cam)
+    dcam_dr = np.einsum("nkab,nb->nak", dR[fi], points)
+    return Projection(pixels, d_intr, np.concatenate([A @ dcam_dr, A], axis=2), A @ Rn)
+
+
 def plane_homography(K: ArrayLike, pose: Pose) -> np.ndarray:
     """Target-plane homography ``H = K [r1 r2 t]`` (eq:T), shape (3, 3).
 
@@ -537,148 +615,6 @@ def apply_homography(H: ArrayLike, pts: ArrayLike) -> np.ndarray:
     with np.errstate(divide="ignore", invalid="ignore"):
         u, v = _homography_xy(H, pts)
     return np.stack([u, v], axis=-1)
-
-
-# ---------------------------------------------------------------------------
-# Differentiable torch versions
-# ---------------------------------------------------------------------------
-
-
-def _check_last_dim(tensor: torch.Tensor, dim: int, name: str) -> None:
-    if tensor.ndim < 1 or tensor.shape[-1] != dim:
-        raise ValueError(f"{name} must have shape (..., {dim}), got {tuple(tensor.shape)}")
-
-
-def _like(value: Any, ref: torch.Tensor) -> torch.Tensor:
-    """``value`` as a tensor with ``ref``'s dtype and device (differentiable conversion)."""
-    return torch.as_tensor(value, dtype=ref.dtype, device=ref.device)
-
-
-def _point_coeffs(dist: torch.Tensor) -> tuple[torch.Tensor, ...]:
-    """Split ``dist (..., 5)`` into five ``(..., 1)`` tensors broadcasting over the point axis."""
-    _check_last_dim(dist, 5, "dist")
-    return tuple(c[..., None] for c in dist.unbind(-1))
-
-
-def distort_torch(xn: torch.Tensor, dist: torch.Tensor) -> torch.Tensor:
-    """Differentiable Brown-Conrady distortion ``d(xn)``.
-
-    Args:
-        xn: normalised coordinates ``(..., N, 2)`` (unitless).
-        dist: ``(k1, k2, p1, p2, k3)``, shape ``(..., 5)`` or ``(5,)``; its batch
-            dimensions broadcast against ``xn``'s batch dimensions (point axis excluded).
-
-    Returns:
-        Distorted normalised coordinates, shape ``(..., N, 2)``.
-    """
-    _check_last_dim(xn, 2, "xn")
-    coeffs = _point_coeffs(_like(dist, xn))
-    xd, yd = _distort_xy(xn[..., 0], xn[..., 1], *coeffs)
-    return torch.stack([xd, yd], dim=-1)
-
-
-def undistort_torch(xd: torch.Tensor, dist: torch.Tensor, iterations: int = 10) -> torch.Tensor:
-    """Differentiable inverse of :func:`distort_torch`: solves ``d(x) = xd`` for ``x``.
-
-    Runs ``iterations`` safeguarded Newton steps without autograd, then one Newton step at
-    the solution with autograd. At convergence that step leaves the value unchanged and
-    yields the implicit-function gradient ``dx = J^-1 (dxd - (dd/ddist) ddist)``, so
-    gradients are exact without back-propagating through the iterations.
-
-    Args:
-        xd: distorted normalised coordinates ``(..., N, 2)``.
-        dist: ``(..., 5)`` or ``(5,)``, broadcast as in :func:`distort_torch`.
-        iterations: number of solver iterations (fixed, no host synchronisation).
-
-    Returns:
-        Undistorted normalised coordinates, shape ``(..., N, 2)``.
-    """
-    _check_last_dim(xd, 2, "xd")
-    coeffs = _point_coeffs(_like(dist, xd))
-    tx, ty = xd[..., 0], xd[..., 1]
-    with torch.no_grad():
-        fixed = tuple(c.detach() for c in coeffs)
-        x, y = tx.detach(), ty.detach()
-        for _ in range(iterations):
-            x, y, _ = _undistort_step(x, y, tx.detach(), ty.detach(), fixed, torch.where)
-        jxx, jxy, jyy = _distort_jacobian(x, y, *fixed)
-        det = jxx * jyy - jxy * jxy
-    dx, dy = _distort_xy(x, y, *coeffs)
-    ex = dx - tx
-    ey = dy - ty
-    x_out = x - (jyy * ex - jxy * ey) / det
-    y_out = y - (jxx * ey - jxy * ex) / det
-    return torch.stack([x_out, y_out], dim=-1)
-
-
-def rodrigues_torch(rvec: torch.Tensor) -> torch.Tensor:
-    """Differentiable Rodrigues formula: rotation vectors ``(..., 3)`` rad -> ``(..., 3, 3)``.
-
-    ``R = I + A [r]x + B [r]x^2`` with ``A = sin(θ)/θ`` and ``B = (1 - cos θ)/θ^2``
-    (computed as ``2 sin^2(θ/2)/θ^2``); Taylor series are used for ``θ^2 < 1e-6`` so the
-    value and gradient are exact and finite at ``θ = 0``.
-    """
-    _check_last_dim(rvec, 3, "rvec")
-    theta2 = (rvec * rvec).sum(-1)
-    small = theta2 < _RODRIGUES_SMALL_THETA2
-    theta = torch.sqrt(torch.where(small, torch.ones_like(theta2), theta2))
-    half_sinc = torch.sin(0.5 * theta) / theta
-    a = torch.where(small, 1.0 - theta2 / 6.0 + theta2 * theta2 / 120.0, torch.sin(theta) / theta)
-    b = torch.where(small, 0.5 - theta2 / 24.0 + theta2 * theta2 / 720.0, 2.0 * half_sinc * half_sinc)
-    rx, ry, rz = rvec.unbind(-1)
-    zero = torch.zeros_like(rx)
-    skew = torch.stack([zero, -rz, ry, rz, zero, -rx, -ry, rx, zero], dim=-1)
-    skew = skew.reshape(*rvec.shape[:-1], 3, 3)
-    eye = torch.eye(3, dtype=rvec.dtype, device=rvec.device)
-    return eye + a[..., None, None] * skew + b[..., None, None] * (skew @ skew)
-
-
-def project_torch(
-    points_world: torch.Tensor,
-    R: torch.Tensor,
-    t: torch.Tensor,
-    K: torch.Tensor,
-    dist: torch.Tensor,
-) -> torch.Tensor:
-    """Differentiable batched ``Brown_Conrady`` projection ``K (d([R X + t]~), 1)``.
-
-    Args:
-        points_world: world points ``(B, N, 3)`` m (``(N, 3)`` is shared by all poses).
-        R: rotations ``(B, 3, 3)``.
-        t: translations ``(B, 3)`` m.
-        K: camera matrices ``(B, 3, 3)`` or ``(3, 3)`` px; the top two rows are applied.
-        dist: ``(k1, k2, p1, p2, k3)``, ``(B, 5)`` or ``(5,)``.
-
-    Returns:
-        Distorted pixel coordinates ``(B, N, 2)`` px, dtype/device of ``points_world``.
-    """
-    _check_last_dim(points_world, 3, "points_world")
-    R, t, K = _like(R, points_world), _like(t, points_world), _like(K, points_world)
-    if R.shape[-2:] != (3, 3) or K.shape[-2:] != (3, 3):
-        raise ValueError(f"R and K must have shape (..., 3, 3), got {tuple(R.shape)}, {tuple(K.shape)}")
-    _check_last_dim(t, 3, "t")
-    coeffs = _point_coeffs(_like(dist, points_world))
-    cam = points_world @ R.transpose(-1, -2) + t[..., None, :]
-    xn = cam[..., 0] / cam[..., 2]
-    yn = cam[..., 1] / cam[..., 2]
-    xd, yd = _distort_xy(xn, yn, *coeffs)
-    k = K[..., None, :, :]
-    u = k[..., 0, 0] * xd + k[..., 0, 1] * yd + k[..., 0, 2]
-    v = k[..., 1, 0] * xd + k[..., 1, 1] * yd + k[..., 1, 2]
-    return torch.stack([u, v], dim=-1)
-
-
-def apply_homography_torch(H: torch.Tensor, pts: torch.Tensor) -> torch.Tensor:
-    """Differentiable :func:`apply_homography`: ``H (B, 3, 3)``, ``pts (B, N, 2)`` -> ``(B, N, 2)``.
-
-    Batch dimensions broadcast (``H (3, 3)`` or ``pts (N, 2)`` are also accepted).
-    """
-    H = _like(H, pts)
-    if H.ndim < 2 or H.shape[-2:] != (3, 3):
-        raise ValueError(f"H must have shape (..., 3, 3), got {tuple(H.shape)}")
-    _check_last_dim(pts, 2, "pts")
-    u, v = _homography_xy(H, pts)
-    return torch.stack([u, v], dim=-1)
 
 
 # ---------------------------------------------------------------------------

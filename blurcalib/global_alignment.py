@@ -65,7 +65,7 @@ import cv2
 import numpy as np
 from numpy.typing import ArrayLike
 
-from blurcalib.camera import BrownConrady, Pose
+from blurcalib.camera import BrownConrady, Pose, project_poses
 from blurcalib.pattern import StarPattern
 
 __all__ = [
@@ -285,8 +285,7 @@ class GlobalAlignment:
 class _Problem:
     """Fixed data of one alignment: the camera, points, observations, basis and weights."""
 
-    K: np.ndarray
-    dist: np.ndarray
+    camera: BrownConrady
     points: np.ndarray
     observed: np.ndarray
     phi: np.ndarray
@@ -296,11 +295,8 @@ class _Problem:
 
     def project(self, pose6: np.ndarray, jacobian: bool) -> tuple[np.ndarray, np.ndarray | None]:
         """``pi_d`` of the points at pose ``(rvec, tvec)``; with its ``(N, 2, 6)`` Jacobian."""
-        proj, jac = cv2.projectPoints(self.points, pose6[:3], pose6[3:], self.K, self.dist)
-        proj = proj.reshape(-1, 2)
-        if not jacobian:
-            return proj, None
-        return proj, jac.reshape(-1, 2, jac.shape[-1])[:, :, :6]
+        proj = project_poses(self.camera.params, pose6[:3], pose6[3:], self.points, jacobian=jacobian)
+        return proj.pixels, proj.d_pose
 
     def residuals(self, pose6: np.ndarray, beta: np.ndarray) -> np.ndarray:
         """``e = p_obs - b - pi_d(M, P)``, ``(N, 2)`` px."""
@@ -385,10 +381,10 @@ def _initial_pose(problem: _Problem) -> np.ndarray:
     """A pose from ``cv2.solvePnP`` (SQPnP, then Levenberg-Marquardt refinement)."""
     obj = np.ascontiguousarray(problem.points, dtype=np.float64)
     img = np.ascontiguousarray(problem.observed, dtype=np.float64)
-    ok, rvec, tvec = cv2.solvePnP(obj, img, problem.K, problem.dist, flags=cv2.SOLVEPNP_SQPNP)
+    ok, rvec, tvec = cv2.solvePnP(obj, img, problem.camera.K, problem.camera.dist, flags=cv2.SOLVEPNP_SQPNP)
     if not ok:
         raise ValueError("solvePnP failed: the observations do not determine a pose")
-    rvec, tvec = cv2.solvePnPRefineLM(obj, img, problem.K, problem.dist, rvec, tvec)
+    rvec, tvec = cv2.solvePnPRefineLM(obj, img, problem.camera.K, problem.camera.dist, rvec, tvec)
     return np.concatenate([rvec.reshape(3), tvec.reshape(3)])
 
 
@@ -445,7 +441,7 @@ def align_global(camera: BrownConrady, points_3d: ArrayLike, observed: ArrayLike
     if np.count_nonzero(w) < 6:
         raise ValueError(f"need at least 6 points with positive weight, got {np.count_nonzero(w)}")
     phi = bias_basis(grid, bias, len(P))
-    problem = _Problem(camera.K, camera.dist, P, p, phi, w, loss, float(huber_px))
+    problem = _Problem(camera, P, p, phi, w, loss, float(huber_px))
     pose6 = (_initial_pose(problem) if initial_pose is None
              else np.concatenate([initial_pose.rvec, initial_pose.t]))
     beta = np.zeros(2 * phi.shape[1])
@@ -527,7 +523,7 @@ def alignment_covariance(camera: BrownConrady, pose: Pose, points_3d: ArrayLike,
     phi = bias_basis(grid, bias, n)
     if phi.shape[1] == 0:
         return np.zeros((0, 0))
-    problem = _Problem(camera.K, camera.dist, P, np.zeros((n, 2)), phi, w, "mean", 1.0)
+    problem = _Problem(camera, P, np.zeros((n, 2)), phi, w, "mean", 1.0)
     pose6 = np.concatenate([pose.rvec, pose.t])
     A, _, _ = _normal_equations(problem, pose6, np.zeros(2 * phi.shape[1]), True, True)
     cov = sigma_px**2 * np.linalg.pinv(A)[6:, 6:]

@@ -12,7 +12,6 @@ from blurcalib.calibrate import (
     Calibration,
     CalibrationError,
     CalibrationFileError,
-    _project,
     calibrate_sharp,
     load_calibration,
     reprojection_errors,
@@ -211,34 +210,3 @@ def test_reprojection_errors_and_solve_pose(clean) -> None:
     assert np.linalg.norm(pose.t - calib.poses[name].t) < 1e-4
     with pytest.raises(ValueError, match="at least 4"):
         solve_pose(calib.camera, np.zeros((3, 3)), np.zeros((3, 2)))
-
-
-def test_projection_jacobian_matches_finite_differences() -> None:
-    rng = np.random.default_rng(7)
-    intr = np.array([645.2, 644.6, 637.8, 361.4, 0.041, -0.058, 0.0007, -0.0004, 0.019])
-    rvecs = rng.normal(size=(3, 3)) * 0.5
-    tvecs = rng.normal(size=(3, 3)) * 0.05 + [0.0, 0.0, 0.4]
-    points = rng.normal(size=(20, 3)) * 0.1
-    frames = rng.integers(0, 3, 20)
-    _, (j_intr, j_pose, j_point) = _project(intr, rvecs, tvecs, points, frames, True)
-
-    def numeric(fun, x: np.ndarray) -> np.ndarray:
-        cols = []
-        for k in range(x.size):
-            step = np.zeros(x.size)
-            step[k] = 1e-6 * max(1.0, abs(x.flat[k]))
-            cols.append((fun((x.ravel() + step).reshape(x.shape)) - fun((x.ravel() - step).reshape(x.shape)))
-                        / (2 * step[k]))
-        return np.stack(cols, axis=-1)
-
-    rows = np.arange(20)
-    np.testing.assert_allclose(numeric(lambda p: _project(p, rvecs, tvecs, points, frames, False)[0], intr),
-                               j_intr, atol=1e-5 * np.abs(j_intr).max())
-    d_rvec = numeric(lambda r: _project(intr, r, tvecs, points, frames, False)[0], rvecs)
-    d_tvec = numeric(lambda t: _project(intr, rvecs, t, points, frames, False)[0], tvecs)
-    d_point = numeric(lambda p: _project(intr, rvecs, tvecs, p, frames, False)[0], points)
-    d_rvec, d_tvec = d_rvec.reshape(20, 2, 3, 3), d_tvec.reshape(20, 2, 3, 3)
-    d_point = d_point.reshape(20, 2, 20, 3)
-    np.testing.assert_allclose(d_rvec[rows, :, frames], j_pose[:, :, :3], atol=1e-4)
-    np.testing.assert_allclose(d_tvec[rows, :, frames], j_pose[:, :, 3:], atol=1e-4)
-    np.testing.assert_allclose(d_point[rows, :, rows], j_point, atol=1e-4)

@@ -1,4 +1,4 @@
-"""Tests for blurcalib.camera: projection, undistortion, torch ops, homographies and file I/O."""
+"""Tests for blurcalib.camera: projection with its Jacobian, undistortion, homographies and file I/O."""
 
 from __future__ import annotations
 
@@ -10,24 +10,19 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
-import torch
 
 from blurcalib.camera import (
     BrownConrady,
     CameraFileError,
     Pose,
     apply_homography,
-    apply_homography_torch,
-    distort_torch,
     load_camera_json,
     load_camera_yaml,
     plane_homography,
     project_points,
-    project_torch,
-    rodrigues_torch,
+    project_poses,
     save_camera_json,
     save_camera_yaml,
-    undistort_torch,
 )
 
 CV_UNDISTORT_CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 200, 1e-16)
@@ -132,98 +127,6 @@ def batch_case(
     return cameras, poses, np.stack([target_points(rng, n) for _ in range(batch)])
 
 
-def test_project_torch_matches_numpy_float64(rng: np.random.Generator) -> None:
-    cameras, poses, pts = batch_case(rng, 4, 25)
-    out = project_torch(
-        torch.from_numpy(pts),
-        torch.from_numpy(np.stack([p.R for p in poses])),
-        torch.from_numpy(np.stack([p.t for p in poses])),
-        torch.from_numpy(np.stack([c.K for c in cameras])),
-        torch.from_numpy(np.stack([c.dist for c in cameras])),
-    )
-    assert out.shape == (4, 25, 2) and out.dtype == torch.float64
-    expected = np.stack([project_points(c, p, x) for c, p, x in zip(cameras, poses, pts, strict=True)])
-    np.testing.assert_allclose(out.numpy(), expected, rtol=0, atol=1e-9)
-
-    shared = cameras[0]
-    out_shared = project_torch(
-        torch.from_numpy(pts[0]),
-        torch.from_numpy(np.stack([p.R for p in poses])),
-        torch.from_numpy(np.stack([p.t for p in poses])),
-        torch.from_numpy(shared.K),
-        torch.from_numpy(shared.dist),
-    )
-    expected_shared = np.stack([project_points(shared, p, pts[0]) for p in poses])
-    np.testing.assert_allclose(out_shared.numpy(), expected_shared, rtol=0, atol=1e-9)
-
-
-def test_project_torch_float32_keeps_dtype_and_is_accurate(rng: np.random.Generator) -> None:
-    cameras, poses, pts = batch_case(rng, 2, 10)
-    args = [
-        pts,
-        np.stack([p.R for p in poses]),
-        np.stack([p.t for p in poses]),
-        np.stack([c.K for c in cameras]),
-        np.stack([c.dist for c in cameras]),
-    ]
-    out32 = project_torch(*(torch.from_numpy(a).float() for a in args))
-    out64 = project_torch(*(torch.from_numpy(a) for a in args))
-    assert out32.dtype == torch.float32
-    np.testing.assert_allclose(out32.double().numpy(), out64.numpy(), rtol=0, atol=1e-3)
-
-
-def test_project_torch_gradients_match_finite_differences(rng: np.random.Generator) -> None:
-    cameras, poses, pts = batch_case(rng, 2, 3)
-    inputs = tuple(
-        torch.from_numpy(np.asarray(a, dtype=np.float64)).requires_grad_()
-        for a in (
-            pts,
-            np.stack([p.rvec for p in poses]),
-            np.stack([p.t for p in poses]),
-            np.stack([c.K for c in cameras]),
-            np.stack([c.dist for c in cameras]),
-        )
-    )
-
-    def fn(points, rvec, t, K, dist):
-        return project_torch(points, rodrigues_torch(rvec), t, K, dist)
-
-    assert torch.autograd.gradcheck(fn, inputs)
-
-
-def test_distort_and_undistort_torch_match_numpy(rng: np.random.Generator) -> None:
-    cameras = [random_camera(rng) for _ in range(3)]
-    xn = rng.uniform(-0.3, 0.3, (3, 20, 2))
-    dist = torch.from_numpy(np.stack([c.dist for c in cameras]))
-    xd = distort_torch(torch.from_numpy(xn), dist)
-    expected = np.stack([c.distort(x) for c, x in zip(cameras, xn, strict=True)])
-    np.testing.assert_allclose(xd.numpy(), expected, rtol=0, atol=1e-15)
-    np.testing.assert_allclose(undistort_torch(xd, dist).numpy(), xn, rtol=0, atol=1e-12)
-
-
-def test_undistort_torch_gradients_match_finite_differences(rng: np.random.Generator) -> None:
-    xd = torch.from_numpy(rng.uniform(-0.4, 0.4, (2, 4, 2))).requires_grad_()
-    dist = torch.tensor([[-0.3, 0.1, 1e-3, -2e-3, 0.01], [0.1, -0.05, 0.0, 1e-3, 0.0]], dtype=torch.float64)
-    assert torch.autograd.gradcheck(undistort_torch, (xd, dist.requires_grad_()))
-
-
-def test_rodrigues_torch_matches_cv2(rng: np.random.Generator) -> None:
-    axes = rng.normal(size=(12, 3))
-    axes /= np.linalg.norm(axes, axis=1, keepdims=True)
-    angles = np.array([0.0, 1e-12, 1e-7, 1e-4, 9.9e-4, 1.01e-3, 0.1, 0.5, 1.0, 2.0, 3.0, 3.14])
-    rvecs = axes * angles[:, None]
-    out = rodrigues_torch(torch.from_numpy(rvecs))
-    assert out.shape == (12, 3, 3)
-    for rvec, R in zip(rvecs, out.numpy(), strict=True):
-        np.testing.assert_allclose(R, cv2.Rodrigues(rvec)[0], rtol=0, atol=1e-14)
-
-
-@pytest.mark.parametrize("angle", [0.0, 5e-4, 2e-3, 1.0])
-def test_rodrigues_torch_gradients_finite_at_all_angles(angle: float) -> None:
-    rvec = torch.tensor([[0.6, -0.48, 0.64]], dtype=torch.float64) * angle
-    assert torch.autograd.gradcheck(rodrigues_torch, (rvec.requires_grad_(),))
-
-
 # ---------------------------------------------------------------------------
 # Homographies
 # ---------------------------------------------------------------------------
@@ -241,7 +144,7 @@ def test_plane_homography_maps_to_undistorted_pixels(rng: np.random.Generator) -
     np.testing.assert_allclose(mapped, xn * [camera.fx, camera.fy] + [camera.cx, camera.cy], atol=1e-8)
 
 
-def test_apply_homography_batched_numpy_and_torch_agree(rng: np.random.Generator) -> None:
+def test_apply_homography_batched(rng: np.random.Generator) -> None:
     H = np.eye(3) + rng.normal(scale=[[0.1, 0.1, 5.0], [0.1, 0.1, 5.0], [1e-4, 1e-4, 0.0]], size=(3, 3, 3))
     pts = rng.uniform(0, 100, (3, 7, 2))
     batched = apply_homography(H, pts)
@@ -250,10 +153,6 @@ def test_apply_homography_batched_numpy_and_torch_agree(rng: np.random.Generator
         homog = np.column_stack([pts[b], np.ones(7)]) @ H[b].T
         np.testing.assert_allclose(batched[b], homog[:, :2] / homog[:, 2:], rtol=1e-13)
         np.testing.assert_allclose(apply_homography(H[b], pts[b]), batched[b], rtol=0, atol=0)
-    out = apply_homography_torch(torch.from_numpy(H), torch.from_numpy(pts))
-    np.testing.assert_allclose(out.numpy(), batched, rtol=1e-14)
-    inputs = (torch.from_numpy(H[:2]).requires_grad_(), torch.from_numpy(pts[:2, :3]).requires_grad_())
-    assert torch.autograd.gradcheck(apply_homography_torch, inputs)
 
 
 # ---------------------------------------------------------------------------
@@ -412,3 +311,44 @@ def test_camera_file_error_names_the_problem(tmp_path: Path) -> None:
     json_path.write_text(CORRUPT_JSON["missing_key"])
     with pytest.raises(CameraFileError, match="missing key 'fy'"):
         load_camera_json(json_path)
+
+
+def test_project_poses_jacobian_matches_finite_differences() -> None:
+    rng = np.random.default_rng(7)
+    intr = np.array([645.2, 644.6, 637.8, 361.4, 0.041, -0.058, 0.0007, -0.0004, 0.019])
+    rvecs = rng.normal(size=(3, 3)) * 0.5
+    tvecs = rng.normal(size=(3, 3)) * 0.05 + [0.0, 0.0, 0.4]
+    points = rng.normal(size=(20, 3)) * 0.1
+    frames = rng.integers(0, 3, 20)
+    proj = project_poses(intr, rvecs, tvecs, points, frames, jacobian=True)
+    j_intr, j_pose, j_point = proj.d_intrinsics, proj.d_pose, proj.d_point
+
+    def numeric(fun, x: np.ndarray) -> np.ndarray:
+        cols = []
+        for k in range(x.size):
+            step = np.zeros(x.size)
+            step[k] = 1e-6 * max(1.0, abs(x.flat[k]))
+            cols.append((fun((x.ravel() + step).reshape(x.shape)) - fun((x.ravel() - step).reshape(x.shape)))
+                        / (2 * step[k]))
+        return np.stack(cols, axis=-1)
+
+    rows = np.arange(20)
+    np.testing.assert_allclose(numeric(lambda p: project_poses(p, rvecs, tvecs, points, frames).pixels, intr),
+                               j_intr, atol=1e-5 * np.abs(j_intr).max())
+    d_rvec = numeric(lambda r: project_poses(intr, r, tvecs, points, frames).pixels, rvecs)
+    d_tvec = numeric(lambda t: project_poses(intr, rvecs, t, points, frames).pixels, tvecs)
+    d_point = numeric(lambda p: project_poses(intr, rvecs, tvecs, p, frames).pixels, points)
+    d_rvec, d_tvec = d_rvec.reshape(20, 2, 3, 3), d_tvec.reshape(20, 2, 3, 3)
+    d_point = d_point.reshape(20, 2, 20, 3)
+    np.testing.assert_allclose(d_rvec[rows, :, frames], j_pose[:, :, :3], atol=1e-4)
+    np.testing.assert_allclose(d_tvec[rows, :, frames], j_pose[:, :, 3:], atol=1e-4)
+    np.testing.assert_allclose(d_point[rows, :, rows], j_point, atol=1e-4)
+
+
+def test_project_poses_matches_cv2_project_points() -> None:
+    rng = np.random.default_rng(3)
+    camera = BrownConrady(645.2, 644.6, 637.8, 361.4, 0.041, -0.058, 0.0007, -0.0004, 0.019, 1280, 720)
+    rvec, tvec = rng.normal(size=3) * 0.4, np.array([0.02, -0.01, 0.5])
+    points = rng.normal(size=(30, 3)) * 0.1
+    expected = cv2.projectPoints(points, rvec, tvec, camera.K, camera.dist)[0].reshape(-1, 2)
+    np.testing.assert_allclose(project_poses(camera.params, rvec, tvec, points).pixels, expected, atol=1e-9)
