@@ -365,6 +365,36 @@ def _initialise(obj: list[np.ndarray], img: list[np.ndarray], image_size: tuple[
     return intr, rvecs, tvecs, np.concatenate(keep)
 
 
+def calibrate_pinhole(points: Sequence[np.ndarray], pixels: Sequence[np.ndarray],
+                      image_size: tuple[int, int]) -> tuple[BrownConrady, list[Pose]]:
+    """A rough camera and poses from frames of any quality: one focal length, the principal point
+    at the image centre, no distortion (``cv2.calibrateCamera`` with everything else fixed).
+
+    For display (camera frustums before a calibration exists), not for measurement.
+
+    Args:
+        points: per frame, ``(N_f, 3)`` target points (m).
+        pixels: per frame, ``(N_f, 2)`` observations (px, OpenCV convention).
+        image_size: ``(width, height)`` px.
+    Raises:
+        CalibrationError: OpenCV's fit failed.
+    """
+    w, h = image_size
+    f0 = float(max(w, h))
+    K = np.array([[f0, 0.0, (w - 1) / 2.0], [0.0, f0, (h - 1) / 2.0], [0.0, 0.0, 1.0]])
+    flags = (cv2.CALIB_USE_INTRINSIC_GUESS | cv2.CALIB_FIX_PRINCIPAL_POINT | cv2.CALIB_FIX_ASPECT_RATIO
+             | cv2.CALIB_ZERO_TANGENT_DIST | cv2.CALIB_FIX_K1 | cv2.CALIB_FIX_K2 | cv2.CALIB_FIX_K3)
+    try:
+        _, K, _, rvecs, tvecs = cv2.calibrateCamera([np.asarray(p, np.float32) for p in points],
+                                                    [np.asarray(p, np.float32) for p in pixels], (w, h), K,
+                                                    np.zeros(5), flags=flags)
+    except cv2.error as exc:
+        raise CalibrationError(f"cv2.calibrateCamera failed on {len(points)} frames: {str(exc).strip()}"
+                               ) from None
+    camera = BrownConrady.from_matrix(K, None, w, h)
+    return camera, [Pose.from_rvec_tvec(r.ravel(), t.ravel()) for r, t in zip(rvecs, tvecs, strict=True)]
+
+
 def calibrate_sharp(observations: FeatureTable | Sequence[FeatureObservation], pattern: StarPattern,
                     image_size: tuple[int, int], refine_points: bool = True, loss: str = "huber",
                     huber_px: float = 1.0, min_frames: int = 5, *, min_features: int = 20,

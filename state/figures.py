@@ -10,9 +10,9 @@ from collections import Counter
 from collections.abc import Mapping
 from dataclasses import dataclass
 
-import cv2
 import numpy as np
 
+from blurcalib.calibrate import CalibrationError, calibrate_pinhole
 from blurcalib.camera import BrownConrady, Pose, apply_homography
 from blurcalib.extract import FrameResult, FrameStatus
 from blurcalib.pattern import StarPattern
@@ -268,8 +268,8 @@ def feature_poses(pattern: StarPattern,
                   min_features: int = 12) -> FramePoses | None:
     """Poses from each finished frame's used star centres, with an approximate camera.
 
-    The camera is ``cv2.calibrateCamera`` with one focal length, the principal point at the
-    image centre and no distortion, fitted to the frames of the most common image size.
+    The camera is :func:`blurcalib.calibrate.calibrate_pinhole` (one focal length, the principal
+    point at the image centre, no distortion), fitted to the frames of the most common image size.
     Returns None when no frame has ``min_features`` used blocks or the fit fails.
     """
     obj, img, names = [], [], []
@@ -287,16 +287,10 @@ def feature_poses(pattern: StarPattern,
         names.append(name)
     if not names:
         return None
-    w, h = size
-    K = np.array([[float(max(w, h)), 0.0, (w - 1) / 2.0], [0.0, float(max(w, h)), (h - 1) / 2.0],
-                  [0.0, 0.0, 1.0]])
-    flags = (cv2.CALIB_USE_INTRINSIC_GUESS | cv2.CALIB_FIX_PRINCIPAL_POINT | cv2.CALIB_FIX_ASPECT_RATIO
-             | cv2.CALIB_ZERO_TANGENT_DIST | cv2.CALIB_FIX_K1 | cv2.CALIB_FIX_K2 | cv2.CALIB_FIX_K3)
     try:
-        _, K, _, rvecs, tvecs = cv2.calibrateCamera(obj, img, (w, h), K, np.zeros(5), flags=flags)
-    except cv2.error:
+        camera, poses = calibrate_pinhole(obj, img, size)
+    except CalibrationError:
         return None
-    poses = {n: Pose.from_rvec_tvec(r.ravel(), t.ravel())
-             for n, r, t in zip(names, rvecs, tvecs, strict=True)}
-    fov = 2.0 * float(np.arctan2(h / 2.0, K[1, 1]))
-    return FramePoses(poses, fov, w / h, "approximate camera")
+    w, h = size
+    fov = 2.0 * float(np.arctan2(h / 2.0, camera.fy))
+    return FramePoses(dict(zip(names, poses, strict=True)), fov, w / h, "approximate camera")
