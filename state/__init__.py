@@ -4,7 +4,8 @@
 thresholds, the selection and the run queue; views subscribe to its :class:`Topic` changes.
 """
 
-from state.app_state import AppState, FrameEntry, FrameView, Notice, RunProgress, RunSettings, Topic
+from state.app_state import AppState, FrameEntry, FrameView, RunProgress, RunSettings
+from state.events import Notice, Topic
 from state.folder import Dataset, DatasetError, default_dataset, discover
 
 __all__ = ["AppState", "Dataset", "DatasetError", "FrameEntry", "FrameView", "Notice", "RunProgress",

@@ -2,9 +2,10 @@
 
 Everything a view shows is read from :class:`AppState`; every change goes through its methods,
 which hold one lock while they change fields and then tell the subscribers which
-:class:`Topic` changed (outside the lock, from the thread that made the change: a viser
-callback or the run worker). Extraction runs in one worker thread, frame after frame from a
-queue, and stops between growth fronts when cancelled.
+:class:`~state.events.Topic` changed (:mod:`state.events`, outside the lock, from the thread that
+made the change: a viser callback or the run worker). Extraction runs in one worker thread, frame
+after frame from a queue, and stops between growth fronts when cancelled; the worker stays here
+because each of its status changes must be atomic with the store's fields.
 """
 
 from __future__ import annotations
@@ -16,7 +17,6 @@ import time
 from collections import OrderedDict, deque
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
-from enum import Enum
 from functools import partial
 from pathlib import Path
 
@@ -31,6 +31,7 @@ from blurcalib.quality import FrameFilter, QualitySettings, filter_frame
 from blurcalib.results import BlockStatus
 from blurcalib.seed import block_homography
 from blurcalib.synth import FrameTruth
+from state.events import Events, Notice, Topic
 from state.folder import Dataset, DatasetError, FrameFile, discover
 
 log = logging.getLogger(__name__)
@@ -38,28 +39,6 @@ log = logging.getLogger(__name__)
 FRAME_KINDS = ("blurry", "sharp")
 DONE_STATUSES = frozenset(s.value for s in FrameStatus) - {FrameStatus.FAILED.value}
 """Frame statuses that ``run_all`` does not redo (a failed frame is retried)."""
-
-
-class Topic(str, Enum):
-    """What changed; subscribers re-read the state they show."""
-
-    FOLDER = "folder"
-    FRAMES = "frames"
-    CURRENT = "current"
-    LIVE = "live"
-    RESULT = "result"
-    FILTER = "filter"
-    SELECTION = "selection"
-    RUN = "run"
-
-
-@dataclass(frozen=True)
-class Notice:
-    """A message for the user: ``level`` is ``info``, ``warning`` or ``error``."""
-
-    level: str
-    title: str
-    text: str
 
 
 @dataclass
@@ -225,8 +204,7 @@ class AppState:
 
     def __init__(self, settings: RunSettings | None = None, image_cache: int = 12) -> None:
         self._lock = threading.RLock()
-        self._listeners: list[Callable[[Topic], None]] = []
-        self._notice_listeners: list[Callable[[Notice], None]] = []
+        self.events = Events()
         self._image_cache = image_cache
         self.settings = settings or RunSettings()
         self.dataset: Dataset | None = None
@@ -234,7 +212,6 @@ class AppState:
         self.current = -1
         self.selected: int | None = None
         self.quality = QualitySettings()
-        self.notices: list[Notice] = []
         self._images: OrderedDict[str, np.ndarray] = OrderedDict()
         self._sizes: dict[str, tuple[int, int]] = {}
         self._results: dict[str, FrameResult] = {}
@@ -245,39 +222,23 @@ class AppState:
         self._worker: threading.Thread | None = None
         self._progress = RunProgress()
 
-    # ---------------------------------------------------------------------------- listeners
+    # ----------------------------------------------------------------------------- events
     def subscribe(self, listener: Callable[[Topic], None]) -> None:
-        """Call ``listener(topic)`` after every change (from the changing thread; keep it fast)."""
-        with self._lock:
-            self._listeners.append(listener)
+        """See :meth:`state.events.Events.subscribe`."""
+        self.events.subscribe(listener)
 
     def subscribe_notices(self, listener: Callable[[Notice], None]) -> None:
-        """Call ``listener(notice)`` for every message to the user."""
-        with self._lock:
-            self._notice_listeners.append(listener)
-
-    def _emit(self, *topics: Topic) -> None:
-        with self._lock:
-            listeners = list(self._listeners)
-        for topic in topics:
-            for listener in listeners:
-                try:
-                    listener(topic)
-                except Exception:
-                    log.exception("listener failed on %s", topic.value)
+        """See :meth:`state.events.Events.subscribe_notices`."""
+        self.events.subscribe_notices(listener)
 
     def notify(self, level: str, title: str, text: str) -> Notice:
-        """Record a message for the user and pass it to the notice subscribers."""
-        notice = Notice(level, title, text)
-        with self._lock:
-            self.notices.append(notice)
-            listeners = list(self._notice_listeners)
-        for listener in listeners:
-            try:
-                listener(notice)
-            except Exception:
-                log.exception("notice listener failed")
-        return notice
+        """See :meth:`state.events.Events.notify`."""
+        return self.events.notify(level, title, text)
+
+    @property
+    def notices(self) -> list[Notice]:
+        """The messages sent to the user so far."""
+        return self.events.notices
 
     # ------------------------------------------------------------------------------ folders
     def load_folder(self, folder: str | os.PathLike, pattern: str | os.PathLike | None = None) -> bool:
@@ -313,7 +274,7 @@ class AppState:
         self.notify("info", "Folder opened",
                     f"{dataset.folder}: {len(dataset.frames)} frames, pattern {dataset.pattern_path.name}"
                     + (", with ground truth" if dataset.truth is not None else ""))
-        self._emit(Topic.FOLDER, Topic.FRAMES, Topic.RUN)
+        self.events.emit(Topic.FOLDER, Topic.FRAMES, Topic.RUN)
         self.select_frame(0)
         return True
 
@@ -359,7 +320,7 @@ class AppState:
         then = "frames to extract again" if self.frames else "upload frames next"
         self.notify("info", "Pattern in use", f"{path.name}: {pattern.squares_x} x {pattern.squares_y} "
                                               f"squares, {pattern.num_features} features; {then}")
-        self._emit(Topic.FOLDER, Topic.FRAMES, Topic.RUN, Topic.RESULT, Topic.FILTER, Topic.CURRENT,
+        self.events.emit(Topic.FOLDER, Topic.FRAMES, Topic.RUN, Topic.RESULT, Topic.FILTER, Topic.CURRENT,
                    Topic.SELECTION)
         return True
 
@@ -383,7 +344,7 @@ class AppState:
             self.dataset = replace(self.dataset,
                                    frames=(*self.dataset.frames, FrameFile(unique, Path(path), kind)))
             index = len(self.frames) - 1
-        self._emit(Topic.FRAMES)
+        self.events.emit(Topic.FRAMES)
         self.select_frame(index)
         return index
 
@@ -436,8 +397,8 @@ class AppState:
         except FrameError as exc:
             self._set_status(entry.name, FrameStatus.UNREADABLE.value, str(exc))
             self.notify("error", "Unreadable frame", str(exc))
-            self._emit(Topic.FRAMES)
-        self._emit(Topic.CURRENT, Topic.SELECTION)
+            self.events.emit(Topic.FRAMES)
+        self.events.emit(Topic.CURRENT, Topic.SELECTION)
         return True
 
     def set_kind(self, index: int, kind: str) -> None:
@@ -446,7 +407,7 @@ class AppState:
             raise ValueError(f"kind must be one of {FRAME_KINDS}, got {kind!r}")
         with self._lock:
             self.frames[index].kind = kind
-        self._emit(Topic.FRAMES)
+        self.events.emit(Topic.FRAMES)
 
     def entries(self) -> list[FrameEntry]:
         """Copies of the frame list's entries."""
@@ -532,7 +493,7 @@ class AppState:
             if self._worker is None:
                 self._worker = threading.Thread(target=self._work, name="blurcalib-run", daemon=True)
                 self._worker.start()
-        self._emit(Topic.FRAMES, Topic.RUN)
+        self.events.emit(Topic.FRAMES, Topic.RUN)
         return True
 
     def cancel(self) -> None:
@@ -545,7 +506,7 @@ class AppState:
                 self._entry(n).status = "pending"
             self._queue.clear()
             self._progress = replace(self._progress, cancelling=True)
-        self._emit(Topic.FRAMES, Topic.RUN)
+        self.events.emit(Topic.FRAMES, Topic.RUN)
 
     def wait(self, timeout: float | None = None) -> bool:
         """Wait for the run to end; returns whether it did within ``timeout`` seconds."""
@@ -567,14 +528,14 @@ class AppState:
                 self._entry(name).status = "running"
                 self._live[name] = []
                 self._progress = replace(self._progress, frame=name, frame_blocks=0, frame_expected=0)
-            self._emit(Topic.FRAMES, Topic.RUN, Topic.LIVE)
+            self.events.emit(Topic.FRAMES, Topic.RUN, Topic.LIVE)
             t0 = time.perf_counter()
             try:
                 self._run_one(name, t0)
             except Exception as exc:  # the worker must survive any failure of one frame
                 log.exception("extraction of %s failed", name)
                 self._finish(name, None, FrameStatus.FAILED.value, f"{type(exc).__name__}: {exc}", t0)
-        self._emit(Topic.RUN)
+        self.events.emit(Topic.RUN)
 
     def _run_one(self, name: str, t0: float) -> None:
         with self._lock:
@@ -602,7 +563,7 @@ class AppState:
                 expected = expected_blocks(self.dataset.pattern, event, self._sizes[name])
             self._progress = replace(self._progress, frame_blocks=len(events),
                                      frame_expected=max(expected, len(events)))
-        self._emit(Topic.LIVE, Topic.RUN)
+        self.events.emit(Topic.LIVE, Topic.RUN)
 
     def _finish(self, name: str, result: FrameResult | None, status: str, message: str, t0: float) -> None:
         with self._lock:
@@ -625,7 +586,7 @@ class AppState:
         if status not in (FrameStatus.OK.value, "cancelled"):
             self.notify("warning" if status != FrameStatus.FAILED.value else "error",
                         f"{name}: {status.replace('_', ' ')}", message)
-        self._emit(Topic.FRAMES, Topic.RESULT, Topic.FILTER, Topic.SELECTION, Topic.RUN)
+        self.events.emit(Topic.FRAMES, Topic.RESULT, Topic.FILTER, Topic.SELECTION, Topic.RUN)
 
     def _current_name(self) -> str | None:
         return self.frames[self.current].name if 0 <= self.current < len(self.frames) else None
@@ -643,7 +604,7 @@ class AppState:
                 if flt is not None:
                     self._filters[name] = flt
             quality = self.quality
-        self._emit(Topic.FILTER)
+        self.events.emit(Topic.FILTER)
         return quality
 
     def select_block(self, index: int | None) -> bool:
@@ -656,5 +617,5 @@ class AppState:
             if index == self.selected:
                 return True
             self.selected = index
-        self._emit(Topic.SELECTION)
+        self.events.emit(Topic.SELECTION)
         return True
