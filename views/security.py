@@ -103,7 +103,8 @@ def _guard_origin(inner: ProcessRequest | None) -> ProcessRequest:
             port = connection.local_address[1]
             if (len(origins) > 1 or len(hosts) != 1
                     or not origin_allowed(origins[0] if origins else None, hosts[0], port)):
-                log.warning("refused a websocket from origin %r (Host %r)", origins, hosts)
+                log.warning("refused a websocket from origin %s (Host %s)", ", ".join(origins) or "-",
+                            ", ".join(hosts) or "-")
                 return connection.respond(http.HTTPStatus.FORBIDDEN, "foreign origin refused\n")
         return inner(connection, request) if inner is not None else None
 
