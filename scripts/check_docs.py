@@ -143,6 +143,7 @@ def main(argv: list[str] | None = None) -> int:
     for line in problems:
         print(line)
     count = len(markdown_files(root))
+    sys.stdout.flush()
     print(f"check_docs: {count} markdown files, {len(problems)} problems", file=sys.stderr)
     return 1 if problems else 0
 
