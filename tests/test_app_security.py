@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import logging
 import time
+import types
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import ClassVar
@@ -16,8 +17,9 @@ from websockets.exceptions import InvalidStatus
 from websockets.sync.client import ClientConnection, connect
 from websockets.typing import Origin, Subprotocol
 
+import views.security
 from app import serve
-from views.security import origin_allowed
+from views.security import origin_allowed, secure_viser_server
 
 SUBPROTOCOL = Subprotocol(f"viser-v{viser.__version__}")
 SHARE_REQUEST = msgspec.msgpack.encode({"type": "ShareUrlRequest"})
@@ -142,3 +144,11 @@ def test_plain_viser_would_accept_both(tunnels: list[int]) -> None:
             assert _wait_for(lambda: tunnels == [port])
     finally:
         server.stop()
+
+
+def test_server_refuses_to_start_unguarded(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Should viser stop building its server through ``websockets.asyncio.server.serve`` (here:
+    the wrapper is installed where viser does not look), the app fails closed."""
+    monkeypatch.setattr(views.security, "ws_server", types.SimpleNamespace(serve=None))
+    with pytest.raises(RuntimeError, match="origin check cannot be installed"):
+        secure_viser_server("127.0.0.1", 0, "blurcalib")

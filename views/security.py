@@ -112,18 +112,21 @@ def _guard_origin(inner: ProcessRequest | None) -> ProcessRequest:
 
 
 @contextmanager
-def _origin_guarded_serve() -> Iterator[None]:
-    """While active, every websockets server built gets the origin guard in its handshake."""
+def _origin_guarded_serve() -> Iterator[list[int]]:
+    """While active, every websockets server built gets the origin guard in its handshake; yields
+    a list that gets one entry per guarded server."""
     with _BUILD_LOCK:
         original = ws_server.serve
+        guarded: list[int] = []
 
         def serve(*args: Any, process_request: ProcessRequest | None = None, **kwargs: Any
                   ) -> ws_server.serve:
+            guarded.append(1)
             return original(*args, process_request=_guard_origin(process_request), **kwargs)
 
         ws_server.serve = serve  # type: ignore[assignment,misc]
         try:
-            yield
+            yield guarded
         finally:
             ws_server.serve = original  # type: ignore[misc]
 
@@ -141,9 +144,16 @@ def secure_viser_server(host: str, port: int, label: str) -> viser.ViserServer:
         label: the panel's label.
     Returns:
         The running server; stop it with ``server.stop()``.
+    Raises:
+        RuntimeError: viser built its server without ``websockets.asyncio.server.serve`` (another
+            viser version), so the origin check is not in place; the server is stopped.
     """
-    with _origin_guarded_serve():
+    with _origin_guarded_serve() as guarded:
         server = viser.ViserServer(host=host, port=port, label=label, verbose=False)
+    if not guarded:
+        server.stop()
+        raise RuntimeError(f"viser {viser.__version__} did not build its websocket server through "
+                           "websockets.asyncio.server.serve: the origin check cannot be installed")
     websock = server._websock_server  # viser exposes no public hook for its message handlers
     websock.unregister_handler(_messages.ShareUrlRequest)
     websock.register_handler(_messages.ShareUrlRequest, _refuse_share)
