@@ -5,7 +5,8 @@ inspect blocks, see the error field and the frames' poses, and learn the transla
 
 With no folder it opens a small simulated dataset, rendered on first use into
 ``out/app_default/``. The app serves on 127.0.0.1 (port 8080 by default, the next free one if
-taken) and prints its URL. All browser tabs share one state (``state/``); each panel is a module of
+taken) and prints its URL; only pages of that origin can drive it, and it is never shared
+(``views/security.py``). All browser tabs share one state (``state/``); each panel is a module of
 ``views/``.
 """
 
@@ -30,6 +31,7 @@ from views.frame_view import FrameViewPanel
 from views.frames import FramesPanel
 from views.inspect import InspectPanel
 from views.psf_field import PsfFieldPanel
+from views.security import secure_viser_server
 from views.tuning import TuningPanel
 
 DEFAULT_FOLDER = Path(__file__).resolve().parent / "out" / "app_default"
@@ -83,7 +85,7 @@ def serve(folder: str | os.PathLike | None = None, pattern: str | os.PathLike | 
             print(f"rendering the built-in dataset into {DEFAULT_FOLDER} (first use only)", flush=True)
         folder = default_dataset(DEFAULT_FOLDER, progress=_progress)
     state = AppState(settings)
-    server = viser.ViserServer(host=host, port=port, label="blurcalib", verbose=False)
+    server = secure_viser_server(host, port, "blurcalib")
     server.gui.configure_theme(control_width="large", show_share_button=False, dark_mode=False,
                                brand_color=(40, 110, 200))
     server.gui.main_panel.dock_right()

@@ -263,7 +263,7 @@ def cmd_view(args: argparse.Namespace) -> int:
     app = Path(__file__).resolve().parents[1] / "app.py"
     if not app.is_file():
         raise CliError("the browser app (app.py, views/, state/) ships with the source checkout; "
-                       "run blurcalib from a checkout with `pip install -e .[gui]`")
+                       "run blurcalib from a checkout set up with `bash scripts/setup.sh`")
     argv = [sys.executable, str(app), *args.rest]
     return subprocess.call(argv)
 

@@ -15,6 +15,7 @@ stage, printed.
 from __future__ import annotations
 
 import argparse
+import os
 import tempfile
 import time
 from pathlib import Path
@@ -31,7 +32,10 @@ from blurcalib.quality import QualitySettings
 from blurcalib.results import FeatureTable, read_feature_table
 from blurcalib.synth import SynthConfig, load_ground_truth, write_dataset
 
-REAL = Path(__file__).resolve().parents[2] / "shared" / "fixtures" / "real_star16"
+FIXTURES = Path(os.environ.get("BLURCALIB_FIXTURES") or Path(__file__).resolve().parents[2] / "shared"
+                / "fixtures")
+"""The reference fixtures (``BLURCALIB_FIXTURES``, default ``../shared/fixtures`` beside the checkout)."""
+REAL = FIXTURES / "real_star16"
 
 
 def real_fixture() -> None:

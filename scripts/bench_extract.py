@@ -16,6 +16,7 @@
 from __future__ import annotations
 
 import argparse
+import os
 import resource
 import time
 from pathlib import Path
@@ -29,7 +30,10 @@ from blurcalib.frames import load_frame
 from blurcalib.pattern import load_pattern
 from blurcalib.synth import Simulator, SynthConfig, splat
 
-REAL = Path(__file__).resolve().parents[2] / "shared" / "fixtures" / "real_star16"
+FIXTURES = Path(os.environ.get("BLURCALIB_FIXTURES") or Path(__file__).resolve().parents[2] / "shared"
+                / "fixtures")
+"""The reference fixtures (``BLURCALIB_FIXTURES``, default ``../shared/fixtures`` beside the checkout)."""
+REAL = FIXTURES / "real_star16"
 
 
 def _errors(result, truth_xy: np.ndarray, use_local: bool = False) -> tuple[np.ndarray, np.ndarray]:

@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
-# Set up blurcalib in ./.venv: the CPU build of PyTorch, then the package with its test tools.
+# Set up blurcalib in ./.venv: the CPU build of PyTorch, then the package (with its browser app's
+# viser) and its test tools.
 # Idempotent: re-running it on a set-up checkout only checks what is there.
-# Usage: bash scripts/setup.sh [--gui]   (--gui adds the browser app's viser; see README)
+# Usage: bash scripts/setup.sh
 set -euo pipefail
 cd "$(dirname "$0")/.."
 PYTHON=${PYTHON:-python3}
@@ -14,7 +15,5 @@ PIP=(.venv/bin/python -m pip --disable-pip-version-check -q)
 if ! .venv/bin/python -c "import torch" 2>/dev/null; then
   "${PIP[@]}" install "torch==2.13.0"
 fi
-extras="dev"
-if [ "${1:-}" = "--gui" ]; then extras="dev,gui"; fi
-"${PIP[@]}" install -e ".[${extras}]"
+"${PIP[@]}" install -e ".[dev]"
 echo "blurcalib is set up in .venv ($(.venv/bin/python -c 'import torch; print("torch", torch.__version__)'))"

@@ -4,6 +4,9 @@ click a camera frustum in the 3D view.
 After the run the tuning panel shows the frame's error after global alignment (the same median
 as the state's), which follows the τ_L slider, and the Errors tab shows the residuals.
 
+A second test opens a page of another local origin and checks that it cannot open the app's
+websocket (``views/security.py``), while the app's own page can.
+
 Needs Debian's ``/usr/bin/chromium`` and the ``playwright`` package (no ``playwright install``:
 the test launches the system browser); it is skipped, saying which is missing, otherwise. It saves
 a screenshot to ``out/app_screenshot.png`` (ignored by git); with ``BLURCALIB_UPDATE_SCREENSHOT=1``
@@ -14,8 +17,10 @@ from __future__ import annotations
 
 import os
 import re
-import time
+import threading
 from dataclasses import replace
+from functools import partial
+from http.server import SimpleHTTPRequestHandler, ThreadingHTTPServer
 from pathlib import Path
 
 import pytest
@@ -56,7 +61,6 @@ def _kept(page) -> int:
 def test_run_tune_and_inspect_in_chromium(tmp_path: Path) -> None:
     from app import serve
 
-    t0 = time.perf_counter()
     folder = make_dataset(tmp_path / "data", replace(SMALL_CONFIG, sharp=0, blurry=1))
     server, app = serve(folder, None, 0, settings=SETTINGS)
     expect = sync_api.expect
@@ -167,4 +171,41 @@ def test_run_tune_and_inspect_in_chromium(tmp_path: Path) -> None:
     finally:
         app.close()
         server.stop()
-    assert time.perf_counter() - t0 < 120
+
+
+_OPEN_WEBSOCKET = """async ([url, protocol]) => await new Promise((resolve) => {
+    const ws = new WebSocket(url, protocol);
+    ws.onopen = () => { ws.close(); resolve("open"); };
+    ws.onerror = () => resolve("refused");
+})"""
+
+
+def test_foreign_page_cannot_connect_in_chromium(tmp_path: Path) -> None:
+    """A page of another origin (another local web server: same address, another port) fails to
+    open the app's websocket; the same script on the app's own page opens it."""
+    import viser
+
+    from app import serve
+
+    (tmp_path / "hostile").mkdir()
+    (tmp_path / "hostile" / "index.html").write_text("<html><body>hostile page</body></html>")
+    hostile = ThreadingHTTPServer(("127.0.0.1", 0), partial(SimpleHTTPRequestHandler,
+                                                            directory=str(tmp_path / "hostile")))
+    threading.Thread(target=hostile.serve_forever, daemon=True).start()
+    (tmp_path / "empty").mkdir()
+    server, app = serve(tmp_path / "empty", None, 0)  # no dataset needed: the handshake is under test
+    url = f"ws://127.0.0.1:{server.get_port()}"
+    protocol = f"viser-v{viser.__version__}"
+    try:
+        with sync_api.sync_playwright() as p:
+            browser = p.chromium.launch(executable_path=str(CHROMIUM), headless=True, args=FLAGS)
+            page = browser.new_page()
+            page.goto(f"http://127.0.0.1:{hostile.server_address[1]}/")
+            assert page.evaluate(_OPEN_WEBSOCKET, [url, protocol]) == "refused"
+            page.goto(f"http://127.0.0.1:{server.get_port()}/")
+            assert page.evaluate(_OPEN_WEBSOCKET, [url, protocol]) == "open"
+            browser.close()
+    finally:
+        hostile.shutdown()
+        app.close()
+        server.stop()

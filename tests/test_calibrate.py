@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import json
-import time
 
 import numpy as np
 import pytest
@@ -74,10 +73,7 @@ def assert_intrinsics_match(camera: BrownConrady, truth: BrownConrady) -> None:
 def clean(pattern: StarPattern, true_camera: BrownConrady
           ) -> tuple[FeatureTable, dict[str, Pose], Calibration]:
     table, poses = simulate(pattern, true_camera, 12, seed=0)
-    start = time.perf_counter()
-    calibration = calibrate_sharp(table, pattern, IMAGE_SIZE)
-    assert time.perf_counter() - start < 5.0
-    return table, poses, calibration
+    return table, poses, calibrate_sharp(table, pattern, IMAGE_SIZE)
 
 
 def test_clean_data_recovers_the_camera(clean, true_camera: BrownConrady, pattern: StarPattern) -> None:
@@ -89,6 +85,8 @@ def test_clean_data_recovers_the_camera(clean, true_camera: BrownConrady, patter
     assert 1.2 * NOISE_PX < calib.rms_error < 1.5 * NOISE_PX
     assert calib.num_frames == 12 and calib.num_observations == len(table)
     assert (~calib.inlier).sum() <= 1
+    # clean data converge like Gauss-Newton: a few Jacobians (4 measured) in one or two rounds
+    assert calib.rounds <= 2 and calib.iterations <= 12
     for name, pose in poses.items():
         rel = calib.poses[name].compose(pose.inverse())
         assert np.linalg.norm(rel.rvec) < 1e-3 and np.linalg.norm(pose.t - calib.poses[name].t) < 1e-3

@@ -12,7 +12,7 @@ from blurcalib.cli import main
 from tests.conftest import FIXTURE_YAML
 
 
-def test_pattern_command_reproduces_fixture(tmp_path, capsys, shared_fixtures) -> None:
+def test_pattern_command_reproduces_fixture(tmp_path, capsys) -> None:
     assert main(["pattern", "--out", str(tmp_path / "t" / "star"), "--dpi", "50"]) == 0
     assert (tmp_path / "t" / "star.yaml").read_text() == FIXTURE_YAML.read_text()
     assert (tmp_path / "t" / "star.pdf").read_bytes().startswith(b"%PDF")

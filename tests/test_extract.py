@@ -15,7 +15,7 @@ from blurcalib.refformat import read_ref_dataset
 from blurcalib.results import BlockStatus, read_features
 from blurcalib.seed import SeedError, block_homography, detect_tags, seed_frame
 from blurcalib.synth import Simulator, SynthConfig, TrueCamera
-from tests.conftest import REAL
+from tests.conftest import FIXTURE_YAML, REAL
 
 
 @pytest.fixture(scope="module")
@@ -60,7 +60,7 @@ def test_downscaled_detection_maps_back_to_full_resolution(sharp_frame) -> None:
 
 def test_unseedable_frame_is_reported() -> None:
     noise = np.random.default_rng(0).uniform(0, 255, (240, 320)).astype(np.float32)
-    pattern = load_pattern(REAL / "pattern.yaml")
+    pattern = load_pattern(FIXTURE_YAML)
     with pytest.raises(SeedError, match="no AprilTag"):
         seed_frame(noise, pattern)
     result = extract_frame(noise, pattern, "noise.png")

@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import json
 import math
-import time
 from pathlib import Path
 
 import cv2
@@ -271,15 +270,19 @@ def test_invalid_options(pattern, camera):
         align_global(camera, P, x, np.ones(3))
 
 
-def test_alignment_is_fast(pattern, camera):
+@pytest.mark.parametrize(("bias", "loss", "max_steps"), [
+    ("translation", "huber", 8), ("bilinear", "huber", 8), ("translation", "median", 40)])
+def test_joint_alignment_converges_in_a_few_steps(pattern, camera, bias, loss, max_steps):
+    """The joint solve's cost is its step count (each step one small linear solve): a handful of
+    LM steps (4 and 5 measured), more for the median's reweighting (24), and the fit reaches the
+    noise. Wall-clock time is not asserted (a loaded machine would make that flaky)."""
     _, P, x, grid = view(pattern, camera, 40.0)
     P, x, grid = P[:300], x[:300], grid[:300]
     rng = np.random.default_rng(7)
     obs = x + SHIFT + rng.normal(0.0, NOISE, x.shape)
-    for bias, loss in (("translation", "huber"), ("bilinear", "huber"), ("translation", "median")):
-        start = time.perf_counter()
-        align_global(camera, P, obs, grid=grid, bias=bias, loss=loss)
-        assert time.perf_counter() - start < 0.1
+    result = align_global(camera, P, obs, grid=grid, bias=bias, loss=loss)
+    assert result.converged and result.iterations <= max_steps
+    assert result.median_error < 1.5 * 1.1774 * NOISE
 
 
 # ------------------------------------------------------------------------------- experiment

@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 import torch
 
+from blurcalib.data import reference_pattern_path
 from blurcalib.pattern import (
     PatternFileError,
     StarPattern,
@@ -17,11 +18,11 @@ from blurcalib.pattern import (
     smooth_star,
     star_signed_distance,
 )
-from tests.conftest import FIXTURE_PNG, FIXTURE_YAML, SCHOPS
+from tests.conftest import FIXTURE_PNG, FIXTURE_YAML
 
 
 @pytest.fixture(scope="module")
-def fixture_pattern(shared_fixtures) -> StarPattern:
+def fixture_pattern() -> StarPattern:
     return load_pattern(FIXTURE_YAML)
 
 
@@ -45,10 +46,10 @@ def test_fixture_yaml_fields(fixture_pattern: StarPattern) -> None:
     ("pattern_resolution_25x36_segments_16_apriltag_6.yaml", 8.0, 6),
     ("pattern_resolution_50x72_segments_16_apriltag_3.yaml", 4.0, 3),
 ])
-def test_layout_reproduces_reference_generator(shared_fixtures, name, approx_mm, tag) -> None:
+def test_layout_reproduces_reference_generator(name, approx_mm, tag) -> None:
     mine = layout_pattern(approx_square_length_mm=approx_mm, tag_index=tag)
-    _assert_same_pattern(mine, load_pattern(SCHOPS / name))
-    assert mine.to_yaml_text() == (SCHOPS / name).read_text()
+    _assert_same_pattern(mine, load_pattern(reference_pattern_path(name)))
+    assert mine.to_yaml_text() == reference_pattern_path(name).read_text()
 
 
 def test_yaml_round_trip(tmp_path, fixture_pattern: StarPattern) -> None:
@@ -57,7 +58,7 @@ def test_yaml_round_trip(tmp_path, fixture_pattern: StarPattern) -> None:
     assert list(tmp_path.iterdir()) == [out]  # no temporary file left behind
 
 
-def test_render_matches_reference_png(fixture_pattern: StarPattern) -> None:
+def test_render_matches_reference_png(shared_fixtures, fixture_pattern: StarPattern) -> None:
     ref = cv2.imread(str(FIXTURE_PNG), cv2.IMREAD_UNCHANGED)[..., 0].astype(np.int32)
     h, w = ref.shape
     mine = fixture_pattern.render_page(dpi=136, supersample=3, size_px=(w, h)).astype(np.int32)

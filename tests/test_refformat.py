@@ -18,7 +18,7 @@ from blurcalib.refformat import (
     to_ref_dataset,
     write_ref_dataset,
 )
-from tests.conftest import REAL
+from tests.conftest import FIXTURE_YAML, REAL
 
 FEATURES_BIN = REAL / "features_10px.bin"
 
@@ -31,6 +31,12 @@ def real_dataset(shared_fixtures) -> RefDataset:
 @pytest.fixture(scope="module")
 def real_pattern(shared_fixtures) -> StarPattern:
     return load_pattern(REAL / "pattern.yaml")
+
+
+@pytest.fixture(scope="module")
+def shipped_pattern() -> StarPattern:
+    """The shipped 17x24 pattern (the real frames' geometry, tag #0): for tests of the format alone."""
+    return load_pattern(FIXTURE_YAML)
 
 
 def _symmetry_score(image: np.ndarray, centres: np.ndarray, radius: float = 4.0) -> np.ndarray:
@@ -107,8 +113,8 @@ def test_fixture_rewrites_byte_for_byte(real_dataset: RefDataset, tmp_path: Path
     assert out.read_bytes() == FEATURES_BIN.read_bytes()
 
 
-def test_round_trip(real_pattern: StarPattern, tmp_path: Path) -> None:
-    ds = _small_dataset(real_pattern)
+def test_round_trip(shipped_pattern: StarPattern, tmp_path: Path) -> None:
+    ds = _small_dataset(shipped_pattern)
     back = read_ref_dataset(write_ref_dataset(tmp_path / "small.bin", ds))
     assert back.image_size == (640, 480)
     assert [img.name for img in back.images] == ["a.png", "b.png", "c 10.png"]
@@ -122,32 +128,32 @@ def test_round_trip(real_pattern: StarPattern, tmp_path: Path) -> None:
         np.testing.assert_array_equal(getattr(geo_back, field), getattr(geo, field))
 
 
-def test_to_ref_dataset_layout(real_pattern: StarPattern) -> None:
-    ds = _small_dataset(real_pattern)
+def test_to_ref_dataset_layout(shipped_pattern: StarPattern) -> None:
+    ds = _small_dataset(shipped_pattern)
     assert [len(img.features) for img in ds.images] == [3, 0, 3]
     np.testing.assert_array_equal(ds.images[0].features, [0, 5, 17])
     np.testing.assert_array_equal(ds.images[2].features, [3, 5, 100])
     geo = ds.geometry
-    np.testing.assert_array_equal(real_pattern.feature_ids(geo.fx, geo.fy), geo.ids)
-    assert geo.square_length_m == real_pattern.square_length_m
+    np.testing.assert_array_equal(shipped_pattern.feature_ids(geo.fx, geo.fy), geo.ids)
+    assert geo.square_length_m == shipped_pattern.square_length_m
 
 
-def test_to_ref_dataset_errors(real_pattern: StarPattern) -> None:
+def test_to_ref_dataset_errors(shipped_pattern: StarPattern) -> None:
     args = ((640, 480), ["a.png"])
     with pytest.raises(ValueError, match="more than once"):
-        to_ref_dataset(*args, [0, 0], [4, 4], [1.0, 2.0], [1.0, 2.0], real_pattern)
+        to_ref_dataset(*args, [0, 0], [4, 4], [1.0, 2.0], [1.0, 2.0], shipped_pattern)
     with pytest.raises(ValueError, match="feature ids"):
-        to_ref_dataset(*args, [0], [343], [1.0], [1.0], real_pattern)
+        to_ref_dataset(*args, [0], [343], [1.0], [1.0], shipped_pattern)
     with pytest.raises(ValueError, match="index the 1 frames"):
-        to_ref_dataset(*args, [1], [0], [1.0], [1.0], real_pattern)
+        to_ref_dataset(*args, [1], [0], [1.0], [1.0], shipped_pattern)
     with pytest.raises(ValueError, match="same length"):
-        to_ref_dataset(*args, [0], [0], [1.0, 2.0], [1.0], real_pattern)
+        to_ref_dataset(*args, [0], [0], [1.0, 2.0], [1.0], shipped_pattern)
     with pytest.raises(ValueError, match="finite"):
-        to_ref_dataset(*args, [0], [0], [np.nan], [1.0], real_pattern)
+        to_ref_dataset(*args, [0], [0], [np.nan], [1.0], shipped_pattern)
 
 
-def test_truncated_files(real_pattern: StarPattern, tmp_path: Path) -> None:
-    data = encode_ref_dataset(_small_dataset(real_pattern))
+def test_truncated_files(shipped_pattern: StarPattern, tmp_path: Path) -> None:
+    data = encode_ref_dataset(_small_dataset(shipped_pattern))
     path = tmp_path / "cut.bin"
     # In the magic, the image size, a name's length, a name, a feature record, the geometry.
     for cut in (4, 20, 32, 36, 45, len(data) - 7):
@@ -156,8 +162,8 @@ def test_truncated_files(real_pattern: StarPattern, tmp_path: Path) -> None:
             read_ref_dataset(path)
 
 
-def test_malformed_files(real_pattern: StarPattern, tmp_path: Path) -> None:
-    data = encode_ref_dataset(_small_dataset(real_pattern))
+def test_malformed_files(shipped_pattern: StarPattern, tmp_path: Path) -> None:
+    data = encode_ref_dataset(_small_dataset(shipped_pattern))
     path = tmp_path / "bad.bin"
     path.write_bytes(b"calib_init" + data[10:])
     with pytest.raises(RefFormatError, match=r"bad\.bin: bad magic"):
