@@ -166,19 +166,17 @@ def frame_size(path: str | os.PathLike) -> tuple[int, int] | None:
     return None if image is None or image.size == 0 else (int(image.shape[1]), int(image.shape[0]))
 
 
-def check_frame_size(path: str | os.PathLike, width: int, height: int) -> None:
-    """Refuse a frame too small to hold the target or too large to process.
-
-    Raises:
-        FrameError: a side below :data:`MIN_FRAME_SIDE` or more than :data:`MAX_FRAME_PIXELS`
-            pixels (the message names the file and the limit).
-    """
+def frame_size_problem(width: int, height: int) -> str | None:
+    """Why a frame of ``width x height`` px cannot be processed, or None: a side below
+    :data:`MIN_FRAME_SIDE` (too small to hold the target) or more than
+    :data:`MAX_FRAME_PIXELS` pixels (too large for the memory bound)."""
     if min(width, height) < MIN_FRAME_SIDE:
-        raise FrameError(f"{path}: is {width}x{height} px, smaller than the {MIN_FRAME_SIDE}x"
-                         f"{MIN_FRAME_SIDE} px a frame needs")
+        return (f"is {width}x{height} px, smaller than the {MIN_FRAME_SIDE}x{MIN_FRAME_SIDE} px "
+                f"a frame needs")
     if width * height > MAX_FRAME_PIXELS:
-        raise FrameError(f"{path}: is {width}x{height} px ({width * height / 1e6:.1f} MP), more "
-                         f"than the {MAX_FRAME_PIXELS / 1e6:.0f} MP a frame may have")
+        return (f"is {width}x{height} px ({width * height / 1e6:.1f} MP), more than the "
+                f"{MAX_FRAME_PIXELS / 1e6:.0f} MP a frame may have")
+    return None
 
 
 def load_frame(path: str | os.PathLike, expected_size: tuple[int, int] | None = None) -> np.ndarray:
@@ -194,7 +192,7 @@ def load_frame(path: str | os.PathLike, expected_size: tuple[int, int] | None = 
         ``(H, W)`` float32 grey levels, 0..255.
     Raises:
         FrameError: the file is missing, unreadable, empty, truncated, not an image, of an
-            unsupported pixel type, smaller or larger than :func:`check_frame_size` allows
+            unsupported pixel type, smaller or larger than :func:`frame_size_problem` allows
             (the size is checked from the header before decoding where the format allows).
         FrameSizeError: a readable frame not of ``expected_size``.
     """
@@ -210,8 +208,9 @@ def load_frame(path: str | os.PathLike, expected_size: tuple[int, int] | None = 
     if not data:
         raise FrameError(f"{path}: empty file")
     header = _header_size(data)
-    if header is not None:
-        check_frame_size(path, *header)
+    problem = None if header is None else frame_size_problem(*header)
+    if problem is not None:
+        raise FrameError(f"{path}: {problem}")
     try:
         image = cv2.imdecode(np.frombuffer(data, dtype=np.uint8), cv2.IMREAD_UNCHANGED)
     except cv2.error:
@@ -222,7 +221,9 @@ def load_frame(path: str | os.PathLike, expected_size: tuple[int, int] | None = 
         raise FrameError(f"{path}: {problem}")
     if image is None or image.size == 0:
         raise FrameError(f"{path}: cannot decode image (not an image, or corrupt or truncated)")
-    check_frame_size(path, int(image.shape[1]), int(image.shape[0]))
+    problem = frame_size_problem(int(image.shape[1]), int(image.shape[0]))
+    if problem is not None:
+        raise FrameError(f"{path}: {problem}")
     if image.dtype == np.uint8:
         scale = np.float32(1.0)
     elif image.dtype == np.uint16:
