@@ -288,7 +288,7 @@ def _process_in_worker(path: Path, name: str, expected_size: tuple[int, int] | N
     return _process(path, name, *_WORKER_STATE, expected_size)
 
 
-def settings_record(settings: ExtractSettings) -> dict:
+def _settings_record(settings: ExtractSettings) -> dict:
     """The settings that determine a frame's result, as a JSON-serialisable dict (the torch
     device aside: it changes where, not what, is computed)."""
     record = asdict(settings)
@@ -354,7 +354,7 @@ def extract_to_folder(paths: Sequence[Path], pattern: StarPattern, out_dir: str 
     names = list(names) if names is not None else frame_names(list(paths))
     if len(names) != len(paths) or len(set(names)) != len(names):
         raise ValueError("frame names must be unique, one per path")
-    record = settings_record(settings)
+    record = _settings_record(settings)
     out = claim_output_dir(out_dir, "extract", record, overwrite)
     remove_temporaries(out / FRAMES_DIR)
     sizes = dict(zip(names, map(frame_size, paths), strict=True))
