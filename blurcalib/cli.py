@@ -146,7 +146,8 @@ def _run_pipeline(sharp: list[Path], blurry: list[Path], pattern: StarPattern, o
         bars[stage].set_postfix_str(f"{row['frame']}: {row['status']}", refresh=True)
 
     try:
-        report = run_pipeline(sharp, blurry, pattern, out, _pipeline_settings(args), update)
+        report = run_pipeline(sharp, blurry, pattern, out, _pipeline_settings(args), update,
+                              overwrite=args.overwrite)
     except PipelineError as exc:
         raise CliError(str(exc)) from None
     finally:
@@ -205,6 +206,21 @@ def cmd_demo(args: argparse.Namespace) -> int:
     return 0
 
 
+def _check_device(device: str) -> None:
+    """Refuse a torch device that does not exist here, before any work starts."""
+    import torch
+
+    try:
+        kind = torch.device(device).type
+    except RuntimeError:
+        raise CliError(f"--device {device!r}: not a torch device (use cpu or cuda)") from None
+    if kind == "cuda" and not torch.cuda.is_available():
+        raise CliError(f"--device {device!r}: CUDA is not available on this machine (this torch "
+                       f"build or driver has no CUDA device); use --device cpu")
+    if kind not in ("cpu", "cuda"):
+        raise CliError(f"--device {device!r}: unsupported device type {kind!r} (use cpu or cuda)")
+
+
 def cmd_extract(args: argparse.Namespace) -> int:
     """``blurcalib extract``: star features, PSFs and per-block figures from frames."""
     from blurcalib.deconv import DeconvSettings
@@ -217,6 +233,7 @@ def cmd_extract(args: argparse.Namespace) -> int:
     except FrameError as exc:
         raise CliError(str(exc)) from None
     kernel = args.psf_size or (7 if args.sharp else 17)
+    _check_device(args.device)
     try:
         deconv = DeconvSettings(kernel_size=kernel, device=args.device)
     except ValueError as exc:
@@ -237,7 +254,8 @@ def cmd_extract(args: argparse.Namespace) -> int:
 
     with bar:
         summary = extract_to_folder(paths, pattern, Path(args.out), settings,
-                                    workers=args.workers, progress=update)
+                                    workers=args.workers, progress=update,
+                                    overwrite=args.overwrite)
     total_features = sum(int(r.get("features", 0)) for r in summary.frames)
     ok = sum(r["status"] == "ok" for r in summary.frames)
     print(f"{ok}/{len(summary.frames)} frames ok, {total_features} features"
@@ -329,6 +347,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", required=True, help="output folder (resumable)")
     p.add_argument("--workers", type=int, default=min(2, os.cpu_count() or 1),
                    help="frames processed in parallel (%(default)s)")
+    p.add_argument("--overwrite", action="store_true",
+                   help="write into a non-empty folder that is not a calibrate output")
     _add_pipeline_options(p)
     p.set_defaults(func=cmd_calibrate)
 
@@ -361,6 +381,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="move star centres by the local-alignment translations")
     p.add_argument("--workers", type=int, default=1, help="frames processed in parallel (1)")
     p.add_argument("--device", default="cpu", help="torch device for the block solver (cpu, cuda)")
+    p.add_argument("--overwrite", action="store_true",
+                   help="write into a non-empty folder that is not an extract output")
     p.set_defaults(func=cmd_extract)
 
     p = sub.add_parser("experiment", help="reproduce one of the paper's experiments",

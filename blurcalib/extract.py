@@ -8,41 +8,41 @@ of the star's time-averaged image), optionally solve the local alignment
 
 A folder run (:func:`extract_to_folder`) writes each frame's results as soon as it is done
 (``frames/<stem>.*``, see ``docs/results-format.md``), so an interrupted run loses at most the
-frame in progress and a re-run skips finished frames; at the end the per-frame files are
-collected into ``features.csv``, ``blocks.csv``, ``psfs.npz``, ``corners.csv`` (the square
-corners shared by neighbouring blocks, after local alignment) and ``frames.csv`` (per-frame
-status).
+frame in progress and a re-run skips frames finished with the same pattern, settings and input
+file; at the end the per-frame files of the run's frames are collected into ``features.csv``,
+``blocks.csv``, ``psfs.npz``, ``corners.csv`` (the square corners shared by neighbouring
+blocks, after local alignment) and ``frames.csv`` (per-frame status).
 """
 
 from __future__ import annotations
 
-import csv
+import hashlib
 import json
 import multiprocessing
 import os
 import time
 from collections.abc import Callable, Sequence
 from concurrent.futures import ProcessPoolExecutor, as_completed
-from dataclasses import dataclass, field, replace
+from dataclasses import asdict, dataclass, field, replace
 from enum import Enum
 from pathlib import Path
 
 import numpy as np
 
 from blurcalib.deconv import DeconvSettings
-from blurcalib.fileio import atomic_write_csv, atomic_write_text, ensure_writable_dir
-from blurcalib.frames import FrameError, load_frame
+from blurcalib.fileio import atomic_write_csv, claim_output_dir, remove_temporaries
+from blurcalib.frames import FrameError, FrameSizeError, frame_size, frame_size_problem, load_frame
 from blurcalib.grow import GrowSettings, Growth, GrowthEvent, grow
 from blurcalib.local_alignment import LocalAlignment, align_locally, shared_corners
 from blurcalib.pattern import StarPattern
 from blurcalib.results import (
+    FRAMES_DIR,
     BlockResult,
     BlockStatus,
     FeatureFlags,
     FeatureObservation,
     collect_results,
-    completed_frames,
-    frame_result_paths,
+    read_frame_status,
     write_frame_results,
 )
 from blurcalib.seed import DEFAULT_SCALES, Seed, SeedError, seed_frame
@@ -57,7 +57,13 @@ class FrameStatus(str, Enum):
     NOT_SEEDED = "not_seeded"
     NO_BLOCKS = "no_blocks"
     UNREADABLE = "unreadable"
+    WRONG_SIZE = "wrong_size"
     FAILED = "failed"
+
+
+FINAL_STATUSES = frozenset({FrameStatus.OK.value, FrameStatus.NOT_SEEDED.value,
+                            FrameStatus.NO_BLOCKS.value})
+"""Outcomes a resumed run keeps; unreadable, wrong-size and failed frames are retried."""
 
 
 @dataclass(frozen=True)
@@ -169,12 +175,6 @@ def extract_frame(image: np.ndarray, pattern: StarPattern, frame: str,
                        seconds)
 
 
-CORNER_COLUMNS = ("frame", "cx2", "cy2", "X", "Y", "x", "y", "blocks")
-"""Columns of ``corners.csv``: the corner's feature coordinates doubled (``cx2 = 2 fx + 1`` for
-the corner half a square right of feature ``fx``), its metric point ``(cx2 L / 2, cy2 L / 2)``
-(m), its image position (px, OpenCV convention) and the number of blocks that share it."""
-
-
 def corner_rows(frame: str, pattern: StarPattern, H: np.ndarray, fx: np.ndarray,
                 fy: np.ndarray) -> list[list]:
     """Rows of ``corners.csv`` for the square corners shared by at least two blocks.
@@ -259,60 +259,63 @@ def _init_worker(pattern: StarPattern, settings: ExtractSettings) -> None:
     _WORKER_STATE = (pattern, settings)
 
 
+def _one_line(exc: BaseException) -> str:
+    return f"{type(exc).__name__}: {' '.join(str(exc).split())}"
+
+
 def _process(path: Path, name: str, pattern: StarPattern, settings: ExtractSettings,
              expected_size: tuple[int, int] | None) -> FrameResult:
+    """One frame of a folder run; whatever goes wrong ends as this frame's status."""
     t0 = time.perf_counter()
     try:
         image = load_frame(path, expected_size=expected_size)
+        return extract_frame(image, pattern, name, settings)
+    except FrameSizeError as exc:
+        return FrameResult(name, FrameStatus.WRONG_SIZE, str(exc),
+                           seconds={"load": time.perf_counter() - t0})
     except FrameError as exc:
         return FrameResult(name, FrameStatus.UNREADABLE, str(exc),
                            seconds={"load": time.perf_counter() - t0})
-    try:
-        return extract_frame(image, pattern, name, settings)
-    except (ValueError, RuntimeError, np.linalg.LinAlgError) as exc:
-        return FrameResult(name, FrameStatus.FAILED, f"{type(exc).__name__}: {exc}")
+    except Exception as exc:  # any failure stays with its frame; the batch goes on
+        return FrameResult(name, FrameStatus.FAILED, _one_line(exc),
+                           seconds={"failed": time.perf_counter() - t0})
 
 
 def _process_in_worker(path: Path, name: str, expected_size: tuple[int, int] | None
                        ) -> FrameResult:
-    assert _WORKER_STATE is not None
+    if _WORKER_STATE is None:
+        raise RuntimeError("worker process was not initialised")
     return _process(path, name, *_WORKER_STATE, expected_size)
 
 
-def _write_frame(out: Path, result: FrameResult) -> dict:
-    summary = result.summary()
-    paths = frame_result_paths(out, result.frame)
-    status_path = paths["done"].with_name(paths["done"].name.replace(".done", ".status.json"))
-    ensure_writable_dir(status_path.parent)
-    atomic_write_text(status_path, json.dumps(summary))
-    atomic_write_csv(_corners_path(status_path), CORNER_COLUMNS, result.corners)
-    write_frame_results(out, result.frame, result.features, result.blocks)
-    return summary
+def _settings_record(settings: ExtractSettings) -> dict:
+    """The settings that determine a frame's result, as a JSON-serialisable dict (the torch
+    device aside: it changes where, not what, is computed)."""
+    record = asdict(settings)
+    record["deconv"].pop("device")
+    return record
 
 
-def _corners_path(status_path: Path) -> Path:
-    return status_path.with_name(status_path.name.replace(".status.json", ".corners.csv"))
+def _digest(doc: object) -> str:
+    return hashlib.sha256(json.dumps(doc, sort_keys=True).encode("utf-8")).hexdigest()
 
 
-def _collect_corners(out: Path, names: Sequence[str]) -> Path:
-    """Concatenate the per-frame corner tables of ``names`` into ``corners.csv``."""
-    rows: list[list[str]] = []
-    for name in names:
-        done = frame_result_paths(out, name)["done"]
-        path = _corners_path(done.with_name(done.name.replace(".done", ".status.json")))
-        if path.is_file():
-            with open(path, newline="", encoding="utf-8") as handle:
-                rows += list(csv.reader(handle))[1:]
-    return atomic_write_csv(out / "corners.csv", CORNER_COLUMNS, rows)
-
-
-def _read_summary(out: Path, name: str) -> dict:
-    paths = frame_result_paths(out, name)
-    status_path = paths["done"].with_name(paths["done"].name.replace(".done", ".status.json"))
+def _input_key(run_key: str, path: Path) -> str:
+    """A frame's result key: the run's pattern and settings and the input file's size and
+    modification time (a missing file gets a key of its own and is redone)."""
     try:
-        return json.loads(status_path.read_text(encoding="utf-8"))
-    except (OSError, ValueError):
-        return {"frame": name, "status": "ok", "message": "(summary missing)"}
+        st = path.stat()
+        stamp: object = [st.st_size, st.st_mtime_ns]
+    except OSError:
+        stamp = None
+    return _digest([run_key, stamp])
+
+
+def _common_size(sizes: Sequence[tuple[int, int] | None]) -> tuple[int, int] | None:
+    """The most common size of the frames that can be processed (the first seen among
+    equally common ones), None if there is none."""
+    known = [s for s in sizes if s is not None and frame_size_problem(*s) is None]
+    return max(dict.fromkeys(known), key=known.count) if known else None
 
 
 def write_frames_table(out: Path, summaries: Sequence[dict]) -> Path:
@@ -327,41 +330,70 @@ def extract_to_folder(paths: Sequence[Path], pattern: StarPattern, out_dir: str 
                       settings: ExtractSettings | None = None, workers: int = 1,
                       progress: Callable[[int, int, dict], None] | None = None,
                       expected_size: tuple[int, int] | None = None,
-                      names: Sequence[str] | None = None) -> FolderSummary:
+                      names: Sequence[str] | None = None, overwrite: bool = False) -> FolderSummary:
     """Extract every frame of ``paths`` into ``out_dir`` (resumable).
 
-    Frames already done in ``out_dir`` are skipped. An unreadable frame, a frame that cannot
-    be seeded or fails is recorded with its status and message; the others go on. Frames are
-    named by :func:`frame_names` unless ``names`` gives one per path.
+    Every frame ends with a status: an unreadable frame, one of another size, one that cannot
+    be seeded or fails is recorded with its status and message, and the others go on. A frame
+    finished by an earlier run is skipped when its result key (the pattern, the settings and
+    the input file's size and modification time) is unchanged and its status is final
+    (:data:`FINAL_STATUSES`); otherwise it is redone. The top-level tables list exactly the
+    frames of this run. Frames are named by :func:`frame_names` unless ``names`` gives one per
+    path.
+
+    Args:
+        expected_size: ``(width, height)`` every frame must have; None takes the most common
+            size of the readable frames. Frames of another size get the status ``wrong_size``.
+        overwrite: write into a non-empty folder that is not an ``extract`` output
+            (:func:`blurcalib.fileio.claim_output_dir`).
+    Raises:
+        OutputError: the folder holds something else (without ``overwrite``) or cannot be
+            written.
     """
     settings = settings or ExtractSettings()
-    out = ensure_writable_dir(out_dir)
     names = list(names) if names is not None else frame_names(list(paths))
     if len(names) != len(paths) or len(set(names)) != len(names):
         raise ValueError("frame names must be unique, one per path")
-    done = completed_frames(out)
-    summaries = {n: _read_summary(out, n) for n in names if n in done}
-    todo = [(p, n) for p, n in zip(paths, names, strict=True) if n not in done]
-    skipped = [n for n in names if n in done]
+    record = _settings_record(settings)
+    out = claim_output_dir(out_dir, "extract", record, overwrite)
+    remove_temporaries(out / FRAMES_DIR)
+    sizes = dict(zip(names, map(frame_size, paths), strict=True))
+    size = expected_size or _common_size(list(sizes.values()))
+    run_key = _digest({"pattern": pattern.to_yaml_text(), "settings": record})
+    keys = {n: _input_key(run_key, Path(p)) for p, n in zip(paths, names, strict=True)}
+    summaries: dict[str, dict] = {}
+    for n in names:
+        status = read_frame_status(out, n)
+        if (status is not None and status.get("key") == keys[n]
+                and status.get("status") in FINAL_STATUSES
+                and (size is None or sizes[n] in (None, size))):
+            summaries[n] = status
+    skipped = list(summaries)
+    todo = [(p, n) for p, n in zip(paths, names, strict=True) if n not in summaries]
 
     def finish(result: FrameResult) -> None:
-        summaries[result.frame] = _write_frame(out, result)
+        summary = {**result.summary(), "key": keys[result.frame]}
+        write_frame_results(out, result.frame, result.features, result.blocks, result.corners,
+                            summary)
+        summaries[result.frame] = summary
         write_frames_table(out, list(summaries.values()))
         if progress is not None:
-            progress(len(summaries), len(names), summaries[result.frame])
+            progress(len(summaries), len(names), summary)
 
     if workers > 1 and len(todo) > 1:
         ctx = multiprocessing.get_context("spawn")
         with ProcessPoolExecutor(workers, mp_context=ctx, initializer=_init_worker,
                                  initargs=(pattern, settings)) as pool:
-            futures = [pool.submit(_process_in_worker, p, n, expected_size) for p, n in todo]
+            futures = {pool.submit(_process_in_worker, p, n, size): n for p, n in todo}
             for future in as_completed(futures):
-                finish(future.result())
+                try:
+                    result = future.result()
+                except Exception as exc:  # a worker died (e.g. out of memory): the frame failed
+                    result = FrameResult(futures[future], FrameStatus.FAILED, _one_line(exc))
+                finish(result)
     else:
         for p, n in todo:
-            finish(_process(p, n, pattern, settings, expected_size))
-    write_frames_table(out, list(summaries.values()))
-    outputs = collect_results(out)
-    outputs["corners"] = _collect_corners(out, [n for n in names if n in summaries])
-    outputs["frames"] = out / FRAMES_TABLE
-    return FolderSummary([summaries[n] for n in names if n in summaries], skipped, outputs)
+            finish(_process(p, n, pattern, settings, size))
+    outputs = collect_results(out, names)
+    outputs["frames"] = write_frames_table(out, list(summaries.values()))
+    return FolderSummary([summaries[n] for n in names], skipped, outputs)

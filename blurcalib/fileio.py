@@ -2,7 +2,12 @@
 
 A write goes to a temporary file in the destination folder, is flushed to disk and is then
 renamed over the destination with ``os.replace`` (atomic on POSIX and Windows). An interrupted
-run therefore never leaves a truncated table, image or YAML behind.
+run therefore never leaves a truncated table, image or YAML behind; a run killed mid-write
+leaves at most a hidden temporary file, which :func:`remove_temporaries` clears on the next run.
+
+An output folder belongs to a run: :func:`claim_output_dir` refuses a non-empty folder that
+does not hold a blurcalib output of the same kind (the run manifest ``blurcalib-run.json``,
+written at the start of a run, names the command and its settings) unless asked to overwrite.
 """
 
 from __future__ import annotations
@@ -10,11 +15,19 @@ from __future__ import annotations
 import contextlib
 import csv
 import io
+import json
 import os
+import re
 import stat
 import tempfile
 from collections.abc import Iterable, Iterator, Sequence
 from pathlib import Path
+
+RUN_MANIFEST = "blurcalib-run.json"
+"""The run manifest: ``{"tool": "blurcalib", "command": ..., "settings": {...}}``."""
+
+_TEMPORARY = re.compile(r"\..*\.[a-z0-9_]{8}\.tmp(\.[^.]*)?")
+"""Names of :func:`atomic_path`'s temporary files: ``.<stem>.<8 random chars>.tmp<suffix>``."""
 
 
 class OutputError(OSError):
@@ -74,6 +87,62 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
         with contextlib.suppress(OSError):
             tmp.unlink()
         raise
+
+
+def remove_temporaries(folder: str | os.PathLike) -> list[Path]:
+    """Delete the temporary files that :func:`atomic_path` left in ``folder`` when a run was
+    killed mid-write (not recursive); return their paths."""
+    folder = Path(folder)
+    if not folder.is_dir():
+        return []
+    stray = sorted(p for p in folder.iterdir() if _TEMPORARY.fullmatch(p.name) and p.is_file())
+    for path in stray:
+        with contextlib.suppress(FileNotFoundError):
+            path.unlink()
+    return stray
+
+
+def run_manifest(folder: str | os.PathLike) -> dict | None:
+    """The run manifest of ``folder``, or None when it has none (or an unreadable one)."""
+    try:
+        doc = json.loads((Path(folder) / RUN_MANIFEST).read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return None
+    return doc if isinstance(doc, dict) and doc.get("tool") == "blurcalib" else None
+
+
+def claim_output_dir(path: str | os.PathLike, command: str, settings: dict,
+                     overwrite: bool = False) -> Path:
+    """Make ``path`` the output folder of a ``command`` run and write its run manifest.
+
+    An empty or missing folder, or one whose manifest names the same command (a re-run or
+    resume), is taken; any other non-empty folder is refused unless ``overwrite``, so that
+    files that are not ours are never replaced. The folder's stray temporary files are removed.
+
+    Args:
+        path: the output folder.
+        command: the kind of output (``"extract"``, ``"calibrate"``).
+        settings: JSON-serialisable settings of the run, recorded in the manifest.
+        overwrite: write into a non-empty folder that is not an output of ``command``.
+    Raises:
+        OutputError: the folder holds something else, or cannot be created or written.
+    """
+    folder = Path(path)
+    if folder.is_dir() and not overwrite and any(folder.iterdir()):
+        manifest = run_manifest(folder)
+        if manifest is None:
+            raise OutputError(f"{folder}: output folder is not empty and is not a blurcalib "
+                              f"output (no {RUN_MANIFEST}); use --overwrite to write into it")
+        if manifest.get("command") != command:
+            raise OutputError(f"{folder}: output folder holds a blurcalib "
+                              f"{manifest.get('command')!r} output, not {command!r}; use "
+                              f"--overwrite to write into it")
+    ensure_writable_dir(folder)
+    remove_temporaries(folder)
+    atomic_write_text(folder / RUN_MANIFEST, json.dumps(
+        {"tool": "blurcalib", "command": command, "settings": settings}, indent=2,
+        sort_keys=True) + "\n")
+    return folder
 
 
 def atomic_write_text(path: str | os.PathLike, text: str) -> Path:

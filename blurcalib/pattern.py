@@ -39,6 +39,14 @@ TAG_CELLS = 10
 and 6 x 6 data bits."""
 
 
+MAX_SQUARES = 1000
+"""Most squares along one side of a target (a 2 m poster of 2 mm squares); larger counts are
+refused before anything is allocated from them."""
+
+PAGE_TOLERANCE_MM = 0.01
+"""How far (mm) the pattern area may reach past the page edge (rounding in written YAMLs)."""
+
+
 class PatternFileError(ValueError):
     """A pattern YAML is missing, unreadable or malformed; the message names file and field."""
 
@@ -89,13 +97,50 @@ class StarPattern:
     apriltags: tuple[AprilTagPlacement, ...] = field(default_factory=tuple)
 
     def __post_init__(self) -> None:
+        """Check the geometry before anything is allocated from it; messages name the YAML
+        field."""
         n = self.num_star_segments
         if n < 4 or n % 4 != 0:
             raise ValueError(f"num_star_segments must be a multiple of 4 and >= 4, got {n}")
-        if self.squares_x < 3 or self.squares_y < 3:
-            raise ValueError(f"need at least 3 x 3 squares, got {self.squares_x} x {self.squares_y}")
-        if not self.square_length_m > 0:
-            raise ValueError(f"square_length_in_meters must be positive, got {self.square_length_m}")
+        for name in ("squares_x", "squares_y"):
+            count = getattr(self, name)
+            if not 3 <= count <= MAX_SQUARES:
+                raise ValueError(f"field '{name}' must be between 3 and {MAX_SQUARES} squares, "
+                                 f"got {count}")
+        if not (math.isfinite(self.square_length_m) and self.square_length_m > 0):
+            raise ValueError(f"field 'square_length_in_meters' must be a finite positive length, "
+                             f"got {self.square_length_m}")
+        pg = self.page
+        for name in ("width_mm", "height_mm"):
+            value = getattr(pg, name)
+            if not (math.isfinite(value) and value > 0):
+                raise ValueError(f"field 'page.{name}' must be a finite positive length, got {value}")
+        for axis, squares, page_len in (("x", self.squares_x, pg.width_mm),
+                                        ("y", self.squares_y, pg.height_mm)):
+            start = getattr(pg, f"pattern_start_{axis}_mm")
+            end = getattr(pg, f"pattern_end_{axis}_mm")
+            if not (math.isfinite(start) and math.isfinite(end) and start < end):
+                raise ValueError(f"fields 'page.pattern_start_{axis}_mm' and "
+                                 f"'page.pattern_end_{axis}_mm' must be finite with start < end, "
+                                 f"got {start} and {end}")
+            slack = PAGE_TOLERANCE_MM
+            if start < -slack or end > page_len + slack:
+                raise ValueError(f"fields 'page.pattern_start_{axis}_mm' and "
+                                 f"'page.pattern_end_{axis}_mm' ({start}, {end}) must lie on the "
+                                 f"page (0 to {page_len} mm)")
+            fits = (end - start) / self.square_length_mm
+            if abs(fits - squares) > 0.5:
+                raise ValueError(f"field 'squares_{axis}' is {squares}, but the page's pattern area "
+                                 f"({end - start:.6g} mm from 'page.pattern_start_{axis}_mm' to "
+                                 f"'page.pattern_end_{axis}_mm') holds {fits:.6g} squares of "
+                                 f"{self.square_length_mm:.6g} mm")
+        for i, tag in enumerate(self.apriltags):
+            if (tag.width < 1 or tag.height < 1 or tag.tag_x < 0 or tag.tag_y < 0
+                    or tag.tag_x + tag.width > self.squares_x
+                    or tag.tag_y + tag.height > self.squares_y):
+                raise ValueError(f"field 'apriltags[{i}]' (tag_x {tag.tag_x}, tag_y {tag.tag_y}, "
+                                 f"width {tag.width}, height {tag.height}) must lie inside the "
+                                 f"{self.squares_x} x {self.squares_y} squares")
 
     # ----------------------------------------------------------------------------- features
     @property
@@ -288,7 +333,7 @@ def _field(node: dict, key: str, kind: type, path: str, where: str = ""):
                 raise ValueError
             return int(value)
         return kind(value)
-    except (TypeError, ValueError):
+    except (TypeError, ValueError, OverflowError):
         raise PatternFileError(
             f"{path}: field '{name}' must be {kind.__name__}, got {value!r}") from None
 

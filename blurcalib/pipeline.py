@@ -23,6 +23,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import shutil
 from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -32,7 +33,14 @@ import numpy as np
 
 from blurcalib.calibrate import Calibration, calibrate_sharp, save_calibration
 from blurcalib.extract import ExtractSettings, extract_to_folder, frame_names
-from blurcalib.fileio import atomic_path, atomic_write_csv, atomic_write_text, ensure_writable_dir
+from blurcalib.fileio import (
+    atomic_path,
+    atomic_write_csv,
+    atomic_write_text,
+    claim_output_dir,
+    ensure_writable_dir,
+)
+from blurcalib.frames import frame_size
 from blurcalib.global_alignment import align_global, grid_coordinates, loss_weights
 from blurcalib.pattern import StarPattern
 from blurcalib.quality import QualitySettings, filter_frame
@@ -45,6 +53,15 @@ from blurcalib.results import (
     read_feature_table,
     write_features,
 )
+
+REPORT_FILE = "report.json"
+CALIBRATION_DIR = "calibration"
+STAGING_DIR = ".staging"
+"""Where the top-level outputs are written before :func:`_publish` moves them into place."""
+PUBLISHED: tuple[str, ...] = ("features.csv", "features.bin", "frames.csv",
+                              "error_directions_blurry.png", "error_directions_sharp.png",
+                              "frame_errors.png", CALIBRATION_DIR, REPORT_FILE)
+"""The top-level output set of a run, published together (``report.json`` last)."""
 
 
 class PipelineError(RuntimeError):
@@ -94,23 +111,14 @@ class PipelineReport:
         return asdict(self)
 
 
-def image_size_of(path: Path) -> tuple[int, int] | None:
-    """``(width, height)`` of an image file, or None when it cannot be read."""
-    data = np.fromfile(str(path), dtype=np.uint8) if path.is_file() else np.zeros(0, np.uint8)
-    if data.size == 0:
-        return None
-    img = cv2.imdecode(data, cv2.IMREAD_UNCHANGED)
-    return None if img is None else (int(img.shape[1]), int(img.shape[0]))
-
-
 def _check_sizes(sharp: Sequence[Path], blurry: Sequence[Path]) -> tuple[int, int]:
-    sizes = [image_size_of(p) for p in sharp]
+    sizes = [frame_size(p) for p in sharp]
     known = [s for s in sizes if s is not None]
     if not known:
         raise PipelineError("none of the sharp frames can be read")
     size = max(set(known), key=known.count)
     other = [(p, s) for p, s in zip(list(sharp) + list(blurry),
-                                    sizes + [image_size_of(p) for p in blurry], strict=True)
+                                    sizes + [frame_size(p) for p in blurry], strict=True)
              if s is not None and s != size]
     if other:
         listed = ", ".join(f"{p} ({s[0]}x{s[1]})" for p, s in other[:5])
@@ -122,8 +130,13 @@ def _check_sizes(sharp: Sequence[Path], blurry: Sequence[Path]) -> tuple[int, in
 
 def run_pipeline(sharp: Sequence[Path], blurry: Sequence[Path], pattern: StarPattern,
                  out_dir: str | os.PathLike, settings: PipelineSettings | None = None,
-                 progress: Callable[[str, int, int, dict], None] | None = None) -> PipelineReport:
+                 progress: Callable[[str, int, int, dict], None] | None = None,
+                 overwrite: bool = False) -> PipelineReport:
     """Run the whole pipeline (see the module docstring); partial results are kept on error.
+
+    The top-level outputs (:data:`PUBLISHED`) are written into a staging folder and moved into
+    ``out_dir`` together, ``report.json`` last: a reader that finds ``report.json`` sees the
+    whole output set of one run, never a mixture of two.
 
     Args:
         sharp, blurry: frame files.
@@ -131,16 +144,22 @@ def run_pipeline(sharp: Sequence[Path], blurry: Sequence[Path], pattern: StarPat
         out_dir: output folder (re-running resumes the extraction).
         settings: pipeline settings.
         progress: ``progress(stage, done, total, row)`` during extraction.
+        overwrite: write into a non-empty folder that is not a ``calibrate`` output
+            (:func:`blurcalib.fileio.claim_output_dir`).
     Raises:
         PipelineError: unusable input (no readable sharp frame, mixed resolutions, too few
             usable sharp frames, no tag found in any frame, no blurry frame surviving).
+        OutputError: the folder holds something else (without ``overwrite``) or cannot be
+            written.
     """
     from blurcalib.calibrate import CalibrationError
     from blurcalib.deconv import DeconvSettings
 
     s = settings or PipelineSettings()
-    out = ensure_writable_dir(out_dir)
     size = _check_sizes(sharp, blurry)
+    out = claim_output_dir(out_dir, "calibrate", asdict(s), overwrite)
+    staging = out / STAGING_DIR
+    shutil.rmtree(staging, ignore_errors=True)  # left by a run killed while writing
 
     def stage(name: str) -> Callable[[int, int, dict], None] | None:
         if progress is None:
@@ -151,12 +170,12 @@ def run_pipeline(sharp: Sequence[Path], blurry: Sequence[Path], pattern: StarPat
     sharp_names, names = all_names[:len(sharp)], all_names[len(sharp):]
     sharp_run = extract_to_folder(sharp, pattern, out / "sharp", ExtractSettings.sharp(),
                                   workers=s.workers, progress=stage("sharp"), expected_size=size,
-                                  names=sharp_names)
+                                  names=sharp_names, overwrite=overwrite)
     blurry_settings = ExtractSettings(deconv=DeconvSettings(kernel_size=s.blurry_kernel),
                                       local_alignment=s.local_alignment)
     blurry_run = extract_to_folder(blurry, pattern, out / "blurry", blurry_settings,
                                    workers=s.workers, progress=stage("blurry"), expected_size=size,
-                                   names=names)
+                                   names=names, overwrite=overwrite)
     seeded = [r for r in sharp_run.frames + blurry_run.frames if r["status"] != "not_seeded"]
     if not any(r["status"] == "ok" for r in seeded):
         raise PipelineError("no AprilTag of the pattern was found in any frame: does the pattern "
@@ -168,7 +187,6 @@ def run_pipeline(sharp: Sequence[Path], blurry: Sequence[Path], pattern: StarPat
         bad = [f"{r['frame']} ({r['status']})" for r in sharp_run.frames if r["status"] != "ok"]
         hint = f"; sharp frames without features: {', '.join(bad[:10])}" if bad else ""
         raise PipelineError(f"sharp-set calibration: {exc}{hint}") from None
-    save_calibration(out / "calibration", calibration)
 
     blocks = read_block_table(out / "blurry")
     extracted = {r["frame"]: r for r in blurry_run.frames}
@@ -181,8 +199,11 @@ def run_pipeline(sharp: Sequence[Path], blurry: Sequence[Path], pattern: StarPat
             aligned.append(table)
             residuals.append(res)
     usable = [r for r in rows if r["status"] == "aligned"]
-    outputs = _write_outputs(out, pattern, size, sharp_features, aligned, residuals, rows,
-                             calibration)
+    ensure_writable_dir(staging)
+    save_calibration(staging / CALIBRATION_DIR, calibration)
+    staged = _write_outputs(staging, pattern, size, sharp_features, aligned, residuals, rows,
+                            calibration)
+    outputs = {k: out / p.relative_to(staging) for k, p in staged.items()}
     counts = {}
     for r in rows:
         counts[r["status"]] = counts.get(r["status"], 0) + 1
@@ -195,7 +216,8 @@ def run_pipeline(sharp: Sequence[Path], blurry: Sequence[Path], pattern: StarPat
                                       "angle_threshold": s.angle_threshold,
                                       "blurry_kernel": s.blurry_kernel,
                                       "local_alignment": s.local_alignment})
-    atomic_write_text(out / "report.json", json.dumps(report.to_dict(), indent=2, default=str))
+    atomic_write_text(staging / REPORT_FILE, json.dumps(report.to_dict(), indent=2, default=str))
+    _publish(staging, out)
     if blurry and not usable:
         raise PipelineError(f"no blurry frame survived the filters ({counts}); the sharp-set "
                             f"calibration and all features are kept in {out}")
@@ -254,6 +276,30 @@ def _align_frame(name: str, extracted: dict, blocks, pattern: StarPattern, calib
         row["message"] = (f"optical axis {math.degrees(ga.angle_to_normal):.1f} deg from the "
                           f"target normal: translation ill-conditioned, features flagged")
     return row, table, ga.residuals
+
+
+def _publish(staging: Path, out: Path) -> None:
+    """Move the output set staged in ``staging`` into ``out``.
+
+    ``report.json`` (the completion marker) is removed first and moved in last; outputs of an
+    earlier run that this run does not produce are removed, and the ``calibration`` folder is
+    swapped whole. A run killed in between leaves no ``report.json``; the next run removes the
+    staging folder and publishes again.
+    """
+    (out / REPORT_FILE).unlink(missing_ok=True)
+    staged = {p.name: p for p in staging.iterdir()}
+    for name in PUBLISHED:
+        if name == REPORT_FILE:
+            continue
+        dest = out / name
+        if dest.is_dir():
+            os.replace(dest, staging / f".old-{name}")
+        elif name not in staged:
+            dest.unlink(missing_ok=True)
+        if name in staged:
+            os.replace(staged[name], dest)
+    os.replace(staged[REPORT_FILE], out / REPORT_FILE)
+    shutil.rmtree(staging)
 
 
 def _write_outputs(out: Path, pattern: StarPattern, size: tuple[int, int],

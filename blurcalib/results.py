@@ -14,13 +14,16 @@ Conventions (see ``docs/results-format.md``):
 One output folder holds ``features.csv`` (one row per feature observation), ``blocks.csv`` (one
 row per fitted block) and ``psfs.npz`` (the blocks' kernels and homographies, in the rows' order).
 Floats are written with ``repr`` so that float64 values round-trip exactly. For resumable runs,
-:func:`write_frame_results` writes the same three files per frame under ``frames/`` plus a
-``<stem>.done`` marker, and :func:`collect_results` concatenates the completed frames into the
-top-level files. Every file is written atomically.
+:func:`write_frame_results` writes the same files per frame under ``frames/`` (plus the frame's
+corners, its status record and, last, a ``done`` marker; :func:`frame_result_paths` names them),
+and :func:`collect_results` concatenates the frames of a run into the top-level files. Every
+file is written atomically.
 """
 
 from __future__ import annotations
 
+import hashlib
+import json
 import os
 import re
 from collections.abc import Callable, Sequence
@@ -31,13 +34,21 @@ from typing import NamedTuple
 
 import numpy as np
 
-from blurcalib.fileio import atomic_path, atomic_write_text, ensure_writable_dir, read_csv_columns
+from blurcalib.fileio import (
+    atomic_path,
+    atomic_write_csv,
+    atomic_write_text,
+    ensure_writable_dir,
+    read_csv_columns,
+)
 
 FEATURES_FILE = "features.csv"
 BLOCKS_FILE = "blocks.csv"
 PSFS_FILE = "psfs.npz"
+CORNERS_FILE = "corners.csv"
 FRAMES_DIR = "frames"
-DONE_SUFFIX = ".done"
+MAX_STEM_CHARS = 100
+"""Longest readable part of a per-frame file stem (:func:`frame_stem`)."""
 
 FEATURE_COLUMNS: tuple[str, ...] = ("frame", "feature_id", "fx", "fy", "X", "Y", "x", "y", "weight",
                                     "flags")
@@ -50,6 +61,11 @@ BLOCK_COLUMNS: tuple[str, ...] = (
     "sigma_minor", "eccentricity", "orientation", "centroid_x", "centroid_y",
     *H_COLUMNS, *COEFF_COLUMNS)
 """Columns of ``blocks.csv``, in order."""
+
+CORNER_COLUMNS: tuple[str, ...] = ("frame", "cx2", "cy2", "X", "Y", "x", "y", "blocks")
+"""Columns of ``corners.csv``: the corner's feature coordinates doubled (``cx2 = 2 fx + 1`` for
+the corner half a square right of feature ``fx``), its metric point ``(cx2 L / 2, cy2 L / 2)``
+(m), its image position (px, OpenCV convention) and the number of blocks that share it."""
 
 
 class ResultsFileError(ValueError):
@@ -594,78 +610,132 @@ def read_blocks(folder: str | os.PathLike) -> list[BlockResult]:
 
 
 # ------------------------------------------------------------------------------ per-frame files
+@dataclass(frozen=True)
+class FramePaths:
+    """The per-frame files of one frame under ``folder/frames/`` (``<stem>`` is
+    :func:`frame_stem` of the frame name); the one place that knows their names.
+
+    Attributes:
+        features: ``<stem>.features.csv``, the frame's rows of ``features.csv``.
+        blocks: ``<stem>.blocks.csv``, its rows of ``blocks.csv``.
+        psfs: ``<stem>.psfs.npz``, its rows of ``psfs.npz``.
+        corners: ``<stem>.corners.csv``, its rows of ``corners.csv``.
+        status: ``<stem>.status.json``, its status record: the row of ``frames.csv`` plus
+            the key of what produced the result.
+        done: ``<stem>.done``, the marker holding the frame name, written last.
+    """
+
+    features: Path
+    blocks: Path
+    psfs: Path
+    corners: Path
+    status: Path
+    done: Path
+
+
 def frame_stem(frame_name: str) -> str:
-    """File-name stem for a frame's per-frame files: the name without its extension, folders
-    joined by ``__`` and characters outside ``[A-Za-z0-9._-]`` replaced by ``_``."""
+    """File-name stem of a frame's per-frame files; different frame names get different stems.
+
+    The name, extension kept (``0.png`` and ``0.jpg`` differ), with folders joined by ``__``,
+    characters outside ``[A-Za-z0-9._-]`` and a leading ``.`` replaced by ``_``. Where that
+    changes the name, or the name has upper-case letters (a case-insensitive file system
+    would fold them) or more than :data:`MAX_STEM_CHARS` characters, the readable part is cut
+    to that length and ``~`` plus 12 hex digits of the name's SHA-256 are appended
+    (``seq/img 1.png`` -> ``seq__img_1.png~<hash>``). ``~`` is never kept from a name, so a
+    stem without it is the frame name itself and a stem with it is unique to one name.
+    """
     parts = [p for p in re.split(r"[\\/]+", frame_name) if p]
     if not parts:
         raise ValueError(f"frame name {frame_name!r} has no file-name part")
-    stem = "__".join([*parts[:-1], Path(parts[-1]).stem or parts[-1]])
-    return re.sub(r"[^A-Za-z0-9._-]", "_", stem)
+    safe = re.sub(r"[^A-Za-z0-9._-]", "_", "__".join(parts))
+    if safe.startswith("."):
+        safe = "_" + safe[1:]
+    if safe == frame_name and safe == safe.lower() and len(safe) <= MAX_STEM_CHARS:
+        return safe
+    digest = hashlib.sha256(frame_name.encode("utf-8", "surrogatepass")).hexdigest()[:12]
+    return f"{safe[:MAX_STEM_CHARS]}~{digest}"
 
 
-def frame_result_paths(folder: str | os.PathLike, frame_name: str) -> dict[str, Path]:
-    """Paths of a frame's per-frame files: ``features``, ``blocks``, ``psfs`` and ``done``."""
-    base = Path(folder) / FRAMES_DIR / frame_stem(frame_name)
-    return {"features": Path(f"{base}.{FEATURES_FILE}"), "blocks": Path(f"{base}.{BLOCKS_FILE}"),
-            "psfs": Path(f"{base}.{PSFS_FILE}"), "done": Path(f"{base}{DONE_SUFFIX}")}
+def frame_result_paths(folder: str | os.PathLike, frame_name: str) -> FramePaths:
+    """Paths of a frame's per-frame files under ``folder/frames/`` (see :class:`FramePaths`)."""
+    base = f"{Path(folder) / FRAMES_DIR / frame_stem(frame_name)}."
+    return FramePaths(features=Path(base + FEATURES_FILE), blocks=Path(base + BLOCKS_FILE),
+                      psfs=Path(base + PSFS_FILE), corners=Path(base + CORNERS_FILE),
+                      status=Path(base + "status.json"), done=Path(base + "done"))
 
 
 def write_frame_results(folder: str | os.PathLike, frame_name: str,
                         features: Sequence[FeatureObservation] | FeatureTable,
-                        blocks: Sequence[BlockResult] | BlockTable) -> dict[str, Path]:
+                        blocks: Sequence[BlockResult] | BlockTable,
+                        corners: Sequence[Sequence[object]], status: dict) -> FramePaths:
     """Write one frame's results under ``folder/frames/`` for resumable runs.
 
-    Writes ``<stem>.features.csv``, ``<stem>.blocks.csv``, ``<stem>.psfs.npz`` and, last, the
-    marker ``<stem>.done`` holding the frame name (``stem = frame_stem(frame_name)``); a frame
-    counts as done only once its marker exists, so an interrupted write is redone on resume.
+    The ``done`` marker is removed first and written last (holding the frame name), after the
+    features, blocks, PSFs, corners (rows of :data:`CORNER_COLUMNS`) and the status record
+    ``status`` (JSON); a frame counts as finished only once its marker exists, so an
+    interrupted write is redone on resume.
 
     Raises:
-        ValueError: a row belongs to another frame.
+        ValueError: a row or the status record belongs to another frame.
         OutputError: the folder cannot be written.
     """
     ft, bt = _as_feature_table(features), _as_block_table(blocks)
-    for kind, frames in (("feature", ft.frame), ("block", bt.frame)):
-        other = frames[frames != frame_name]
-        if len(other):
-            raise ValueError(f"{kind} row of frame {str(other[0])!r} passed for frame {frame_name!r}")
+    others = [("feature", str(f)) for f in ft.frame[ft.frame != frame_name][:1]]
+    others += [("block", str(f)) for f in bt.frame[bt.frame != frame_name][:1]]
+    others += [("corner", str(r[0])) for r in corners if r[0] != frame_name][:1]
+    if status.get("frame") != frame_name:
+        others.append(("status", str(status.get("frame"))))
+    if others:
+        kind, other = others[0]
+        raise ValueError(f"{kind} row of frame {other!r} passed for frame {frame_name!r}")
     ensure_writable_dir(Path(folder) / FRAMES_DIR)
     paths = frame_result_paths(folder, frame_name)
-    paths["done"].unlink(missing_ok=True)
-    write_features(paths["features"], ft)
-    write_blocks(paths["blocks"], paths["psfs"], bt)
-    atomic_write_text(paths["done"], frame_name + "\n")
+    paths.done.unlink(missing_ok=True)
+    write_features(paths.features, ft)
+    write_blocks(paths.blocks, paths.psfs, bt)
+    atomic_write_csv(paths.corners, CORNER_COLUMNS, corners)
+    atomic_write_text(paths.status, json.dumps(status))
+    atomic_write_text(paths.done, frame_name + "\n")
     return paths
 
 
-def completed_frames(folder: str | os.PathLike) -> dict[str, str]:
-    """Frames whose per-frame results are complete: ``{frame name: stem}``, sorted by stem."""
-    frames_dir = Path(folder) / FRAMES_DIR
-    if not frames_dir.is_dir():
-        return {}
-    done = {}
-    for marker in sorted(frames_dir.glob(f"*{DONE_SUFFIX}")):
-        try:
-            name = marker.read_text(encoding="utf-8").rstrip("\n")
-        except (OSError, UnicodeDecodeError) as exc:
-            raise ResultsFileError(f"{marker}: cannot read frame marker ({exc})") from None
-        done[name] = marker.name[:-len(DONE_SUFFIX)]
-    return done
+def read_frame_status(folder: str | os.PathLike, frame_name: str) -> dict | None:
+    """The status record of a finished frame, or None when the frame is not finished: no
+    ``done`` marker, or a marker or status record that is unreadable or names another frame
+    (such a frame is simply redone)."""
+    paths = frame_result_paths(folder, frame_name)
+    try:
+        marker = paths.done.read_text(encoding="utf-8")
+        record = json.loads(paths.status.read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return None
+    if marker != frame_name + "\n" or not isinstance(record, dict) or record.get("frame") != frame_name:
+        return None
+    return record
 
 
-def collect_results(folder: str | os.PathLike) -> dict[str, Path]:
-    """Concatenate the completed frames' files under ``folder/frames/`` into the top-level files.
+def collect_results(folder: str | os.PathLike, frame_names: Sequence[str]) -> dict[str, Path]:
+    """Concatenate the per-frame files of ``frame_names``, in that order, into the top-level
+    ``features.csv``, ``blocks.csv``, ``psfs.npz`` and ``corners.csv`` of ``folder``.
 
-    Frames are taken in stem order; frames without a ``.done`` marker are ignored.
+    Exactly these frames are collected: per-frame files of other frames (left by an earlier
+    run) stay under ``frames/`` but are not in the tables.
 
     Returns:
-        The paths written by :func:`write_results`.
+        The paths written by :func:`write_results`, plus ``"corners"``.
     Raises:
-        ResultsFileError: a per-frame file is missing or malformed.
+        ResultsFileError: a frame is not finished, or a per-frame file is missing or malformed.
     """
-    frames_dir = Path(folder) / FRAMES_DIR
-    stems = completed_frames(folder).values()
-    features = FeatureTable.concat([read_feature_table(frames_dir / f"{s}.{FEATURES_FILE}") for s in stems])
-    blocks = BlockTable.concat([_read_block_table(frames_dir / f"{s}.{BLOCKS_FILE}",
-                                                  frames_dir / f"{s}.{PSFS_FILE}") for s in stems])
-    return write_results(folder, features, blocks)
+    paths = [frame_result_paths(folder, name) for name in frame_names]
+    for name, p in zip(frame_names, paths, strict=True):
+        if not p.done.is_file():
+            raise ResultsFileError(f"{p.done}: frame {name!r} has no finished per-frame results")
+    features = FeatureTable.concat([read_feature_table(p.features) for p in paths])
+    blocks = BlockTable.concat([_read_block_table(p.blocks, p.psfs) for p in paths])
+    corners: list[tuple[str, ...]] = []
+    for p in paths:
+        cols, _ = read_csv_columns(p.corners, CORNER_COLUMNS, ResultsFileError, "results file")
+        corners += zip(*(cols[c] for c in CORNER_COLUMNS), strict=True)
+    outputs = write_results(folder, features, blocks)
+    outputs["corners"] = atomic_write_csv(Path(folder) / CORNERS_FILE, CORNER_COLUMNS, corners)
+    return outputs

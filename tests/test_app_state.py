@@ -224,12 +224,13 @@ def test_replacing_the_pattern_clears_results_and_keeps_truth_only_for_the_same_
     assert state.results() == {} and {e.status for e in state.entries()} == {"pending"}
     assert state.dataset.truth is not None and len(state.entries()) == 2
     other = tmp_path / "other.yaml"
-    other.write_text((dataset / "pattern.yaml").read_text().replace("squares_x: ", "squares_x: 1"))
+    other.write_text((dataset / "pattern.yaml").read_text().replace("index: ", "index: 1"))
     before = state.dataset.pattern
     notices = []
     state.subscribe_notices(notices.append)
     assert state.set_pattern(other)
-    assert state.dataset.pattern.squares_x == int(f"1{before.squares_x}") and state.dataset.truth is None
+    tag = state.dataset.pattern.apriltags[0].index
+    assert tag == int(f"1{before.apriltags[0].index}") and state.dataset.truth is None
     assert [n.title for n in notices] == ["Ground truth not used", "Pattern in use"]
 
 

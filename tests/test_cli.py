@@ -6,9 +6,13 @@ import json
 import subprocess
 import sys
 
+import cv2
+import numpy as np
 import pytest
+import torch
 
 from blurcalib.cli import main
+from blurcalib.pattern import layout_pattern
 from tests.conftest import FIXTURE_YAML
 
 
@@ -59,3 +63,50 @@ def test_synth_command_writes_dataset(tmp_path) -> None:
 def test_view_passes_options_to_the_app(capfd) -> None:
     assert main(["view", "--help"]) == 0
     assert "usage: app.py" in capfd.readouterr().out
+
+
+def _inputs(tmp_path):
+    """A pattern YAML and folders of sharp and blurry frames (flat grey: nothing to find)."""
+    pattern = layout_pattern().save_yaml(tmp_path / "pattern.yaml")
+    for kind in ("sharp", "blurry"):
+        (tmp_path / kind).mkdir()
+        for i in range(2):
+            cv2.imwrite(str(tmp_path / kind / f"{i}.png"), np.full((48, 64), 128, np.uint8))
+    return pattern
+
+
+def test_unavailable_device_is_one_line(tmp_path, capsys, monkeypatch) -> None:
+    pattern = _inputs(tmp_path)
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    for device, needle in (("cuda", "--device 'cuda': CUDA is not available"),
+                           ("cuda:1", "--device 'cuda:1': CUDA is not available"),
+                           ("gpu", "--device 'gpu': not a torch device")):
+        code = main(["extract", str(tmp_path / "sharp"), "--pattern", str(pattern), "--out",
+                     str(tmp_path / "out"), "--device", device])
+        err = capsys.readouterr().err
+        assert code == 2 and err.startswith("blurcalib: error: ") and needle in err
+        assert err.count("\n") == 1 and not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize("command", ["extract", "calibrate"])
+def test_user_files_are_never_overwritten(tmp_path, capsys, command) -> None:
+    pattern = _inputs(tmp_path)
+    out = tmp_path / "out"
+    (out / "calibration").mkdir(parents=True)
+    user = {"features.csv": "mine", "frames.csv": "mine", "psfs.npz": "mine",
+            "calibration/camera.yaml": "mine"}
+    for name, text in user.items():
+        (out / name).write_text(text)
+    argv = (["extract", str(tmp_path / "sharp")] if command == "extract" else
+            ["calibrate", "--sharp", str(tmp_path / "sharp"), "--blurry", str(tmp_path / "blurry")])
+    argv += ["--pattern", str(pattern), "--out", str(out)]
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert f"{out}: output folder is not empty and is not a blurcalib output" in err
+    assert "--overwrite" in err and err.count("\n") == 1
+    assert {str(p.relative_to(out)) for p in out.rglob("*") if p.is_file()} == set(user)
+    assert all((out / name).read_text() == "mine" for name in user)
+    if command == "extract":  # with --overwrite it runs (the flat frames have no tag: exit 1)
+        assert main([*argv, "--overwrite"]) == 1
+        assert "not_seeded" in (out / "frames.csv").read_text()
+        assert main(argv) == 1  # now an extract output: re-runs need no --overwrite

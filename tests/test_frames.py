@@ -8,7 +8,15 @@ import cv2
 import numpy as np
 import pytest
 
-from blurcalib.frames import FrameError, list_frames, load_frame
+from blurcalib.frames import (
+    MAX_FRAME_PIXELS,
+    MIN_FRAME_SIDE,
+    FrameError,
+    FrameSizeError,
+    frame_size,
+    list_frames,
+    load_frame,
+)
 
 
 @pytest.fixture()
@@ -24,15 +32,15 @@ def _write(path: Path, image: np.ndarray) -> Path:
 
 
 def test_8bit_round_trip(tmp_path: Path, rng: np.random.Generator) -> None:
-    image = rng.integers(0, 256, (30, 40), dtype=np.uint8)
+    image = rng.integers(0, 256, (34, 40), dtype=np.uint8)
     for ext in (".png", ".bmp", ".tif"):
         out = load_frame(_write(tmp_path / f"a{ext}", image))
-        assert out.dtype == np.float32 and out.shape == (30, 40)
+        assert out.dtype == np.float32 and out.shape == (34, 40)
         np.testing.assert_array_equal(out, image.astype(np.float32))
 
 
 def test_16bit_scaled_to_8bit_range(tmp_path: Path, rng: np.random.Generator) -> None:
-    image = rng.integers(0, 65536, (20, 25), dtype=np.uint16)
+    image = rng.integers(0, 65536, (33, 35), dtype=np.uint16)
     image[0, 0], image[0, 1] = 0, 65535
     for ext in (".png", ".tiff"):
         out = load_frame(_write(tmp_path / f"a{ext}", image))
@@ -41,10 +49,10 @@ def test_16bit_scaled_to_8bit_range(tmp_path: Path, rng: np.random.Generator) ->
 
 
 def test_colour_to_grey_with_standard_weights(tmp_path: Path, rng: np.random.Generator) -> None:
-    bgr = rng.integers(0, 256, (16, 18, 3), dtype=np.uint8)
+    bgr = rng.integers(0, 256, (300, 33, 3), dtype=np.uint8)  # more rows than one conversion chunk
     expected = 0.114 * bgr[..., 0] + 0.587 * bgr[..., 1] + 0.299 * bgr[..., 2]
     np.testing.assert_allclose(load_frame(_write(tmp_path / "c.png", bgr)), expected, atol=1e-3)
-    bgra = np.concatenate([bgr, rng.integers(0, 256, (16, 18, 1), dtype=np.uint8)], axis=2)
+    bgra = np.concatenate([bgr, rng.integers(0, 256, (300, 33, 1), dtype=np.uint8)], axis=2)
     np.testing.assert_allclose(load_frame(_write(tmp_path / "d.png", bgra)), expected, atol=1e-3)
     bgr16 = bgr.astype(np.uint16) * 257
     np.testing.assert_allclose(load_frame(_write(tmp_path / "e.png", bgr16)), expected, atol=1e-3)
@@ -53,7 +61,7 @@ def test_colour_to_grey_with_standard_weights(tmp_path: Path, rng: np.random.Gen
 def test_odd_characters_in_path(tmp_path: Path) -> None:
     folder = tmp_path / "Bilder äöü #1"
     folder.mkdir()
-    image = np.full((5, 6), 77, dtype=np.uint8)
+    image = np.full((32, 36), 77, dtype=np.uint8)
     path = _write(folder / "frame 01 (ß).png", image)
     np.testing.assert_array_equal(load_frame(path), 77.0)
 
@@ -61,7 +69,7 @@ def test_odd_characters_in_path(tmp_path: Path) -> None:
 def test_expected_size(tmp_path: Path) -> None:
     path = _write(tmp_path / "small.png", np.zeros((480, 640), dtype=np.uint8))
     assert load_frame(path, expected_size=(640, 480)).shape == (480, 640)
-    with pytest.raises(FrameError, match=r"small\.png: is 640x480, expected 1280x720"):
+    with pytest.raises(FrameSizeError, match=r"small\.png: is 640x480, expected 1280x720"):
         load_frame(path, expected_size=(1280, 720))
 
 
@@ -124,3 +132,42 @@ def test_list_frames_errors(tmp_path: Path) -> None:
         list_frames([text])
     with pytest.raises(FrameError, match="no frames given"):
         list_frames([])
+
+
+def test_colour_conversion_in_chunks_is_exact(tmp_path: Path, rng: np.random.Generator) -> None:
+    bgr = rng.integers(0, 256, (700, 40, 3), dtype=np.uint8)
+    whole = cv2.cvtColor(bgr.astype(np.float32), cv2.COLOR_BGR2GRAY)
+    assert load_frame(_write(tmp_path / "c.png", bgr)).tobytes() == whole.tobytes()
+
+
+def test_tiny_frames_are_unreadable(tmp_path: Path) -> None:
+    for h, w in ((1, 1), (MIN_FRAME_SIDE - 1, 400), (400, 3)):
+        path = _write(tmp_path / f"tiny_{h}x{w}.png", np.full((h, w), 90, np.uint8))
+        with pytest.raises(FrameError, match=rf"tiny_{h}x{w}\.png: is {w}x{h} px, smaller than"):
+            load_frame(path)
+    assert load_frame(_write(tmp_path / "ok.png", np.zeros((MIN_FRAME_SIDE, MIN_FRAME_SIDE),
+                                                           np.uint8))).shape == (32, 32)
+
+
+def test_oversized_frame_is_refused_from_its_header(tmp_path: Path,
+                                                    monkeypatch: pytest.MonkeyPatch) -> None:
+    w, h = 9000, MAX_FRAME_PIXELS // 9000 + 1
+    path = _write(tmp_path / "huge.png", np.zeros((h, w), np.uint8))
+    decoded = []
+    monkeypatch.setattr(cv2, "imdecode", lambda *a: decoded.append(a))
+    with pytest.raises(FrameError, match=rf"huge\.png: is {w}x{h} px .* more than the 50 MP"):
+        load_frame(path)
+    assert decoded == []  # refused before decoding
+
+
+def test_frame_size_from_header_matches_decoded(tmp_path: Path, rng: np.random.Generator) -> None:
+    image = rng.integers(0, 256, (37, 51, 3), dtype=np.uint8)
+    for ext in (".png", ".jpg", ".bmp", ".tif"):
+        assert frame_size(_write(tmp_path / f"a{ext}", image)) == (51, 37)
+    exif = tmp_path / "exif.jpg"  # an APP1 block before the frame header
+    data = _write(tmp_path / "plain.jpg", image).read_bytes()
+    exif.write_bytes(data[:2] + b"\xff\xe1" + (2 + 5000).to_bytes(2, "big") + bytes(5000) + data[2:])
+    assert frame_size(exif) == (51, 37) and load_frame(exif).shape == (37, 51)
+    (tmp_path / "text.png").write_text("not an image")
+    assert frame_size(tmp_path / "text.png") is None
+    assert frame_size(tmp_path / "missing.png") is None

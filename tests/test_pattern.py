@@ -160,3 +160,37 @@ def test_bad_yaml_names_file_and_field(tmp_path, text: str, needle: str) -> None
 def test_missing_yaml(tmp_path) -> None:
     with pytest.raises(PatternFileError, match="not found"):
         load_pattern(tmp_path / "nope.yaml")
+
+
+@pytest.mark.parametrize(("key", "value", "needle"), [
+    ("squares_x", "100000000", "field 'squares_x' must be between 3 and 1000"),
+    ("squares_y", "2", "field 'squares_y' must be between 3 and 1000"),
+    ("squares_x", ".inf", "field 'squares_x' must be int"),
+    ("square_length_in_meters", ".inf", "field 'square_length_in_meters' must be a finite positive"),
+    ("square_length_in_meters", ".nan", "field 'square_length_in_meters' must be a finite positive"),
+    ("square_length_in_meters", "-0.01", "field 'square_length_in_meters' must be a finite positive"),
+    ("square_length_in_meters", "0.02", "field 'squares_x' is 17, but the page's pattern area"),
+    ("width_mm", ".inf", "field 'page.width_mm' must be a finite positive"),
+    ("pattern_end_x_mm", "1e9", "must lie on the page"),
+    ("pattern_start_y_mm", "400", "start < end"),
+    ("tag_x", "15", "field 'apriltags[0]'"),
+])
+def test_unsound_geometry_is_refused_before_allocating(tmp_path, shared_fixtures, key: str,
+                                                       value: str, needle: str) -> None:
+    lines = FIXTURE_YAML.read_text().splitlines()
+    changed = [f"{line.split(':')[0]}: {value}" if line.strip().lstrip("- ").startswith(f"{key}:")
+               else line for line in lines]
+    assert changed != lines
+    path = tmp_path / "bad.yaml"
+    path.write_text("\n".join(changed) + "\n")
+    with pytest.raises(PatternFileError) as err:
+        load_pattern(path)
+    assert str(err.value).startswith(f"{path}: ") and needle in str(err.value)
+
+
+def test_consistent_large_target_is_accepted(tmp_path) -> None:
+    """A poster of 1000 x 700 squares of 2 mm: the page agrees with the squares."""
+    poster = layout_pattern(page_size_mm=(2008.0, 1408.0), approx_square_length_mm=2.0)
+    assert (poster.squares_x, poster.squares_y) == (1000, 700)
+    back = load_pattern(poster.save_yaml(tmp_path / "poster.yaml"))
+    assert back == poster and back.num_features > 690_000

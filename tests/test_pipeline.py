@@ -3,15 +3,20 @@
 from __future__ import annotations
 
 import json
+import os
+import shutil
+from pathlib import Path
 
 import cv2
 import numpy as np
 import pytest
 
+import blurcalib.pipeline as pipeline
 from blurcalib.camera import BrownConrady
 from blurcalib.evaluate import evaluate_features
+from blurcalib.fileio import OutputError
 from blurcalib.pattern import layout_pattern
-from blurcalib.pipeline import PipelineError, PipelineSettings, run_pipeline
+from blurcalib.pipeline import PUBLISHED, PipelineError, PipelineSettings, run_pipeline
 from blurcalib.quality import QualitySettings
 from blurcalib.report import error_direction_image
 from blurcalib.results import FeatureFlags, read_feature_table
@@ -33,11 +38,28 @@ def _settings() -> PipelineSettings:
     return PipelineSettings(quality=QualitySettings(min_sigma_major=0.0))
 
 
-def test_pipeline_end_to_end(tmp_path, dataset) -> None:
-    sharp = sorted((dataset / "sharp").glob("*.png"))
-    blurry = sorted((dataset / "blurry").glob("*.png"))
+def _frames(dataset):
+    return sorted((dataset / "sharp").glob("*.png")), sorted((dataset / "blurry").glob("*.png"))
+
+
+@pytest.fixture(scope="module")
+def finished(tmp_path_factory, dataset):
+    """One finished pipeline run: its output folder and report."""
+    out = tmp_path_factory.mktemp("run") / "out"
+    return out, run_pipeline(*_frames(dataset), layout_pattern(), out, _settings())
+
+
+def _published(out) -> dict[str, bytes]:
+    """The top-level outputs of a run folder, by relative path (report.json aside: it names
+    its folder)."""
+    files = [p for name in PUBLISHED if name != "report.json" for p in
+             ((out / name).rglob("*") if (out / name).is_dir() else [out / name])]
+    return {str(p.relative_to(out)): p.read_bytes() for p in files if p.is_file()}
+
+
+def test_pipeline_end_to_end(finished, dataset) -> None:
+    out, report = finished
     pattern = layout_pattern()
-    report = run_pipeline(sharp, blurry, pattern, tmp_path / "out", _settings())
     assert report.calibration["num_frames"] == 6
     assert report.calibration["median_error_px"] < 0.1
     statuses = {r["frame"]: r["status"] for r in report.frames}
@@ -45,13 +67,90 @@ def test_pipeline_end_to_end(tmp_path, dataset) -> None:
     assert "aligned" in statuses.values() or "ill_conditioned" in statuses.values()
     for key in ("features", "reference_features", "frames", "error_directions_sharp",
                 "frame_errors"):
-        assert (tmp_path / "out" / report.outputs[key].split("/")[-1]).is_file()
-    saved = json.loads((tmp_path / "out" / "report.json").read_text())
+        assert Path(report.outputs[key]) == out / Path(report.outputs[key]).name
+        assert Path(report.outputs[key]).is_file()
+    saved = json.loads((out / "report.json").read_text())
     assert saved["counts"] == report.counts
-    table = read_feature_table(tmp_path / "out" / "features.csv")
+    assert (out / "calibration" / "camera.yaml").is_file() and not (out / ".staging").exists()
+    table = read_feature_table(out / "features.csv")
     assert np.any(table.flags & int(FeatureFlags.SHARP_FRAME))
     acc = evaluate_features(table, load_ground_truth(dataset), pattern, skip_flags=0)
     assert acc and max(a.median for a in acc) < 0.1
+
+
+@pytest.fixture()
+def serial_opencv():
+    """OpenCV on one thread: its threaded pose solvers make the sharp-set calibration differ
+    between runs in the last digits (about 1e-11 px relative)."""
+    threads = cv2.getNumThreads()
+    cv2.setNumThreads(1)
+    yield
+    cv2.setNumThreads(threads)
+
+
+def test_rerun_resumes_and_a_killed_write_never_mixes_runs(tmp_path, finished, dataset,
+                                                          monkeypatch, serial_opencv) -> None:
+    out = tmp_path / "out"
+    shutil.copytree(finished[0], out)
+    stages: list[str] = []
+    run_pipeline(*_frames(dataset), layout_pattern(), out, _settings(),
+                 progress=lambda stage, done, total, row: stages.append(stage))
+    assert stages == []  # every frame was finished: nothing extracted again
+    reference = _published(out)
+    run_pipeline(*_frames(dataset), layout_pattern(), out, _settings())
+    assert _published(out) == reference  # bit-identical re-run
+    before = {p: (out / p).read_bytes() for p in [*reference, "report.json"]}
+    other = PipelineSettings(quality=QualitySettings(min_sigma_major=0.0), bias="bilinear")
+
+    # killed (as by kill -9, leaving a temporary file) while writing the set of a run with
+    # other settings: the folder keeps the previous set whole, report.json included
+    def killed(path, *args, **kwargs):
+        (Path(path).parent / f".{Path(path).stem}.k1ll3d_x.tmp.png").write_bytes(b"half a PNG")
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(pipeline, "save_frame_error_plot", killed)
+    with pytest.raises(KeyboardInterrupt):
+        run_pipeline(*_frames(dataset), layout_pattern(), out, other)
+    monkeypatch.undo()
+    assert {p: (out / p).read_bytes() for p in before} == before
+    assert [p.name for p in out.iterdir() if p.name.startswith(".")] == [".staging"]
+
+    # killed while moving the new set into place: no report.json, so no reader takes it whole
+    real_replace, moved = os.replace, []
+
+    def replace_then_die(src, dst) -> None:
+        if Path(src).parent == out / ".staging" and Path(dst).parent == out:
+            if len(moved) == 3:
+                raise KeyboardInterrupt
+            moved.append(dst)
+        real_replace(src, dst)
+
+    monkeypatch.setattr(os, "replace", replace_then_die)
+    with pytest.raises(KeyboardInterrupt):
+        run_pipeline(*_frames(dataset), layout_pattern(), out, other)
+    monkeypatch.undo()
+    assert len(moved) == 3 and not (out / "report.json").exists()
+
+    # the next run cleans up and publishes one whole set
+    run_pipeline(*_frames(dataset), layout_pattern(), out, other)
+    assert json.loads((out / "report.json").read_text())["settings"]["bias"] == "bilinear"
+    assert (out / "features.csv").read_bytes() != reference["features.csv"]
+    assert not [p.name for p in out.iterdir() if p.name.startswith(".")]
+    run_pipeline(*_frames(dataset), layout_pattern(), out, _settings())
+    assert _published(out) == reference
+
+
+def test_foreign_output_folder_is_refused(tmp_path, dataset) -> None:
+    out = tmp_path / "mine"
+    (out / "calibration").mkdir(parents=True)
+    user = {"features.csv": "my features", "frames.csv": "my frames", "psfs.npz": "my psfs",
+            "calibration/camera.yaml": "my camera"}
+    for name, text in user.items():
+        (out / name).write_text(text)
+    with pytest.raises(OutputError, match=r"mine: output folder is not empty and is not a blurcalib"):
+        run_pipeline(*_frames(dataset), layout_pattern(), out, _settings())
+    assert {str(p.relative_to(out)) for p in out.rglob("*") if p.is_file()} == set(user)
+    assert all((out / name).read_text() == text for name, text in user.items())
 
 
 def test_mixed_resolution_is_refused(tmp_path, dataset) -> None:
@@ -64,11 +163,12 @@ def test_mixed_resolution_is_refused(tmp_path, dataset) -> None:
 
 def test_too_few_sharp_frames_and_wrong_pattern(tmp_path, dataset) -> None:
     sharp = sorted((dataset / "sharp").glob("*.png"))[:3]
+    with pytest.raises(PipelineError, match="no AprilTag"):
+        run_pipeline(sharp, [], layout_pattern(tag_index=5), tmp_path / "a", _settings())
+    # with the pattern fixed, the frames are extracted again (not the old error repeated)
     with pytest.raises(PipelineError, match="sharp-set calibration"):
         run_pipeline(sharp, [], layout_pattern(), tmp_path / "a", _settings())
     assert (tmp_path / "a" / "sharp" / "features.csv").is_file()  # partial results kept
-    with pytest.raises(PipelineError, match="no AprilTag"):
-        run_pipeline(sharp, [], layout_pattern(tag_index=5), tmp_path / "b", _settings())
 
 
 def test_error_direction_colours() -> None:
