@@ -276,7 +276,8 @@ def test_joint_alignment_converges_in_a_few_steps(pattern, camera, bias, loss, m
     """The joint solve's cost is its step count (each step one small linear solve): a handful of
     LM steps (12 measured with the default Huber width of 0.035 px, which reweights the noise's
     tail; 4 and 5 at the former 0.1 px, where Huber was least squares), more for the median's
-    reweighting (24), and the fit reaches the noise. Wall-clock time is not asserted (a loaded machine would make that flaky)."""
+    reweighting (24), and the fit reaches the noise. Wall-clock time is not asserted (a loaded
+    machine would make that flaky)."""
     _, P, x, grid = view(pattern, camera, 40.0)
     P, x, grid = P[:300], x[:300], grid[:300]
     rng = np.random.default_rng(7)
