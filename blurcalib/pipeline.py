@@ -40,7 +40,7 @@ from blurcalib.fileio import (
     claim_output_dir,
     ensure_writable_dir,
 )
-from blurcalib.frames import frame_size
+from blurcalib.frames import frame_size, frame_size_problem
 from blurcalib.global_alignment import align_global, grid_coordinates, loss_weights
 from blurcalib.pattern import StarPattern
 from blurcalib.quality import QualitySettings, filter_frame
@@ -111,14 +111,21 @@ class PipelineReport:
         return asdict(self)
 
 
+def _usable_size(path: Path) -> tuple[int, int] | None:
+    """A frame's size, or None when it cannot be processed (extraction records it as
+    unreadable)."""
+    size = frame_size(path)
+    return None if size is None or frame_size_problem(*size) else size
+
+
 def _check_sizes(sharp: Sequence[Path], blurry: Sequence[Path]) -> tuple[int, int]:
-    sizes = [frame_size(p) for p in sharp]
+    sizes = [_usable_size(p) for p in sharp]
     known = [s for s in sizes if s is not None]
     if not known:
         raise PipelineError("none of the sharp frames can be read")
     size = max(set(known), key=known.count)
     other = [(p, s) for p, s in zip(list(sharp) + list(blurry),
-                                    sizes + [frame_size(p) for p in blurry], strict=True)
+                                    sizes + [_usable_size(p) for p in blurry], strict=True)
              if s is not None and s != size]
     if other:
         listed = ", ".join(f"{p} ({s[0]}x{s[1]})" for p, s in other[:5])

@@ -31,6 +31,7 @@ def dataset(tmp_path_factory):
                       blur_min_px=4.0, blur_max_px=6.0, seed=5)
     folder = tmp_path_factory.mktemp("ds")
     write_dataset(folder, cfg, camera=TrueCamera(model))
+    cv2.imwrite(str(folder / "blurry" / "0002_1x1.png"), np.zeros((1, 1), np.uint8))  # a bad frame
     return folder
 
 
@@ -63,7 +64,9 @@ def test_pipeline_end_to_end(finished, dataset) -> None:
     assert report.calibration["num_frames"] == 6
     assert report.calibration["median_error_px"] < 0.1
     statuses = {r["frame"]: r["status"] for r in report.frames}
-    assert set(statuses) == {"blurry/0000.png", "blurry/0001.png"}
+    assert set(statuses) == {"blurry/0000.png", "blurry/0001.png", "blurry/0002_1x1.png"}
+    bad = next(r for r in report.frames if r["frame"] == "blurry/0002_1x1.png")
+    assert bad["status"] == "not_extracted" and "is 1x1 px, smaller than" in bad["message"]
     assert "aligned" in statuses.values() or "ill_conditioned" in statuses.values()
     for key in ("features", "reference_features", "frames", "error_directions_sharp",
                 "frame_errors"):
@@ -80,8 +83,8 @@ def test_pipeline_end_to_end(finished, dataset) -> None:
 
 @pytest.fixture()
 def serial_opencv():
-    """OpenCV on one thread: its threaded pose solvers make the sharp-set calibration differ
-    between runs in the last digits (about 1e-11 px relative)."""
+    """OpenCV on one thread: with its default threads the sharp-set calibration differs between
+    runs in the last digits (aligned features moved by up to 4e-7 px between two runs)."""
     threads = cv2.getNumThreads()
     cv2.setNumThreads(1)
     yield
@@ -92,10 +95,10 @@ def test_rerun_resumes_and_a_killed_write_never_mixes_runs(tmp_path, finished, d
                                                           monkeypatch, serial_opencv) -> None:
     out = tmp_path / "out"
     shutil.copytree(finished[0], out)
-    stages: list[str] = []
+    seen: list[tuple[str, str]] = []
     run_pipeline(*_frames(dataset), layout_pattern(), out, _settings(),
-                 progress=lambda stage, done, total, row: stages.append(stage))
-    assert stages == []  # every frame was finished: nothing extracted again
+                 progress=lambda stage, done, total, row: seen.append((stage, row["frame"])))
+    assert seen == [("blurry", "blurry/0002_1x1.png")]  # only the unreadable frame is retried
     reference = _published(out)
     run_pipeline(*_frames(dataset), layout_pattern(), out, _settings())
     assert _published(out) == reference  # bit-identical re-run
