@@ -30,8 +30,9 @@ changes nothing). As the reference tool does, after every accepted step the grid
 so that the image centre looks along +z and the centre of the right edge lies in the x-z plane
 (x > 0), and the poses are rotated with it.
 
-Outliers: once, after ``outlier_iteration`` iterations, observations with an error above
-``Q3 + 6 (Q3 - Q1)`` (quartiles of the error norms) are removed, as the reference tool does.
+Outliers: once, after ``outlier_iteration`` iterations (or at convergence if that comes first),
+observations with an error above ``Q3 + 6 (Q3 - Q1)`` (quartiles of the error norms) are removed,
+as the reference tool does.
 """
 
 from __future__ import annotations
@@ -161,7 +162,8 @@ def coverage_warnings(model: CentralGeneric, coverage: np.ndarray) -> list[str]:
             ya = y0 + rows[sel].min() * cell_h
             yb = y0 + (rows[sel].max() + 1) * cell_h
             out.append(f"{int(sel.sum())} grid cells without observations in the {name} of the image "
-                       f"(x {xa:.0f}-{xb:.0f} px, y {ya:.0f}-{yb:.0f} px): the model there follows the "
+                       f"(x {max(xa, 0):.0f}-{xb:.0f} px, y {max(ya, 0):.0f}-{yb:.0f} px): the model "
+                       "there follows the "
                        "initial camera (smoothness prior)")
     return out
 
@@ -427,8 +429,11 @@ def bundle_adjust(model: CentralGeneric, poses: Sequence[Pose], frame: ArrayLike
     cost = pb.cost(st, torch.where(inside[:, None], r, 0.0), use)
     lam = 1e-6
     it = 0
+    removed = not settings.outlier_iteration
+    remove_after = settings.outlier_iteration
     for it in range(1, settings.max_iterations + 1):
-        if settings.outlier_iteration and it == settings.outlier_iteration + 1:
+        if not removed and it > remove_after:
+            removed = True
             e = r.norm(dim=-1)[use > 0]
             q1, q3 = torch.quantile(e, 0.25), torch.quantile(e, 0.75)
             thresh = float(q3 + settings.outlier_iqr * (q3 - q1))
@@ -469,7 +474,9 @@ def bundle_adjust(model: CentralGeneric, poses: Sequence[Pose], frame: ArrayLike
         if progress:
             log.info("iteration %d: cost %.6g, lambda %.2g", it, cost, lam)
         if not accepted or rel < settings.tol:
-            break
+            if removed:
+                break
+            remove_after = 0
     inlier = (pb.weights > 0) & st.inside
     res = torch.where(st.inside[:, None], r, torch.nan)
     e = r.norm(dim=-1)[inlier]
