@@ -73,7 +73,8 @@ def speed(sizes: list[int]) -> None:
         verdict = "" if target is None else f" (target <= {target:.0f} s: " \
             f"{'met' if r['ba_s'] <= target else 'MISSED'})"
         print(f"{n} frames, {r['observations']} observations, grid {r['grid'][1]} x {r['grid'][0]}: "
-              f"BA {r['ba_s']:.1f} s wall / {r['ba_cpu_s']:.1f} s CPU, {r['iterations']} iterations{verdict}; "
+              f"BA {r['ba_s']:.1f} s wall / {r['ba_cpu_s']:.1f} s CPU, {r['iterations']} iterations"
+              f"{verdict}; "
               f"initial grid fit {r['init_s']:.1f} s wall / {r['init_cpu_s']:.1f} s CPU; "
               f"median reprojection {r['median_px']:.4f} px; peak memory {r['peak_gb']:.2f} GB "
               f"(target <= 2 GB: {'met' if r['peak_gb'] <= 2 else 'MISSED'})")
@@ -96,10 +97,12 @@ def real_frames(cell_px: float) -> None:
     results = {}
     for name, flags in (("Brown-Conrady (5)", 0), ("OpenCV rational (8)", cv2.CALIB_RATIONAL_MODEL)):
         _, K, dist, rvecs, tvecs = cv2.calibrateCamera(pts, obs, (W, H), None, None, flags=flags)
-        err = np.concatenate([np.linalg.norm(cv2.projectPoints(p, r, t, K, dist)[0].reshape(-1, 2) - o, axis=1)
-                              for p, o, r, t in zip(pts, obs, rvecs, tvecs, strict=True)])
+        pred = [cv2.projectPoints(p, r, t, K, dist)[0].reshape(-1, 2)
+                for p, r, t in zip(pts, rvecs, tvecs, strict=True)]
+        err = np.linalg.norm(np.concatenate(pred) - np.concatenate(obs), axis=1)
         results[name] = (K, dist, float(np.median(err)))
-        print(f"{name}: median reprojection error {np.median(err):.4f} px, RMS {np.sqrt(np.mean(err**2)):.4f} px "
+        print(f"{name}: median reprojection error {np.median(err):.4f} px, "
+              f"RMS {np.sqrt(np.mean(err**2)):.4f} px "
               f"({len(pts)} frames, {len(err)} features)")
     K, dist, _ = results["Brown-Conrady (5)"]
     param = BrownConrady.from_matrix(K, dist.reshape(-1)[:5], W, H)
@@ -127,7 +130,8 @@ def accuracy() -> None:
     print(f"targets: (c) median over the calibrated area {c['area'][0]:.4f} px <= 0.02 "
           f"({'met' if c['area'][0] <= 0.02 else 'MISSED'}), area {100 * exp.area_fraction:.1f}% >= 95% "
           f"({'met' if exp.area_fraction >= 0.95 else 'MISSED'}); border median {c['border'][0]:.4f} <= "
-          f"half of (b) {b['border'][0]:.4f} ({'met' if c['border'][0] <= b['border'][0] / 2 else 'MISSED'}); "
+          f"half of (b) {b['border'][0]:.4f} "
+          f"({'met' if c['border'][0] <= b['border'][0] / 2 else 'MISSED'}); "
           f"median {c['area'][0]:.4f} <= a fifth of (a) {a['area'][0]:.4f} "
           f"({'met' if c['area'][0] <= a['area'][0] / 5 else 'MISSED'})")
 
