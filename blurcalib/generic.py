@@ -34,6 +34,7 @@ import math
 from collections.abc import Callable
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 import torch
 from numpy.typing import ArrayLike
@@ -58,6 +59,9 @@ DEFAULT_CELL_PX = 25.0
 
 PIXEL_CORNER_OFFSET = 0.5
 """Reference-tool (pixel-corner) coordinate minus OpenCV coordinate (px)."""
+
+_EDGE_ITERATIONS = 6
+"""A projection held at the area's edge for this many iterations is given up (outside the area)."""
 
 _AREA_EDGE = 0.999
 """Projections are clamped to ``[min, max + 0.999]`` (pixel-corner), as the reference does."""
@@ -169,10 +173,10 @@ class GridSpline:
         nodes = (rows[:, :, None] * gw + cols[:, None, :]).reshape(-1, 16)
         v = self.grid.reshape(-1, 3)[nodes].reshape(-1, 4, 4, 3)
         w = (wy[:, :, None] * wx[:, None, :]).reshape(-1, 16)
-        s = torch.einsum("nk,nkc->nc", w, v.reshape(-1, 16, 3))
-        ds_dgx = torch.einsum("nr,nc,nrcx->nx", wy, dwx, v)
-        ds_dgy = torch.einsum("nr,nc,nrcx->nx", dwy, wx, v)
-        ds_du = torch.stack([ds_dgx * self.scale[0], ds_dgy * self.scale[1]], dim=-1)
+        rows_x = torch.stack([wx, dwx], 1)[:, None] @ v  # (N, 4, 2, 3): sum over columns
+        both = torch.stack([wy, dwy], 1) @ rows_x.reshape(-1, 4, 6)  # (N, 2, 6): sum over rows
+        s = both[:, 0, :3]
+        ds_du = torch.stack([both[:, 0, 3:] * self.scale[0], both[:, 1, :3] * self.scale[1]], dim=-1)
         norm = s.norm(dim=-1)
         d = s / norm[:, None]
         proj = torch.eye(3, dtype=s.dtype, device=s.device) - d[:, :, None] * d[:, None, :]
@@ -194,11 +198,12 @@ class GridSpline:
         return lattice[best]
 
     def project(self, points: torch.Tensor, init: torch.Tensor | None = None,
-                iterations: int = 100, tol_px: float = 1e-9) -> tuple[torch.Tensor, torch.Tensor]:
+                iterations: int = 100, tol_px: float = 1e-8) -> tuple[torch.Tensor, torch.Tensor]:
         """Project camera-frame points ``(N, 3)`` to OpenCV pixels ``(N, 2)``.
 
         Levenberg-Marquardt on ``|d(u) - p / |p||^2`` per point (initial lambda 1 % of the mean
-        diagonal, /2 on success, x4 on failure), clamped to the calibrated area, started from
+        diagonal, /2 on success, x4 on failure), clamped to the calibrated area (a point held at
+        its edge for several iterations is given up), started from
         ``init`` ``(N, 2)`` (a previous projection) or from the best pixel of a lattice.
         Returns the pixels and ``inside (N,)``: converged strictly inside the area (a clamped
         projection means the point is outside the calibrated field of view).
@@ -206,16 +211,17 @@ class GridSpline:
         p = points / points.norm(dim=-1, keepdim=True)
         u = self.clamp(init.clone() if init is not None else self.start_pixels(p))
         ev = self.evaluate(u)
+        D = ev.dd_du
         r = ev.d - p
         cost = (r * r).sum(-1)
-        J0 = ev.dd_du
-        lam_all = 0.005 * (J0 * J0).sum(dim=(1, 2))
+        lam_all = 0.005 * (D * D).sum(dim=(1, 2))
         active = torch.ones(len(u), dtype=torch.bool, device=u.device)
+        on_edge = torch.zeros(len(u), dtype=torch.long, device=u.device)
         for _ in range(iterations):
             idx = torch.nonzero(active).squeeze(1)
             if len(idx) == 0:
                 break
-            J = ev.dd_du[idx]
+            J = D[idx]
             H = J.transpose(1, 2) @ J
             b = (J.transpose(1, 2) @ r[idx, :, None]).squeeze(-1)
             lm = lam_all[idx]
@@ -228,27 +234,20 @@ class GridSpline:
             r_new = ev_new.d - p[idx]
             cost_new = (r_new * r_new).sum(-1)
             ok = cost_new < cost[idx]
+            stalled = ok & (cost[idx] - cost_new <= 1e-10 * cost[idx])
             moved = (u_new - u[idx]).abs().amax(-1)
             acc = idx[ok]
             u[acc] = u_new[ok]
             r[acc] = r_new[ok]
             cost[acc] = cost_new[ok]
-            ev = _update_eval(ev, acc, ev_new, ok)
+            D[acc] = ev_new.dd_du[ok]
             lam_all[idx] = torch.where(ok, lm * 0.5, lm * 4.0)
-            done = (ok & (moved < tol_px)) | (~ok & (lam_all[idx] > 1e12)) | (cost[idx] < 1e-30)
+            edge = torch.any((u[idx] <= self.lo) | (u[idx] >= self.hi), dim=-1)
+            on_edge[idx] = torch.where(edge, on_edge[idx] + 1, 0)
+            done = (moved < tol_px) | (cost[idx] < 1e-26) | stalled | (on_edge[idx] >= _EDGE_ITERATIONS)
             active[idx[done]] = False
         inside = torch.all((u > self.lo) & (u < self.hi), dim=-1) & (cost < 1e-16)
         return u, inside
-
-
-def _update_eval(ev: SplineEval, acc: torch.Tensor, new: SplineEval, ok: torch.Tensor) -> SplineEval:
-    """``ev`` with the rows ``acc`` replaced by ``new``'s rows ``ok``."""
-    parts = {}
-    for name in ("s", "d", "norm", "dd_du", "nodes", "weights"):
-        full = getattr(ev, name).clone()
-        full[acc] = getattr(new, name)[ok]
-        parts[name] = full
-    return SplineEval(**parts)
 
 
 def projection_jacobians(spline: GridSpline, u: torch.Tensor, points: torch.Tensor
@@ -487,7 +486,7 @@ def fit_to_rays(pixel_to_ray: Callable[[np.ndarray], np.ndarray], width: int, he
 
 
 def undistortion_map(model: CentralGeneric, fx: float, fy: float, cx: float, cy: float,
-                     width: int | None = None, height: int | None = None
+                     width: int | None = None, height: int | None = None, coarse_px: int = 16
                      ) -> tuple[np.ndarray, np.ndarray]:
     """Maps for ``cv2.remap`` from the generic camera's image to a pinhole camera's.
 
@@ -495,18 +494,34 @@ def undistortion_map(model: CentralGeneric, fx: float, fy: float, cx: float, cy:
     frame) of ``width x height`` px (default the model's). Pixel ``(x, y)`` of the output looks
     along ``((x - cx) / fx, (y - cy) / fy, 1)``; ``map_x, map_y (height, width)`` float32 hold its
     position in the generic image, -1 where the ray leaves the calibrated area (so remap fills
-    the border value there).
+    the border value there). The projection is solved exactly per pixel, warm-started from a
+    bilinear interpolation of a solve every ``coarse_px`` pixels.
     """
     width = model.width if width is None else width
     height = model.height if height is None else height
-    xx, yy = np.meshgrid(np.arange(width, dtype=np.float64), np.arange(height, dtype=np.float64))
-    rays = np.stack([(xx - cx) / fx, (yy - cy) / fy, np.ones_like(xx)], -1).reshape(-1, 3)
     sp = model.spline()
-    u = torch.empty(len(rays), 2, dtype=torch.float64)
-    inside = torch.empty(len(rays), dtype=torch.bool)
-    chunk = 1 << 16
-    for i in range(0, len(rays), chunk):
-        u[i:i + chunk], inside[i:i + chunk] = sp.project(torch.as_tensor(rays[i:i + chunk]))
+
+    def rays(xs: np.ndarray, ys: np.ndarray) -> torch.Tensor:
+        xx, yy = np.meshgrid(xs, ys)
+        pts = np.stack([(xx - cx) / fx, (yy - cy) / fy, np.ones_like(xx)], -1)
+        return torch.as_tensor(pts.reshape(-1, 3))
+
+    cxs = np.append(np.arange(0, width - 1, coarse_px, dtype=np.float64), width - 1)
+    cys = np.append(np.arange(0, height - 1, coarse_px, dtype=np.float64), height - 1)
+    coarse, _ = sp.project(rays(cxs, cys))
+    coarse = coarse.numpy().reshape(len(cys), len(cxs), 2)
+    fx_idx = np.interp(np.arange(width), cxs, np.arange(len(cxs)))
+    fy_idx = np.interp(np.arange(height), cys, np.arange(len(cys)))
+    init = np.stack([cv2.remap(coarse[..., k].astype(np.float32), *np.meshgrid(
+        fx_idx.astype(np.float32), fy_idx.astype(np.float32)), cv2.INTER_LINEAR,
+        borderMode=cv2.BORDER_REPLICATE) for k in range(2)], -1).reshape(-1, 2)
+    all_rays = rays(np.arange(width, dtype=np.float64), np.arange(height, dtype=np.float64))
+    u = torch.empty(len(all_rays), 2, dtype=torch.float64)
+    inside = torch.empty(len(all_rays), dtype=torch.bool)
+    chunk = 1 << 17
+    for i in range(0, len(all_rays), chunk):
+        start = torch.as_tensor(init[i:i + chunk].astype(np.float64))
+        u[i:i + chunk], inside[i:i + chunk] = sp.project(all_rays[i:i + chunk], start)
     out = u.numpy().copy()
     out[~inside.numpy()] = -1.0
     maps = out.reshape(height, width, 2).astype(np.float32)
