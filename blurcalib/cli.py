@@ -267,10 +267,11 @@ def cmd_extract(args: argparse.Namespace) -> int:
 
 def cmd_experiment(args: argparse.Namespace) -> int:
     """``blurcalib experiment NAME``: reproduce one of the paper's experiments."""
-    from blurcalib.experiments import alignment, patterns, psf_quality, threshold_sweep
+    from blurcalib.experiments import alignment, generic, patterns, psf_quality, threshold_sweep
 
     runners = {"patterns": patterns.main, "alignment": alignment.main,
-               "psf-quality": psf_quality.main, "threshold-sweep": threshold_sweep.main}
+               "psf-quality": psf_quality.main, "threshold-sweep": threshold_sweep.main,
+               "generic": generic.main}
     return runners[args.name](args.rest)
 
 
@@ -387,11 +388,12 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("experiment", help="reproduce one of the paper's experiments",
                        description=cmd_experiment.__doc__)
-    p.add_argument("name", choices=["patterns", "alignment", "psf-quality", "threshold-sweep"],
+    p.add_argument("name", choices=["patterns", "alignment", "psf-quality", "threshold-sweep", "generic"],
                    help="patterns: star vs checkerboard PSF recovery (fig:exp2_test); "
                         "alignment: global alignment verification (tab:exp4, fig:exp41, fig:exp42); "
                         "psf-quality: PSF field and quality scatter plots (fig:exp_real1, "
-                        "fig:exp_real2); threshold-sweep: error against tau_L (fig:exp_real3)")
+                        "fig:exp_real2); threshold-sweep: error against tau_L (fig:exp_real3); "
+                        "generic: generic camera from sharp and blurry frames vs the truth (issue 9)")
     p.add_argument("rest", nargs=argparse.REMAINDER,
                    help="options of the experiment (see blurcalib experiment NAME --help)")
     p.set_defaults(func=cmd_experiment)
