@@ -121,6 +121,7 @@ class FrameResult:
         """A JSON-serialisable one-line summary (the row of ``frames.csv``)."""
         accepted = sum(b.status is BlockStatus.ACCEPTED for b in self.blocks)
         return {"frame": self.frame, "status": self.status.value, "message": self.message,
+                "seeded_by": self.seed.method if self.seed is not None else "",
                 "blocks": len(self.blocks), "accepted": accepted, "features": len(self.features),
                 "seconds": round(sum(self.seconds.values()), 3),
                 **{f"seconds_{k}": round(v, 3) for k, v in self.seconds.items()}}
@@ -319,9 +320,9 @@ def _common_size(sizes: Sequence[tuple[int, int] | None]) -> tuple[int, int] | N
 
 
 def write_frames_table(out: Path, summaries: Sequence[dict]) -> Path:
-    """``frames.csv``: one row per frame (frame, status, message, blocks, accepted, features,
-    seconds)."""
-    cols = ["frame", "status", "message", "blocks", "accepted", "features", "seconds"]
+    """``frames.csv``: one row per frame (frame, status, message, seeded_by, blocks, accepted,
+    features, seconds)."""
+    cols = ["frame", "status", "message", "seeded_by", "blocks", "accepted", "features", "seconds"]
     rows = [[s.get(c, "") for c in cols] for s in sorted(summaries, key=lambda r: r["frame"])]
     return atomic_write_csv(out / FRAMES_TABLE, cols, rows)
 

@@ -1,6 +1,11 @@
 """Region growing: solve blocks breadth-first from the seed, front by front.
 
-The first front is the ring of features around the tag, predicted from the seed homography.
+The first front is the ring of features around the tag, predicted from the seed homography. Under
+heavy blur the tag's corners (and so that prediction) are off by several px, and a block fitted
+from a poor start can settle with its long PSF partly outside the window, its centre off by a third
+of a square at a low loss; so the ring is fitted twice: the seed homography is re-estimated from
+the first fit's star centres (RANSAC) and the ring re-fitted from its predictions
+(:func:`refine_ring`).
 Every accepted block predicts its 4-neighbours (the pattern is periodic: the neighbour at
 ``(fx + dx, fy + dy)`` has ``H' = H T_q(2 dx, 2 dy)``, one square being 2 block units), averaged
 over all accepted neighbours of a candidate. Each front is solved as one batch
@@ -8,13 +13,26 @@ over all accepted neighbours of a candidate. Each front is solved as one batch
 homography, not converged, loss too high, PSF truncated, or a jump away from its prediction) is
 rejected and seeds nothing. Every decision is reported to an optional callback, so a GUI can draw
 the growth live.
+
+The PSF window fits the blur. A front is solved with the window chosen from the previous front's
+PSFs (:func:`choose_kernel_size`: about 1.5 x the blur extent ``sqrt(12) sigma_major``, the
+length of a straight blur with that second moment; odd, at least the configured
+:attr:`DeconvSettings.kernel_size`, at most :attr:`GrowSettings.max_kernel_size`). A block whose
+PSF reaches the window's border (boundary energy above
+:attr:`GrowSettings.refit_boundary_energy`) is re-fitted from the same prediction with a larger
+window, up to the cap, rather than dropped. Kernels of one growth are zero-padded (centred) to its
+largest window, which leaves them unchanged as convolution kernels. The block model's latent
+pattern is the periodic star field, so pixels nearer to a tag than the kernel radius (which see
+the tag through the blur) are left out of every block's loss (:func:`tag_mask`).
 """
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
+import cv2
 import numpy as np
 
 from blurcalib.camera import apply_homography
@@ -35,12 +53,26 @@ class GrowSettings:
         max_jump: reject blocks whose star centre moved further than this from its prediction
             (in squares; a block that slid onto a neighbouring star).
         max_blocks: stop after this many attempted blocks (safety net).
+        max_kernel_size: largest PSF window (px, odd); a value not above the deconvolution's
+            ``kernel_size`` keeps that window fixed.
+        kernel_per_extent: window side per px of blur extent.
+        refit_boundary_energy: blocks whose PSF has more than this share of its energy in the
+            window's outer two-pixel ring are re-fitted with a larger window.
     """
 
     max_loss: float = 400.0
     max_boundary_energy: float = 0.3
     max_jump: float = 0.3
     max_blocks: int = 5000
+    max_kernel_size: int = 41
+    kernel_per_extent: float = 1.5
+    refit_boundary_energy: float = 0.1
+
+    def __post_init__(self) -> None:
+        if self.max_kernel_size < 3 or self.max_kernel_size % 2 == 0:
+            raise ValueError(f"max_kernel_size must be odd and >= 3, got {self.max_kernel_size}")
+        if self.kernel_per_extent <= 0:
+            raise ValueError(f"kernel_per_extent must be positive, got {self.kernel_per_extent}")
 
 
 @dataclass(frozen=True)
@@ -100,18 +132,160 @@ def _normalise(H: np.ndarray) -> np.ndarray:
     return H / H[..., 2:3, 2:3]
 
 
+def choose_kernel_size(sigma_major: np.ndarray | float, smallest: int, largest: int,
+                       per_extent: float = 1.5) -> int:
+    """PSF window side for blurs of second moment ``sigma_major`` (px).
+
+    The blur extent is ``e = sqrt(12) sigma_major`` (a straight blur of length ``e`` has that
+    second moment); the window is ``ceil(per_extent e)`` rounded up to odd, within
+    ``[smallest, largest]``. ``sigma_major`` may be several values (their 90th percentile is
+    used); none finite gives ``smallest``.
+    """
+    s = np.asarray(sigma_major, dtype=np.float64).ravel()
+    s = s[np.isfinite(s)]
+    if s.size == 0:
+        return smallest
+    k = math.ceil(per_extent * math.sqrt(12.0) * float(np.percentile(s, 90)))
+    k += 1 - k % 2
+    return int(max(min(k, largest), smallest))
+
+
+def _pad_kernels(k: np.ndarray, size: int) -> np.ndarray:
+    """``(B, K, K)`` kernels zero-padded (centred) to ``(B, size, size)``."""
+    p = (size - k.shape[-1]) // 2
+    return np.pad(k, ((0, 0), (p, p), (p, p))) if p > 0 else k
+
+
 def _concat_fits(fits: list[BlockFit]) -> BlockFit:
-    first = fits[0]
+    """Rows of several fits in order; kernels padded to the largest window."""
+    size = max(f.settings.kernel_size for f in fits)
+    first = max(fits, key=lambda f: f.settings.kernel_size)
     values = {}
     for name in first.__dataclass_fields__:
         items = [getattr(f, name) for f in fits]
         if name == "status":
             values[name] = tuple(s for f in fits for s in f.status)
+        elif name in ("psf", "psf_fit"):
+            values[name] = np.concatenate([_pad_kernels(k, size) for k in items], axis=0)
         elif isinstance(items[0], np.ndarray):
             values[name] = np.concatenate(items, axis=0)
         else:
-            values[name] = items[0]
+            values[name] = getattr(first, name)
     return BlockFit(**values)
+
+
+def _take(fit: BlockFit, rows: np.ndarray) -> BlockFit:
+    """The rows ``rows`` of a fit."""
+    values = {}
+    for name in fit.__dataclass_fields__:
+        v = getattr(fit, name)
+        if name == "status":
+            values[name] = tuple(v[i] for i in rows)
+        elif isinstance(v, np.ndarray):
+            values[name] = v[rows]
+        else:
+            values[name] = v
+    return BlockFit(**values)
+
+
+def _too_small(fit: BlockFit, size: np.ndarray, settings: GrowSettings) -> np.ndarray:
+    """``(B,)`` bool: fitted blocks whose window (``size (B,)`` px) is too small for their PSF:
+    it reaches the window's border, or its extent asks for a larger window
+    (:func:`choose_kernel_size`)."""
+    fitted = np.array([st in (BlockStatus.ACCEPTED, BlockStatus.NOT_CONVERGED)
+                       for st in fit.status], dtype=bool)
+    wanted = np.array([choose_kernel_size(s, k, settings.max_kernel_size,
+                                          settings.kernel_per_extent)
+                       for s, k in zip(fit.sigma_major, size, strict=True)])
+    border = np.isfinite(fit.boundary_energy) & (fit.boundary_energy > settings.refit_boundary_energy)
+    return fitted & (size < settings.max_kernel_size) & (border | (wanted > size))
+
+
+def tag_mask(pattern: StarPattern, H_feature: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    """``(H, W)`` uint8, 1 on the tags' areas (feature boxes) seen through ``H_feature``."""
+    mask = np.zeros(shape, dtype=np.uint8)
+    for tag in pattern.apriltags:
+        x0, y0, x1, y1 = tag.feature_box
+        box = np.array([[x0, y0], [x1, y0], [x1, y1], [x0, y1]], dtype=np.float64)
+        px = cv2.perspectiveTransform(box[None], np.asarray(H_feature, dtype=np.float64))[0]
+        if np.all(np.isfinite(px)) and np.abs(px).max() < 1e6:
+            cv2.fillConvexPoly(mask, np.round(px).astype(np.int32), 1)
+    return mask
+
+
+def _pixel_mask(tag: np.ndarray | None, kernel_size: int) -> np.ndarray | None:
+    """Pixels usable by blocks fitted with ``kernel_size``: further from a tag than the kernel
+    radius plus 2 px (seed error)."""
+    if tag is None or not tag.any():
+        return None
+    r = kernel_size // 2 + 2
+    disk = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
+    return cv2.dilate(tag, disk) == 0
+
+
+def fit_front(image: np.ndarray, H0: np.ndarray, num_segments: int, deconv: DeconvSettings,
+              settings: GrowSettings, kernel_size: int, tag: np.ndarray | None = None) -> BlockFit:
+    """Fit one front's blocks ``H0 (B, 3, 3)`` with a window of ``kernel_size`` px; re-fit those
+    whose window is too small for their PSF with larger windows (at least 1.4 x larger each
+    time, up to :attr:`GrowSettings.max_kernel_size`), keeping a re-fit when it is accepted with
+    no more boundary energy. Kernels come back padded to the largest window used. ``tag``
+    (:func:`tag_mask`) keeps pixels near the tags out of the fits."""
+    fit = fit_blocks(image, H0, num_segments, replace(deconv, kernel_size=kernel_size),
+                     _pixel_mask(tag, kernel_size))
+    block_size = np.full(len(H0), kernel_size)
+    size = kernel_size
+    while size < settings.max_kernel_size:
+        redo = np.flatnonzero(_too_small(fit, block_size, settings))
+        if redo.size == 0:
+            break
+        grown = math.ceil(1.4 * size)
+        size = max(choose_kernel_size(fit.sigma_major[redo], size, settings.max_kernel_size,
+                                      settings.kernel_per_extent),
+                   min(grown + 1 - grown % 2, settings.max_kernel_size))
+        refit = fit_blocks(image, H0[redo], num_segments, replace(deconv, kernel_size=size),
+                           _pixel_mask(tag, size))
+        better = np.array([refit.status[j] is BlockStatus.ACCEPTED
+                           and (fit.status[i] is not BlockStatus.ACCEPTED
+                                or refit.boundary_energy[j] <= fit.boundary_energy[i])
+                           for j, i in enumerate(redo)], dtype=bool)
+        if not better.any():
+            continue
+        keep = np.setdiff1d(np.arange(len(H0)), redo[better])
+        merged = _concat_fits([_take(fit, keep), _take(refit, np.flatnonzero(better))])
+        order = np.argsort(np.concatenate([keep, redo[better]]), kind="stable")
+        fit = _take(merged, order)
+        block_size[redo[better]] = size
+    return fit
+
+
+def refine_ring(image: np.ndarray, pattern: StarPattern, ids: list[int], fit: BlockFit,
+                deconv: DeconvSettings, settings: GrowSettings, tag: np.ndarray | None
+                ) -> tuple[np.ndarray, BlockFit] | None:
+    """Re-fit the ring around the tag from the homography of its first fit's star centres.
+
+    Args:
+        image: the frame.
+        pattern: the target.
+        ids: the ring's feature ids (rows of ``fit``).
+        fit: the first fit of the ring.
+        deconv, settings: as for :func:`fit_front`.
+        tag: :func:`tag_mask`.
+    Returns:
+        ``(H0 (B, 3, 3), fit)``: the new predictions and their fit; None when fewer than 6
+        blocks were accepted or no homography fits them (RANSAC, 1.5 px).
+    """
+    ok = np.array([st is BlockStatus.ACCEPTED for st in fit.status], dtype=bool)
+    ok &= np.all(np.isfinite(fit.centre), axis=1)
+    if ok.sum() < 6:
+        return None
+    f = pattern.features[np.asarray(ids)]
+    H, inliers = cv2.findHomography(f[ok].astype(np.float64), fit.centre[ok], cv2.RANSAC, 1.5)
+    if H is None or inliers.sum() < 6:
+        return None
+    H0 = _normalise(block_homography(H, f[:, 0], f[:, 1]))
+    size = choose_kernel_size(fit.sigma_major[ok], deconv.kernel_size, settings.max_kernel_size,
+                              settings.kernel_per_extent)
+    return H0, fit_front(image, H0, pattern.num_star_segments, deconv, settings, size, tag)
 
 
 def grow(image: np.ndarray, pattern: StarPattern, seed: Seed,
@@ -161,16 +335,22 @@ def grow(image: np.ndarray, pattern: StarPattern, seed: Seed,
     front_ids = [int(i) for i in ring_ids]
     front_H = [_normalise(Hb) for Hb in H_ring]
     front_index = 0
+    kernel_size = deconv.kernel_size
+    tag = tag_mask(pattern, seed.H_feature, (h, w))
     while front_ids and len(ids_all) < settings.max_blocks:
         if should_stop is not None and should_stop():
             break
         H0 = np.stack(front_H)
-        fit = fit_blocks(image, H0, N, deconv)
+        fit = fit_front(image, H0, N, deconv, settings, kernel_size, tag)
+        if front_index == 0 and seed.source == "tag":
+            refined = refine_ring(image, pattern, front_ids, fit, deconv, settings, tag)
+            if refined is not None:
+                H0, fit = refined
         fits.append(fit)
         predicted_centre = apply_homography(H0, np.zeros((len(H0), 1, 2)))[:, 0]
         fitted_centre = fit.centre
         square_px = np.sqrt(np.abs(np.linalg.det(H0[:, :2, :2]))) * 2.0
-        newly_accepted = []
+        newly_accepted, accepted_rows = [], []
         for k, fid in enumerate(front_ids):
             status = fit.status[k]
             if status is BlockStatus.ACCEPTED:
@@ -189,6 +369,7 @@ def grow(image: np.ndarray, pattern: StarPattern, seed: Seed,
             if status is BlockStatus.ACCEPTED:
                 accepted_H[fid] = _normalise(fit.H[k])
                 newly_accepted.append(fid)
+                accepted_rows.append(k)
             fx, fy = (int(v) for v in pattern.features[fid])
             event = GrowthEvent(fid, fx, fy, status,
                                 fit.H[k] if status is not BlockStatus.OUTSIDE_IMAGE else H0[k],
@@ -198,6 +379,8 @@ def grow(image: np.ndarray, pattern: StarPattern, seed: Seed,
                 on_event(event)
         front_ids, front_H = _next_front(pattern, accepted_H, attempted, newly_accepted)
         front_index += 1
+        kernel_size = choose_kernel_size(fit.sigma_major[accepted_rows], deconv.kernel_size,
+                                         settings.max_kernel_size, settings.kernel_per_extent)
     if not fits:
         return None
     return Growth(_concat_fits(fits), np.array(ids_all, dtype=np.int64), status_all,

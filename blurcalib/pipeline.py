@@ -6,7 +6,8 @@
    resumable, into ``OUT/sharp/`` and ``OUT/blurry/`` (:mod:`blurcalib.extract`);
 2. Brown-Conrady calibration of the sharp set together with the target points
    (:mod:`blurcalib.calibrate`), saved in ``OUT/calibration/``;
-3. per blurry frame, the blur pre-filter and the BE / loss / connectivity filter on the saved
+3. per blurry frame, the optional blur pre-filter (off by default; the paper's 3.8 px is
+   ``QualitySettings(min_sigma_major=3.8)``) and the BE / loss / connectivity filter on the saved
    block figures (:mod:`blurcalib.quality`);
 4. per blurry frame, global alignment to the calibrated camera (``eq:global_align``, Huber
    loss; a global translation by default, the bilinear bias field ``eq:bilinear_bias`` or the
@@ -16,6 +17,14 @@
    ``OUT/features.bin`` (the reference tool's format, pixel-corner convention),
    ``OUT/frames.csv`` (per-frame status), ``OUT/report.json`` and figures (the
    reprojection-error direction image, per-frame errors).
+
+Frame statuses (``frames.csv``, one row per input frame, sharp and blurry): ``used`` marks every
+frame whose features enter the outputs unflagged (a sharp frame: the sharp-set calibration; a
+blurry frame: the global alignment and ``features.bin``). Every other status comes with its
+reason: the extraction's own (``not_seeded``, ``no_blocks``, ``unreadable``, ``failed``),
+``too_few_features`` (a sharp frame left out of the calibration), ``low_blur`` (the optional
+pre-filter), ``too_few_blocks`` (after the block filter) or ``ill_conditioned`` (seen nearly
+frontally: its global translation is ill-conditioned, its features are flagged ``filtered_out``).
 """
 
 from __future__ import annotations
@@ -99,12 +108,14 @@ class PipelineSettings:
 
 @dataclass
 class PipelineReport:
-    """What :func:`run_pipeline` did (also written as ``report.json``)."""
+    """What :func:`run_pipeline` did (also written as ``report.json``): ``frames`` one row per
+    input frame (see the module docstring), ``counts`` frames per status of each kind
+    (``{"sharp": {...}, "blurry": {...}}``)."""
 
     calibration: dict
     frames: list[dict]
     outputs: dict[str, str]
-    counts: dict[str, int]
+    counts: dict[str, dict[str, int]]
     settings: dict
 
     def to_dict(self) -> dict:
@@ -195,6 +206,10 @@ def run_pipeline(sharp: Sequence[Path], blurry: Sequence[Path], pattern: StarPat
         hint = f"; sharp frames without features: {', '.join(bad[:10])}" if bad else ""
         raise PipelineError(f"sharp-set calibration: {exc}{hint}") from None
 
+    sharp_rows = [_sharp_row(r, calibration) for r in sharp_run.frames]
+    left_out = np.isin(sharp_features.frame, [r["frame"] for r in sharp_rows
+                                              if r["status"] != "used"])
+    sharp_features.flags[left_out] |= int(FeatureFlags.FILTERED_OUT)
     blocks = read_block_table(out / "blurry")
     extracted = {r["frame"]: r for r in blurry_run.frames}
     rows, aligned, residuals = [], [], []
@@ -205,15 +220,16 @@ def run_pipeline(sharp: Sequence[Path], blurry: Sequence[Path], pattern: StarPat
         if table is not None:
             aligned.append(table)
             residuals.append(res)
-    usable = [r for r in rows if r["status"] == "aligned"]
+    usable = [r for r in rows if r["status"] == "used"]
+    rows = sharp_rows + rows
     ensure_writable_dir(staging)
     save_calibration(staging / CALIBRATION_DIR, calibration)
     staged = _write_outputs(staging, pattern, size, sharp_features, aligned, residuals, rows,
                             calibration)
     outputs = {k: out / p.relative_to(staging) for k, p in staged.items()}
-    counts = {}
+    counts: dict[str, dict[str, int]] = {"sharp": {}, "blurry": {}}
     for r in rows:
-        counts[r["status"]] = counts.get(r["status"], 0) + 1
+        counts[r["kind"]][r["status"]] = counts[r["kind"]].get(r["status"], 0) + 1
     report = PipelineReport(calibration={k: v for k, v in calibration.to_dict().items()
                                          if k in ("camera", "median_error_px", "rms_error_px",
                                                   "num_frames", "num_observations")},
@@ -226,18 +242,43 @@ def run_pipeline(sharp: Sequence[Path], blurry: Sequence[Path], pattern: StarPat
     atomic_write_text(staging / REPORT_FILE, json.dumps(report.to_dict(), indent=2, default=str))
     _publish(staging, out)
     if blurry and not usable:
-        raise PipelineError(f"no blurry frame survived the filters ({counts}); the sharp-set "
+        raise PipelineError(f"no blurry frame survived the filters ({counts['blurry']}); the sharp-set "
                             f"calibration and all features are kept in {out}")
     return report
+
+
+def _extraction_row(extracted: dict, kind: str) -> dict:
+    """The start of a frame's row from its extraction summary; not-ok extractions keep their
+    status and message as the row's status and reason."""
+    row = {"frame": extracted["frame"], "kind": kind, "extraction": extracted.get("status", ""),
+           "seeded_by": extracted.get("seeded_by", ""), "features": extracted.get("features", 0)}
+    if row["extraction"] != "ok":
+        row["status"] = row["extraction"] or "failed"
+        row["message"] = extracted.get("message") or f"extraction ended with {row['status']!r}"
+    return row
+
+
+def _sharp_row(extracted: dict, calibration: Calibration) -> dict:
+    """A sharp frame's row: ``used`` when it entered the sharp-set calibration."""
+    row = _extraction_row(extracted, "sharp")
+    if "status" in row:
+        return row
+    errors = calibration.frame_errors().get(row["frame"])
+    if errors is None:
+        row.update(status="too_few_features",
+                   message=f"{row['features']} features: too few for the sharp-set calibration "
+                           f"(its features are flagged filtered_out)")
+    else:
+        row.update(status="used", message="",
+                   calibration_median_error=round(errors["median_error_px"] or float("nan"), 4))
+    return row
 
 
 def _align_frame(name: str, extracted: dict, blocks, pattern: StarPattern, calibration: Calibration,
                  size: tuple[int, int], s: PipelineSettings
                  ) -> tuple[dict, FeatureTable | None, np.ndarray | None]:
-    row: dict = {"frame": name, "extraction": extracted.get("status", "missing")}
-    if extracted.get("status") != "ok":
-        row["status"] = "not_extracted"
-        row["message"] = extracted.get("message", "")
+    row = _extraction_row({"frame": name, **extracted}, "blurry")
+    if "status" in row:
         return row, None, None
     sel = np.flatnonzero(blocks.frame == name)
     b = blocks.select(sel)
@@ -275,7 +316,7 @@ def _align_frame(name: str, extracted: dict, blocks, pattern: StarPattern, calib
                          X=b.fx[k] * L, Y=b.fy[k] * L, x=ga.corrected[:, 0], y=ga.corrected[:, 1],
                          weight=1.0 / (1.0 + b.loss[k]),
                          flags=np.full(n, int(flags), dtype=np.int64))
-    row.update(status="ill_conditioned" if ga.ill_conditioned else "aligned",
+    row.update(status="ill_conditioned" if ga.ill_conditioned else "used", message="",
                median_error=round(ga.median_error, 4), mean_error=round(ga.mean_error, 4),
                angle_deg=round(math.degrees(ga.angle_to_normal), 2),
                translation=[round(float(v), 4) for v in ga.translation])
@@ -323,8 +364,9 @@ def _write_outputs(out: Path, pattern: StarPattern, size: tuple[int, int],
                          features.feature_id[usable], features.x[usable], features.y[usable],
                          pattern)
     outputs["reference_features"] = write_ref_dataset(out / "features.bin", ref)
-    cols = ["frame", "status", "extraction", "blocks", "kept", "centre_sigma_major",
-            "median_error", "mean_error", "angle_deg", "message"]
+    cols = ["frame", "kind", "status", "reason", "extraction", "seeded_by", "features", "blocks",
+            "kept", "centre_sigma_major", "median_error", "mean_error", "angle_deg"]
+    rows = [{**r, "reason": r.get("message", "")} for r in rows]
     outputs["frames"] = atomic_write_csv(out / "frames.csv", cols,
                                          [[r.get(c, "") for c in cols] for r in rows])
     # Figures: reprojection-error directions of the aligned blurry features and of the sharp set.

@@ -73,7 +73,7 @@ def save_frame_error_plot(path: str | os.PathLike, rows: list[dict],
     import matplotlib.pyplot as plt
 
     fig, axes = plt.subplots(1, 2, figsize=(12, 4), gridspec_kw={"width_ratios": [3, 1]})
-    colours = {"aligned": "tab:blue", "ill_conditioned": "black"}
+    colours = {"used": "tab:blue", "ill_conditioned": "black"}
     blurry = [r for r in rows if "median_error" in r]
     axes[0].bar(range(len(blurry)), [r["median_error"] for r in blurry],
                 color=[colours.get(r["status"], "tab:red") for r in blurry])

@@ -410,14 +410,22 @@ class BlockTable:
 
     @classmethod
     def concat(cls, tables: Sequence[BlockTable]) -> BlockTable:
-        """Rows of several tables, in order; non-empty tables must share the kernel size."""
+        """Rows of several tables, in order; kernels are zero-padded (centred) to the largest
+        size, which leaves them unchanged as kernels (the PSF window adapts to each frame's blur)."""
         nonempty = [t for t in tables if len(t)]
         if not nonempty:
             return tables[0] if tables else cls.empty()
-        sizes = {t.psf.shape[1:] for t in nonempty}
-        if len(sizes) != 1:
-            raise ValueError(f"cannot concatenate block tables with PSF sizes {sorted(sizes)}")
-        return cls(*(np.concatenate([getattr(t, name) for t in nonempty]) for name in cls._FIELDS))
+        size = max(t.psf.shape[1] for t in nonempty)
+        if any((size - t.psf.shape[1]) % 2 for t in nonempty):
+            raise ValueError(f"cannot centre PSFs of sizes {sorted({t.psf.shape[1] for t in nonempty})}")
+
+        def column(t: BlockTable, name: str) -> np.ndarray:
+            if name != "psf":
+                return getattr(t, name)
+            p = (size - t.psf.shape[1]) // 2
+            return np.pad(t.psf, ((0, 0), (p, p), (p, p)))
+
+        return cls(*(np.concatenate([column(t, name) for t in nonempty]) for name in cls._FIELDS))
 
 
 # ------------------------------------------------------------------------------------- writing

@@ -1,9 +1,16 @@
 """Seeding: find the target's AprilTag and the homography that starts region growing.
 
 Blur defeats tag detectors, so detection is retried on downscaled copies of the frame (a blur of
-``b`` px is ``b s`` px at scale ``s``, while the tag's cells stay several pixels wide). A caller
-can instead pass a homography it already has (the previous frame of a sequence, or four corners
-clicked in the GUI).
+``b`` px is ``b s`` px at scale ``s``, while the tag's cells stay several pixels wide). From about
+15 px of blur that is not enough: the tag's one-cell white ring is blurred into the star field and
+no quad is found at any scale. Then the frame is deblurred (:func:`detect_tags_deblurred`): a
+straight motion blur ``k(theta, l)`` is assumed, its direction ``theta`` taken from the image's
+structure tensor (blur along ``theta`` removes gradient energy along ``theta``; the star field's
+gradients are otherwise isotropic), and half-scale Wiener deconvolutions
+``F^-1[conj(K) F(I) / (|K|^2 + nsr)]`` for a few lengths ``l`` and directions near ``theta`` are
+searched until the detector finds a tag of the pattern (its decoded id is the check; the growth
+that follows verifies the homography block by block). A caller can instead pass a homography it
+already has (the previous frame of a sequence, or four corners clicked in the GUI).
 
 The seed is a homography ``H_f`` from *feature coordinates* (see ``docs/conventions.md``) to
 image pixels (OpenCV convention); a block's homography is ``H_f B(fx, fy)`` with
@@ -21,6 +28,12 @@ from blurcalib.pattern import StarPattern
 
 DEFAULT_SCALES = (1.0, 0.5, 0.35, 0.25)
 """Image scales tried in turn for tag detection."""
+
+DEBLUR_LENGTHS_PX = (12.0, 16.0, 20.0, 24.0, 28.0, 32.0, 8.0)
+"""Straight-blur lengths (full-resolution px) tried by :func:`detect_tags_deblurred`, in order."""
+
+DEBLUR_ANGLES_RAD = (0.0, 0.26, -0.26)
+"""Offsets from the structure-tensor blur direction tried by :func:`detect_tags_deblurred`."""
 
 APRILTAG_REFINEMENT_OFFSET_PX = 0.5
 """aruco's CORNER_REFINE_APRILTAG corners sit +0.5 px from the OpenCV pixel-centre convention
@@ -41,6 +54,10 @@ class Seed:
         corners_px: ``(4, 2)`` tag corners found (aruco order, OpenCV convention), or empty.
         scale: image scale at which the tag was detected (1 for full resolution).
         source: ``"tag"`` or ``"given"``.
+        method: how the frame was seeded: ``"tag"`` (detected as is), ``"tag_deblurred"``
+            (detected after a Wiener deblur, :func:`detect_tags_deblurred`) or ``"given"``.
+        blur: ``(length px, direction rad)`` of the straight blur the deblur assumed (NaN when
+            none).
     """
 
     H_feature: np.ndarray
@@ -48,6 +65,8 @@ class Seed:
     corners_px: np.ndarray
     scale: float
     source: str
+    method: str = "tag"
+    blur: tuple[float, float] = (float("nan"), float("nan"))
 
 
 def block_homography(H_feature: np.ndarray, fx: np.ndarray, fy: np.ndarray) -> np.ndarray:
@@ -67,6 +86,100 @@ def block_homography(H_feature: np.ndarray, fx: np.ndarray, fy: np.ndarray) -> n
     return np.asarray(H_feature, dtype=np.float64)[None] @ B
 
 
+def _detector() -> cv2.aruco.ArucoDetector:
+    params = cv2.aruco.DetectorParameters()
+    params.cornerRefinementMethod = cv2.aruco.CORNER_REFINE_APRILTAG
+    return cv2.aruco.ArucoDetector(
+        cv2.aruco.getPredefinedDictionary(cv2.aruco.DICT_APRILTAG_36h11), params)
+
+
+def _detect_once(detector: cv2.aruco.ArucoDetector, grey: np.ndarray, scale: float
+                 ) -> dict[int, np.ndarray]:
+    """Tags in ``grey`` (uint8, an image at ``scale``), corners in full-resolution px."""
+    corners, ids, _ = detector.detectMarkers(grey)
+    if ids is None:
+        return {}
+    return {int(i): (c.reshape(4, 2).astype(np.float64) - APRILTAG_REFINEMENT_OFFSET_PX + 0.5)
+            / scale - 0.5 for c, i in zip(corners, ids.ravel(), strict=True)}
+
+
+def blur_direction(image: np.ndarray) -> float:
+    """Direction (rad, x right, y down, in ``[0, pi)``) along which ``image (H, W)`` is most blurred.
+
+    The eigenvector of the smallest eigenvalue of the structure tensor ``sum grad I grad I^T``:
+    a motion blur along ``theta`` averages the gradient component along ``theta`` away.
+    """
+    img = np.asarray(image, dtype=np.float32)
+    gx = cv2.Sobel(img, cv2.CV_32F, 1, 0)
+    gy = cv2.Sobel(img, cv2.CV_32F, 0, 1)
+    T = np.array([[float(np.mean(gx * gx)), float(np.mean(gx * gy))],
+                  [float(np.mean(gx * gy)), float(np.mean(gy * gy))]])
+    _, vecs = np.linalg.eigh(T)
+    return float(np.arctan2(vecs[1, 0], vecs[0, 0]) % np.pi)
+
+
+def line_kernel(length: float, angle: float) -> np.ndarray:
+    """``(K, K)`` straight motion blur of ``length`` px along ``angle`` (rad), centred, sum 1
+    (bilinear splat of the path, ``K`` odd)."""
+    size = 2 * int(np.ceil(length / 2)) + 3
+    c = size // 2
+    t = np.linspace(-length / 2, length / 2, max(8, int(4 * length)))
+    x, y = c + t * np.cos(angle), c + t * np.sin(angle)
+    x0, y0 = np.floor(x).astype(int), np.floor(y).astype(int)
+    fx, fy = x - x0, y - y0
+    k = np.zeros((size, size))
+    for dx, dy, w in ((0, 0, (1 - fx) * (1 - fy)), (1, 0, fx * (1 - fy)), (0, 1, (1 - fx) * fy),
+                      (1, 1, fx * fy)):
+        np.add.at(k, (y0 + dy, x0 + dx), w)
+    return k / k.sum()
+
+
+def wiener_deblur(image: np.ndarray, kernel: np.ndarray, nsr: float = 0.01) -> np.ndarray:
+    """Wiener deconvolution ``F^-1[conj(K) F(I) / (|K|^2 + nsr)]`` of ``image (H, W)`` by a
+    centred ``kernel (K, K)``; the image is mirror-padded by ``K`` px against wrap-around."""
+    img = np.asarray(image, dtype=np.float64)
+    ks = kernel.shape[0]
+    mean = img.mean()
+    padded = cv2.copyMakeBorder(img - mean, ks, ks, ks, ks, cv2.BORDER_REFLECT)
+    kpad = np.zeros_like(padded)
+    kpad[:ks, :ks] = kernel
+    kpad = np.roll(kpad, (-(ks // 2), -(ks // 2)), axis=(0, 1))
+    F = np.fft.rfft2(kpad)
+    out = np.fft.irfft2(np.fft.rfft2(padded) * np.conj(F) / (np.abs(F) ** 2 + nsr), s=padded.shape)
+    return out[ks:-ks, ks:-ks] + mean
+
+
+def detect_tags_deblurred(image: np.ndarray, wanted: set[int], scale: float = 0.5,
+                          lengths: tuple[float, ...] = DEBLUR_LENGTHS_PX,
+                          angles: tuple[float, ...] = DEBLUR_ANGLES_RAD, nsr: float = 0.01
+                          ) -> tuple[dict[int, np.ndarray], tuple[float, float]]:
+    """Detect tags on Wiener-deblurred copies of ``image`` (see the module docstring).
+
+    Args:
+        image: ``(H, W)`` grey levels.
+        wanted: tag ids that end the search.
+        scale: image scale of the search.
+        lengths: straight-blur lengths tried (full-resolution px), in order.
+        angles: offsets (rad) from :func:`blur_direction` tried for each length.
+        nsr: Wiener noise-to-signal ratio.
+    Returns:
+        ``({tag id: (4, 2) corners, full-resolution px}, (length, angle))`` of the first
+        deblur that reveals a wanted tag; ``({}, (nan, nan))`` when none does.
+    """
+    grey = np.clip(np.asarray(image, dtype=np.float64), 0, 255)
+    small = cv2.resize(grey, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA)
+    theta = blur_direction(small)
+    detector = _detector()
+    for length in lengths:
+        for offset in angles:
+            k = line_kernel(length * scale, theta + offset)
+            sharp = np.clip(wiener_deblur(small, k, nsr), 0, 255).astype(np.uint8)
+            found = _detect_once(detector, sharp, scale)
+            if wanted & found.keys():
+                return found, (float(length), float((theta + offset) % np.pi))
+    return {}, (float("nan"), float("nan"))
+
+
 def detect_tags(image: np.ndarray, scales: tuple[float, ...] = DEFAULT_SCALES
                 ) -> tuple[dict[int, np.ndarray], float]:
     """Detect tag36h11 markers, trying each scale until one finds any.
@@ -79,25 +192,17 @@ def detect_tags(image: np.ndarray, scales: tuple[float, ...] = DEFAULT_SCALES
         and ``0.0`` when no scale finds a tag.
     """
     grey = np.clip(np.asarray(image), 0, 255).astype(np.uint8)
-    params = cv2.aruco.DetectorParameters()
-    params.cornerRefinementMethod = cv2.aruco.CORNER_REFINE_APRILTAG
-    detector = cv2.aruco.ArucoDetector(
-        cv2.aruco.getPredefinedDictionary(cv2.aruco.DICT_APRILTAG_36h11), params)
+    detector = _detector()
     for s in scales:
         img = grey if s == 1.0 else cv2.resize(grey, None, fx=s, fy=s, interpolation=cv2.INTER_AREA)
-        corners, ids, _ = detector.detectMarkers(img)
-        if ids is None or len(ids) == 0:
-            continue
-        found = {}
-        for c, i in zip(corners, ids.ravel(), strict=True):
-            pts = c.reshape(4, 2).astype(np.float64) - APRILTAG_REFINEMENT_OFFSET_PX
-            found[int(i)] = (pts + 0.5) / s - 0.5
-        return found, s
+        found = _detect_once(detector, img, s)
+        if found:
+            return found, s
     return {}, 0.0
 
 
 def seed_frame(image: np.ndarray, pattern: StarPattern, H_feature: np.ndarray | None = None,
-               scales: tuple[float, ...] = DEFAULT_SCALES) -> Seed:
+               scales: tuple[float, ...] = DEFAULT_SCALES, deblur: bool = True) -> Seed:
     """Find the homography from feature coordinates to the image.
 
     Args:
@@ -105,24 +210,32 @@ def seed_frame(image: np.ndarray, pattern: StarPattern, H_feature: np.ndarray | 
         pattern: the target.
         H_feature: a homography the caller already has (used as is).
         scales: detection scales (see :func:`detect_tags`).
+        deblur: when no tag of the pattern is found at any scale, search Wiener-deblurred copies
+            (:func:`detect_tags_deblurred`).
     Raises:
-        SeedError: no tag of ``pattern`` was found at any scale.
+        SeedError: no tag of ``pattern`` was found at any scale (nor after deblurring).
     """
     if H_feature is not None:
         H = np.asarray(H_feature, dtype=np.float64)
         if H.shape != (3, 3) or not np.all(np.isfinite(H)) or abs(np.linalg.det(H)) < 1e-12:
             raise SeedError("the given homography is not a finite, invertible 3x3 matrix")
-        return Seed(H / H[2, 2], -1, np.zeros((0, 2)), 1.0, "given")
+        return Seed(H / H[2, 2], -1, np.zeros((0, 2)), 1.0, "given", "given")
     found, scale = detect_tags(image, scales)
     wanted = {t.index: t for t in pattern.apriltags}
     matches = [(i, c) for i, c in found.items() if i in wanted]
+    method, blur = "tag", (float("nan"), float("nan"))
+    if not matches and deblur:
+        deblurred, blur = detect_tags_deblurred(image, set(wanted))
+        matches = [(i, c) for i, c in deblurred.items() if i in wanted]
+        method, scale = "tag_deblurred", 0.5
     if not matches:
         seen = f" (found tag ids {sorted(found)}, the pattern has {sorted(wanted)})" if found else ""
-        raise SeedError(f"no AprilTag of the pattern found at scales {list(scales)}{seen}")
+        tried = " or after deblurring" if deblur else ""
+        raise SeedError(f"no AprilTag of the pattern found at scales {list(scales)}{tried}{seen}")
     index, corners = matches[0]
     src = pattern.tag_corners(wanted[index]).astype(np.float32)
     H = cv2.getPerspectiveTransform(src, corners.astype(np.float32)).astype(np.float64)
-    return Seed(H / H[2, 2], index, corners, scale, "tag")
+    return Seed(H / H[2, 2], index, corners, scale, "tag", method, blur)
 
 
 def tag_ring_features(pattern: StarPattern) -> np.ndarray:

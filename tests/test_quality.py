@@ -45,12 +45,12 @@ def test_thresholds_then_connectivity() -> None:
 def test_frame_prefilter_on_blur() -> None:
     fx, fy, centre, status, loss, be, sigma = _grid()
     size = (380, 300)
-    assert filter_frame(fx, fy, centre, status, loss, be, sigma, size).frame_ok
-    low = filter_frame(fx, fy, centre, status, loss, be, np.full(len(fx), 2.0), size)
+    paper = QualitySettings(min_sigma_major=3.8)
+    assert filter_frame(fx, fy, centre, status, loss, be, sigma, size, paper).frame_ok
+    low = filter_frame(fx, fy, centre, status, loss, be, np.full(len(fx), 2.0), size, paper)
     assert not low.frame_ok and low.centre_sigma_major == 2.0
-    off = filter_frame(fx, fy, centre, status, loss, be, np.full(len(fx), 2.0), size,
-                       QualitySettings(min_sigma_major=0.0))
-    assert off.frame_ok
+    default = filter_frame(fx, fy, centre, status, loss, be, np.full(len(fx), 2.0), size)
+    assert default.frame_ok and default.kept.sum() == low.kept.sum()
 
 
 def test_nothing_survives() -> None:

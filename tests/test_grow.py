@@ -1,0 +1,44 @@
+"""The PSF window of region growing fits the blur."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from blurcalib.deconv import DeconvSettings, fit_blocks, simulate_blocks
+from blurcalib.grow import GrowSettings, choose_kernel_size, fit_front
+from blurcalib.pattern import layout_pattern
+from blurcalib.results import BlockStatus
+
+
+def test_kernel_size_grows_with_the_blur() -> None:
+    sizes = [choose_kernel_size(s, 17, 41) for s in (0.5, 2.0, 4.0, 5.0, 6.0, 8.0, 20.0)]
+    assert sizes == sorted(sizes) and all(k % 2 == 1 for k in sizes)
+    assert sizes[0] == 17 and sizes[-1] == 41  # the configured window and the cap
+    # ~1.5 x the extent sqrt(12) sigma of a straight blur: a 24 px blur (sigma 6.9 px) -> 37 px.
+    assert choose_kernel_size(24.0 / np.sqrt(12.0), 17, 41) == 37
+    assert choose_kernel_size(np.array([np.nan]), 17, 41) == 17
+    assert choose_kernel_size(3.0, 17, 15) == 17  # a cap below the configured window is no cap
+    with pytest.raises(ValueError, match="odd"):
+        GrowSettings(max_kernel_size=40)
+
+
+def test_truncated_psf_is_refitted_with_a_larger_window() -> None:
+    pattern = layout_pattern()
+    sim = simulate_blocks(pattern, 6, np.random.default_rng(3), blur_px=(22.0, 24.0),
+                          gauss_sigma=(0.3, 0.5), square_px=(34.0, 38.0), tile_px=128,
+                          truth_kernel_size=41, init_shift_px=0.5)
+    deconv = DeconvSettings(kernel_size=17)
+    fixed = fit_blocks(sim.image.astype(np.float32), sim.H0, pattern.num_star_segments, deconv)
+    fitted = np.isfinite(fixed.boundary_energy)
+    assert np.median(fixed.boundary_energy[fitted]) > 0.1  # a 17 px window truncates 23 px blur
+    grown = fit_front(sim.image.astype(np.float32), sim.H0, pattern.num_star_segments, deconv,
+                      GrowSettings(), 17)
+    assert grown.psf.shape[-1] > 17 and grown.settings.kernel_size == grown.psf.shape[-1]
+    ok = np.array([s is BlockStatus.ACCEPTED for s in grown.status])
+    assert ok.sum() >= 5 and np.all(grown.boundary_energy[ok] < 0.12)
+    err = np.linalg.norm(grown.centre[ok] - sim.centre_true[ok], axis=1)
+    err_fixed = np.linalg.norm(fixed.centre[ok] - sim.centre_true[ok], axis=1)
+    assert np.median(err) < 0.1 and np.median(err) < np.median(err_fixed)
+    # Padding keeps the kernels: same sums, same centroid convention.
+    assert np.allclose(np.nansum(grown.psf[ok], axis=(1, 2)), 1.0, atol=1e-3)
