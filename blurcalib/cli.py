@@ -125,11 +125,14 @@ def _pipeline_settings(args: argparse.Namespace):
     from blurcalib.pipeline import PipelineSettings
     from blurcalib.quality import QualitySettings
 
-    return PipelineSettings(
-        quality=QualitySettings(tau_be=args.tau_be, tau_loss=args.tau_loss,
-                                min_sigma_major=args.min_sigma_major),
-        loss=args.loss, bias=args.bias, workers=args.workers,
-        local_alignment=args.local_alignment)
+    try:
+        return PipelineSettings(
+            quality=QualitySettings(tau_be=args.tau_be, tau_loss=args.tau_loss,
+                                    min_sigma_major=args.min_sigma_major),
+            loss=args.loss, bias=args.bias, workers=args.workers,
+            local_alignment=args.local_alignment, model=args.model, route=args.route, cell_px=args.cell_px)
+    except ValueError as exc:
+        raise CliError(str(exc)) from None
 
 
 def _run_pipeline(sharp: list[Path], blurry: list[Path], pattern: StarPattern, out: Path,
@@ -156,6 +159,13 @@ def _run_pipeline(sharp: list[Path], blurry: list[Path], pattern: StarPattern, o
     cal = report.calibration
     print(f"sharp-set calibration: {cal['num_frames']} frames, median {cal['median_error_px']:.4f} px, "
           f"RMS {cal['rms_error_px']:.4f} px")
+    if report.generic is not None:
+        g = report.generic
+        print(f"generic calibration ({g['route']} route): {g['grid_width']}x{g['grid_height']} grid, "
+              f"{g['frames']} frames ({g['blurry_frames']} blurry), median {g['median_error_px']:.4f} px, "
+              f"RMS {g['rms_error_px']:.4f} px")
+        for warning in g["warnings"]:
+            print(f"warning: {warning}")
     for kind in ("sharp", "blurry"):
         print(f"{kind} frames: " + ", ".join(f"{v} {k}" for k, v in sorted(report.counts[kind].items())))
     for kind, path in report.outputs.items():
@@ -170,7 +180,7 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     pattern = load_pattern(args.pattern)
     try:
         sharp = list_frames([args.sharp])
-        blurry = list_frames([args.blurry])
+        blurry = list_frames([args.blurry]) if args.blurry else []
     except FrameError as exc:
         raise CliError(str(exc)) from None
     _run_pipeline(sharp, blurry, pattern, Path(args.out), args)
@@ -204,7 +214,36 @@ def cmd_demo(args: argparse.Namespace) -> int:
         print(f"accuracy of the aligned blurry features against the true camera (pose refitted): "
               f"median over {len(acc)} frames {med:.4f} px "
               f"(per frame {min(a.median for a in acc):.4f} to {max(a.median for a in acc):.4f} px)")
+    _print_camera_accuracy(out / "calibration", pattern, truth, args)
     return 0
+
+
+def _print_camera_accuracy(out: Path, pattern: StarPattern, truth, args: argparse.Namespace) -> None:
+    """The demo's answer to "is the camera better because of the blurry frames": each camera's
+    projection error against the true camera over the image (after the best-fit rotation), for
+    the parametric camera, the generic camera of the sharp frames alone, and the generic camera
+    of sharp and blurry frames together."""
+    from blurcalib.calibrate import load_calibration
+    from blurcalib.evaluate import camera_accuracy
+    from blurcalib.joint import JointSettings, calibrate_generic
+    from blurcalib.refcamera import read_generic_yaml
+    from blurcalib.results import read_feature_table
+
+    calibration = load_calibration(out / "calibration")
+    cameras = [("parametric, sharp frames", calibration.camera)]
+    intrinsics = out / "calibration" / "intrinsics0.yaml"
+    if intrinsics.is_file():
+        sharp = read_feature_table(out / "sharp" / "features.csv")
+        size = (calibration.camera.width, calibration.camera.height)
+        alone = calibrate_generic(sharp, None, calibration, pattern, size,
+                                  JointSettings(cell_px=args.cell_px, route=args.route))
+        cameras += [("generic, sharp frames", alone.model),
+                     ("generic, sharp + blurry frames", read_generic_yaml(intrinsics))]
+    print("camera against the true camera over the image (px, after the best-fit rotation):")
+    for label, camera in cameras:
+        a = camera_accuracy(truth.camera, camera)
+        print(f"  {label:<32} median {a.median:.4f}, p95 {a.p95:.4f}, max {a.max:.4f} "
+              f"({100 * a.defined:.0f}% of the image calibrated)")
 
 
 def _check_device(device: str) -> None:
@@ -322,6 +361,14 @@ def _add_pipeline_options(p: argparse.ArgumentParser) -> None:
                    help="bias model of the global alignment (%(default)s)")
     p.add_argument("--local-alignment", action="store_true",
                    help="use the local-alignment translations for blurry frames")
+    p.add_argument("--model", choices=["generic", "parametric"], default="generic",
+                   help="camera model delivered: the generic B-spline ray grid fitted to sharp and blurry "
+                        "frames together, or Brown-Conrady from the sharp set only (%(default)s)")
+    p.add_argument("--route", choices=["joint", "aligned"], default="joint",
+                   help="blurry frames in the generic fit: star centres with a free per-frame shift "
+                        "(joint), or aligned to the parametric camera first, the paper's route (%(default)s)")
+    p.add_argument("--cell-px", type=float, default=25.0,
+                   help="cell length of the generic model's grid, px (%(default)s)")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -342,7 +389,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("calibrate", help="the whole pipeline on folders of sharp and blurry frames",
                        description=cmd_calibrate.__doc__)
     p.add_argument("--sharp", required=True, help="folder of sharp frames")
-    p.add_argument("--blurry", required=True, help="folder of blurry frames")
+    p.add_argument("--blurry", help="folder of blurry frames (optional: a sharp-only calibration)")
     p.add_argument("--pattern", required=True, help="pattern YAML of the target")
     p.add_argument("--out", required=True, help="output folder (resumable)")
     p.add_argument("--workers", type=int, default=min(2, os.cpu_count() or 1),

@@ -413,6 +413,14 @@ class CentralGeneric:
         return self.with_grid(self.grid @ R.T)
 
 
+def best_fit_rotation(a: ArrayLike, b: ArrayLike) -> np.ndarray:
+    """Rotation ``Q (3, 3)`` minimising ``sum |Q a_i - b_i|^2`` over unit vectors ``a, b (N, 3)``
+    (Kabsch). A central camera's orientation is a gauge: two models are compared after it."""
+    U, _, Vt = np.linalg.svd(np.asarray(b, dtype=np.float64).T @ np.asarray(a, dtype=np.float64))
+    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))])
+    return U @ D @ Vt
+
+
 def _lattice(x0: float, y0: float, x1: float, y1: float, step: float) -> np.ndarray:
     nx = max(2, math.ceil((x1 - x0) / step) + 1)
     ny = max(2, math.ceil((y1 - y0) / step) + 1)

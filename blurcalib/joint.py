@@ -35,7 +35,14 @@ from blurcalib.bundle import BundleResult, BundleSettings, bundle_adjust
 from blurcalib.calibrate import Calibration, solve_pose
 from blurcalib.camera import BrownConrady, Pose
 from blurcalib.fileio import atomic_path, atomic_write_csv, ensure_writable_dir
-from blurcalib.generic import DEFAULT_CELL_PX, CentralGeneric, calibrated_area, fit_to_rays, undistortion_map
+from blurcalib.generic import (
+    DEFAULT_CELL_PX,
+    CentralGeneric,
+    best_fit_rotation,
+    calibrated_area,
+    fit_to_rays,
+    undistortion_map,
+)
 from blurcalib.pattern import StarPattern
 from blurcalib.refcamera import write_generic_yaml
 from blurcalib.results import FeatureFlags, FeatureTable
@@ -216,8 +223,7 @@ def difference_field(model: CentralGeneric, camera: BrownConrady, step: float = 
     g = model.pixel_to_ray(px)
     p = camera.pixel_to_ray(px)
     ok = np.all(np.isfinite(g), axis=1)
-    U, _, Vt = np.linalg.svd(p[ok].T @ g[ok])
-    Q = U @ np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))]) @ Vt
+    Q = best_fit_rotation(g[ok], p[ok])
     diff = np.full(px.shape, np.nan)
     diff[ok] = camera.project(g[ok] @ Q.T) - px[ok]
     return xs, ys, diff.reshape(len(ys), len(xs), 2)

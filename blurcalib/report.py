@@ -73,10 +73,10 @@ def save_frame_error_plot(path: str | os.PathLike, rows: list[dict],
     import matplotlib.pyplot as plt
 
     fig, axes = plt.subplots(1, 2, figsize=(12, 4), gridspec_kw={"width_ratios": [3, 1]})
-    colours = {"used": "tab:blue", "ill_conditioned": "black"}
     blurry = [r for r in rows if "median_error" in r]
     axes[0].bar(range(len(blurry)), [r["median_error"] for r in blurry],
-                color=[colours.get(r["status"], "tab:red") for r in blurry])
+                color=["black" if r.get("alignment") == "ill_conditioned" else
+                       "tab:blue" if r["status"] == "used" else "tab:red" for r in blurry])
     axes[0].set_xlabel("blurry frame (black: flagged by the orientation filter)")
     axes[0].set_ylabel("median error after global alignment (px)")
     axes[0].set_title(f"{len(blurry)} aligned blurry frames of {len(rows)}")

@@ -13,13 +13,15 @@ import numpy as np
 import pytest
 
 import blurcalib.pipeline as pipeline
+from blurcalib.calibrate import load_calibration
 from blurcalib.camera import BrownConrady
 from blurcalib.cli import main
-from blurcalib.evaluate import evaluate_features
+from blurcalib.evaluate import camera_accuracy, evaluate_features
 from blurcalib.fileio import OutputError
 from blurcalib.pattern import layout_pattern
 from blurcalib.pipeline import PUBLISHED, PipelineError, PipelineSettings, run_pipeline
 from blurcalib.quality import QualitySettings
+from blurcalib.refcamera import read_generic_yaml
 from blurcalib.report import error_direction_image
 from blurcalib.results import FeatureFlags, read_feature_table
 from blurcalib.synth import SynthConfig, TrueCamera, load_ground_truth, write_dataset
@@ -35,6 +37,11 @@ def dataset(tmp_path_factory):
     write_dataset(folder, cfg, camera=TrueCamera(model))
     cv2.imwrite(str(folder / "blurry" / "0002_1x1.png"), np.zeros((1, 1), np.uint8))  # a bad frame
     return folder
+
+
+def report_camera(out: Path) -> BrownConrady:
+    """The parametric camera a run saved."""
+    return load_calibration(out / "calibration").camera
 
 
 def _settings() -> PipelineSettings:
@@ -69,7 +76,7 @@ def test_pipeline_end_to_end(finished, dataset) -> None:
     assert set(statuses) == {f"sharp/{i:04d}.png" for i in range(6)} | {
         "blurry/0000.png", "blurry/0001.png", "blurry/0002_1x1.png"}
     bad = next(r for r in report.frames if r["frame"] == "blurry/0002_1x1.png")
-    assert bad["status"] == "not_extracted" and "is 1x1 px, smaller than" in bad["message"]
+    assert bad["status"] == "unreadable" and "is 1x1 px, smaller than" in bad["message"]
     assert "used" in statuses.values() or "ill_conditioned" in statuses.values()
     for key in ("features", "reference_features", "frames", "error_directions_sharp",
                 "frame_errors"):
@@ -82,6 +89,26 @@ def test_pipeline_end_to_end(finished, dataset) -> None:
     assert np.any(table.flags & int(FeatureFlags.SHARP_FRAME))
     acc = evaluate_features(table, load_ground_truth(dataset), pattern, skip_flags=0)
     assert acc and max(a.median for a in acc) < 0.1
+
+
+def test_pipeline_delivers_the_generic_camera(finished, dataset) -> None:
+    """The default model: the generic camera of sharp and blurry frames together, in the reference
+    tool's format, more accurate against the true camera than the parametric one."""
+    out, report = finished
+    truth = load_ground_truth(dataset)
+    generic = read_generic_yaml(out / "calibration" / "intrinsics0.yaml")
+    assert report.generic["median_error_px"] < 0.1 and report.generic["blurry_frames"] >= 1
+    assert Path(report.outputs["error_directions_generic"]).is_file()
+    for name in ("generic_poses.csv", "undistortion_map.npz", "generic_coverage.png"):
+        assert (out / "calibration" / name).is_file()
+    rows = {r["frame"]: r for r in report.frames}
+    for r in rows.values():
+        assert r["status"] == "used" or r["message"], r
+    # Joint route: a blurry frame with enough kept blocks is used whatever its orientation.
+    assert all(r["status"] == "used" for r in rows.values()
+               if r["kind"] == "blurry" and r.get("alignment") in ("ok", "ill_conditioned"))
+    parametric = camera_accuracy(truth.camera, report_camera(out))
+    assert camera_accuracy(truth.camera, generic).median < parametric.median
 
 
 @pytest.fixture()
@@ -106,7 +133,8 @@ def test_rerun_resumes_and_a_killed_write_never_mixes_runs(tmp_path, finished, d
     run_pipeline(*_frames(dataset), layout_pattern(), out, _settings())
     assert _published(out) == reference  # bit-identical re-run
     before = {p: (out / p).read_bytes() for p in [*reference, "report.json"]}
-    other = PipelineSettings(quality=QualitySettings(min_sigma_major=0.0), bias="bilinear")
+    other = PipelineSettings(quality=QualitySettings(min_sigma_major=0.0), bias="bilinear",
+                             model="parametric")
 
     # killed (as by kill -9, leaving a temporary file) while writing the set of a run with
     # other settings: the folder keeps the previous set whole, report.json included
@@ -139,7 +167,7 @@ def test_rerun_resumes_and_a_killed_write_never_mixes_runs(tmp_path, finished, d
 
     # the next run cleans up and publishes one whole set
     run_pipeline(*_frames(dataset), layout_pattern(), out, other)
-    assert json.loads((out / "report.json").read_text())["settings"]["bias"] == "bilinear"
+    assert json.loads((out / "report.json").read_text())["settings"]["model"] == "parametric"
     assert (out / "features.csv").read_bytes() != reference["features.csv"]
     assert not [p.name for p in out.iterdir() if p.name.startswith(".")]
     run_pipeline(*_frames(dataset), layout_pattern(), out, _settings())
@@ -196,15 +224,15 @@ def test_default_calibrate_uses_little_blur_and_gives_reasons(tmp_path, dataset,
         table = list(csv.DictReader(handle))
     frames = [r["frame"] for r in table]
     assert sorted(frames) == sorted([f"sharp/{i:04d}.png" for i in range(6)]
-                                    + ["blurry/0000.png", "blurry/0001.png"])
+                                    + ["blurry/0000.png", "blurry/0001.png", "blurry/0002_1x1.png"])
     status = {r["frame"]: r["status"] for r in table}
     reason = {r["frame"]: r["reason"] for r in table}
+    assert status["blurry/0002_1x1.png"] == "unreadable"
     # 4-6 px of blur: the paper's 3.8 px pre-filter would drop both blurry frames; the defaults
-    # keep them and they reach the global alignment.
-    blurry = [f for f in frames if f.startswith("blurry/")]
+    # keep them and the generic calibration uses them.
+    blurry = ["blurry/0000.png", "blurry/0001.png"]
     assert "low_blur" not in status.values()
-    assert all(status[f] in ("used", "ill_conditioned") for f in blurry)
-    assert any(status[f] == "used" for f in blurry)
+    assert all(status[f] == "used" for f in blurry)
     for f in frames:
         assert (status[f] == "used") == (reason[f] == ""), (f, status[f], reason[f])
     # "used" is exactly the set of frames whose features are written unflagged.

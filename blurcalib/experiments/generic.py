@@ -53,6 +53,8 @@ import numpy as np
 from blurcalib.bundle import BundleResult, BundleSettings, bundle_adjust
 from blurcalib.calibrate import solve_pose
 from blurcalib.camera import BrownConrady, Pose
+from blurcalib.evaluate import pixel_lattice, projection_errors
+from blurcalib.experiments.common import experiment_parser, run_experiment_cli
 from blurcalib.fileio import atomic_path, atomic_write_text, ensure_writable_dir
 from blurcalib.generic import CentralGeneric, calibrated_area, fit_to_rays
 from blurcalib.global_alignment import align_global, orientation_ok
@@ -64,7 +66,6 @@ __all__ = [
     "GenericSettings",
     "SimFrame",
     "main",
-    "projection_errors",
     "run_generic_experiment",
     "simulate_frames",
 ]
@@ -92,6 +93,13 @@ class GenericSettings:
     border_px: float = 64.0
     corner_px: float = 128.0
     lattice_px: float = 4.0
+
+    def __post_init__(self) -> None:
+        if self.sharp < 5 or self.blurry < 0:
+            raise ValueError(f"need at least 5 sharp frames and no negative count, got sharp={self.sharp}, "
+                             f"blurry={self.blurry}")
+        if not self.cell_px > 0:
+            raise ValueError(f"cell_px must be positive, got {self.cell_px}")
 
 
 @dataclass(eq=False)
@@ -211,39 +219,6 @@ def generic_fit(initial: CentralGeneric, camera: BrownConrady, frames: Sequence[
 
 
 # ---------------------------------------------------------------------------------- evaluation
-def _lattice(width: int, height: int, step: float) -> np.ndarray:
-    xs = np.arange(0.0, width - 1 + 1e-9, step)
-    ys = np.arange(0.0, height - 1 + 1e-9, step)
-    xx, yy = np.meshgrid(xs, ys)
-    return np.column_stack([xx.ravel(), yy.ravel()])
-
-
-def _kabsch(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Rotation ``Q`` minimising ``sum |Q a_i - b_i|^2`` for unit vectors ``(N, 3)``."""
-    U, _, Vt = np.linalg.svd(b.T @ a)
-    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))])
-    return U @ D @ Vt
-
-
-def projection_errors(truth: TrueCamera, estimate: BrownConrady | CentralGeneric, px: np.ndarray
-                      ) -> np.ndarray:
-    """``(N,)`` px: the estimate's projection of each pixel's true ray, after the best-fit rotation,
-    minus the pixel. NaN where the estimate is undefined (outside a generic model's area)."""
-    xn = truth.unproject(px)
-    rays = np.column_stack([xn, np.ones(len(xn))])
-    rays /= np.linalg.norm(rays, axis=1, keepdims=True)
-    est = estimate.pixel_to_ray(px)
-    ok = np.all(np.isfinite(est), axis=1)
-    Q = _kabsch(rays[ok], est[ok])
-    turned = rays @ Q.T
-    if isinstance(estimate, CentralGeneric):
-        u, inside = estimate.project(turned)
-        err = np.linalg.norm(u - px, axis=1)
-        err[~inside | ~ok] = np.nan
-        return err
-    return np.linalg.norm(estimate.project(turned) - px, axis=1)
-
-
 def _regions(px: np.ndarray, width: int, height: int, border: float, corner: float
              ) -> dict[str, np.ndarray]:
     x, y = px[:, 0], px[:, 1]
@@ -343,7 +318,7 @@ def run_generic_experiment(settings: GenericSettings | None = None,
     for name, res in results.items():
         fits[name] = (res.seconds, res.cpu_seconds, res.iterations, res.median_error)
         warnings[name] = res.warnings
-    px = _lattice(W, H, settings.lattice_px)
+    px = pixel_lattice(W, H, settings.lattice_px)
     inside = initial.in_area(px)
     regions = _regions(px, W, H, settings.border_px, settings.corner_px)
     estimates: dict[str, BrownConrady | CentralGeneric] = {MODELS[0]: param}
@@ -401,16 +376,19 @@ def save_error_images(exp: GenericExperiment, out: Path, vmax: float = 0.1) -> l
     return paths
 
 
-def main(argv: Sequence[str] | None = None) -> int:
-    """``blurcalib experiment generic``: print the table, write it and the error images."""
-    ap = argparse.ArgumentParser(prog="blurcalib experiment generic", description=__doc__.split("\n")[0])
+def build_parser() -> argparse.ArgumentParser:
+    """Options of ``blurcalib experiment generic``."""
     d = GenericSettings()
-    ap.add_argument("--sharp", type=int, default=d.sharp, help="sharp frames (%(default)s)")
-    ap.add_argument("--blurry", type=int, default=d.blurry, help="blurry frames (%(default)s)")
-    ap.add_argument("--seed", type=int, default=d.seed, help="random seed (%(default)s)")
-    ap.add_argument("--cell-px", type=float, default=d.cell_px, help="grid cell length, px (%(default)s)")
-    ap.add_argument("--out", default="out/experiment_generic", help="output folder (%(default)s)")
-    args = ap.parse_args(argv)
+    parser = experiment_parser("generic", __doc__.split("\n")[0],
+                               "table.txt, generic.json and the error images")
+    parser.set_defaults(seed=d.seed)
+    parser.add_argument("--sharp", type=int, default=d.sharp, help="sharp frames (%(default)s)")
+    parser.add_argument("--blurry", type=int, default=d.blurry, help="blurry frames (%(default)s)")
+    parser.add_argument("--cell-px", type=float, default=d.cell_px, help="grid cell length, px (%(default)s)")
+    return parser
+
+
+def _run(args: argparse.Namespace) -> list[Path]:
     settings = GenericSettings(sharp=args.sharp, blurry=args.blurry, seed=args.seed, cell_px=args.cell_px)
     out = ensure_writable_dir(args.out)
     t0 = time.perf_counter()
@@ -421,11 +399,16 @@ def main(argv: Sequence[str] | None = None) -> int:
         for line in lines:
             print(f"warning {name}: {line}")
     print(f"total {time.perf_counter() - t0:.1f} s")
-    atomic_write_text(out / "table.txt", text + "\n")
-    atomic_write_text(out / "generic.json", json.dumps(
-        {"settings": asdict(settings), "table": exp.table, "area_fraction": exp.area_fraction,
-         "bias": exp.bias, "fits": exp.fits, "frames": exp.frames,
-         "dropped_by_filter": exp.dropped_by_filter, "warnings": exp.warnings}, indent=1))
-    for path in save_error_images(exp, out):
-        print(f"wrote {path}")
-    return 0
+    paths = [atomic_write_text(out / "table.txt", text + "\n"),
+             atomic_write_text(out / "generic.json", json.dumps(
+                 {"settings": asdict(settings), "table": exp.table, "area_fraction": exp.area_fraction,
+                  "bias": exp.bias, "fits": exp.fits, "frames": exp.frames,
+                  "dropped_by_filter": exp.dropped_by_filter, "warnings": exp.warnings}, indent=1))]
+    return paths + save_error_images(exp, out)
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """``blurcalib experiment generic [--out DIR] [--seed N] [--sharp N] [--blurry N] [--cell-px C]``:
+    prints the table and writes it, ``generic.json`` and the error images. Returns 0, or 2 (with
+    ``blurcalib: error: ...`` on stderr) for bad options or an unwritable output folder."""
+    return run_experiment_cli(build_parser(), argv, _run)
