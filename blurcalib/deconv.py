@@ -409,6 +409,36 @@ def shift_pair(latent: np.ndarray, kernel: np.ndarray, delta: tuple[int, int]
     return np.roll(np.asarray(latent), (dy, dx), axis=(0, 1)), shifted
 
 
+def _solve_nonnegative(G: torch.Tensor, rhs: torch.Tensor, m: int, passes: int
+                       ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """``x = G^{-1} rhs`` with the first ``m`` entries that come out negative fixed at zero.
+
+    Active-set passes: each fixes the entries that are negative in the previous solution (the
+    others are free) and re-solves the free block of ``G`` (Cholesky, ``G`` is symmetric positive
+    definite through the ridge); the passes stop early once no block's active set changes.
+
+    Args:
+        G: ``(b, M, M)`` float64 normal matrices; rhs: ``(b, M, 1)``; m: constrained entries
+            (the kernel's); passes: at most this many active-set passes (0: unconstrained).
+    Returns:
+        ``x (b, M)`` (fixed entries exactly 0), the Cholesky factor of the final free system
+        (fixed rows and columns replaced by the identity) and ``free (b, M)`` as 0/1 float64.
+    """
+    free = torch.ones(rhs.shape[:2], dtype=G.dtype, device=G.device)
+    chol = torch.linalg.cholesky_ex(G)[0]  # _ex: a bad block must not stop the batch
+    x = torch.cholesky_solve(rhs, chol)[..., 0]
+    for _ in range(passes):
+        keep = torch.cat([(x[:, :m] > 0).to(G.dtype), free[:, m:]], dim=1) * free
+        if torch.equal(keep, free):
+            break
+        free = keep
+        Gf = G * (free[:, :, None] * free[:, None, :])
+        Gf.diagonal(dim1=1, dim2=2).add_(1.0 - free)
+        chol = torch.linalg.cholesky_ex(Gf)[0]
+        x = torch.cholesky_solve(rhs * free[..., None], chol)[..., 0] * free
+    return x, chol, free
+
+
 # ----------------------------------------------------------------------------- block windows
 def _validate_blocks(H0: np.ndarray, image_shape: tuple[int, int], s: DeconvSettings
                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[BlockStatus]]:
@@ -722,31 +752,19 @@ class _Problem:
             lam = lam * scale[:, None]
         padded = torch.cat([src.reshape(b, -1), torch.zeros_like(src.reshape(b, -1)),
                             torch.zeros_like(src[:, 0, :1])], dim=1)
-        P = torch.empty((b, m, n), dtype=self.dt, device=src.device)
+        # D = [P; U] (b, m + 3, n): the kernel entries' patches, then the offset's rows (u, v, 1)
+        D = torch.empty((b, m + 3, n), dtype=self.dt, device=src.device)
         for t in range(m):  # one (b, n) gather per kernel entry: no (b, m, n) index tensor
-            torch.gather(padded, 1, des.base + des.taps[:, t, None], out=P[:, t])
+            torch.gather(padded, 1, des.base + des.taps[:, t, None], out=D[:, t])
+        P = D[:, :m]
         if self.s.brightness == "after_blur":
             P.mul_(w[:, None, :])
-        G = torch.empty((b, m + 3, m + 3), dtype=torch.float64, device=P.device)
-        G[:, :m, :m] = P @ P.transpose(1, 2)
-        G[:, :m, m:] = P @ des.U.transpose(1, 2)
-        G[:, m:, :m] = G[:, :m, m:].transpose(1, 2)
-        G[:, m:, m:] = des.UU
+        D[:, m:] = des.U
+        G = (D @ D.transpose(1, 2)).double()
         G.diagonal(dim1=1, dim2=2).add_(lam)
-        rhs = torch.cat([(P @ des.img[..., None]).double(), des.Uimg], dim=1)
-        lu = torch.linalg.lu_factor_ex(G)[:2]  # _ex: a bad block must not stop the batch
-        x = torch.linalg.lu_solve(*lu, rhs)[..., 0]
-        free = None
-        if self.s.nonnegative:
-            free = torch.ones_like(x, dtype=torch.bool)
-            eye = torch.eye(G.shape[1], dtype=G.dtype, device=G.device)
-            for _ in range(self.s.nonnegative_passes):
-                free[:, :m] &= x[:, :m] > 0
-                lu = torch.linalg.lu_factor_ex(torch.where(free[:, :, None] & free[:, None, :], G, eye))[:2]
-                x = torch.linalg.lu_solve(*lu, torch.where(free[..., None], rhs, 0.0))[..., 0]
-            x = torch.where(free, x, 0.0)
-        xf = x.to(self.dt)[..., None]
-        res = des.img - (P.transpose(1, 2) @ xf[:, :m] + des.U.transpose(1, 2) @ xf[:, m:])[..., 0]
+        rhs = (des.img[:, None, :] @ D.transpose(1, 2)).double().transpose(1, 2)  # (b, m + 3, 1)
+        x, chol, free = _solve_nonnegative(G, rhs, m, self.s.nonnegative_passes if self.s.nonnegative else 0)
+        res = des.img - (x.to(self.dt)[:, None, :] @ D)[:, 0]
         sse = (res * res).sum(dim=1).double()
         out = {"x": x, "obj": sse + (x * x * lam).sum(dim=1), "sse": sse, "lam": lam}
         if not with_jac:
@@ -764,10 +782,8 @@ class _Problem:
             chans = torch.cat([dS * a_l[:, None], (self.u_l * S)[:, None], (self.v_l * S)[:, None]], dim=1)
             J = torch.gather(self.conv(chans, k).reshape(b, _NUM_NL, -1), 2,
                              des.pix[:, None, :].expand(-1, _NUM_NL, -1)) * des.pix_w[:, None, :]
-        Y = torch.cat([P @ J.transpose(1, 2), des.U @ J.transpose(1, 2)], dim=1).double()
-        if free is not None:
-            Y = torch.where(free[..., None], Y, 0.0)
-        Z = torch.linalg.lu_solve(*lu, Y)
+        Y = (J @ D.transpose(1, 2)).double().transpose(1, 2) * free[..., None]  # (b, m + 3, 10)
+        Z = torch.cholesky_solve(Y, chol)
         out["N"] = (J @ J.transpose(1, 2)).double() - Y.transpose(1, 2) @ Z
         out["g"] = (J @ res[..., None]).double()[..., 0]
         return out
