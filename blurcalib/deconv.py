@@ -63,6 +63,7 @@ batched gather each), never over blocks or pixels. Measurements behind the defau
 
 from __future__ import annotations
 
+import copy
 import math
 from dataclasses import dataclass, field
 from typing import Literal, NamedTuple
@@ -134,6 +135,8 @@ class DeconvSettings:
             failed (no star in the window) and is ``not_converged``.
         max_window_px: blocks whose window side exceeds this are degenerate.
         batch_size: blocks solved together (grouped by window size).
+        stage_batch_size: after the coarse kernel a batch is solved in groups of at most this
+            many blocks of similar kernel support (less padding; the results do not depend on it).
         converge_tol_px: a block has converged when the last accepted LM step moved its star
             centre by less than this (px).
         device: torch device of the solve (``"cpu"``, ``"cuda"``, ...).
@@ -162,6 +165,7 @@ class DeconvSettings:
     min_contrast: float = 10.0
     max_window_px: int = 256
     batch_size: int = 64
+    stage_batch_size: int = 8
     converge_tol_px: float = 0.05
     device: str = "cpu"
     dtype: str = "float32"
@@ -177,8 +181,10 @@ class DeconvSettings:
             raise ValueError(f"dtype must be 'float32' or 'float64', got {self.dtype!r}")
         if self.tau <= 0 or self.beta <= 0 or self.ridge < 0 or self.ridge_border < 0:
             raise ValueError("tau and beta must be positive, ridge and ridge_border non-negative")
-        if min(self.outer_iterations, self.batch_size, self.supersample) < 1 or self.gn_steps < 0:
-            raise ValueError("outer_iterations, batch_size and supersample must be >= 1, gn_steps >= 0")
+        if min(self.outer_iterations, self.batch_size, self.stage_batch_size, self.supersample) < 1 \
+                or self.gn_steps < 0:
+            raise ValueError("outer_iterations, batch_size, stage_batch_size and supersample must be >= 1, "
+                             "gn_steps >= 0")
         if not 0.0 <= self.support_threshold < 1.0 or self.support_dilation < 0:
             raise ValueError("support_threshold must be in [0, 1), support_dilation >= 0")
 
@@ -569,6 +575,22 @@ class _Problem:
         self.rho = (1.0 + s.ridge_border * rad**s.ridge_power).reshape(-1)
         self.offs = d
 
+    def subset(self, idx: np.ndarray) -> _Problem:
+        """The blocks ``idx`` alone, the padded windows cropped to their largest one (the
+        latent-local coordinates of a block do not change)."""
+        out = copy.copy(self)
+        r = self.r
+        size = self.size[idx]
+        h, w = out.h, out.w = int(size[:, 1].max()), int(size[:, 0].max())
+        Hl, Wl = out.Hl, out.Wl = h + 2 * r, w + 2 * r
+        t = torch.as_tensor(idx, device=self.img.device)
+        out.size, out.lat_origin = size, self.lat_origin[idx]
+        out.uv_centre, out.uv_scale = self.uv_centre[idx], self.uv_scale[idx]
+        out.img, out.usable = self.img[t, :h, :w], self.usable[t, :h, :w]
+        out.u_l, out.v_l = self.u_l[t, :Hl, :Wl], self.v_l[t, :Hl, :Wl]
+        out.u_e, out.v_e = out.u_l[:, r:r + h, r:r + w], out.v_l[:, r:r + h, r:r + w]
+        return out
+
     # ---------------------------------------------------------------- homography conversions
     def to_local(self, H: np.ndarray) -> torch.Tensor:
         """Image-pixel homographies ``(b, 3, 3)`` -> latent-local float64 tensors."""
@@ -883,20 +905,47 @@ class _Problem:
 
 # ----------------------------------------------------------------------------------- fitting
 def _fit_chunk(prob: _Problem, H: np.ndarray) -> dict:
-    """The solver schedule (module docstring) on one padded batch; per-block numpy results."""
+    """The solver schedule (module docstring) on one padded batch; per-block numpy results.
+
+    After the coarse kernel the blocks are sorted by the size of their kernel support and solved
+    in groups of :attr:`DeconvSettings.stage_batch_size`, each cropped to its own largest window:
+    the cost of a kernel solve grows with the square of the padded support and with the padded
+    pixel count, so similar blocks are padded together.
+    """
     s = prob.s
-    K = s.kernel_size
     b = H.shape[0]
     H_loc = prob.to_local(H)
     alpha = torch.zeros((b, 2), dtype=torch.float64, device=H_loc.device)
     des = prob.design(H_loc, None)
-    best = prob.evaluate(H_loc, alpha, des, None, with_jac=False)
-    k = prob.kernel(best["x"], des)
-    for _ in range(s.outer_iterations):
-        H_loc, n = prob.recentre_int(H_loc, k)
-        des = prob.design(H_loc, prob.support(k, n))
+    k = prob.kernel(prob.evaluate(H_loc, alpha, des, None, with_jac=False)["x"], des)
+    H_loc, n = prob.recentre_int(H_loc, k)
+    support = prob.support(k, n)
+    order = np.argsort(support.sum(dim=(1, 2)).cpu().numpy(), kind="stable")
+    groups = np.array_split(order, math.ceil(b / s.stage_batch_size))
+    parts = []
+    for idx in groups:
+        t = torch.as_tensor(idx, device=H_loc.device)
+        parts.append(_fit_stages(prob.subset(idx), H_loc[t], support[t]))
+    inverse = np.argsort(np.concatenate(groups))
+    out = {key: np.concatenate([part[key] for part in parts])[inverse] for key in parts[0] if key != "masks"}
+    masks = [m for part in parts for m in part["masks"]]
+    out["masks"] = [masks[i] for i in inverse]
+    return out
+
+
+def _fit_stages(prob: _Problem, H_loc: torch.Tensor, support: torch.Tensor) -> dict:
+    """The ``outer_iterations`` stages from an integer re-centred ``H_loc`` and its first kernel
+    ``support``, then the sub-pixel re-centring; per-block numpy results."""
+    s = prob.s
+    K = s.kernel_size
+    alpha = torch.zeros((H_loc.shape[0], 2), dtype=torch.float64, device=H_loc.device)
+    for stage in range(s.outer_iterations):
+        des = prob.design(H_loc, support)
         H_loc, alpha, best = prob.lm_stage(H_loc, alpha, des, s.gn_steps)
         k = prob.kernel(best["x"], des)
+        if stage < s.outer_iterations - 1:
+            H_loc, n = prob.recentre_int(H_loc, k)
+            support = prob.support(k, n)
     x = best["x"].cpu().numpy()
     H_fit = prob.to_image(H_loc)
     k_t = k.cpu().numpy()
