@@ -72,7 +72,6 @@ import cv2
 import numpy as np
 import torch
 import torch.nn.functional as nnf
-from scipy.signal import fftconvolve
 
 from blurcalib.camera import translation
 from blurcalib.pattern import StarPattern, smooth_star, star_signed_distance
@@ -1133,6 +1132,8 @@ def simulate_blocks(pattern: StarPattern, num_blocks: int, rng: np.random.Genera
     moved by up to ``init_shift_px`` px and scaled by up to ``init_scale`` about the centre.
     ``psf`` (``(Kt, Kt)`` or ``(B, Kt, Kt)``, odd ``Kt``) replaces the random motion kernels.
     """
+    from scipy.signal import fftconvolve  # here: importing scipy.signal takes seconds
+
     if psf is not None:
         given = np.broadcast_to(np.asarray(psf, dtype=np.float64), (num_blocks, *np.shape(psf)[-2:]))
         truth_kernel_size = given.shape[-1]

@@ -327,12 +327,14 @@ def extract_to_folder(paths: Sequence[Path], pattern: StarPattern, out_dir: str 
                       settings: ExtractSettings | None = None, workers: int = 1,
                       progress: Callable[[int, int, dict], None] | None = None,
                       expected_size: tuple[int, int] | None = None,
-                      names: Sequence[str] | None = None) -> FolderSummary:
+                      names: Sequence[str] | None = None, cluster: str | None = None) -> FolderSummary:
     """Extract every frame of ``paths`` into ``out_dir`` (resumable).
 
     Frames already done in ``out_dir`` are skipped. An unreadable frame, a frame that cannot
     be seeded or fails is recorded with its status and message; the others go on. Frames are
-    named by :func:`frame_names` unless ``names`` gives one per path.
+    named by :func:`frame_names` unless ``names`` gives one per path. With ``cluster`` (a Dask
+    scheduler address) the frames run as tasks there (:mod:`blurcalib.cluster`), else in
+    ``workers`` local processes.
     """
     settings = settings or ExtractSettings()
     out = ensure_writable_dir(out_dir)
@@ -350,7 +352,13 @@ def extract_to_folder(paths: Sequence[Path], pattern: StarPattern, out_dir: str 
         if progress is not None:
             progress(len(summaries), len(names), summaries[result.frame])
 
-    if workers > 1 and len(todo) > 1:
+    if cluster is not None and todo:
+        from blurcalib.cluster import run_on_cluster
+
+        for result in run_on_cluster(cluster, _process, [(p, n) for p, n in todo],
+                                     (pattern, settings, expected_size)):
+            finish(result)
+    elif workers > 1 and len(todo) > 1:
         ctx = multiprocessing.get_context("spawn")
         with ProcessPoolExecutor(workers, mp_context=ctx, initializer=_init_worker,
                                  initargs=(pattern, settings)) as pool:

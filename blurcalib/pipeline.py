@@ -69,6 +69,7 @@ class PipelineSettings:
         blurry_kernel: PSF window of blurry frames (px, odd).
         local_alignment: use the local-alignment translations for blurry frames.
         workers: frames extracted in parallel.
+        cluster: a Dask scheduler address; frames are extracted as tasks there (``docs/cluster.md``).
     """
 
     quality: QualitySettings = field(default_factory=QualitySettings)
@@ -78,6 +79,7 @@ class PipelineSettings:
     blurry_kernel: int = 17
     local_alignment: bool = False
     workers: int = 1
+    cluster: str | None = None
 
 
 @dataclass
@@ -151,12 +153,12 @@ def run_pipeline(sharp: Sequence[Path], blurry: Sequence[Path], pattern: StarPat
     sharp_names, names = all_names[:len(sharp)], all_names[len(sharp):]
     sharp_run = extract_to_folder(sharp, pattern, out / "sharp", ExtractSettings.sharp(),
                                   workers=s.workers, progress=stage("sharp"), expected_size=size,
-                                  names=sharp_names)
+                                  names=sharp_names, cluster=s.cluster)
     blurry_settings = ExtractSettings(deconv=DeconvSettings(kernel_size=s.blurry_kernel),
                                       local_alignment=s.local_alignment)
     blurry_run = extract_to_folder(blurry, pattern, out / "blurry", blurry_settings,
                                    workers=s.workers, progress=stage("blurry"), expected_size=size,
-                                   names=names)
+                                   names=names, cluster=s.cluster)
     seeded = [r for r in sharp_run.frames + blurry_run.frames if r["status"] != "not_seeded"]
     if not any(r["status"] == "ok" for r in seeded):
         raise PipelineError("no AprilTag of the pattern was found in any frame: does the pattern "
