@@ -56,9 +56,10 @@ negative fixed at zero); Levenberg-Marquardt then updates the 8 homography param
    ``H(0, 0)`` is the centre of the star's time-averaged image.
 
 All blocks of a batch are solved together as padded ``(b, ...)`` tensors on
-:attr:`DeconvSettings.device`: the solver loops over stages, LM steps and kernel entries (one
-batched gather each), never over blocks or pixels. Measurements behind the defaults:
-``docs/deconvolution.md`` and ``scripts/bench_deconv.py``.
+:attr:`DeconvSettings.device` (after the coarse kernel in groups of similar kernel support,
+:attr:`DeconvSettings.stage_batch_size`): the solver loops over stages and LM steps, never over
+blocks, pixels or kernel entries (one gather builds all patches of a step). Measurements behind
+the defaults: ``docs/deconvolution.md`` and ``scripts/bench_deconv.py``.
 """
 
 from __future__ import annotations
@@ -499,22 +500,21 @@ class _Design:
     Attributes:
         mask: ``(b, h, w)`` bool, the loss's pixels (inside the square at the stage's start).
         pix: ``(b, n)`` flat indices of those pixels in the observed grid; ``pix_w`` 0/1 weights.
-        base: ``(b, n)`` flat latent index of each pixel's patch origin, ``taps``: ``(b, m)`` flat
-            latent offset of each kernel entry; a patch value is ``latent[base + tap]``. Padded
-            pixels and entries point into zeros appended to the latent.
+        patch: ``(b, m n)`` flat latent index of kernel entry ``t``'s patch value at pixel ``p``
+            (at ``t n + p``): a pixel's patch origin plus the entry's offset. Padded pixels and
+            entries point into zeros appended to the latent.
         taps_w: ``(b, m)`` 0/1 weights of the kernel entries; ``kernel_index`` their flat index
             ``i K + j`` in the kernel; ``rho`` their ridge weights.
         coarse: the entries are the 2-px lattice taps of the initial solve (tent-interpolated).
         u, v: ``(b, n)`` normalised coordinates at the pixels.
-        U: ``(b, 3, n)`` the offset's design rows ``(u, v, 1)`` (0 on padding); ``UU = U U^T``.
-        img: ``(b, n)`` observed grey levels (0 on padding); ``Uimg = U img``.
+        U: ``(b, 3, n)`` the offset's design rows ``(u, v, 1)`` (0 on padding).
+        img: ``(b, n)`` observed grey levels (0 on padding).
     """
 
     mask: torch.Tensor
     pix: torch.Tensor
     pix_w: torch.Tensor
-    base: torch.Tensor
-    taps: torch.Tensor
+    patch: torch.Tensor
     taps_w: torch.Tensor
     kernel_index: torch.Tensor
     rho: torch.Tensor
@@ -522,9 +522,7 @@ class _Design:
     u: torch.Tensor
     v: torch.Tensor
     U: torch.Tensor
-    UU: torch.Tensor
     img: torch.Tensor
-    Uimg: torch.Tensor
 
 
 class _Problem:
@@ -609,6 +607,8 @@ class _Problem:
         ss = self.s.supersample
         offs = [(o + 0.5) / ss - 0.5 for o in range(ss)]
         samples = [self._latent_at(H_loc, with_jac, ox, oy) for oy in offs for ox in offs]
+        if ss == 1:
+            return samples[0]
         S = torch.stack([smp[0] for smp in samples]).mean(dim=0)
         dS = torch.stack([smp[1] for smp in samples]).mean(dim=0) if with_jac else None
         return S, dS
@@ -709,9 +709,9 @@ class _Problem:
         v = torch.gather(self.v_e.reshape(b, -1), 1, pix)
         U = torch.stack([u, v, torch.ones_like(u)], dim=1) * pix_w[:, None, :]
         img = torch.gather(self.img.reshape(b, -1), 1, pix) * pix_w
-        return _Design(mask=mask, pix=pix, pix_w=pix_w, base=base, taps=taps, taps_w=taps_w,
-                       kernel_index=kidx, rho=self.rho[kidx], coarse=support is None, u=u, v=v, U=U,
-                       UU=(U @ U.transpose(1, 2)).double(), img=img, Uimg=(U @ img[..., None]).double())
+        patch = (base[:, None, :] + taps[:, :, None]).reshape(b, -1)
+        return _Design(mask=mask, pix=pix, pix_w=pix_w, patch=patch, taps_w=taps_w, kernel_index=kidx,
+                       rho=self.rho[kidx], coarse=support is None, u=u, v=v, U=U, img=img)
 
     def _patch_source(self, S: torch.Tensor, alpha: torch.Tensor, des: _Design
                       ) -> tuple[torch.Tensor, torch.Tensor]:
@@ -775,8 +775,7 @@ class _Problem:
                             torch.zeros_like(src[:, 0, :1])], dim=1)
         # D = [P; U] (b, m + 3, n): the kernel entries' patches, then the offset's rows (u, v, 1)
         D = torch.empty((b, m + 3, n), dtype=self.dt, device=src.device)
-        for t in range(m):  # one (b, n) gather per kernel entry: no (b, m, n) index tensor
-            torch.gather(padded, 1, des.base + des.taps[:, t, None], out=D[:, t])
+        D[:, :m] = torch.gather(padded, 1, des.patch).reshape(b, m, n)
         P = D[:, :m]
         if self.s.brightness == "after_blur":
             P.mul_(w[:, None, :])
