@@ -445,6 +445,22 @@ def _solve_nonnegative(G: torch.Tensor, rhs: torch.Tensor, m: int, passes: int
     return x, chol, free
 
 
+def _fft_size(n: int) -> int:
+    """The smallest ``2^a 3^b 5^c >= n``."""
+    best = 1 << max(n - 1, 0).bit_length()
+    p5 = 1
+    while p5 < best:
+        p35 = p5
+        while p35 < best:
+            m = p35
+            while m < n:
+                m *= 2
+            best = min(best, m)
+            p35 *= 3
+        p5 *= 5
+    return best
+
+
 # ----------------------------------------------------------------------------- block windows
 def _validate_blocks(H0: np.ndarray, image_shape: tuple[int, int], s: DeconvSettings
                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[BlockStatus]]:
@@ -666,8 +682,12 @@ class _Problem:
 
     # ---------------------------------------------------------------------------- convolution
     def conv(self, L: torch.Tensor, k: torch.Tensor) -> torch.Tensor:
-        """Valid convolution ``(k * L)`` of latent channels ``(b, C, Hl, Wl)`` -> ``(b, C, h, w)``."""
-        size = (self.Hl, self.Wl)
+        """Valid convolution ``(k * L)`` of latent channels ``(b, C, Hl, Wl)`` -> ``(b, C, h, w)``.
+
+        Circular FFT convolution on a grid of at least ``(Hl, Wl)`` (5-smooth sides, the fast FFT
+        sizes): the wrap-around only reaches the first ``2c`` rows and columns, outside the output.
+        """
+        size = (_fft_size(self.Hl), _fft_size(self.Wl))
         kf = torch.fft.rfft2(k, s=size)
         out = torch.fft.irfft2(torch.fft.rfft2(L, s=size) * kf[:, None], s=size)
         r2 = 2 * self.r
