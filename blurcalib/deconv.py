@@ -75,7 +75,7 @@ import torch
 import torch.nn.functional as nnf
 
 from blurcalib.camera import translation
-from blurcalib.pattern import StarPattern, smooth_star, star_signed_distance
+from blurcalib.pattern import StarPattern, smooth_star, star_signed_distance_normal
 from blurcalib.results import BlockStatus, boundary_energy, psf_moments
 from blurcalib.synth import splat
 
@@ -642,22 +642,22 @@ class _Problem:
 
         wq = row(2).clamp_min(1e-6)  # > 0 in front of the camera (H is normalised to H[2, 2] = 1)
         qx, qy = row(0) / wq, row(1) / wq
-        with torch.enable_grad():
-            q = torch.stack([qx, qy], dim=-1).detach().requires_grad_(True)
-            if self.s.pattern == "signed_distance":
-                dist = star_signed_distance(q, self.N)
-                (n,) = torch.autograd.grad(dist.sum(), q)  # unit normal of the nearest edge (block units)
-                # |grad_x dist| = |J^T n| with J = dq/dx = (M[:2, :2] - q M[2, :2]) / w
-                jx = n[..., 0] * (M[:, 0, 0, None, None] - qx * M[:, 2, 0, None, None]) \
-                    + n[..., 1] * (M[:, 1, 0, None, None] - qy * M[:, 2, 0, None, None])
-                jy = n[..., 0] * (M[:, 0, 1, None, None] - qx * M[:, 2, 1, None, None]) \
-                    + n[..., 1] * (M[:, 1, 1, None, None] - qy * M[:, 2, 1, None, None])
-                scale = (torch.sqrt(jx * jx + jy * jy) / wq).clamp_min(1e-9) * self.s.tau
-                S = torch.sigmoid(dist.detach() / scale)
-                if not with_jac:
-                    return S, None
-                g = (S * (1.0 - S) / scale)[..., None] * n  # dS/dq, the normaliser held fixed
-            else:
+        q = torch.stack([qx, qy], dim=-1)
+        if self.s.pattern == "signed_distance":
+            dist, n = star_signed_distance_normal(q, self.N)  # n: unit normal of the nearest edge
+            # |grad_x dist| = |J^T n| with J = dq/dx = (M[:2, :2] - q M[2, :2]) / w
+            jx = n[..., 0] * (M[:, 0, 0, None, None] - qx * M[:, 2, 0, None, None]) \
+                + n[..., 1] * (M[:, 1, 0, None, None] - qy * M[:, 2, 0, None, None])
+            jy = n[..., 0] * (M[:, 0, 1, None, None] - qx * M[:, 2, 1, None, None]) \
+                + n[..., 1] * (M[:, 1, 1, None, None] - qy * M[:, 2, 1, None, None])
+            scale = (torch.sqrt(jx * jx + jy * jy) / wq).clamp_min(1e-9) * self.s.tau
+            S = torch.sigmoid(dist / scale)
+            if not with_jac:
+                return S, None
+            g = (S * (1.0 - S) / scale)[..., None] * n  # dS/dq, the normaliser held fixed
+        else:
+            with torch.enable_grad():
+                q = q.detach().requires_grad_(True)
                 soft = smooth_star(q, self.N, self.s.beta)
                 if not with_jac:
                     return soft.detach(), None
