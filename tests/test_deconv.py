@@ -204,6 +204,11 @@ def test_batch_equals_one_by_one(sim: SimulatedBlocks, fit: BlockFit) -> None:
         assert single.loss[0] == pytest.approx(fit.loss[i], rel=1e-2)
     small_batches = fit_blocks(sim.image, sim.H0, SEGMENTS, dataclasses.replace(SETTINGS, batch_size=4))
     assert np.abs(small_batches.centre - fit.centre).max() < 2e-3
+    for groups in (1, 64):  # stage groups of one block each, and the whole batch as one group
+        grouped = fit_blocks(sim.image, sim.H0, SEGMENTS,
+                             dataclasses.replace(SETTINGS, stage_batch_size=groups))
+        assert np.abs(grouped.centre - fit.centre).max() < 2e-3
+        assert [m.shape for m in grouped.masks] == [m.shape for m in fit.masks]
 
 
 def test_float64_agrees_with_float32(sim: SimulatedBlocks, fit: BlockFit) -> None:
