@@ -1,6 +1,6 @@
 """Speed benchmark of feature extraction on close-up blurry frames (issue 11).
 
-    python scripts/bench_speed.py [--frames 3] [--threads 1] [--pair] [--device cpu]
+    python scripts/bench_speed.py [--frames 4] [--threads 1] [--pair] [--device cpu]
 
 Simulated 1280x720 frames (blurcalib/synth.py) with star squares of 30 to 47 px and blur of 4 to
 15 px, about 250 blocks each. Per frame: process CPU time (the primary figure on a shared
