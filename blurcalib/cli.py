@@ -302,7 +302,8 @@ def _add_run_options(p: argparse.ArgumentParser, workers: bool = True) -> None:
         p.add_argument("--workers", type=_positive, default=available_cores(),
                        help="frames processed in parallel, one process each (%(default)s: one per core)")
     p.add_argument("--threads", type=_positive, default=1,
-                   help="compute threads per process (%(default)s; more only helps on an idle machine)")
+                   help="compute threads of this process, for frames it runs itself (--workers 1); "
+                        "worker processes use one (%(default)s; more only helps on an idle machine)")
     p.add_argument("--cluster", metavar="ADDRESS",
                    help="run frames as tasks on this Dask scheduler (tcp://host:8786; docs/cluster.md)")
 
