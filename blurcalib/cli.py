@@ -16,8 +16,10 @@ from pathlib import Path
 
 from tqdm import tqdm
 
+from blurcalib.cluster import ClusterError
 from blurcalib.fileio import OutputError
 from blurcalib.pattern import PAGE_SIZES_MM, PatternFileError, StarPattern, layout_pattern, load_pattern
+from blurcalib.runtime import DeviceError, available_cores, check_device, configure_threads
 
 DEFAULT_DEMO_DIR = Path("out") / "demo"
 
@@ -129,7 +131,7 @@ def _pipeline_settings(args: argparse.Namespace):
         return PipelineSettings(
             quality=QualitySettings(tau_be=args.tau_be, tau_loss=args.tau_loss,
                                     min_sigma_major=args.min_sigma_major),
-            loss=args.loss, bias=args.bias, workers=args.workers,
+            loss=args.loss, bias=args.bias, workers=args.workers, cluster=args.cluster,
             local_alignment=args.local_alignment, model=args.model, route=args.route, cell_px=args.cell_px)
     except ValueError as exc:
         raise CliError(str(exc)) from None
@@ -275,7 +277,7 @@ def cmd_extract(args: argparse.Namespace) -> int:
     kernel = args.psf_size or (7 if args.sharp else 17)
     _check_device(args.device)
     try:
-        deconv = DeconvSettings(kernel_size=kernel, device=args.device)
+        deconv = DeconvSettings(kernel_size=kernel, device=check_device(args.device))
     except ValueError as exc:
         raise CliError(str(exc)) from None
     settings = ExtractSettings(deconv=deconv, local_alignment=args.local_alignment,
@@ -295,7 +297,7 @@ def cmd_extract(args: argparse.Namespace) -> int:
     with bar:
         summary = extract_to_folder(paths, pattern, Path(args.out), settings,
                                     workers=args.workers, progress=update,
-                                    overwrite=args.overwrite)
+                                    overwrite=args.overwrite, cluster=args.cluster)
     total_features = sum(int(r.get("features", 0)) for r in summary.frames)
     ok = sum(r["status"] == "ok" for r in summary.frames)
     print(f"{ok}/{len(summary.frames)} frames ok, {total_features} features"
@@ -347,6 +349,24 @@ def _add_synth_options(p: argparse.ArgumentParser, sharp: int, blurry: int) -> N
                    help="write into a non-empty output folder")
 
 
+def _positive(text: str) -> int:
+    value = int(text)
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be >= 1, got {value}")
+    return value
+
+
+def _add_run_options(p: argparse.ArgumentParser, workers: bool = True) -> None:
+    if workers:
+        p.add_argument("--workers", type=_positive, default=available_cores(),
+                       help="frames processed in parallel, one process each (%(default)s: one per core)")
+    p.add_argument("--threads", type=_positive, default=1,
+                   help="compute threads of this process, for frames it runs itself (--workers 1); "
+                        "worker processes use one (%(default)s; more only helps on an idle machine)")
+    p.add_argument("--cluster", metavar="ADDRESS",
+                   help="run frames as tasks on this Dask scheduler (tcp://host:8786; docs/cluster.md)")
+
+
 def _add_pipeline_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--tau-be", type=float, default=0.12,
                    help="largest PSF boundary energy kept (%(default)s)")
@@ -384,6 +404,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="output folder (%(default)s); its data/ is reused when complete")
     _add_synth_options(p, sharp=20, blurry=60)
     _add_pipeline_options(p)
+    _add_run_options(p, workers=False)
     p.set_defaults(func=cmd_demo)
 
     p = sub.add_parser("calibrate", help="the whole pipeline on folders of sharp and blurry frames",
@@ -392,10 +413,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--blurry", help="folder of blurry frames (optional: a sharp-only calibration)")
     p.add_argument("--pattern", required=True, help="pattern YAML of the target")
     p.add_argument("--out", required=True, help="output folder (resumable)")
-    p.add_argument("--workers", type=int, default=min(2, os.cpu_count() or 1),
-                   help="frames processed in parallel (%(default)s)")
     p.add_argument("--overwrite", action="store_true",
                    help="write into a non-empty folder that is not a calibrate output")
+    _add_run_options(p)
     _add_pipeline_options(p)
     p.set_defaults(func=cmd_calibrate)
 
@@ -426,7 +446,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="PSF window side, odd px (17 for blurry, 7 with --sharp)")
     p.add_argument("--local-alignment", action="store_true",
                    help="move star centres by the local-alignment translations")
-    p.add_argument("--workers", type=int, default=1, help="frames processed in parallel (1)")
+    _add_run_options(p)
     p.add_argument("--device", default="cpu", help="torch device for the block solver (cpu, cuda)")
     p.add_argument("--overwrite", action="store_true",
                    help="write into a non-empty folder that is not an extract output")
@@ -468,8 +488,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     else:
         args = parser.parse_args(argv)
     try:
+        configure_threads(getattr(args, "threads", None))
         return int(args.func(args))
-    except (CliError, PatternFileError, OutputError) as exc:
+    except (CliError, PatternFileError, OutputError, ClusterError, DeviceError) as exc:
         print(f"blurcalib: error: {exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:

@@ -56,13 +56,15 @@ negative fixed at zero); Levenberg-Marquardt then updates the 8 homography param
    ``H(0, 0)`` is the centre of the star's time-averaged image.
 
 All blocks of a batch are solved together as padded ``(b, ...)`` tensors on
-:attr:`DeconvSettings.device`: the solver loops over stages, LM steps and kernel entries (one
-batched gather each), never over blocks or pixels. Measurements behind the defaults:
-``docs/deconvolution.md`` and ``scripts/bench_deconv.py``.
+:attr:`DeconvSettings.device` (after the coarse kernel in groups of similar kernel support,
+:attr:`DeconvSettings.stage_batch_size`): the solver loops over stages and LM steps, never over
+blocks, pixels or kernel entries (one gather builds all patches of a step). Measurements behind
+the defaults: ``docs/deconvolution.md`` and ``scripts/bench_deconv.py``.
 """
 
 from __future__ import annotations
 
+import copy
 import math
 from dataclasses import dataclass, field
 from typing import Literal, NamedTuple
@@ -71,10 +73,9 @@ import cv2
 import numpy as np
 import torch
 import torch.nn.functional as nnf
-from scipy.signal import fftconvolve
 
 from blurcalib.camera import translation
-from blurcalib.pattern import StarPattern, smooth_star, star_signed_distance
+from blurcalib.pattern import StarPattern, smooth_star, star_signed_distance_normal
 from blurcalib.results import BlockStatus, boundary_energy, psf_moments
 from blurcalib.synth import splat
 
@@ -134,6 +135,8 @@ class DeconvSettings:
             failed (no star in the window) and is ``not_converged``.
         max_window_px: blocks whose window side exceeds this are degenerate.
         batch_size: blocks solved together (grouped by window size).
+        stage_batch_size: after the coarse kernel a batch is solved in groups of at most this
+            many blocks of similar kernel support (less padding; the results do not depend on it).
         converge_tol_px: a block has converged when the last accepted LM step moved its star
             centre by less than this (px).
         device: torch device of the solve (``"cpu"``, ``"cuda"``, ...).
@@ -162,6 +165,7 @@ class DeconvSettings:
     min_contrast: float = 10.0
     max_window_px: int = 256
     batch_size: int = 64
+    stage_batch_size: int = 8
     converge_tol_px: float = 0.05
     device: str = "cpu"
     dtype: str = "float32"
@@ -177,8 +181,10 @@ class DeconvSettings:
             raise ValueError(f"dtype must be 'float32' or 'float64', got {self.dtype!r}")
         if self.tau <= 0 or self.beta <= 0 or self.ridge < 0 or self.ridge_border < 0:
             raise ValueError("tau and beta must be positive, ridge and ridge_border non-negative")
-        if min(self.outer_iterations, self.batch_size, self.supersample) < 1 or self.gn_steps < 0:
-            raise ValueError("outer_iterations, batch_size and supersample must be >= 1, gn_steps >= 0")
+        if min(self.outer_iterations, self.batch_size, self.stage_batch_size, self.supersample) < 1 \
+                or self.gn_steps < 0:
+            raise ValueError("outer_iterations, batch_size, stage_batch_size and supersample must be >= 1, "
+                             "gn_steps >= 0")
         if not 0.0 <= self.support_threshold < 1.0 or self.support_dilation < 0:
             raise ValueError("support_threshold must be in [0, 1), support_dilation >= 0")
 
@@ -409,6 +415,52 @@ def shift_pair(latent: np.ndarray, kernel: np.ndarray, delta: tuple[int, int]
     return np.roll(np.asarray(latent), (dy, dx), axis=(0, 1)), shifted
 
 
+def _solve_nonnegative(G: torch.Tensor, rhs: torch.Tensor, m: int, passes: int
+                       ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """``x = G^{-1} rhs`` with the first ``m`` entries that come out negative fixed at zero.
+
+    Active-set passes: each fixes the entries that are negative in the previous solution (the
+    others are free) and re-solves the free block of ``G`` (Cholesky, ``G`` is symmetric positive
+    definite through the ridge); the passes stop early once no block's active set changes.
+
+    Args:
+        G: ``(b, M, M)`` float64 normal matrices; rhs: ``(b, M, 1)``; m: constrained entries
+            (the kernel's); passes: at most this many active-set passes (0: unconstrained).
+    Returns:
+        ``x (b, M)`` (fixed entries exactly 0), the Cholesky factor of the final free system
+        (fixed rows and columns replaced by the identity) and ``free (b, M)`` as 0/1 float64.
+    """
+    free = torch.ones(rhs.shape[:2], dtype=G.dtype, device=G.device)
+    chol = torch.linalg.cholesky_ex(G)[0]  # _ex: a bad block must not stop the batch
+    x = torch.cholesky_solve(rhs, chol)[..., 0]
+    for _ in range(passes):
+        keep = torch.cat([(x[:, :m] > 0).to(G.dtype), free[:, m:]], dim=1) * free
+        if torch.equal(keep, free):
+            break
+        free = keep
+        Gf = G * (free[:, :, None] * free[:, None, :])
+        Gf.diagonal(dim1=1, dim2=2).add_(1.0 - free)
+        chol = torch.linalg.cholesky_ex(Gf)[0]
+        x = torch.cholesky_solve(rhs * free[..., None], chol)[..., 0] * free
+    return x, chol, free
+
+
+def _fft_size(n: int) -> int:
+    """The smallest ``2^a 3^b 5^c >= n``."""
+    best = 1 << max(n - 1, 0).bit_length()
+    p5 = 1
+    while p5 < best:
+        p35 = p5
+        while p35 < best:
+            m = p35
+            while m < n:
+                m *= 2
+            best = min(best, m)
+            p35 *= 3
+        p5 *= 5
+    return best
+
+
 # ----------------------------------------------------------------------------- block windows
 def _validate_blocks(H0: np.ndarray, image_shape: tuple[int, int], s: DeconvSettings
                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[BlockStatus]]:
@@ -464,22 +516,21 @@ class _Design:
     Attributes:
         mask: ``(b, h, w)`` bool, the loss's pixels (inside the square at the stage's start).
         pix: ``(b, n)`` flat indices of those pixels in the observed grid; ``pix_w`` 0/1 weights.
-        base: ``(b, n)`` flat latent index of each pixel's patch origin, ``taps``: ``(b, m)`` flat
-            latent offset of each kernel entry; a patch value is ``latent[base + tap]``. Padded
-            pixels and entries point into zeros appended to the latent.
+        patch: ``(b, m n)`` flat latent index of kernel entry ``t``'s patch value at pixel ``p``
+            (at ``t n + p``): a pixel's patch origin plus the entry's offset. Padded pixels and
+            entries point into zeros appended to the latent.
         taps_w: ``(b, m)`` 0/1 weights of the kernel entries; ``kernel_index`` their flat index
             ``i K + j`` in the kernel; ``rho`` their ridge weights.
         coarse: the entries are the 2-px lattice taps of the initial solve (tent-interpolated).
         u, v: ``(b, n)`` normalised coordinates at the pixels.
-        U: ``(b, 3, n)`` the offset's design rows ``(u, v, 1)`` (0 on padding); ``UU = U U^T``.
-        img: ``(b, n)`` observed grey levels (0 on padding); ``Uimg = U img``.
+        U: ``(b, 3, n)`` the offset's design rows ``(u, v, 1)`` (0 on padding).
+        img: ``(b, n)`` observed grey levels (0 on padding).
     """
 
     mask: torch.Tensor
     pix: torch.Tensor
     pix_w: torch.Tensor
-    base: torch.Tensor
-    taps: torch.Tensor
+    patch: torch.Tensor
     taps_w: torch.Tensor
     kernel_index: torch.Tensor
     rho: torch.Tensor
@@ -487,9 +538,7 @@ class _Design:
     u: torch.Tensor
     v: torch.Tensor
     U: torch.Tensor
-    UU: torch.Tensor
     img: torch.Tensor
-    Uimg: torch.Tensor
 
 
 class _Problem:
@@ -539,6 +588,22 @@ class _Problem:
         self.rho = (1.0 + s.ridge_border * rad**s.ridge_power).reshape(-1)
         self.offs = d
 
+    def subset(self, idx: np.ndarray) -> _Problem:
+        """The blocks ``idx`` alone, the padded windows cropped to their largest one (the
+        latent-local coordinates of a block do not change)."""
+        out = copy.copy(self)
+        r = self.r
+        size = self.size[idx]
+        h, w = out.h, out.w = int(size[:, 1].max()), int(size[:, 0].max())
+        Hl, Wl = out.Hl, out.Wl = h + 2 * r, w + 2 * r
+        t = torch.as_tensor(idx, device=self.img.device)
+        out.size, out.lat_origin = size, self.lat_origin[idx]
+        out.uv_centre, out.uv_scale = self.uv_centre[idx], self.uv_scale[idx]
+        out.img, out.usable = self.img[t, :h, :w], self.usable[t, :h, :w]
+        out.u_l, out.v_l = self.u_l[t, :Hl, :Wl], self.v_l[t, :Hl, :Wl]
+        out.u_e, out.v_e = out.u_l[:, r:r + h, r:r + w], out.v_l[:, r:r + h, r:r + w]
+        return out
+
     # ---------------------------------------------------------------- homography conversions
     def to_local(self, H: np.ndarray) -> torch.Tensor:
         """Image-pixel homographies ``(b, 3, 3)`` -> latent-local float64 tensors."""
@@ -558,6 +623,8 @@ class _Problem:
         ss = self.s.supersample
         offs = [(o + 0.5) / ss - 0.5 for o in range(ss)]
         samples = [self._latent_at(H_loc, with_jac, ox, oy) for oy in offs for ox in offs]
+        if ss == 1:
+            return samples[0]
         S = torch.stack([smp[0] for smp in samples]).mean(dim=0)
         dS = torch.stack([smp[1] for smp in samples]).mean(dim=0) if with_jac else None
         return S, dS
@@ -575,22 +642,22 @@ class _Problem:
 
         wq = row(2).clamp_min(1e-6)  # > 0 in front of the camera (H is normalised to H[2, 2] = 1)
         qx, qy = row(0) / wq, row(1) / wq
-        with torch.enable_grad():
-            q = torch.stack([qx, qy], dim=-1).detach().requires_grad_(True)
-            if self.s.pattern == "signed_distance":
-                dist = star_signed_distance(q, self.N)
-                (n,) = torch.autograd.grad(dist.sum(), q)  # unit normal of the nearest edge (block units)
-                # |grad_x dist| = |J^T n| with J = dq/dx = (M[:2, :2] - q M[2, :2]) / w
-                jx = n[..., 0] * (M[:, 0, 0, None, None] - qx * M[:, 2, 0, None, None]) \
-                    + n[..., 1] * (M[:, 1, 0, None, None] - qy * M[:, 2, 0, None, None])
-                jy = n[..., 0] * (M[:, 0, 1, None, None] - qx * M[:, 2, 1, None, None]) \
-                    + n[..., 1] * (M[:, 1, 1, None, None] - qy * M[:, 2, 1, None, None])
-                scale = (torch.sqrt(jx * jx + jy * jy) / wq).clamp_min(1e-9) * self.s.tau
-                S = torch.sigmoid(dist.detach() / scale)
-                if not with_jac:
-                    return S, None
-                g = (S * (1.0 - S) / scale)[..., None] * n  # dS/dq, the normaliser held fixed
-            else:
+        q = torch.stack([qx, qy], dim=-1)
+        if self.s.pattern == "signed_distance":
+            dist, n = star_signed_distance_normal(q, self.N)  # n: unit normal of the nearest edge
+            # |grad_x dist| = |J^T n| with J = dq/dx = (M[:2, :2] - q M[2, :2]) / w
+            jx = n[..., 0] * (M[:, 0, 0, None, None] - qx * M[:, 2, 0, None, None]) \
+                + n[..., 1] * (M[:, 1, 0, None, None] - qy * M[:, 2, 0, None, None])
+            jy = n[..., 0] * (M[:, 0, 1, None, None] - qx * M[:, 2, 1, None, None]) \
+                + n[..., 1] * (M[:, 1, 1, None, None] - qy * M[:, 2, 1, None, None])
+            scale = (torch.sqrt(jx * jx + jy * jy) / wq).clamp_min(1e-9) * self.s.tau
+            S = torch.sigmoid(dist / scale)
+            if not with_jac:
+                return S, None
+            g = (S * (1.0 - S) / scale)[..., None] * n  # dS/dq, the normaliser held fixed
+        else:
+            with torch.enable_grad():
+                q = q.detach().requires_grad_(True)
                 soft = smooth_star(q, self.N, self.s.beta)
                 if not with_jac:
                     return soft.detach(), None
@@ -615,8 +682,12 @@ class _Problem:
 
     # ---------------------------------------------------------------------------- convolution
     def conv(self, L: torch.Tensor, k: torch.Tensor) -> torch.Tensor:
-        """Valid convolution ``(k * L)`` of latent channels ``(b, C, Hl, Wl)`` -> ``(b, C, h, w)``."""
-        size = (self.Hl, self.Wl)
+        """Valid convolution ``(k * L)`` of latent channels ``(b, C, Hl, Wl)`` -> ``(b, C, h, w)``.
+
+        Circular FFT convolution on a grid of at least ``(Hl, Wl)`` (5-smooth sides, the fast FFT
+        sizes): the wrap-around only reaches the first ``2c`` rows and columns, outside the output.
+        """
+        size = (_fft_size(self.Hl), _fft_size(self.Wl))
         kf = torch.fft.rfft2(k, s=size)
         out = torch.fft.irfft2(torch.fft.rfft2(L, s=size) * kf[:, None], s=size)
         r2 = 2 * self.r
@@ -658,9 +729,9 @@ class _Problem:
         v = torch.gather(self.v_e.reshape(b, -1), 1, pix)
         U = torch.stack([u, v, torch.ones_like(u)], dim=1) * pix_w[:, None, :]
         img = torch.gather(self.img.reshape(b, -1), 1, pix) * pix_w
-        return _Design(mask=mask, pix=pix, pix_w=pix_w, base=base, taps=taps, taps_w=taps_w,
-                       kernel_index=kidx, rho=self.rho[kidx], coarse=support is None, u=u, v=v, U=U,
-                       UU=(U @ U.transpose(1, 2)).double(), img=img, Uimg=(U @ img[..., None]).double())
+        patch = (base[:, None, :] + taps[:, :, None]).reshape(b, -1)
+        return _Design(mask=mask, pix=pix, pix_w=pix_w, patch=patch, taps_w=taps_w, kernel_index=kidx,
+                       rho=self.rho[kidx], coarse=support is None, u=u, v=v, U=U, img=img)
 
     def _patch_source(self, S: torch.Tensor, alpha: torch.Tensor, des: _Design
                       ) -> tuple[torch.Tensor, torch.Tensor]:
@@ -722,31 +793,18 @@ class _Problem:
             lam = lam * scale[:, None]
         padded = torch.cat([src.reshape(b, -1), torch.zeros_like(src.reshape(b, -1)),
                             torch.zeros_like(src[:, 0, :1])], dim=1)
-        P = torch.empty((b, m, n), dtype=self.dt, device=src.device)
-        for t in range(m):  # one (b, n) gather per kernel entry: no (b, m, n) index tensor
-            torch.gather(padded, 1, des.base + des.taps[:, t, None], out=P[:, t])
+        # D = [P; U] (b, m + 3, n): the kernel entries' patches, then the offset's rows (u, v, 1)
+        D = torch.empty((b, m + 3, n), dtype=self.dt, device=src.device)
+        D[:, :m] = torch.gather(padded, 1, des.patch).reshape(b, m, n)
+        P = D[:, :m]
         if self.s.brightness == "after_blur":
             P.mul_(w[:, None, :])
-        G = torch.empty((b, m + 3, m + 3), dtype=torch.float64, device=P.device)
-        G[:, :m, :m] = P @ P.transpose(1, 2)
-        G[:, :m, m:] = P @ des.U.transpose(1, 2)
-        G[:, m:, :m] = G[:, :m, m:].transpose(1, 2)
-        G[:, m:, m:] = des.UU
+        D[:, m:] = des.U
+        G = (D @ D.transpose(1, 2)).double()
         G.diagonal(dim1=1, dim2=2).add_(lam)
-        rhs = torch.cat([(P @ des.img[..., None]).double(), des.Uimg], dim=1)
-        lu = torch.linalg.lu_factor_ex(G)[:2]  # _ex: a bad block must not stop the batch
-        x = torch.linalg.lu_solve(*lu, rhs)[..., 0]
-        free = None
-        if self.s.nonnegative:
-            free = torch.ones_like(x, dtype=torch.bool)
-            eye = torch.eye(G.shape[1], dtype=G.dtype, device=G.device)
-            for _ in range(self.s.nonnegative_passes):
-                free[:, :m] &= x[:, :m] > 0
-                lu = torch.linalg.lu_factor_ex(torch.where(free[:, :, None] & free[:, None, :], G, eye))[:2]
-                x = torch.linalg.lu_solve(*lu, torch.where(free[..., None], rhs, 0.0))[..., 0]
-            x = torch.where(free, x, 0.0)
-        xf = x.to(self.dt)[..., None]
-        res = des.img - (P.transpose(1, 2) @ xf[:, :m] + des.U.transpose(1, 2) @ xf[:, m:])[..., 0]
+        rhs = (des.img[:, None, :] @ D.transpose(1, 2)).double().transpose(1, 2)  # (b, m + 3, 1)
+        x, chol, free = _solve_nonnegative(G, rhs, m, self.s.nonnegative_passes if self.s.nonnegative else 0)
+        res = des.img - (x.to(self.dt)[:, None, :] @ D)[:, 0]
         sse = (res * res).sum(dim=1).double()
         out = {"x": x, "obj": sse + (x * x * lam).sum(dim=1), "sse": sse, "lam": lam}
         if not with_jac:
@@ -764,10 +822,8 @@ class _Problem:
             chans = torch.cat([dS * a_l[:, None], (self.u_l * S)[:, None], (self.v_l * S)[:, None]], dim=1)
             J = torch.gather(self.conv(chans, k).reshape(b, _NUM_NL, -1), 2,
                              des.pix[:, None, :].expand(-1, _NUM_NL, -1)) * des.pix_w[:, None, :]
-        Y = torch.cat([P @ J.transpose(1, 2), des.U @ J.transpose(1, 2)], dim=1).double()
-        if free is not None:
-            Y = torch.where(free[..., None], Y, 0.0)
-        Z = torch.linalg.lu_solve(*lu, Y)
+        Y = (J @ D.transpose(1, 2)).double().transpose(1, 2) * free[..., None]  # (b, m + 3, 10)
+        Z = torch.cholesky_solve(Y, chol)
         out["N"] = (J @ J.transpose(1, 2)).double() - Y.transpose(1, 2) @ Z
         out["g"] = (J @ res[..., None]).double()[..., 0]
         return out
@@ -867,20 +923,47 @@ class _Problem:
 
 # ----------------------------------------------------------------------------------- fitting
 def _fit_chunk(prob: _Problem, H: np.ndarray) -> dict:
-    """The solver schedule (module docstring) on one padded batch; per-block numpy results."""
+    """The solver schedule (module docstring) on one padded batch; per-block numpy results.
+
+    After the coarse kernel the blocks are sorted by the size of their kernel support and solved
+    in groups of :attr:`DeconvSettings.stage_batch_size`, each cropped to its own largest window:
+    the cost of a kernel solve grows with the square of the padded support and with the padded
+    pixel count, so similar blocks are padded together.
+    """
     s = prob.s
-    K = s.kernel_size
     b = H.shape[0]
     H_loc = prob.to_local(H)
     alpha = torch.zeros((b, 2), dtype=torch.float64, device=H_loc.device)
     des = prob.design(H_loc, None)
-    best = prob.evaluate(H_loc, alpha, des, None, with_jac=False)
-    k = prob.kernel(best["x"], des)
-    for _ in range(s.outer_iterations):
-        H_loc, n = prob.recentre_int(H_loc, k)
-        des = prob.design(H_loc, prob.support(k, n))
+    k = prob.kernel(prob.evaluate(H_loc, alpha, des, None, with_jac=False)["x"], des)
+    H_loc, n = prob.recentre_int(H_loc, k)
+    support = prob.support(k, n)
+    order = np.argsort(support.sum(dim=(1, 2)).cpu().numpy(), kind="stable")
+    groups = np.array_split(order, math.ceil(b / s.stage_batch_size))
+    parts = []
+    for idx in groups:
+        t = torch.as_tensor(idx, device=H_loc.device)
+        parts.append(_fit_stages(prob.subset(idx), H_loc[t], support[t]))
+    inverse = np.argsort(np.concatenate(groups))
+    out = {key: np.concatenate([part[key] for part in parts])[inverse] for key in parts[0] if key != "masks"}
+    masks = [m for part in parts for m in part["masks"]]
+    out["masks"] = [masks[i] for i in inverse]
+    return out
+
+
+def _fit_stages(prob: _Problem, H_loc: torch.Tensor, support: torch.Tensor) -> dict:
+    """The ``outer_iterations`` stages from an integer re-centred ``H_loc`` and its first kernel
+    ``support``, then the sub-pixel re-centring; per-block numpy results."""
+    s = prob.s
+    K = s.kernel_size
+    alpha = torch.zeros((H_loc.shape[0], 2), dtype=torch.float64, device=H_loc.device)
+    for stage in range(s.outer_iterations):
+        des = prob.design(H_loc, support)
         H_loc, alpha, best = prob.lm_stage(H_loc, alpha, des, s.gn_steps)
         k = prob.kernel(best["x"], des)
+        if stage < s.outer_iterations - 1:
+            H_loc, n = prob.recentre_int(H_loc, k)
+            support = prob.support(k, n)
     x = best["x"].cpu().numpy()
     H_fit = prob.to_image(H_loc)
     k_t = k.cpu().numpy()
@@ -1068,6 +1151,8 @@ def simulate_blocks(pattern: StarPattern, num_blocks: int, rng: np.random.Genera
     moved by up to ``init_shift_px`` px and scaled by up to ``init_scale`` about the centre.
     ``psf`` (``(Kt, Kt)`` or ``(B, Kt, Kt)``, odd ``Kt``) replaces the random motion kernels.
     """
+    from scipy.signal import fftconvolve  # here: importing scipy.signal takes seconds
+
     if psf is not None:
         given = np.broadcast_to(np.asarray(psf, dtype=np.float64), (num_blocks, *np.shape(psf)[-2:]))
         truth_kernel_size = given.shape[-1]

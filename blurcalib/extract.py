@@ -331,7 +331,8 @@ def extract_to_folder(paths: Sequence[Path], pattern: StarPattern, out_dir: str 
                       settings: ExtractSettings | None = None, workers: int = 1,
                       progress: Callable[[int, int, dict], None] | None = None,
                       expected_size: tuple[int, int] | None = None,
-                      names: Sequence[str] | None = None, overwrite: bool = False) -> FolderSummary:
+                      names: Sequence[str] | None = None, overwrite: bool = False,
+                      cluster: str | None = None) -> FolderSummary:
     """Extract every frame of ``paths`` into ``out_dir`` (resumable).
 
     Every frame ends with a status: an unreadable frame, one of another size, one that cannot
@@ -340,7 +341,8 @@ def extract_to_folder(paths: Sequence[Path], pattern: StarPattern, out_dir: str 
     the input file's size and modification time) is unchanged and its status is final
     (:data:`FINAL_STATUSES`); otherwise it is redone. The top-level tables list exactly the
     frames of this run. Frames are named by :func:`frame_names` unless ``names`` gives one per
-    path.
+    path. With ``cluster`` (a Dask scheduler address) the frames run as tasks there
+    (:mod:`blurcalib.cluster`), else in ``workers`` local processes.
 
     Args:
         expected_size: ``(width, height)`` every frame must have; None takes the most common
@@ -381,7 +383,13 @@ def extract_to_folder(paths: Sequence[Path], pattern: StarPattern, out_dir: str 
         if progress is not None:
             progress(len(summaries), len(names), summary)
 
-    if workers > 1 and len(todo) > 1:
+    if cluster is not None and todo:
+        from blurcalib.cluster import run_on_cluster
+
+        for result in run_on_cluster(cluster, _process, [(p, n) for p, n in todo],
+                                     (pattern, settings, size)):
+            finish(result)
+    elif workers > 1 and len(todo) > 1:
         ctx = multiprocessing.get_context("spawn")
         with ProcessPoolExecutor(workers, mp_context=ctx, initializer=_init_worker,
                                  initargs=(pattern, settings)) as pool:

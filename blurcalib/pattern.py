@@ -471,6 +471,46 @@ def star_signed_distance(q: torch.Tensor, num_segments: int) -> torch.Tensor:
     return torch.where(white, dist, -dist)
 
 
+def star_signed_distance_normal(q: torch.Tensor, num_segments: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """:func:`star_signed_distance` and its gradient in ``q``, in closed form (no autograd).
+
+    The gradient of the distance to the nearest edge is that edge's unit normal: across a ray
+    ``sign(u e_y - v e_x) (e_y, -e_x)``, from the star centre ``(u, v) / |(u, v)|``, across the
+    square's border ``-sign`` of the larger coordinate; it points into white.
+
+    Returns:
+        ``(dist (...), normal (..., 2))``, block units.
+    """
+    centre = 2.0 * torch.round(q / 2.0)
+    d = q - centre
+    u, v = d[..., 0], d[..., 1]
+    sector_width = 2.0 * math.pi / num_segments
+    sector = torch.floor(torch.remainder(torch.atan2(u, v), 2.0 * math.pi) / sector_width)
+    white = torch.remainder(sector, 2.0) == 1.0
+    radius = torch.sqrt(u * u + v * v + 1e-30)
+    dist = torch.full_like(u, float("inf"))
+    nu, nv = torch.zeros_like(u), torch.zeros_like(u)
+    for k in (sector, sector + 1.0):
+        alpha = k * sector_width
+        ex, ey = torch.sin(alpha), torch.cos(alpha)
+        ahead = u * ex + v * ey > 0
+        cross = u * ey - v * ex
+        ray = torch.where(ahead, torch.abs(cross), radius)
+        closer = ray < dist
+        side = torch.sign(cross)
+        nu = torch.where(closer, torch.where(ahead, side * ey, u / radius), nu)
+        nv = torch.where(closer, torch.where(ahead, -side * ex, v / radius), nv)
+        dist = torch.minimum(dist, ray)
+    au, av = torch.abs(u), torch.abs(v)
+    border = 1.0 - torch.maximum(au, av)
+    closer = border < dist
+    nu = torch.where(closer, torch.where(au >= av, -torch.sign(u), 0.0), nu)
+    nv = torch.where(closer, torch.where(au >= av, 0.0, -torch.sign(v)), nv)
+    dist = torch.minimum(dist, border)
+    sign = torch.where(white, 1.0, -1.0)
+    return dist * sign, torch.stack([nu * sign, nv * sign], dim=-1)
+
+
 PAGE_SIZES_MM: dict[str, tuple[float, float]] = {
     "A4": (210.0, 297.0),
     "letter": (215.9, 279.4),

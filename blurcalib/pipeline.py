@@ -127,6 +127,7 @@ class PipelineSettings:
             simulated data (``blurcalib experiment generic``, docs/generic.md): 0.005 px median
             error against the true camera for ``joint``, 0.14 px for ``aligned``.
         cell_px: the generic grid's cell length (px).
+        cluster: a Dask scheduler address; frames are extracted as tasks there (``docs/cluster.md``).
     """
 
     quality: QualitySettings = field(default_factory=QualitySettings)
@@ -139,6 +140,7 @@ class PipelineSettings:
     model: str = "generic"
     route: str = "joint"
     cell_px: float = DEFAULT_CELL_PX
+    cluster: str | None = None
 
     def __post_init__(self) -> None:
         if self.model not in MODELS:
@@ -231,12 +233,14 @@ def run_pipeline(sharp: Sequence[Path], blurry: Sequence[Path], pattern: StarPat
     sharp_names, names = all_names[:len(sharp)], all_names[len(sharp):]
     sharp_run = extract_to_folder(sharp, pattern, out / "sharp", ExtractSettings.sharp(),
                                   workers=s.workers, progress=stage("sharp"), expected_size=size,
-                                  names=sharp_names, overwrite=overwrite)
+                                  names=sharp_names, overwrite=overwrite,
+                                  cluster=s.cluster)
     blurry_settings = ExtractSettings(deconv=DeconvSettings(kernel_size=s.blurry_kernel),
                                       local_alignment=s.local_alignment)
     blurry_run = extract_to_folder(blurry, pattern, out / "blurry", blurry_settings,
                                    workers=s.workers, progress=stage("blurry"), expected_size=size,
-                                   names=names, overwrite=overwrite)
+                                   names=names, overwrite=overwrite,
+                                   cluster=s.cluster)
     seeded = [r for r in sharp_run.frames + blurry_run.frames if r["status"] != "not_seeded"]
     if not any(r["status"] == "ok" for r in seeded):
         raise PipelineError("no AprilTag of the pattern was found in any frame: does the pattern "

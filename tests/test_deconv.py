@@ -7,6 +7,7 @@ import dataclasses
 
 import numpy as np
 import pytest
+import torch
 from scipy.ndimage import convolve
 
 from blurcalib.camera import translation
@@ -21,7 +22,7 @@ from blurcalib.deconv import (
     shift_pair,
     simulate_blocks,
 )
-from blurcalib.pattern import layout_pattern
+from blurcalib.pattern import layout_pattern, star_signed_distance, star_signed_distance_normal
 from blurcalib.results import BlockStatus, boundary_energy, psf_moments
 
 SEGMENTS = 16
@@ -203,6 +204,11 @@ def test_batch_equals_one_by_one(sim: SimulatedBlocks, fit: BlockFit) -> None:
         assert single.loss[0] == pytest.approx(fit.loss[i], rel=1e-2)
     small_batches = fit_blocks(sim.image, sim.H0, SEGMENTS, dataclasses.replace(SETTINGS, batch_size=4))
     assert np.abs(small_batches.centre - fit.centre).max() < 2e-3
+    for groups in (1, 64):  # stage groups of one block each, and the whole batch as one group
+        grouped = fit_blocks(sim.image, sim.H0, SEGMENTS,
+                             dataclasses.replace(SETTINGS, stage_batch_size=groups))
+        assert np.abs(grouped.centre - fit.centre).max() < 2e-3
+        assert [m.shape for m in grouped.masks] == [m.shape for m in fit.masks]
 
 
 def test_float64_agrees_with_float32(sim: SimulatedBlocks, fit: BlockFit) -> None:
@@ -267,3 +273,15 @@ def test_bad_arguments_raise() -> None:
         fit_blocks(np.zeros((4, 4, 3)), np.eye(3)[None], SEGMENTS)
     with pytest.raises(ValueError, match="pixel_mask"):
         fit_blocks(np.zeros((40, 40)), np.eye(3)[None], SEGMENTS, pixel_mask=np.ones((4, 4), dtype=bool))
+
+
+@pytest.mark.parametrize("segments", [8, 16])
+def test_closed_form_edge_normal_matches_autograd(segments: int) -> None:
+    q = torch.as_tensor(np.random.default_rng(3).uniform(-3.0, 3.0, (20000, 2)), dtype=torch.float64)
+    q.requires_grad_(True)
+    dist = star_signed_distance(q, segments)
+    (grad,) = torch.autograd.grad(dist.sum(), q)
+    d2, normal = star_signed_distance_normal(q.detach(), segments)
+    assert torch.equal(d2, dist.detach())
+    assert torch.allclose(normal, grad, atol=1e-12)
+    assert torch.allclose(normal.norm(dim=-1), torch.ones(len(q), dtype=torch.float64))

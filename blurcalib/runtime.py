@@ -1,0 +1,65 @@
+"""Thread policy: how many threads each process computes with, and how many worker processes.
+
+The block solver runs many small tensor operations; torch's intra-op (OpenMP) threads speed
+these up little on an idle machine and collapse when the cores are shared (threads spinning at
+barriers while another process holds the core: 10 to 47x slower per frame measured with one
+competing process on 2 cores, ``docs/deconvolution.md``). So every process computes with one
+thread by default and parallelism comes from worker processes, one per core.
+"""
+
+from __future__ import annotations
+
+import os
+
+
+def available_cores() -> int:
+    """Cores this process may run on (its CPU affinity where the OS reports it)."""
+    try:
+        return max(len(os.sched_getaffinity(0)), 1)
+    except AttributeError:  # not on Linux
+        return max(os.cpu_count() or 1, 1)
+
+
+def default_workers(frames: int) -> int:
+    """Worker processes for ``frames`` frames: one per core, at most one per frame."""
+    return max(1, min(available_cores(), frames))
+
+
+def configure_threads(threads: int | None = None) -> int:
+    """Set the compute threads of this process (torch intra-op, OpenMP, OpenCV); returns them.
+
+    Args:
+        threads: threads to use; None or 0 means 1 (the policy above).
+    Raises:
+        ValueError: ``threads`` is negative.
+    """
+    if threads is not None and threads < 0:
+        raise ValueError(f"threads must be >= 0, got {threads}")
+    n = threads or 1
+    os.environ["OMP_NUM_THREADS"] = str(n)  # for libraries that read it at their first use
+    import cv2
+    import torch
+
+    torch.set_num_threads(n)
+    cv2.setNumThreads(n)
+    return n
+
+
+class DeviceError(Exception):
+    """The requested torch device is not available (a one-line message)."""
+
+
+def check_device(device: str) -> str:
+    """``device`` if torch can compute on it, else :class:`DeviceError`."""
+    import torch
+
+    try:
+        dev = torch.device(device)
+    except RuntimeError:
+        raise DeviceError(f"unknown torch device {device!r} (cpu, cuda, cuda:N)") from None
+    if dev.type == "cuda" and not torch.cuda.is_available():
+        raise DeviceError(f"--device {device}: CUDA is not available on this machine (torch "
+                          f"{torch.__version__}); use --device cpu")
+    if dev.type == "cuda" and dev.index is not None and dev.index >= torch.cuda.device_count():
+        raise DeviceError(f"--device {device}: only {torch.cuda.device_count()} CUDA device(s)")
+    return device

@@ -1,0 +1,98 @@
+"""Frames as tasks on a Dask cluster: the same results as a local run, resumable, CLI errors."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from blurcalib.camera import BrownConrady
+from blurcalib.cli import main
+from blurcalib.cluster import ClusterError, run_on_cluster
+from blurcalib.extract import ExtractSettings, extract_to_folder
+from blurcalib.results import read_features
+from blurcalib.synth import Simulator, SynthConfig, TrueCamera
+
+distributed = pytest.importorskip(
+    "distributed", reason="Dask is not installed: pip install 'blurcalib[cluster]'")
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture(scope="module")
+def frames(tmp_path_factory) -> tuple[list[Path], Simulator]:
+    model = BrownConrady(fx=420.0, fy=420.0, cx=239.6, cy=179.3, k1=0.02, k2=-0.03, p1=0.0003,
+                         p2=-0.0002, k3=0.0, width=480, height=360)
+    sim = Simulator(SynthConfig(sharp=3, blurry=0, square_px=(24.0, 30.0), max_tilt_deg=30.0, seed=5),
+                    camera=TrueCamera(model))
+    folder = tmp_path_factory.mktemp("frames")
+    paths = []
+    for i in range(3):
+        path = folder / f"f{i}.png"
+        cv2.imwrite(str(path), sim.frame(i).image)
+        paths.append(path)
+    return paths, sim
+
+
+@pytest.fixture(scope="module")
+def cluster():
+    # the workers are new processes: they import this checkout's blurcalib
+    old = os.environ.get("PYTHONPATH")
+    os.environ["PYTHONPATH"] = os.pathsep.join([str(ROOT), *([old] if old else [])])
+    try:
+        with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
+                                      dashboard_address=None) as local:
+            yield local.scheduler_address
+    finally:
+        if old is None:
+            os.environ.pop("PYTHONPATH")
+        else:
+            os.environ["PYTHONPATH"] = old
+
+
+def _features(path: Path) -> dict:
+    return {(f.frame, f.feature_id): (f.x, f.y) for f in read_features(path)}
+
+
+def test_cluster_run_matches_local_run_and_resumes(tmp_path, frames, cluster) -> None:
+    paths, sim = frames
+    settings = ExtractSettings.sharp()
+    local = extract_to_folder(paths, sim.pattern, tmp_path / "local", settings)
+    assert [r["status"] for r in local.frames] == ["ok"] * 3
+    # a cluster run that finds one frame already done extracts only the other two
+    extract_to_folder(paths[:1], sim.pattern, tmp_path / "dask", settings)
+    seen = []
+    run = extract_to_folder(paths, sim.pattern, tmp_path / "dask", settings, cluster=cluster,
+                            progress=lambda done, total, row: seen.append((done, total, row["frame"])))
+    assert run.skipped == ["f0.png"]
+    assert sorted(name for _, _, name in seen) == ["f1.png", "f2.png"]
+    assert [(done, total) for done, total, _ in seen] == [(2, 3), (3, 3)]
+    ref, got = _features(tmp_path / "local" / "features.csv"), _features(tmp_path / "dask" / "features.csv")
+    assert len(ref) > 150 and ref.keys() == got.keys()
+    diff = np.array([np.subtract(ref[k], got[k]) for k in ref])
+    assert np.abs(diff).max() < 1e-9
+
+
+def test_cli_extract_on_cluster(tmp_path, frames, cluster) -> None:
+    paths, sim = frames
+    yaml = tmp_path / "pattern.yaml"
+    sim.pattern.save_yaml(yaml)
+    out = tmp_path / "out"
+    assert main(["extract", str(paths[1]), "--pattern", str(yaml), "--out", str(out), "--sharp",
+                 "--cluster", cluster]) == 0
+    assert {f.frame for f in read_features(out / "features.csv")} == {"f1.png"}
+
+
+def test_unreachable_scheduler_is_one_line_error(tmp_path, frames, capsys) -> None:
+    with pytest.raises(ClusterError, match="cannot reach the Dask scheduler"):
+        list(run_on_cluster("tcp://127.0.0.1:9", len, [("x",)], timeout_s=2.0))
+    paths, sim = frames
+    yaml = tmp_path / "pattern.yaml"
+    sim.pattern.save_yaml(yaml)
+    code = main(["extract", str(paths[0]), "--pattern", str(yaml), "--out", str(tmp_path / "o"),
+                 "--cluster", "tcp://127.0.0.1:9"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and err[-1].startswith("blurcalib: error: tcp://127.0.0.1:9: cannot reach")

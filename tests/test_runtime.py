@@ -1,0 +1,46 @@
+"""Thread policy and device checks of blurcalib.runtime, and their CLI errors."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+import torch
+
+from blurcalib.cli import main
+from blurcalib.runtime import DeviceError, available_cores, check_device, configure_threads, default_workers
+from tests.conftest import FIXTURE_YAML
+
+
+def test_configure_threads_sets_torch_threads() -> None:
+    before = torch.get_num_threads()
+    try:
+        assert configure_threads(2) == 2 and torch.get_num_threads() == 2
+        assert configure_threads(None) == 1 and torch.get_num_threads() == 1
+    finally:
+        torch.set_num_threads(before)
+    with pytest.raises(ValueError, match="threads must be >= 0"):
+        configure_threads(-1)
+
+
+def test_default_workers_one_per_core_at_most_one_per_frame() -> None:
+    cores = available_cores()
+    assert default_workers(1) == 1
+    assert default_workers(10_000) == cores
+    assert default_workers(0) == 1
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="this machine has CUDA")
+def test_cuda_without_cuda_is_a_one_line_error(tmp_path, capsys) -> None:
+    assert check_device("cpu") == "cpu"
+    with pytest.raises(DeviceError, match="CUDA is not available"):
+        check_device("cuda")
+    with pytest.raises(DeviceError, match="unknown torch device"):
+        check_device("gpu0")
+    frame = tmp_path / "f.png"
+    cv2.imwrite(str(frame), np.full((40, 40), 128, np.uint8))
+    code = main(["extract", str(frame), "--pattern", str(FIXTURE_YAML), "--out", str(tmp_path / "o"),
+                 "--device", "cuda"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1 and "CUDA is not available" in err[0]
+    assert not (tmp_path / "o").exists()
