@@ -52,7 +52,7 @@ negative fixed at zero); Levenberg-Marquardt then updates the 8 homography param
    translational ambiguity ``k' * L' = k * L``), a kernel support (entries above
    ``support_threshold`` of the peak, dilated), the loss's pixels from the current ``H``, and
    ``gn_steps`` LM steps;
-3. sub-pixel re-centring ``H <- T(c) H`` with ``c`` the PSF centroid (:func:`recentre`), so that
+3. sub-pixel re-centring ``H <- T(c) H`` with ``c`` the PSF centroid (:func:`blurcalib.psf.recentre`), so that
    ``H(0, 0)`` is the centre of the star's time-averaged image.
 
 All blocks of a batch are solved together as padded ``(b, ...)`` tensors on
@@ -69,27 +69,21 @@ import math
 from dataclasses import dataclass, field
 from typing import Literal, NamedTuple
 
-import cv2
 import numpy as np
 import torch
 import torch.nn.functional as nnf
 
 from blurcalib.camera import translation
-from blurcalib.pattern import StarPattern, smooth_star, star_signed_distance_normal
-from blurcalib.results import BlockStatus, boundary_energy, psf_moments
-from blurcalib.synth import splat
+from blurcalib.pattern import smooth_star, star_signed_distance_normal
+from blurcalib.psf import boundary_energy, psf_centroid, psf_moments, recentre
+from blurcalib.results import BlockStatus
 
 __all__ = [
     "BlockFit",
     "BlockModel",
     "DeconvSettings",
-    "SimulatedBlocks",
     "fit_blocks",
-    "psf_centroid",
-    "recentre",
     "render_model",
-    "shift_pair",
-    "simulate_blocks",
 ]
 
 Brightness = Literal["after_blur", "before_blur"]
@@ -298,123 +292,6 @@ class BlockModel(NamedTuple):
 
 
 # ----------------------------------------------------------------------------- small helpers
-def psf_centroid(psf: np.ndarray, threshold: float = 0.0) -> np.ndarray:
-    """Intensity-weighted centroid of PSFs, px relative to the kernel centre.
-
-    Values below ``threshold`` times the kernel's peak are ignored (a robust variant for
-    kernels with negative ringing or a noise floor; the solver's kernels are non-negative and
-    support-restricted, so its default is 0).
-
-    Args:
-        psf: ``(K, K)`` or ``(B, K, K)`` kernels (pixel ``(i, j)`` at offset ``(j - c, i - c)``).
-        threshold: share of the peak below which values get zero weight (0 keeps all values).
-    Returns:
-        ``(2,)`` or ``(B, 2)`` float64 ``(x, y)`` px.
-    """
-    k = np.asarray(psf, dtype=np.float64)
-    single = k.ndim == 2
-    k = k[None] if single else k
-    c = (k.shape[-1] - 1) / 2.0
-    peak = k.max(axis=(1, 2), keepdims=True)
-    w = np.where(k >= threshold * peak, k, 0.0) if threshold > 0 else k
-    total = w.sum(axis=(1, 2))
-    offs = np.arange(k.shape[-1], dtype=np.float64) - c
-    with np.errstate(invalid="ignore", divide="ignore"):
-        out = np.stack([w.sum(axis=1) @ offs, w.sum(axis=2) @ offs], axis=1) / total[:, None]
-    return out[0] if single else out
-
-
-def _shift_kernels(psf: np.ndarray, shift: np.ndarray) -> np.ndarray:
-    """``k'(d) = k(d + s)`` by separable linear interpolation (zero outside the window).
-
-    Linear interpolation keeps the kernel non-negative, its sum and its centroid (moved by exactly
-    ``-s``) up to weight leaving the window; it widens the kernel by a variance of
-    ``f (1 - f) <= 1/4`` px^2 per axis (``f`` the fractional part of the shift).
-
-    Args:
-        psf: ``(B, K, K)``; shift: ``(B, 2)`` px ``(s_x, s_y)``.
-    """
-    B, K, _ = psf.shape
-    out = psf
-    bi = np.arange(B)[:, None, None, None]
-    ar = np.arange(K)
-    for axis, s in ((2, shift[:, 0]), (1, shift[:, 1])):
-        base = np.floor(s)
-        frac = s - base
-        w = np.stack([1.0 - frac, frac], axis=1)  # (B, 2)
-        idx = ar[None, :, None] + base[:, None, None].astype(np.int64) + np.arange(2)  # (B, K, 2)
-        valid = (idx >= 0) & (idx < K)
-        idx = np.clip(idx, 0, K - 1)
-        if axis == 2:
-            taps = out[bi, ar[None, :, None, None], idx[:, None, :, :]]  # (B, K, K, 2)
-            out = np.sum(taps * (w[:, None, None, :] * valid[:, None]), axis=-1)
-        else:
-            taps = out[bi, idx[:, :, None, :], ar[None, None, :, None]]
-            out = np.sum(taps * (w[:, None, None, :] * valid[:, :, None]), axis=-1)
-    return out
-
-
-def recentre(H: np.ndarray, psf: np.ndarray, threshold: float = 0.0
-             ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """PSF re-centring (end of *Local Alignment*): move each kernel's centroid to its centre.
-
-    With ``c`` the kernel centroid (:func:`psf_centroid`), ``k'(d) = k(d + c)`` (sub-pixel, linear
-    interpolation; sum and non-negativity kept) and ``H' = T(c) H``. By the translational
-    ambiguity ``k' * S(H') = k * S(H)`` the model is unchanged (up to the interpolation), while
-    ``H'(0, 0)`` becomes the centre of the star's time-averaged image. A kernel whose centroid is
-    undefined (zero sum) is returned unchanged with ``c`` NaN.
-
-    Args:
-        H: ``(3, 3)`` or ``(B, 3, 3)`` block homographies (block coords -> px).
-        psf: ``(K, K)`` or ``(B, K, K)`` kernels.
-        threshold: centroid threshold, share of each kernel's peak.
-    Returns:
-        ``(H', psf', c)``: float64, shapes as given, ``c`` ``(2,)`` / ``(B, 2)`` px.
-    """
-    H = np.asarray(H, dtype=np.float64)
-    k = np.asarray(psf, dtype=np.float64)
-    single = k.ndim == 2
-    Hb, kb = (H[None], k[None]) if single else (H, k)
-    c = psf_centroid(kb, threshold)
-    ok = np.all(np.isfinite(c), axis=1)
-    c_safe = np.where(ok[:, None], c, 0.0)
-    k_out = _shift_kernels(kb, c_safe)
-    sums = kb.sum(axis=(1, 2), keepdims=True)
-    out_sums = k_out.sum(axis=(1, 2), keepdims=True)
-    scale = np.divide(sums, out_sums, out=np.ones_like(sums), where=out_sums != 0)
-    k_out = k_out * scale
-    H_out = translation(c_safe) @ Hb
-    if single:
-        return H_out[0], k_out[0], c[0]
-    return H_out, k_out, c
-
-
-def shift_pair(latent: np.ndarray, kernel: np.ndarray, delta: tuple[int, int]
-               ) -> tuple[np.ndarray, np.ndarray]:
-    """The translational ambiguity: ``L'(x) = L(x - delta)``, ``k'(d) = k(d + delta)``.
-
-    Then ``k' * L' = k * L`` (paper, *Translational Ambiguity in Deconvolution*). The latent image
-    is shifted periodically (``np.roll``), the kernel with zero fill; the identity holds exactly
-    for periodic convolution when no kernel weight leaves the window.
-
-    Args:
-        latent: ``(h, w)`` image; kernel: ``(K, K)``; delta: integer ``(dx, dy)`` px.
-    Returns:
-        ``(L', k')``.
-    Raises:
-        ValueError: the shift would push kernel weight out of its window.
-    """
-    dx, dy = int(delta[0]), int(delta[1])
-    k = np.asarray(kernel)
-    K = k.shape[0]
-    shifted = np.zeros_like(k)
-    src = k[max(dy, 0):K + min(dy, 0), max(dx, 0):K + min(dx, 0)]
-    if not np.isclose(np.abs(src).sum(), np.abs(k).sum()):
-        raise ValueError(f"shift {delta} pushes kernel weight out of the {K} x {K} window")
-    shifted[max(-dy, 0):K - max(dy, 0), max(-dx, 0):K - max(dx, 0)] = src
-    return np.roll(np.asarray(latent), (dy, dx), axis=(0, 1)), shifted
-
-
 def _solve_nonnegative(G: torch.Tensor, rhs: torch.Tensor, m: int, passes: int
                        ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """``x = G^{-1} rhs`` with the first ``m`` entries that come out negative fixed at zero.
@@ -1094,116 +971,3 @@ def render_model(fit: BlockFit, image: np.ndarray, index: int) -> BlockModel:
     model = prob.model(prob.to_local(fit.H_fit[sel]), k, p)[0].double().cpu().numpy()
     obs = prob.img[0].double().cpu().numpy()
     return BlockModel(model, obs, obs - model, fit.masks[index].copy(), fit.origin[index].copy())
-
-
-# --------------------------------------------------------------------------- simulated blocks
-@dataclass(eq=False)
-class SimulatedBlocks:
-    """Synthetic blocks with ground truth (for tests and ``scripts/bench_deconv.py``).
-
-    Attributes:
-        image: ``(height, width)`` uint8, the blocks' tiles side by side.
-        H_true: ``(B, 3, 3)`` true block homographies (block coords -> image px).
-        H0: ``(B, 3, 3)`` perturbed initial homographies.
-        psf_true: ``(B, Kt, Kt)`` true kernels (sum 1).
-        centre_true: ``(B, 2)`` px, ``H_true(0, 0)`` plus the true kernel's centroid: the star
-            centre's time-averaged position.
-        features: ``(B, 2)`` int feature coordinates of the blocks.
-    """
-
-    image: np.ndarray
-    H_true: np.ndarray
-    H0: np.ndarray
-    psf_true: np.ndarray
-    centre_true: np.ndarray
-    features: np.ndarray
-
-
-def _motion_kernel(rng: np.random.Generator, length: float, size: int, gauss_sigma: float) -> np.ndarray:
-    """A curved, unevenly travelled motion path of ``length`` px splatted into ``size x size``."""
-    theta = rng.uniform(0, 2 * np.pi)
-    d = np.array([math.cos(theta), math.sin(theta)])
-    nrm = np.array([-d[1], d[0]])
-    bend = rng.uniform(-0.25, 0.25) * length
-    t = np.linspace(0.0, 1.0, 400) ** rng.uniform(0.7, 1.4)  # uneven speed
-    pts = ((t - 0.5)[:, None] * length * d[None] + (4 * t * (1 - t))[:, None] * bend * nrm[None])
-    pts = pts - pts.mean(axis=0) + rng.uniform(-1.0, 1.0, 2)
-    k = splat(pts, size)
-    if gauss_sigma > 0:
-        k = cv2.GaussianBlur(k, (0, 0), gauss_sigma, borderType=cv2.BORDER_CONSTANT)
-    return k / k.sum()
-
-
-def simulate_blocks(pattern: StarPattern, num_blocks: int, rng: np.random.Generator, *,
-                    square_px: tuple[float, float] = (26.0, 34.0), blur_px: tuple[float, float] = (4.0, 15.0),
-                    gauss_sigma: tuple[float, float] = (0.0, 0.6), noise_sigma: float = 2.0,
-                    init_shift_px: float = 1.5, init_scale: float = 0.03, supersample: int = 8,
-                    tile_px: int = 96, ink: float = 30.0, paper: float = 200.0,
-                    truth_kernel_size: int = 31, psf: np.ndarray | None = None) -> SimulatedBlocks:
-    """Render ``num_blocks`` blurred star blocks with known ``H`` and PSF, one per tile.
-
-    Each tile shows the exact pattern (:meth:`StarPattern.intensity`, box-filtered over
-    ``supersample^2`` samples per pixel) around a random valid feature through a random
-    perspective homography (square side in ``square_px``), blurred by a random curved motion
-    path of ``blur_px`` length (:func:`blurcalib.synth.splat`) and a Gaussian, scaled to
-    ``ink..paper`` with gain and offset gradients applied after the blur (as ``synth.py`` does),
-    with Gaussian noise of ``noise_sigma`` grey levels, quantised to 8 bits. ``H0`` is ``H_true``
-    moved by up to ``init_shift_px`` px and scaled by up to ``init_scale`` about the centre.
-    ``psf`` (``(Kt, Kt)`` or ``(B, Kt, Kt)``, odd ``Kt``) replaces the random motion kernels.
-    """
-    from scipy.signal import fftconvolve  # here: importing scipy.signal takes seconds
-
-    if psf is not None:
-        given = np.broadcast_to(np.asarray(psf, dtype=np.float64), (num_blocks, *np.shape(psf)[-2:]))
-        truth_kernel_size = given.shape[-1]
-    cols = math.ceil(math.sqrt(num_blocks))
-    rows = math.ceil(num_blocks / cols)
-    image = np.zeros((rows * tile_px, cols * tile_px))
-    feats = pattern.features[rng.choice(pattern.num_features, num_blocks, replace=False)]
-    H_true = np.zeros((num_blocks, 3, 3))
-    H0 = np.zeros_like(H_true)
-    kernels = np.zeros((num_blocks, truth_kernel_size, truth_kernel_size))
-    centre = np.zeros((num_blocks, 2))
-    offs = (np.arange(supersample) + 0.5) / supersample - 0.5
-    yy, xx = np.mgrid[0:tile_px, 0:tile_px].astype(np.float64)
-    for b in range(num_blocks):
-        ty, tx = divmod(b, cols)
-        half = 0.5 * rng.uniform(*square_px)
-        ang = rng.uniform(0, 2 * np.pi)
-        R = np.array([[math.cos(ang), -math.sin(ang)], [math.sin(ang), math.cos(ang)]])
-        Aff = half * R @ np.array([[1.0 + rng.uniform(-0.1, 0.1), rng.uniform(-0.1, 0.1)], [0.0, 1.0]])
-        Hb = np.eye(3)
-        Hb[:2, :2] = Aff
-        Hb[:2, 2] = tile_px / 2 - 0.5 + rng.uniform(-0.5, 0.5, 2)
-        Hb = Hb @ np.array([[1, 0, 0], [0, 1, 0], [*rng.uniform(-0.08, 0.08, 2), 1.0]])
-        Hb /= Hb[2, 2]
-        fx, fy = feats[b]
-        to_feature = np.array([[0.5, 0, fx], [0, 0.5, fy], [0, 0, 1.0]]) @ np.linalg.inv(Hb)
-        acc = np.zeros((tile_px, tile_px))
-        for oy in offs:
-            for ox in offs:
-                X = np.stack([xx + ox, yy + oy, np.ones_like(xx)], axis=-1) @ to_feature.T
-                acc += pattern.intensity(X[..., :2] / X[..., 2:])
-        latent = acc / supersample**2
-        if psf is None:
-            k = _motion_kernel(rng, rng.uniform(*blur_px), truth_kernel_size, rng.uniform(*gauss_sigma))
-        else:
-            k = given[b] / given[b].sum()
-        blurred = fftconvolve(latent, k, mode="same")
-        u = (xx - tile_px / 2) / (tile_px / 2)
-        v = (yy - tile_px / 2) / (tile_px / 2)
-        gain = (paper - ink) * (1.0 + rng.uniform(-0.08, 0.08) * u + rng.uniform(-0.08, 0.08) * v)
-        offset = ink * (1.0 + rng.uniform(-0.2, 0.2) * u + rng.uniform(-0.2, 0.2) * v)
-        tile = offset + gain * blurred + rng.normal(0.0, noise_sigma, blurred.shape)
-        image[ty * tile_px:(ty + 1) * tile_px, tx * tile_px:(tx + 1) * tile_px] = tile
-        Hi = translation(np.array([tx * tile_px, ty * tile_px], dtype=np.float64)) @ Hb
-        H_true[b] = Hi
-        kernels[b] = k
-        centre[b] = Hi[:2, 2] / Hi[2, 2] + psf_centroid(k, 0.0)
-        c0 = Hi[:2, 2] / Hi[2, 2]
-        shift = rng.normal(size=2)
-        shift *= rng.uniform(0, init_shift_px) / np.linalg.norm(shift)
-        sc = 1.0 + rng.uniform(-init_scale, init_scale)
-        H0[b] = translation(c0 + shift) @ np.diag([sc, sc, 1.0]) @ translation(-c0) @ Hi
-    img8 = np.clip(np.round(image), 0, 255).astype(np.uint8)
-    return SimulatedBlocks(img8, H_true, H0, kernels, centre, feats)

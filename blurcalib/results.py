@@ -30,7 +30,6 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from enum import Enum, IntFlag
 from pathlib import Path
-from typing import NamedTuple
 
 import numpy as np
 
@@ -183,83 +182,6 @@ class FeatureObservation:
     y: float
     weight: float
     flags: int
-
-
-# ---------------------------------------------------------------------------------- PSF figures
-class PsfMoments(NamedTuple):
-    """Moment figures of a PSF (or of a batch: each field gains a leading ``B`` axis)."""
-
-    centroid: np.ndarray
-    """``(2,)`` or ``(B, 2)`` px, intensity centroid ``(x, y)`` relative to the kernel centre."""
-    sigma_major: np.ndarray | float
-    """px, square root of the larger eigenvalue of the central second-moment matrix."""
-    sigma_minor: np.ndarray | float
-    """px, square root of the smaller eigenvalue."""
-    eccentricity: np.ndarray | float
-    """``sqrt(1 - sigma_minor^2 / sigma_major^2)``; 0 for a delta."""
-    orientation: np.ndarray | float
-    """rad in ``(-pi/2, pi/2]``, of the major axis, from +x towards +y; 0 for a round PSF."""
-
-
-def psf_moments(psf: np.ndarray) -> PsfMoments:
-    """Centroid and second-moment ellipse of a PSF or a batch of PSFs.
-
-    The kernel is normalised by its sum (which must be non-zero); pixel ``(i, j)`` sits at
-    offset ``(j - c, i - c)`` px, ``c = (K - 1) / 2``.
-
-    Args:
-        psf: ``(K, K)`` or ``(B, K, K)`` kernel(s), non-negative.
-    Returns:
-        :class:`PsfMoments`; floats for one kernel, ``(B,)`` arrays (centroid ``(B, 2)``)
-        for a batch.
-    """
-    k = np.asarray(psf, dtype=np.float64)
-    single = k.ndim == 2
-    if single:
-        k = k[None]
-    if k.ndim != 3 or k.shape[1] != k.shape[2]:
-        raise ValueError(f"psf must be (K, K) or (B, K, K), got {np.shape(psf)}")
-    c = (k.shape[1] - 1) / 2.0
-    offs = np.arange(k.shape[1], dtype=np.float64) - c
-    w = k / k.sum(axis=(1, 2), keepdims=True)
-    wx = w.sum(axis=1)  # (B, K): marginal over rows, indexed by column j
-    wy = w.sum(axis=2)  # (B, K): marginal over columns, indexed by row i
-    mx = wx @ offs
-    my = wy @ offs
-    cxx = wx @ offs**2 - mx**2
-    cyy = wy @ offs**2 - my**2
-    cxy = np.einsum("bij,i,j->b", w, offs, offs) - mx * my
-    half_trace = 0.5 * (cxx + cyy)
-    radius = np.hypot(0.5 * (cxx - cyy), cxy)
-    major = np.sqrt(np.maximum(half_trace + radius, 0.0))
-    minor = np.sqrt(np.maximum(half_trace - radius, 0.0))
-    ratio = np.divide(minor, major, out=np.ones_like(major), where=major > 0)
-    ecc = np.sqrt(np.maximum(1.0 - ratio**2, 0.0))
-    orient = 0.5 * np.arctan2(2.0 * cxy, cxx - cyy)
-    orient = np.where(orient <= -np.pi / 2, orient + np.pi, orient)
-    centroid = np.stack([mx, my], axis=1)
-    if single:
-        return PsfMoments(centroid[0], float(major[0]), float(minor[0]), float(ecc[0]),
-                          float(orient[0]))
-    return PsfMoments(centroid, major, minor, ecc, orient)
-
-
-def boundary_energy(psf: np.ndarray, ring: int = 2) -> np.ndarray | float:
-    """Share of a PSF's energy in its outer ``ring``-pixel border (a truncation indicator).
-
-    Args:
-        psf: ``(K, K)`` or ``(B, K, K)`` kernel(s) with non-zero sum.
-        ring: border width in pixels.
-    Returns:
-        ``sum(border) / sum(all)``: a float for one kernel, ``(B,)`` for a batch.
-    """
-    k = np.asarray(psf, dtype=np.float64)
-    if k.ndim not in (2, 3) or k.shape[-1] != k.shape[-2]:
-        raise ValueError(f"psf must be (K, K) or (B, K, K), got {k.shape}")
-    inner = k[..., ring:k.shape[-1] - ring, ring:k.shape[-1] - ring].sum(axis=(-2, -1))
-    total = k.sum(axis=(-2, -1))
-    share = (total - inner) / total
-    return float(share) if k.ndim == 2 else share
 
 
 # -------------------------------------------------------------------------------- column tables

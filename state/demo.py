@@ -1,7 +1,7 @@
 """The translational ambiguity of deconvolution, as a teaching demo.
 
 A blurred star ``k * L`` is explained equally well by the latent star shifted by ``delta`` and the
-kernel shifted by ``-delta`` (:func:`blurcalib.deconv.shift_pair`): ``k' * L' = k * L``. The
+kernel shifted by ``-delta`` (:func:`blurcalib.psf.shift_pair`): ``k' * L' = k * L``. The
 image cannot tell where the star "really" is; only a convention can (the PSF's centroid at the
 kernel centre) and the target's geometry (neighbouring blocks share corners; one camera model
 explains every frame).
@@ -16,10 +16,10 @@ import cv2
 import numpy as np
 
 from blurcalib.camera import BrownConrady, Pose, apply_homography, plane_homography, translation
-from blurcalib.deconv import shift_pair
 from blurcalib.global_alignment import align_global
 from blurcalib.local_alignment import align_locally, corner_gaps, neighbour_pairs
 from blurcalib.pattern import star_sector_white
+from blurcalib.psf import shift_pair
 from blurcalib.seed import block_homography
 from blurcalib.synth import splat
 

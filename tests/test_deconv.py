@@ -11,19 +11,11 @@ import torch
 from scipy.ndimage import convolve
 
 from blurcalib.camera import translation
-from blurcalib.deconv import (
-    BlockFit,
-    DeconvSettings,
-    SimulatedBlocks,
-    fit_blocks,
-    psf_centroid,
-    recentre,
-    render_model,
-    shift_pair,
-    simulate_blocks,
-)
+from blurcalib.deconv import BlockFit, DeconvSettings, fit_blocks, render_model
 from blurcalib.pattern import layout_pattern, star_signed_distance, star_signed_distance_normal
-from blurcalib.results import BlockStatus, boundary_energy, psf_moments
+from blurcalib.psf import boundary_energy, psf_centroid, psf_moments, recentre, shift_pair
+from blurcalib.results import BlockStatus
+from blurcalib.synth import SimulatedBlocks, simulate_blocks
 
 SEGMENTS = 16
 SETTINGS = DeconvSettings(kernel_size=13)

@@ -5,10 +5,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from blurcalib.deconv import DeconvSettings, fit_blocks, simulate_blocks
+from blurcalib.deconv import DeconvSettings, fit_blocks
 from blurcalib.grow import GrowSettings, choose_kernel_size, fit_front
 from blurcalib.pattern import layout_pattern
 from blurcalib.results import BlockStatus
+from blurcalib.synth import simulate_blocks
 
 
 def test_kernel_size_grows_with_the_blur() -> None:

@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from blurcalib.psf import boundary_energy, psf_moments
 from blurcalib.results import (
     BlockResult,
     BlockStatus,
@@ -16,11 +17,9 @@ from blurcalib.results import (
     FeatureObservation,
     FeatureTable,
     ResultsFileError,
-    boundary_energy,
     collect_results,
     frame_result_paths,
     frame_stem,
-    psf_moments,
     read_block_table,
     read_blocks,
     read_feature_table,
