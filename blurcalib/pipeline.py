@@ -225,7 +225,7 @@ def _extraction_row(extracted: dict, kind: str) -> dict:
            "seeded_by": extracted.get("seeded_by", ""), "features": extracted.get("features", 0)}
     if row["extraction"] != "ok":
         row["status"] = row["extraction"] or "failed"
-        row["message"] = extracted.get("message") or f"extraction ended with {row['status']!r}"
+        row["reason"] = extracted.get("message") or f"extraction ended with {row['status']!r}"
     return row
 
 
@@ -237,10 +237,10 @@ def _sharp_row(extracted: dict, calibration: Calibration) -> dict:
     errors = calibration.frame_errors().get(row["frame"])
     if errors is None:
         row.update(status="too_few_features",
-                   message=f"{row['features']} features: too few for the sharp-set calibration "
+                   reason=f"{row['features']} features: too few for the sharp-set calibration "
                            f"(its features are flagged filtered_out)")
     else:
-        row.update(status="used", message="",
+        row.update(status="used", reason="",
                    calibration_median_error=round(errors["median_error_px"] or float("nan"), 4))
     return row
 
@@ -260,12 +260,12 @@ def _align_frame(name: str, extracted: dict, blocks, pattern: StarPattern, calib
                centre_sigma_major=round(filt.centre_sigma_major, 3), filter_counts=filt.counts())
     if not filt.frame_ok:
         row["status"] = "low_blur"
-        row["message"] = (f"centre median sigma_major {filt.centre_sigma_major:.2f} px < "
+        row["reason"] = (f"centre median sigma_major {filt.centre_sigma_major:.2f} px < "
                           f"{s.quality.min_sigma_major} px")
         return row, None, None
     if filt.kept.sum() < 12:
         row["status"] = "too_few_blocks"
-        row["message"] = f"{int(filt.kept.sum())} blocks survive the BE/loss/connectivity filter"
+        row["reason"] = f"{int(filt.kept.sum())} blocks survive the BE/loss/connectivity filter"
         return row, None, None
     k = np.flatnonzero(filt.kept)
     ids = b.feature_id[k]
@@ -287,12 +287,12 @@ def _align_frame(name: str, extracted: dict, blocks, pattern: StarPattern, calib
                          X=b.fx[k] * L, Y=b.fy[k] * L, x=ga.corrected[:, 0], y=ga.corrected[:, 1],
                          weight=1.0 / (1.0 + b.loss[k]),
                          flags=np.full(n, int(flags), dtype=np.int64))
-    row.update(status="ill_conditioned" if ga.ill_conditioned else "used", message="",
+    row.update(status="ill_conditioned" if ga.ill_conditioned else "used", reason="",
                median_error=round(ga.median_error, 4), mean_error=round(ga.mean_error, 4),
                angle_deg=round(math.degrees(ga.angle_to_normal), 2),
                translation=[round(float(v), 4) for v in ga.translation])
     if ga.ill_conditioned:
-        row["message"] = (f"optical axis {math.degrees(ga.angle_to_normal):.1f} deg from the "
+        row["reason"] = (f"optical axis {math.degrees(ga.angle_to_normal):.1f} deg from the "
                           f"target normal: translation ill-conditioned, features flagged")
     return row, table, ga.residuals
 
@@ -313,7 +313,6 @@ def _write_outputs(out: Path, pattern: StarPattern, size: tuple[int, int],
     outputs["reference_features"] = write_ref_dataset(out / "features.bin", ref)
     cols = ["frame", "kind", "status", "reason", "extraction", "seeded_by", "features", "blocks",
             "kept", "centre_sigma_major", "median_error", "mean_error", "angle_deg"]
-    rows = [{**r, "reason": r.get("message", "")} for r in rows]
     outputs["frames"] = atomic_write_csv(out / "frames.csv", cols,
                                          [[r.get(c, "") for c in cols] for r in rows])
     # Figures: reprojection-error directions of the aligned blurry features and of the sharp set.
@@ -327,6 +326,7 @@ def _write_outputs(out: Path, pattern: StarPattern, size: tuple[int, int],
     with atomic_path(out / "error_directions_sharp.png") as tmp:
         cv2.imwrite(str(tmp), img)
     outputs["error_directions_sharp"] = out / "error_directions_sharp.png"
-    outputs["frame_errors"] = save_frame_error_plot(out / "frame_errors.png", rows,
+    blurry_rows = [r for r in rows if r["kind"] == "blurry"]
+    outputs["frame_errors"] = save_frame_error_plot(out / "frame_errors.png", blurry_rows,
                                                     calibration.frame_errors())
     return outputs
