@@ -303,7 +303,7 @@ def _extraction_row(extracted: dict, kind: str) -> dict:
            "seeded_by": extracted.get("seeded_by", ""), "features": extracted.get("features", 0)}
     if row["extraction"] != "ok":
         row["status"] = row["extraction"] or "failed"
-        row["message"] = extracted.get("message") or f"extraction ended with {row['status']!r}"
+        row["reason"] = extracted.get("message") or f"extraction ended with {row['status']!r}"
     return row
 
 
@@ -315,10 +315,10 @@ def _sharp_row(extracted: dict, calibration: Calibration) -> dict:
     errors = calibration.frame_errors().get(row["frame"])
     if errors is None:
         row.update(status="too_few_features",
-                   message=f"{row['features']} features: too few for the sharp-set calibration "
+                   reason=f"{row['features']} features: too few for the sharp-set calibration "
                            f"(its features are flagged filtered_out)")
     else:
-        row.update(status="used", message="",
+        row.update(status="used", reason="",
                    calibration_median_error=round(errors["median_error_px"] or float("nan"), 4))
     return row
 
@@ -358,12 +358,12 @@ def _align_frame(name: str, extracted: dict, blocks: BlockTable, pattern: StarPa
                centre_sigma_major=round(filt.centre_sigma_major, 3), filter_counts=filt.counts())
     if not filt.frame_ok:
         row["status"] = "low_blur"
-        row["message"] = (f"centre median sigma_major {filt.centre_sigma_major:.2f} px < "
+        row["reason"] = (f"centre median sigma_major {filt.centre_sigma_major:.2f} px < "
                           f"{s.quality.min_sigma_major} px")
         return _BlurryFrame(row)
     if filt.kept.sum() < MIN_BLOCKS:
         row["status"] = "too_few_blocks"
-        row["message"] = (f"{int(filt.kept.sum())} blocks survive the BE/loss/connectivity filter, "
+        row["reason"] = (f"{int(filt.kept.sum())} blocks survive the BE/loss/connectivity filter, "
                           f"{MIN_BLOCKS} needed")
         return _BlurryFrame(row)
     k = np.flatnonzero(filt.kept)
@@ -381,20 +381,20 @@ def _align_frame(name: str, extracted: dict, blocks: BlockTable, pattern: StarPa
                           b.loss[k], AlignmentSettings(loss=s.loss, bias=s.bias,
                                                        angle_threshold=s.angle_threshold))
     except AlignmentError as exc:
-        row.update(status="alignment_failed", message=str(exc), alignment="failed")
+        row.update(status="alignment_failed", reason=str(exc), alignment="failed")
         return _BlurryFrame(row, raw)
     flags |= FeatureFlags.GLOBALLY_ALIGNED
     if ga.ill_conditioned:
         flags |= FeatureFlags.FILTERED_OUT
     aligned = replace(raw, x=ga.corrected[:, 0], y=ga.corrected[:, 1],
                       flags=np.full(n, int(flags), dtype=np.int64))
-    row.update(status="ill_conditioned" if ga.ill_conditioned else "used", message="",
+    row.update(status="ill_conditioned" if ga.ill_conditioned else "used", reason="",
                alignment="ill_conditioned" if ga.ill_conditioned else "ok",
                median_error=round(ga.median_error, 4), mean_error=round(ga.mean_error, 4),
                angle_deg=round(math.degrees(ga.angle_to_normal), 2),
                translation=[round(float(v), 4) for v in ga.translation])
     if ga.ill_conditioned:
-        row["message"] = (f"optical axis {math.degrees(ga.angle_to_normal):.1f} deg from the "
+        row["reason"] = (f"optical axis {math.degrees(ga.angle_to_normal):.1f} deg from the "
                           f"target normal: translation ill-conditioned, features flagged")
     return _BlurryFrame(row, raw, aligned, ga.residuals)
 
@@ -423,7 +423,7 @@ def _generic_statuses(sharp_rows: list[dict], frames: Sequence[_BlurryFrame], ge
     for row in sharp_rows:
         if row["status"] == "used" and row["frame"] in generic.skipped_frames:
             row.update(status="too_few_features",
-                       message=f"{generic.skipped_frames[row['frame']]} usable features: too few for the "
+                       reason=f"{generic.skipped_frames[row['frame']]} usable features: too few for the "
                                f"generic fit")
     for f in frames:
         name = f.row["frame"]
@@ -432,7 +432,7 @@ def _generic_statuses(sharp_rows: list[dict], frames: Sequence[_BlurryFrame], ge
             continue
         if name in generic.skipped_frames:
             f.row.update(status="too_few_features",
-                         message=f"{generic.skipped_frames[name]} usable features: too few for the "
+                         reason=f"{generic.skipped_frames[name]} usable features: too few for the "
                                  f"generic fit (or no pose)")
             kept = f.aligned if f.aligned is not None else f.raw
             f.aligned = replace(kept, flags=kept.flags | int(FeatureFlags.FILTERED_OUT))
@@ -441,7 +441,7 @@ def _generic_statuses(sharp_rows: list[dict], frames: Sequence[_BlurryFrame], ge
             flags = int(f.raw.flags[0] | FeatureFlags.GLOBALLY_ALIGNED)
             f.aligned = replace(f.raw, x=f.raw.x - shift[0], y=f.raw.y - shift[1],
                                 flags=np.full(len(f.raw.x), flags, dtype=np.int64))
-            f.row.update(status="used", message="", shift=[round(float(v), 4) for v in shift])
+            f.row.update(status="used", reason="", shift=[round(float(v), 4) for v in shift])
 
 
 def _publish(staging: Path, out: Path) -> None:
@@ -483,7 +483,6 @@ def _write_outputs(out: Path, pattern: StarPattern, size: tuple[int, int],
     outputs["reference_features"] = write_ref_dataset(out / "features.bin", ref)
     cols = ["frame", "kind", "status", "reason", "extraction", "seeded_by", "features", "blocks",
             "kept", "centre_sigma_major", "alignment", "median_error", "mean_error", "angle_deg"]
-    rows = [{**r, "reason": r.get("message", "")} for r in rows]
     outputs["frames"] = atomic_write_csv(out / "frames.csv", cols,
                                          [[r.get(c, "") for c in cols] for r in rows])
 
@@ -504,6 +503,7 @@ def _write_outputs(out: Path, pattern: StarPattern, size: tuple[int, int],
     if generic is not None:
         direction_image("error_directions_generic", generic.observed[generic.inlier],
                         generic.residuals[generic.inlier])
-    outputs["frame_errors"] = save_frame_error_plot(out / "frame_errors.png", rows,
+    outputs["frame_errors"] = save_frame_error_plot(out / "frame_errors.png",
+                                                    [r for r in rows if r["kind"] == "blurry"],
                                                     calibration.frame_errors())
     return outputs

@@ -76,7 +76,7 @@ def test_pipeline_end_to_end(finished, dataset) -> None:
     assert set(statuses) == {f"sharp/{i:04d}.png" for i in range(6)} | {
         "blurry/0000.png", "blurry/0001.png", "blurry/0002_1x1.png"}
     bad = next(r for r in report.frames if r["frame"] == "blurry/0002_1x1.png")
-    assert bad["status"] == "unreadable" and "is 1x1 px, smaller than" in bad["message"]
+    assert bad["status"] == "unreadable" and "is 1x1 px, smaller than" in bad["reason"]
     assert "used" in statuses.values() or "ill_conditioned" in statuses.values()
     for key in ("features", "reference_features", "frames", "error_directions_sharp",
                 "frame_errors"):
@@ -103,7 +103,7 @@ def test_pipeline_delivers_the_generic_camera(finished, dataset) -> None:
         assert (out / "calibration" / name).is_file()
     rows = {r["frame"]: r for r in report.frames}
     for r in rows.values():
-        assert r["status"] == "used" or r["message"], r
+        assert r["status"] == "used" or r["reason"], r
     # Joint route: a blurry frame with enough kept blocks is used whatever its orientation.
     assert all(r["status"] == "used" for r in rows.values()
                if r["kind"] == "blurry" and r.get("alignment") in ("ok", "ill_conditioned"))
