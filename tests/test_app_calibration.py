@@ -29,6 +29,7 @@ from state.calibration import (
 )
 from state.figures import generic_poses
 from tests.test_app_state import FAST, make_dataset
+from views.calibration import difference_image, draw_coverage, residual_image, summary
 
 CONFIG = SynthConfig(sharp=2, blurry=2, square_px=(36.0, 42.0), max_tilt_deg=30.0, blur_min_px=3.0,
                      blur_max_px=4.0, seed=5)
@@ -123,11 +124,11 @@ def test_calibration_run_cancel_and_export(defaults: AppState, tmp_path: Path) -
     assert result is not None and Topic.CALIBRATION in topics
     assert result.parametric_with_blurry  # 2 sharp frames < 5
 
-    # The figures the app shows are the engine's.
+    # The figures the app shows are the engine's (two runs of its least squares agree to ~1e-9 px).
     parametric, generic = _engine(state)
-    assert result.parametric.median_error == pytest.approx(parametric.median_error, abs=1e-12)
-    assert result.generic.median_error == pytest.approx(generic.median_error, abs=1e-12)
-    assert result.generic.rms_error == pytest.approx(generic.rms_error, abs=1e-12)
+    assert result.parametric.median_error == pytest.approx(parametric.median_error, abs=1e-7)
+    assert result.generic.median_error == pytest.approx(generic.median_error, abs=1e-7)
+    assert result.generic.rms_error == pytest.approx(generic.rms_error, abs=1e-7)
     assert set(result.generic.poses) == {e.name for e in state.entries()}
     # Coverage counts every used observation once, sharp and blurry apart.
     blurry_rows = np.isin(result.generic.frame, result.generic.blurry_frames)
@@ -150,6 +151,16 @@ def test_calibration_run_cancel_and_export(defaults: AppState, tmp_path: Path) -
     assert poses.source == "generic bundle adjustment" and set(poses.poses) == set(result.generic.poses)
     observed, residuals = result.frame_residuals("blurry/0000.png")
     assert len(observed) == len(residuals) == (result.generic.frame == "blurry/0000.png").sum() > 0
+    # The view's figures and summary.
+    text = summary(result, runner.statuses())
+    assert f"generic median error: **{result.generic.median_error:.4f} px**" in text
+    assert "At the current thresholds: 4 of 4 frames used." in text
+    assert f"{result.truth.generic_median:.4f}" in text
+    images = [draw_coverage(result.coverage), residual_image(result, None, None),
+              residual_image(result, "blurry/0000.png", state.image("blurry/0000.png")),
+              difference_image(result)]
+    for image in images:
+        assert image.dtype == np.uint8 and image.ndim == 3 and image.shape[2] == 3 and image.max() > 0
 
     # A threshold change shows in the statuses at once; the result stays until the next run.
     state.refilter(min_sigma_major=3.8)

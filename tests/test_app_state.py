@@ -360,7 +360,7 @@ def test_serve_opens_the_folder_without_a_browser(dataset: Path, tmp_path: Path)
     server, app = serve(dataset, None, 0, settings=FAST)
     try:
         assert server.get_port() > 0 and app.state.dataset.folder == dataset
-        assert len(app.panels) == 7
+        assert len(app.panels) == 8
         assert not app.state.load_folder(tmp_path / "missing") and app.state.dataset.folder == dataset
     finally:
         app.close()
