@@ -75,6 +75,10 @@ def test_calibration_view_in_chromium(tmp_path: Path) -> None:
             expect(page.get_by_role("button", name="Export camera")).to_be_enabled()
             residuals = _image(page, "Generic fit residuals")
             expect(residuals.first).to_have_attribute("src", re.compile("^blob:"))
+            before = residuals.first.get_attribute("src")
+            _row(page, "Residuals of").locator("input:not([type='hidden'])").click()
+            page.get_by_role("option", name="current frame").click()
+            expect(residuals.first).not_to_have_attribute("src", before)
 
             page.get_by_role("button", name="Export camera").click()
             expect(page.get_by_text(re.compile(r"Exported to .*intrinsics0\.yaml")).first).to_be_visible()

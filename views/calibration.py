@@ -59,7 +59,8 @@ def residual_image(result: AppCalibration, frame: str | None, image: np.ndarray 
     if frame is None:
         return draw_cells(size, g.observed, g.residuals, full, max(8, round(size[0] / 64)))
     xy, residuals = result.frame_residuals(frame)
-    return draw_quiver(image, size, xy, residuals, full)
+    ok = np.all(np.isfinite(xy), axis=1) & np.all(np.isfinite(residuals), axis=1)
+    return draw_quiver(image, size, xy[ok], residuals[ok], full)
 
 
 def difference_image(result: AppCalibration) -> np.ndarray:
