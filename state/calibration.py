@@ -270,8 +270,7 @@ class AppCalibration:
         return self.generic.observed[rows], self.generic.residuals[rows]
 
 
-def fit_status(inputs: CalibrationInputs, parametric: Calibration, generic: GenericCalibration
-               ) -> dict[str, str]:
+def fit_status(inputs: CalibrationInputs, generic: GenericCalibration) -> dict[str, str]:
     """Each frame's status after a fit: ``used``, left out by the fit, or its input reason."""
     status = dict(inputs.reasons)
     for name in inputs.frames:
@@ -281,9 +280,6 @@ def fit_status(inputs: CalibrationInputs, parametric: Calibration, generic: Gene
             status[name] = f"left out by the fit ({generic.skipped_frames[name]} usable features)"
         else:
             status[name] = "left out by the fit"
-    for name, count in parametric.skipped_frames.items():
-        if status.get(name) == USED and name not in generic.poses:
-            status[name] = f"left out by the parametric fit ({count} features)"
     return status
 
 
@@ -323,7 +319,7 @@ def fit(inputs: CalibrationInputs, state: AppState, settings: CalibrationSetting
     if dataset.truth is not None:
         truth = truth_errors(dataset.truth.camera, generic, parametric, settings.lattice_px)
     return AppCalibration(inputs, parametric, with_blurry, generic, cov, difference, truth,
-                          fit_status(inputs, parametric, generic), time.perf_counter() - t0)
+                          fit_status(inputs, generic), time.perf_counter() - t0)
 
 
 @dataclass(frozen=True)
@@ -443,6 +439,7 @@ class CalibrationRunner:
         return not self._cancel.is_set()
 
     def _work(self) -> None:
+        dataset = self.state.dataset
         outcome: AppCalibration | None = None
         try:
             self._stage(0)
@@ -453,6 +450,9 @@ class CalibrationRunner:
         except Exception as exc:  # the app must survive any failure of the fit
             log.exception("calibration failed")
             self.state.notify("error", "Calibration failed", f"{type(exc).__name__}: {exc}")
+        now = self.state.dataset
+        if now is None or (now.folder, now.pattern_path) != (dataset.folder, dataset.pattern_path):
+            outcome = None  # another folder or pattern was opened meanwhile
         with self._lock:
             if outcome is not None:
                 self._result = outcome
