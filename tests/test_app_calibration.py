@@ -199,3 +199,25 @@ def test_calibration_run_cancel_and_export(defaults: AppState, tmp_path: Path) -
     # Opening a folder drops the result.
     assert state.load_folder(state.dataset.folder)
     assert runner.result is None
+
+
+def test_coverage_fills_in_frame_by_frame_and_a_failed_run_says_why(state: AppState) -> None:
+    fresh = AppState(FAST)
+    assert fresh.load_folder(state.dataset.folder)
+    runner = CalibrationRunner(fresh, SETTINGS)
+    assert runner.inputs().image_size == (0, 0)
+    assert set(runner.statuses().values()) == {"not extracted"}
+    assert runner.run() and runner.wait(60)
+    assert runner.result is None
+    assert fresh.notices[-1].title == "Calibration failed" and "no usable frame" in fresh.notices[-1].text
+    fresh.refilter(min_sigma_major=0.0)
+    totals = []
+    for index in (0, 2):  # sharp/0000.png, then blurry/0000.png
+        assert fresh.run_frame(index) and fresh.wait(600)
+        totals.append(input_coverage(runner.inputs(), SETTINGS.cell_px))
+    name = fresh.entries()[2].name
+    kept = int(fresh.results()[name][1].kept.sum())
+    assert totals[0].sharp.sum() == len(fresh.results()["sharp/0000.png"][0].features) > 0
+    assert totals[0].blurry.sum() == 0 and totals[1].blurry.sum() == kept > 0
+    assert np.array_equal(totals[1].sharp, totals[0].sharp)
+    assert runner.statuses()["sharp/0001.png"] == "not extracted"
