@@ -54,6 +54,7 @@ def test_calibration_view_in_chromium(tmp_path: Path) -> None:
             expect(page.get_by_role("button", name="Run all")).to_be_enabled(timeout=30_000)
             dropped = page.get_by_text(re.compile(r"blurry/0000\.png: dropped by the pre-filter"))
             expect(dropped).to_be_visible()
+            expect(page.get_by_text(re.compile("a sharp frame is not pre-filtered"))).to_be_visible()
             coverage = _image(page, "Coverage (inputs now)")
             expect(coverage.first).to_have_attribute("src", re.compile("^blob:"), timeout=20_000)
             sigma = _row(page, "σ_major pre-filter").get_by_role("slider")
