@@ -8,7 +8,8 @@ Inputs (:func:`collect_inputs`), at the current thresholds:
   pass the σ_major pre-filter, with at least ``min_blurry_blocks`` kept, at their star centres
   ``H(0, 0)`` (px, OpenCV convention), weighted ``1 / (1 + loss)``.
 
-The run (:class:`CalibrationRunner`, one worker thread, cancel between stages):
+The run (:class:`CalibrationRunner`, one worker thread, cancel between stages; optionally the
+unfinished frames are extracted first, in the state's worker):
 
 1. the parametric camera: :func:`blurcalib.calibrate.calibrate_sharp` of the sharp features; with
    fewer than ``min_sharp_frames`` usable sharp frames the blurry frames' kept blocks join this
@@ -54,14 +55,15 @@ from blurcalib.results import FeatureFlags, FeatureTable
 from blurcalib.synth import TrueCamera
 from state.app_state import AppState, block_centres
 from state.events import Topic
+from state.folder import EXPORT_DIR
 
 log = logging.getLogger(__name__)
 
-EXPORT_DIR = "calibration_app"
-"""Folder, inside the dataset folder, that :meth:`CalibrationRunner.export` writes."""
 OPENCV_CAMERA_FILE = "camera.yaml"
 """The parametric camera as an OpenCV FileStorage file (:func:`blurcalib.camera.save_camera_yaml`)."""
-STAGES = ("collecting features", "parametric calibration", "generic calibration", "figures")
+STAGES = ("extracting frames", "collecting features", "parametric calibration", "generic calibration",
+          "figures")
+"""The run's stages; the first only when the run extracts the unfinished frames first."""
 USED = "used"
 BLURRY_FLAGS = int(FeatureFlags.STAR_CENTRE | FeatureFlags.BLURRY_FRAME)
 MIN_FRAMES = 2
@@ -286,14 +288,14 @@ def fit_status(inputs: CalibrationInputs, generic: GenericCalibration) -> dict[s
 def fit(inputs: CalibrationInputs, state: AppState, settings: CalibrationSettings,
         stage: Callable[[int], bool]) -> AppCalibration | None:
     """Run the stages on ``inputs`` (module docstring); ``stage(i)`` is called before stage ``i``
-    and returns False to stop (then None is returned).
+    of :data:`STAGES` and returns False to stop (then None is returned).
 
     Raises:
         CalibrationError: no usable frames.
     """
     t0 = time.perf_counter()
     dataset = state.dataset
-    if not stage(1):
+    if not stage(2):
         return None
     sharp_frames = len(set(inputs.sharp.frame.tolist()))
     with_blurry = sharp_frames < settings.min_sharp_frames
@@ -304,12 +306,12 @@ def fit(inputs: CalibrationInputs, state: AppState, settings: CalibrationSetting
                                  min_frames=MIN_FRAMES if with_blurry else settings.min_sharp_frames,
                                  min_features=settings.min_blurry_blocks if with_blurry
                                  else settings.min_sharp_features)
-    if not stage(2):
+    if not stage(3):
         return None
     generic = calibrate_generic(inputs.sharp, inputs.blurry if len(inputs.blurry) else None, parametric,
                                 dataset.pattern, inputs.image_size,
                                 JointSettings(cell_px=settings.cell_px, route="joint"))
-    if not stage(3):
+    if not stage(4):
         return None
     blurry_rows = np.isin(generic.frame, generic.blurry_frames)
     cov = coverage(generic.observed[~blurry_rows], generic.observed[blurry_rows], inputs.image_size,
@@ -400,14 +402,17 @@ class CalibrationRunner:
                 status[name] = "usable: not in the last calibration, run it again"
         return status
 
-    def run(self) -> bool:
-        """Start a calibration of the finished frames (False when one is running or no folder is open)."""
+    def run(self, extract: bool = False) -> bool:
+        """Start a calibration of the finished frames (False when one is running or no folder is
+        open); with ``extract``, the frames not extracted yet are extracted first (a cancel stops
+        that extraction too)."""
         with self._lock:
             if self._worker is not None or self.state.dataset is None:
                 return False
             self._cancel.clear()
             self._progress = CalibrationProgress(running=True)
-            self._worker = threading.Thread(target=self._work, name="blurcalib-calibration", daemon=True)
+            self._worker = threading.Thread(target=self._work, args=(extract,), name="blurcalib-calibration",
+                                            daemon=True)
             self._worker.start()
         self.state.events.emit(Topic.CALIBRATION)
         return True
@@ -438,13 +443,22 @@ class CalibrationRunner:
         self.state.events.emit(Topic.CALIBRATION)
         return not self._cancel.is_set()
 
-    def _work(self) -> None:
+    def _extract(self) -> bool:
+        """Extract the unfinished frames in the state's worker; False when cancelled."""
+        self._stage(0)
+        if self.state.run_all():
+            while not self.state.wait(0.2):
+                if self._cancel.is_set():
+                    self.state.cancel()
+        return not self._cancel.is_set()
+
+    def _work(self, extract: bool) -> None:
         dataset = self.state.dataset
         outcome: AppCalibration | None = None
         try:
-            self._stage(0)
-            inputs = self.inputs()
-            outcome = fit(inputs, self.state, self.settings, self._stage)
+            if not extract or self._extract():
+                self._stage(1)
+                outcome = fit(self.inputs(), self.state, self.settings, self._stage)
         except (CalibrationError, ValueError) as exc:
             self.state.notify("error", "Calibration failed", f"{exc}; the previous result is kept")
         except Exception as exc:  # the app must survive any failure of the fit

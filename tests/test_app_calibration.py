@@ -16,11 +16,12 @@ from blurcalib.quality import QualitySettings
 from blurcalib.refcamera import read_generic_yaml
 from blurcalib.results import FeatureTable
 from blurcalib.synth import SynthConfig
-from state import AppState, Topic
+from state import AppState, Topic, discover
 from state.calibration import (
     EXPORT_DIR,
     MIN_FRAMES,
     OPENCV_CAMERA_FILE,
+    STAGES,
     USED,
     CalibrationRunner,
     CalibrationSettings,
@@ -171,7 +172,9 @@ def test_calibration_run_cancel_and_export(defaults: AppState, tmp_path: Path) -
 
     # Cancel during the generic stage: the previous result is kept.
     def cancel_at_generic(topic: Topic) -> None:
-        if topic is Topic.CALIBRATION and runner.progress().running and runner.progress().stage == 2:
+        progress = runner.progress()
+        if topic is Topic.CALIBRATION and progress.running \
+                and STAGES[progress.stage] == "generic calibration":
             runner.cancel()
 
     state.subscribe(cancel_at_generic)
@@ -195,6 +198,8 @@ def test_calibration_run_cancel_and_export(defaults: AppState, tmp_path: Path) -
     assert state.notices[-1].title == "Calibration exported" and "intrinsics0.yaml" in state.notices[-1].text
     default = runner.export()
     assert default[0].parent == state.dataset.folder / EXPORT_DIR and default[0].is_file()
+    # Its images are not frames of the dataset.
+    assert [f.name for f in discover(state.dataset.folder).frames] == [e.name for e in state.entries()]
 
     # Opening a folder drops the result.
     assert state.load_folder(state.dataset.folder)
@@ -221,3 +226,7 @@ def test_coverage_fills_in_frame_by_frame_and_a_failed_run_says_why(state: AppSt
     assert totals[0].blurry.sum() == 0 and totals[1].blurry.sum() == kept > 0
     assert np.array_equal(totals[1].sharp, totals[0].sharp)
     assert runner.statuses()["sharp/0001.png"] == "not extracted"
+    # Extract the rest, then calibrate: every frame is used.
+    assert runner.run(extract=True) and runner.wait(900)
+    assert {e.status for e in fresh.entries()} == {"ok"}
+    assert runner.result is not None and set(runner.statuses().values()) == {USED}

@@ -124,6 +124,8 @@ class CalibrationPanel:
         gui = server.gui
         self.run = gui.add_button("Run calibration", icon=viser.Icon.PLAYER_PLAY,
                                   hint="parametric then generic calibration of the finished frames")
+        self.run_all = gui.add_button("Extract all and calibrate", icon=viser.Icon.PLAYER_TRACK_NEXT,
+                                      hint="extract the frames not extracted yet, then calibrate")
         self.cancel = gui.add_button("Cancel calibration", icon=viser.Icon.PLAYER_STOP, color="red",
                                      disabled=True)
         self.progress = gui.add_progress_bar(0.0, animated=False)
@@ -142,6 +144,7 @@ class CalibrationPanel:
                                           "<folder>/calibration_app")
         self.export_text = gui.add_markdown("")
         self.run.on_click(lambda _: self.runner.run())
+        self.run_all.on_click(lambda _: self.runner.run(extract=True))
         self.cancel.on_click(lambda _: self.runner.cancel())
         self.export.on_click(self._on_export)
         self._redraw = Coalescer(self._draw, 0.2, "calibration")
@@ -189,6 +192,7 @@ class CalibrationPanel:
         busy = progress.running
         with self.server.atomic():
             self.run.disabled = busy
+            self.run_all.disabled = busy
             self.cancel.disabled = not busy or progress.cancelling
             self.export.disabled = busy or result is None
             self.progress.value = 100.0 * progress.fraction
