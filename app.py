@@ -25,7 +25,9 @@ import viser
 
 from state import AppState, RunSettings, default_dataset
 from state.alignment import AlignmentCache
+from state.calibration import CalibrationRunner, CalibrationSettings
 from views.ambiguity import AmbiguityPanel
+from views.calibration import CalibrationPanel
 from views.errors import ErrorsPanel
 from views.frame_view import FrameViewPanel
 from views.frames import FramesPanel
@@ -45,16 +47,20 @@ class Panel(Protocol):
 
 @dataclass
 class App:
-    """A running app: its state, the global alignments of its frames and its panels."""
+    """A running app: its state, the global alignments of its frames, its calibration and its panels."""
 
     state: AppState
     alignments: AlignmentCache
+    calibration: CalibrationRunner
     panels: list[Panel] = field(default_factory=list)
 
     def close(self) -> None:
-        """Cancel a run and stop the panels' threads (the server is stopped by its owner)."""
+        """Cancel a run and a calibration and stop the panels' threads (the server is stopped by its
+        owner)."""
         self.state.cancel()
+        self.calibration.cancel()
         self.state.wait(30.0)
+        self.calibration.wait(60.0)
         for panel in self.panels:
             panel.close()
 
@@ -64,8 +70,8 @@ def _progress(done: int, total: int, name: str) -> None:
 
 
 def serve(folder: str | os.PathLike | None = None, pattern: str | os.PathLike | None = None,
-          port: int = 8080, *, host: str = "127.0.0.1", settings: RunSettings | None = None
-          ) -> tuple[viser.ViserServer, App]:
+          port: int = 8080, *, host: str = "127.0.0.1", settings: RunSettings | None = None,
+          calibration: CalibrationSettings | None = None) -> tuple[viser.ViserServer, App]:
     """Start the app on ``host:port`` (``port`` 0: any free port; read the real one with
     ``server.get_port()``) and open ``folder`` (default: the built-in simulated dataset).
 
@@ -77,6 +83,7 @@ def serve(folder: str | os.PathLike | None = None, pattern: str | os.PathLike | 
         port: TCP port.
         host: interface to listen on.
         settings: extraction settings per frame kind.
+        calibration: the calibration's settings.
     Returns:
         The viser server and the app; stop with ``app.close()`` then ``server.stop()``.
     """
@@ -89,8 +96,8 @@ def serve(folder: str | os.PathLike | None = None, pattern: str | os.PathLike | 
     server.gui.configure_theme(control_width="large", show_share_button=False, dark_mode=False,
                                brand_color=(40, 110, 200))
     server.gui.main_panel.dock_right()
-    app = App(state, AlignmentCache(state))
-    app.panels.append(FramesPanel(state, server))
+    app = App(state, AlignmentCache(state), CalibrationRunner(state, calibration))
+    app.panels.append(FramesPanel(state, server, app.calibration))
     with server.gui.add_folder("Quality filter"):
         app.panels.append(TuningPanel(state, server, app.alignments))
     views = server.gui.add_panel()
@@ -101,7 +108,9 @@ def serve(folder: str | os.PathLike | None = None, pattern: str | os.PathLike | 
     with views.add_tab("Block", viser.Icon.ZOOM_IN):
         app.panels.append(InspectPanel(state, server))
     with views.add_tab("Errors", viser.Icon.ARROWS_MOVE):
-        app.panels.append(ErrorsPanel(state, server, app.alignments))
+        app.panels.append(ErrorsPanel(state, server, app.alignments, app.calibration))
+    with views.add_tab("Calibration", viser.Icon.CAMERA):
+        app.panels.append(CalibrationPanel(state, server, app.calibration))
     with views.add_tab("Ambiguity", viser.Icon.SCHOOL):
         app.panels.append(AmbiguityPanel(server))
     views.dock_left()

@@ -173,11 +173,16 @@ def block_centres(result: FrameResult) -> np.ndarray:
         return H[:, :2, 2] / H[:, 2:, 2]
 
 
-def frame_filter(result: FrameResult, image_size: tuple[int, int], quality: QualitySettings
-                 ) -> FrameFilter | None:
-    """The quality filter of a result's blocks (None when it has none)."""
+def frame_filter(result: FrameResult, image_size: tuple[int, int], quality: QualitySettings,
+                 kind: str = "blurry") -> FrameFilter | None:
+    """The quality filter of a result's blocks (None when it has none).
+
+    The σ_major pre-filter applies to blurry frames only: a sharp frame has little blur by design.
+    """
     if not result.blocks:
         return None
+    if kind == "sharp":
+        quality = replace(quality, min_sigma_major=0.0)
     blocks = result.blocks
     return filter_frame(
         np.array([b.fx for b in blocks]), np.array([b.fy for b in blocks]), block_centres(result),
@@ -406,8 +411,14 @@ class AppState:
         if kind not in FRAME_KINDS:
             raise ValueError(f"kind must be one of {FRAME_KINDS}, got {kind!r}")
         with self._lock:
-            self.frames[index].kind = kind
-        self.events.emit(Topic.FRAMES)
+            entry = self.frames[index]
+            entry.kind = kind
+            result = self._results.get(entry.name)
+            if result is not None:
+                flt = frame_filter(result, self._sizes[entry.name], self.quality, kind)
+                if flt is not None:
+                    self._filters[entry.name] = flt
+        self.events.emit(Topic.FRAMES, Topic.FILTER)
 
     def entries(self) -> list[FrameEntry]:
         """Copies of the frame list's entries."""
@@ -574,7 +585,7 @@ class AppState:
                 entry.blocks = len(result.blocks)
                 entry.accepted = sum(b.status is BlockStatus.ACCEPTED for b in result.blocks)
                 self._results[name] = result
-                flt = frame_filter(result, self._sizes[name], self.quality)
+                flt = frame_filter(result, self._sizes[name], self.quality, entry.kind)
                 if flt is None:
                     self._filters.pop(name, None)
                 else:
@@ -600,7 +611,7 @@ class AppState:
                                                 ("min_sigma_major", min_sigma_major)) if v is not None}
             self.quality = replace(self.quality, **changes)
             for name, result in self._results.items():
-                flt = frame_filter(result, self._sizes[name], self.quality)
+                flt = frame_filter(result, self._sizes[name], self.quality, self._entry(name).kind)
                 if flt is not None:
                     self._filters[name] = flt
             quality = self.quality

@@ -27,6 +27,7 @@ class Topic(str, Enum):
     FILTER = "filter"
     SELECTION = "selection"
     RUN = "run"
+    CALIBRATION = "calibration"
 
 
 @dataclass(frozen=True)

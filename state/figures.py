@@ -15,6 +15,7 @@ import numpy as np
 from blurcalib.calibrate import CalibrationError, calibrate_pinhole
 from blurcalib.camera import BrownConrady, Pose, apply_homography
 from blurcalib.extract import FrameResult, FrameStatus
+from blurcalib.joint import GenericCalibration
 from blurcalib.pattern import StarPattern
 from blurcalib.quality import FrameFilter
 from blurcalib.results import BlockStatus
@@ -234,7 +235,8 @@ class FramePoses:
         poses: frame name -> pose (target -> camera).
         fov: vertical field of view (rad).
         aspect: width / height.
-        source: ``"ground truth"``, ``"global alignment"`` (the poses fitted with the reference
+        source: ``"ground truth"``, ``"generic bundle adjustment"`` (the poses of the app's
+            generic calibration), ``"global alignment"`` (the poses fitted with the reference
             camera) or ``"approximate camera"`` (poses from the frames' features with a camera of
             unknown distortion fitted to them).
     """
@@ -251,6 +253,14 @@ def truth_poses(truth: DatasetTruth) -> FramePoses:
     fov = 2.0 * float(np.arctan2(model.height / 2.0, model.fy))
     return FramePoses({f.name: f.pose for f in truth.frames}, fov, model.width / model.height,
                       "ground truth")
+
+
+def generic_poses(generic: GenericCalibration) -> FramePoses:
+    """The poses of a generic calibration's bundle adjustment (field of view and aspect of its
+    parametric camera)."""
+    camera = generic.parametric
+    fov = 2.0 * float(np.arctan2(camera.height / 2.0, camera.fy))
+    return FramePoses(dict(generic.poses), fov, camera.width / camera.height, "generic bundle adjustment")
 
 
 def alignment_poses(alignments: Mapping[str, FrameAlignment], camera: BrownConrady) -> FramePoses | None:

@@ -32,6 +32,11 @@ DEFAULT_CONFIG = SynthConfig(sharp=2, blurry=4, blur_min_px=3.0, blur_max_px=8.0
 """The built-in dataset: 2 sharp and 4 blurry 640 x 360 frames (a D435I-like camera at half size)."""
 
 
+EXPORT_DIR = "calibration_app"
+"""Folder, inside the dataset folder, that the app exports its calibration into (its images are not
+frames)."""
+
+
 class DatasetError(ValueError):
     """A folder cannot be opened as a dataset; the message names the path and the problem."""
 
@@ -77,11 +82,13 @@ def find_pattern(folder: Path, pattern: str | os.PathLike | None) -> Path:
 
 
 def frame_files(folder: Path) -> list[Path]:
-    """Image files of ``folder``, or, when it has none, of its sub-folders (in name order)."""
+    """Image files of ``folder``, or, when it has none, of its sub-folders (in name order; the
+    app's export folder :data:`EXPORT_DIR` is not a folder of frames)."""
     try:
         return list_frames([folder])
     except FrameError:
-        subdirs = sorted(p for p in folder.iterdir() if p.is_dir() and not p.name.startswith("."))
+        subdirs = sorted(p for p in folder.iterdir()
+                         if p.is_dir() and not p.name.startswith(".") and p.name != EXPORT_DIR)
         found = []
         for sub in subdirs:
             try:

@@ -338,7 +338,9 @@ def test_views_draw_rgb_images(finished: tuple[AppState, list[Topic]]) -> None:
     lines = alignment_lines(AlignmentCache(finished), view.entry.name)
     assert lines[0].startswith("**alignment error** after global alignment: median ")
     assert "(reference: ground-truth camera)" in lines[0]
-    assert lines[1] == "all frames: no used frame aligned (2 dropped by the pre-filter)"
+    # The pre-filter drops the blurry frame only: the sharp frame is used.
+    assert lines[1].startswith("all 1 used frames: alignment median ")
+    assert lines[1].endswith(" blocks (1 dropped by the pre-filter)")
     images += [draw_quiver(view.image, (416, 312), field.centre, field.error, 0.02),
                draw_quiver(None, (416, 312), field.centre, field.error, 0.02),
                draw_cells((416, 312), field.centre, field.error, 0.02, 8)]
@@ -358,7 +360,7 @@ def test_serve_opens_the_folder_without_a_browser(dataset: Path, tmp_path: Path)
     server, app = serve(dataset, None, 0, settings=FAST)
     try:
         assert server.get_port() > 0 and app.state.dataset.folder == dataset
-        assert len(app.panels) == 7
+        assert len(app.panels) == 8
         assert not app.state.load_folder(tmp_path / "missing") and app.state.dataset.folder == dataset
     finally:
         app.close()

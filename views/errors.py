@@ -32,6 +32,7 @@ from blurcalib import report
 from blurcalib.pattern import StarPattern
 from state import AppState, Topic
 from state.alignment import AlignmentCache, AlignmentError, FrameAlignment
+from state.calibration import CalibrationRunner
 from state.figures import (
     ERROR_SOURCES,
     ErrorField,
@@ -40,6 +41,7 @@ from state.figures import (
     cell_means,
     error_field,
     feature_poses,
+    generic_poses,
     truth_poses,
     used_frame_fields,
 )
@@ -150,10 +152,12 @@ def page_placement(pattern: StarPattern) -> tuple[np.ndarray, float, float]:
 class ErrorsPanel:
     """The error field image, its source, scope, style and scale, and the 3D scene of the poses."""
 
-    def __init__(self, state: AppState, server: viser.ViserServer, alignments: AlignmentCache) -> None:
+    def __init__(self, state: AppState, server: viser.ViserServer, alignments: AlignmentCache,
+                 calibration: CalibrationRunner | None = None) -> None:
         self.state = state
         self.server = server
         self.alignments = alignments
+        self.calibration = calibration
         gui = server.gui
         self.image = gui.add_image(placeholder("no result"), label="Error field", format="jpeg",
                                    jpeg_quality=90)
@@ -192,7 +196,7 @@ class ErrorsPanel:
     def _on_change(self, topic: Topic) -> None:
         if topic in (Topic.CURRENT, Topic.RESULT, Topic.FILTER, Topic.FOLDER, Topic.FRAMES):
             self._redraw.request()
-        if topic in (Topic.FOLDER, Topic.RESULT, Topic.FILTER, Topic.CURRENT):
+        if topic in (Topic.FOLDER, Topic.RESULT, Topic.FILTER, Topic.CURRENT, Topic.CALIBRATION):
             self._rescene.request()
 
     def _scale(self, error: np.ndarray) -> float:
@@ -282,6 +286,9 @@ class ErrorsPanel:
         dataset = self.state.dataset
         if dataset is None:
             return None
+        result = self.calibration.result if self.calibration is not None else None
+        if result is not None:
+            return generic_poses(result.generic)
         if dataset.truth is not None:
             return truth_poses(dataset.truth)
         reference = self.alignments.reference().reference

@@ -11,6 +11,7 @@ import viser
 from blurcalib.frames import IMAGE_EXTENSIONS
 from state import AppState, FrameView, Notice, RunProgress, Topic
 from state.app_state import FRAME_KINDS
+from state.calibration import CalibrationRunner
 from state.folder import DatasetError
 from views.common import Coalescer, md
 
@@ -21,9 +22,11 @@ NO_FRAMES = "(no frames)"
 class FramesPanel:
     """The data and run controls; also shows every notice as a notification to all clients."""
 
-    def __init__(self, state: AppState, server: viser.ViserServer) -> None:
+    def __init__(self, state: AppState, server: viser.ViserServer,
+                 calibration: CalibrationRunner | None = None) -> None:
         self.state = state
         self.server = server
+        self.calibration = calibration
         self._uploads = tempfile.TemporaryDirectory(prefix="blurcalib-uploads-")
         self._last_notice: Notice | None = None
         gui = server.gui
@@ -69,7 +72,8 @@ class FramesPanel:
         self._uploads.cleanup()
 
     def _on_change(self, topic: Topic) -> None:
-        if topic in (Topic.FOLDER, Topic.FRAMES, Topic.CURRENT, Topic.RUN, Topic.RESULT):
+        if topic in (Topic.FOLDER, Topic.FRAMES, Topic.CURRENT, Topic.RUN, Topic.RESULT, Topic.FILTER,
+                     Topic.CALIBRATION):
             self._redraw.request()
 
     def _on_frame(self, event: viser.GuiEvent) -> None:
@@ -121,6 +125,7 @@ class FramesPanel:
         progress = state.progress()
         view = state.view()
         frames = [(f.name, f.kind, f.status, f.accepted, f.blocks) for f in state.entries()]
+        use = self.calibration.statuses() if self.calibration is not None else {}
         dataset = state.dataset
         folder = dataset.folder if dataset is not None else None
         names = tuple(f[0] for f in frames) or (NO_FRAMES,)
@@ -140,7 +145,7 @@ class FramesPanel:
             self.progress.value = 100.0 * progress.fraction
             self.progress.animated = busy
             self.status.content = self._status_text(view, progress)
-            self.table.content = self._table(frames)
+            self.table.content = self._table(frames, use)
 
     def _status_text(self, view: FrameView | None, progress: RunProgress) -> str:
         lines = []
@@ -168,7 +173,9 @@ class FramesPanel:
         return "\n\n".join(lines)
 
     @staticmethod
-    def _table(frames: list[tuple[str, str, str, int, int]]) -> str:
-        rows = ["| frame | kind | status | accepted |", "|---|---|---|---|"]
-        rows += [f"| {md(n)} | {k} | {s.replace('_', ' ')} | {a}/{b} |" for n, k, s, a, b in frames]
+    def _table(frames: list[tuple[str, str, str, int, int]], use: dict[str, str]) -> str:
+        """One row per frame; the last column is ``used`` by the calibration or why not."""
+        rows = ["| frame | kind | status | accepted | calibration |", "|---|---|---|---|---|"]
+        rows += [f"| {md(n)} | {k} | {s.replace('_', ' ')} | {a}/{b} | {md(use.get(n, ''))} |"
+                 for n, k, s, a, b in frames]
         return "\n".join(rows)

@@ -123,9 +123,13 @@ class TuningPanel:
                          f"(BE > τ_BE: {c.removed_be}, loss > τ_L: {c.removed_loss}, "
                          f"not connected: {c.disconnected}) · rejected by growth: {c.rejected}")
             sigma = view.filter.centre_sigma_major
-            verdict = "used" if view.filter.frame_ok else "**dropped** (too little blur)"
-            lines.append(f"frame pre-filter: median σ_major in the centre {sigma:.2f} px "
-                         f"vs {q.min_sigma_major:g} px: frame {verdict}")
+            if view.entry.kind == "sharp":
+                lines.append(f"frame pre-filter: median σ_major in the centre {sigma:.2f} px; a sharp "
+                             "frame is not pre-filtered (blurry frames only)")
+            else:
+                verdict = "used" if view.filter.frame_ok else "**dropped** (too little blur)"
+                lines.append(f"frame pre-filter: median σ_major in the centre {sigma:.2f} px "
+                             f"vs {q.min_sigma_major:g} px: frame {verdict}")
         totals = [(flt, name) for name, (_, flt, _) in self.state.results().items() if flt is not None]
         if totals:
             kept = sum(int(f.kept.sum()) for f, _ in totals)

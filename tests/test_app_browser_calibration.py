@@ -1,0 +1,102 @@
+"""End to end in a real headless Chromium (Playwright): extract the frames, lower the σ_major
+pre-filter, run the calibration from the Calibration tab, read the generic error the page shows
+(it must equal the state's), see every frame ``used``, the generic poses in the 3D view, and export.
+
+Same requirements and skips as ``tests/test_app_browser.py``. It saves a screenshot of the
+Calibration tab to ``out/app_calibration.png`` (ignored by git); with
+``BLURCALIB_UPDATE_SCREENSHOT=1`` it updates ``docs/app_calibration.png``.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+from pathlib import Path
+
+import pytest
+
+from state.calibration import EXPORT_DIR, OPENCV_CAMERA_FILE
+from tests.test_app_browser import CHROMIUM, FLAGS, ROOT, _row, sync_api
+from tests.test_app_calibration import CONFIG, SETTINGS
+from tests.test_app_state import FAST, make_dataset
+
+pytest.importorskip("viser", reason="viser not installed: pip install 'viser>=1.1,<1.2'")
+
+SCREENSHOT = (ROOT / "docs" / "app_calibration.png" if os.environ.get("BLURCALIB_UPDATE_SCREENSHOT")
+              else ROOT / "out" / "app_calibration.png")
+
+
+def _image(page, label: str):
+    """The image of the GUI image widget labelled ``label``."""
+    return page.get_by_text(label, exact=True).locator("xpath=..").locator("img")
+
+
+def test_calibration_view_in_chromium(tmp_path: Path) -> None:
+    from app import serve
+
+    folder = make_dataset(tmp_path / "data", CONFIG)
+    server, app = serve(folder, None, 0, settings=FAST, calibration=SETTINGS)
+    expect = sync_api.expect
+    try:
+        with sync_api.sync_playwright() as p:
+            browser = p.chromium.launch(executable_path=str(CHROMIUM), headless=True, args=FLAGS)
+            page = browser.new_page(viewport={"width": 1600, "height": 1000})
+            errors: list[str] = []
+            page.on("console", lambda m: errors.append(m.text) if m.type == "error" else None)
+            page.goto(f"http://127.0.0.1:{server.get_port()}/")
+            page.wait_for_function("() => !document.body.innerText.includes('Connecting...')", timeout=30_000)
+            page.get_by_role("tab", name="Calibration").click()
+            expect(page.get_by_text("No calibration yet")).to_be_visible()
+            expect(page.get_by_text("blurry/0000.png: not extracted").first).to_be_visible()
+
+            page.get_by_role("button", name="Run all").click()
+            assert app.state.wait(600)
+            expect(page.get_by_role("button", name="Run all")).to_be_enabled(timeout=30_000)
+            dropped = page.get_by_text(re.compile(r"blurry/0000\.png: dropped by the pre-filter"))
+            expect(dropped).to_be_visible()
+            expect(page.get_by_text(re.compile("a sharp frame is not pre-filtered"))).to_be_visible()
+            coverage = _image(page, "Coverage (inputs now)")
+            expect(coverage.first).to_have_attribute("src", re.compile("^blob:"), timeout=20_000)
+            sigma = _row(page, "σ_major pre-filter").get_by_role("slider")
+            sigma.focus()
+            sigma.press("Home")
+            expect(sigma).to_have_attribute("aria-valuenow", "0")
+            expect(page.get_by_text("At the current thresholds: 0 of 4 frames used.")).to_be_visible()
+
+            page.get_by_role("button", name="Run calibration").click()
+            shown = page.get_by_text(re.compile(r"generic median error: [\d.]+ px"))
+            expect(shown).to_be_visible(timeout=300_000)
+            median = float(re.search(r"generic median error: ([\d.]+) px", shown.inner_text())[1])
+            result = app.calibration.result
+            assert abs(median - result.generic.median_error) <= 5e-5
+            assert result.truth is not None
+            expect(page.get_by_text(f"{result.truth.generic_median:.4f}").first).to_be_visible()
+            expect(page.get_by_text("At the current thresholds: 4 of 4 frames used.")).to_be_visible()
+            expect(page.get_by_role("button", name="Run calibration")).to_be_enabled()
+            expect(page.get_by_role("button", name="Export camera")).to_be_enabled()
+            residuals = _image(page, "Generic fit residuals")
+            expect(residuals.first).to_have_attribute("src", re.compile("^blob:"))
+            before = residuals.first.get_attribute("src")
+            _row(page, "Residuals of").locator("input:not([type='hidden'])").click()
+            page.get_by_role("option", name="current frame").click()
+            expect(residuals.first).not_to_have_attribute("src", before)
+
+            page.get_by_role("button", name="Export camera").click()
+            expect(page.get_by_text(re.compile(r"Exported to .*intrinsics0\.yaml")).first).to_be_visible()
+            for name in ("intrinsics0.yaml", OPENCV_CAMERA_FILE, "undistortion_map.npz"):
+                assert (folder / EXPORT_DIR / name).is_file(), name
+
+            page.get_by_role("tab", name="Errors").click()
+            poses = page.get_by_text(re.compile(r"4 frame poses from the generic bundle adjustment"))
+            expect(poses).to_be_visible()
+            page.get_by_role("tab", name="Calibration").click()
+            page.add_style_tag(content=".mantine-Notification-root { display: none !important; }")
+            page.get_by_role("button", name="Run calibration").scroll_into_view_if_needed()
+            page.wait_for_timeout(1000)
+            SCREENSHOT.parent.mkdir(parents=True, exist_ok=True)
+            page.screenshot(path=str(SCREENSHOT))
+            assert not errors, errors
+            browser.close()
+    finally:
+        app.close()
+        server.stop()

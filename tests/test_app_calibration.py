@@ -1,0 +1,232 @@
+"""The app's calibration without a browser: inputs and frame statuses at the thresholds, the run,
+its figures against the engine's, cancel, export and the σ_major pre-filter of sharp frames."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from blurcalib.calibrate import calibrate_sharp
+from blurcalib.camera import load_camera_yaml
+from blurcalib.experiments.generic import projection_errors
+from blurcalib.joint import JointSettings, calibrate_generic
+from blurcalib.quality import QualitySettings
+from blurcalib.refcamera import read_generic_yaml
+from blurcalib.results import FeatureTable
+from blurcalib.synth import SynthConfig
+from state import AppState, Topic, discover
+from state.calibration import (
+    EXPORT_DIR,
+    MIN_FRAMES,
+    OPENCV_CAMERA_FILE,
+    STAGES,
+    USED,
+    CalibrationRunner,
+    CalibrationSettings,
+    collect_inputs,
+    input_coverage,
+)
+from state.figures import generic_poses
+from tests.test_app_state import FAST, make_dataset
+from views.calibration import difference_image, draw_coverage, residual_image, summary
+
+CONFIG = SynthConfig(sharp=2, blurry=2, square_px=(36.0, 42.0), max_tilt_deg=30.0, blur_min_px=3.0,
+                     blur_max_px=4.0, seed=5)
+"""2 sharp and 2 little-blurred 416 x 312 frames: the blurry ones fail the 3.8 px pre-filter."""
+SETTINGS = CalibrationSettings(cell_px=40.0)
+
+
+@pytest.fixture(scope="module")
+def state(tmp_path_factory: pytest.TempPathFactory) -> AppState:
+    """The four frames extracted (two growth fronts each)."""
+    s = AppState(FAST)
+    assert s.load_folder(make_dataset(tmp_path_factory.mktemp("appcal") / "data", CONFIG))
+    assert s.run_all() and s.wait(600)
+    s.refilter(*(getattr(QualitySettings(), k) for k in ("tau_be", "tau_loss", "min_sigma_major")))
+    return s
+
+
+@pytest.fixture
+def defaults(state: AppState):
+    yield state
+    d = QualitySettings()
+    state.refilter(d.tau_be, d.tau_loss, d.min_sigma_major)
+
+
+def test_the_pre_filter_applies_to_blurry_frames_only(defaults: AppState) -> None:
+    state = defaults
+    results = state.results()
+    kinds = {e.name: e.kind for e in state.entries()}
+    for name, (_, flt, _) in results.items():
+        assert flt.centre_sigma_major < QualitySettings().min_sigma_major
+        assert flt.frame_ok == (kinds[name] == "sharp"), name
+    sharp = next(i for i, e in enumerate(state.entries()) if e.kind == "sharp")
+    name = state.entries()[sharp].name
+    try:
+        state.set_kind(sharp, "blurry")
+        assert not state.results()[name][1].frame_ok
+    finally:
+        state.set_kind(sharp, "sharp")
+    assert state.results()[name][1].frame_ok
+
+
+def test_inputs_coverage_and_statuses_follow_the_thresholds(defaults: AppState) -> None:
+    state = defaults
+    runner = CalibrationRunner(state, SETTINGS)
+    inputs = collect_inputs(state, SETTINGS)
+    assert set(inputs.sharp.frame) == {"sharp/0000.png", "sharp/0001.png"} and len(inputs.blurry) == 0
+    status = runner.statuses()
+    for name in ("blurry/0000.png", "blurry/0001.png"):
+        assert status[name].startswith("dropped by the pre-filter (centre σ_major "), status[name]
+        assert status[name].endswith(" px < 3.8 px)")
+    assert status["sharp/0000.png"] == status["sharp/0001.png"] == "usable: run the calibration"
+    accepted = sum(len(r.features) for n, (r, _, _) in state.results().items() if n.startswith("sharp"))
+    assert len(inputs.sharp) == accepted
+    cov = input_coverage(inputs, SETTINGS.cell_px)
+    assert cov.sharp.sum() == accepted and cov.blurry.sum() == 0 and cov.sharp.shape == (8, 11)
+
+    state.refilter(min_sigma_major=0.0)
+    inputs = collect_inputs(state, SETTINGS)
+    kept = {n: int(f.kept.sum()) for n, (_, f, _) in state.results().items() if n.startswith("blurry")}
+    assert all(k >= SETTINGS.min_blurry_blocks for k in kept.values())
+    assert len(inputs.blurry) == sum(kept.values())
+    cov = input_coverage(inputs, SETTINGS.cell_px)
+    assert cov.blurry.sum() == sum(kept.values()) and cov.total == len(inputs.sharp) + len(inputs.blurry)
+    assert set(runner.statuses().values()) == {"usable: run the calibration"}
+
+    state.refilter(tau_loss=0.0)
+    status = runner.statuses()
+    assert status["blurry/0000.png"] == "too few kept blocks (0 < 12)"
+    assert status["sharp/0000.png"] == "usable: run the calibration"
+
+
+def _engine(state: AppState):
+    """The engine's calibration of the app's inputs, called directly."""
+    inputs = collect_inputs(state, SETTINGS)
+    table = FeatureTable.concat([inputs.sharp, inputs.blurry])
+    parametric = calibrate_sharp(table, state.dataset.pattern, inputs.image_size, min_frames=MIN_FRAMES,
+                                 min_features=SETTINGS.min_blurry_blocks)
+    generic = calibrate_generic(inputs.sharp, inputs.blurry, parametric, state.dataset.pattern,
+                                inputs.image_size, JointSettings(cell_px=SETTINGS.cell_px, route="joint"))
+    return parametric, generic
+
+
+def test_calibration_run_cancel_and_export(defaults: AppState, tmp_path: Path) -> None:
+    state = defaults
+    state.refilter(min_sigma_major=0.0)
+    runner = CalibrationRunner(state, SETTINGS)
+    topics: list[Topic] = []
+    state.subscribe(topics.append)
+    assert runner.run() and not runner.run()  # one run at a time
+    assert runner.wait(600) and not runner.is_running
+    result = runner.result
+    assert result is not None and Topic.CALIBRATION in topics
+    assert result.parametric_with_blurry  # 2 sharp frames < 5
+
+    # The figures the app shows are the engine's (two runs of its least squares agree to ~1e-9 px).
+    parametric, generic = _engine(state)
+    assert result.parametric.median_error == pytest.approx(parametric.median_error, abs=1e-7)
+    assert result.generic.median_error == pytest.approx(generic.median_error, abs=1e-7)
+    assert result.generic.rms_error == pytest.approx(generic.rms_error, abs=1e-7)
+    assert set(result.generic.poses) == {e.name for e in state.entries()}
+    # Coverage counts every used observation once, sharp and blurry apart.
+    blurry_rows = np.isin(result.generic.frame, result.generic.blurry_frames)
+    assert result.coverage.total == len(result.generic.observed)
+    assert result.coverage.blurry.sum() == blurry_rows.sum() == len(result.inputs.blurry)
+    assert result.coverage.sharp.sum() == len(result.inputs.sharp)
+    assert set(runner.statuses().values()) == {USED}
+    # Error against the true camera, as the experiment measures it.
+    x0, y0, x1, y1 = result.generic.model.area_opencv
+    xx, yy = np.meshgrid(np.arange(np.ceil(x0), x1, SETTINGS.lattice_px),
+                         np.arange(np.ceil(y0), y1, SETTINGS.lattice_px))
+    err = projection_errors(state.dataset.truth.camera, result.generic.model,
+                            np.column_stack([xx.ravel(), yy.ravel()]))
+    assert result.truth.generic_median == pytest.approx(np.nanmedian(err), abs=1e-12)
+    assert result.truth.pixels == np.isfinite(err).sum() > 100
+    assert 0 < result.truth.generic_median < 1.0 and 0 < result.truth.parametric_median < 1.0
+    diff = result.difference[2]
+    assert np.isfinite(diff).any() and np.nanmax(np.linalg.norm(diff, axis=2)) < 2.0
+    poses = generic_poses(result.generic)
+    assert poses.source == "generic bundle adjustment" and set(poses.poses) == set(result.generic.poses)
+    observed, residuals = result.frame_residuals("blurry/0000.png")
+    assert len(observed) == len(residuals) == (result.generic.frame == "blurry/0000.png").sum() > 0
+    # The view's figures and summary.
+    text = summary(result, runner.statuses())
+    assert f"generic median error: **{result.generic.median_error:.4f} px**" in text
+    assert "At the current thresholds: 4 of 4 frames used." in text
+    assert f"{result.truth.generic_median:.4f}" in text
+    images = [draw_coverage(result.coverage), residual_image(result, None, None),
+              residual_image(result, "blurry/0000.png", state.image("blurry/0000.png")),
+              difference_image(result)]
+    for image in images:
+        assert image.dtype == np.uint8 and image.ndim == 3 and image.shape[2] == 3 and image.max() > 0
+
+    # A threshold change shows in the statuses at once; the result stays until the next run.
+    state.refilter(min_sigma_major=3.8)
+    status = runner.statuses()
+    assert status["blurry/0000.png"].startswith("dropped by the pre-filter")
+    assert status["sharp/0000.png"] == USED
+    state.refilter(min_sigma_major=0.0)
+
+    # Cancel during the generic stage: the previous result is kept.
+    def cancel_at_generic(topic: Topic) -> None:
+        progress = runner.progress()
+        if topic is Topic.CALIBRATION and progress.running \
+                and STAGES[progress.stage] == "generic calibration":
+            runner.cancel()
+
+    state.subscribe(cancel_at_generic)
+    notices = len(state.notices)
+    assert runner.run() and runner.wait(600)
+    assert runner.result is result
+    assert [n.title for n in state.notices[notices:]] == ["Calibration cancelled"]
+
+    # Export and read back.
+    paths = runner.export(tmp_path / "export")
+    names = {p.name for p in paths}
+    assert {"intrinsics0.yaml", "undistortion_map.npz", OPENCV_CAMERA_FILE} <= names
+    model = read_generic_yaml(tmp_path / "export" / "intrinsics0.yaml")
+    px = np.array([[200.0, 150.0], [120.0, 100.0]])
+    assert np.allclose(model.pixel_to_ray(px), result.generic.model.pixel_to_ray(px), atol=1e-9)
+    camera = load_camera_yaml(tmp_path / "export" / OPENCV_CAMERA_FILE)
+    assert camera.fx == pytest.approx(result.parametric.camera.fx, rel=1e-12)
+    assert camera.k1 == pytest.approx(result.parametric.camera.k1, rel=1e-9, abs=1e-15)
+    maps = np.load(tmp_path / "export" / "undistortion_map.npz")
+    assert maps["map_x"].shape == (312, 416) and np.isfinite(maps["map_x"]).any()
+    assert state.notices[-1].title == "Calibration exported" and "intrinsics0.yaml" in state.notices[-1].text
+    default = runner.export()
+    assert default[0].parent == state.dataset.folder / EXPORT_DIR and default[0].is_file()
+    # Its images are not frames of the dataset.
+    assert [f.name for f in discover(state.dataset.folder).frames] == [e.name for e in state.entries()]
+
+    # Opening a folder drops the result.
+    assert state.load_folder(state.dataset.folder)
+    assert runner.result is None
+
+
+def test_coverage_fills_in_frame_by_frame_and_a_failed_run_says_why(state: AppState) -> None:
+    fresh = AppState(FAST)
+    assert fresh.load_folder(state.dataset.folder)
+    runner = CalibrationRunner(fresh, SETTINGS)
+    assert runner.inputs().image_size == (0, 0)
+    assert set(runner.statuses().values()) == {"not extracted"}
+    assert runner.run() and runner.wait(60)
+    assert runner.result is None
+    assert fresh.notices[-1].title == "Calibration failed" and "no usable frame" in fresh.notices[-1].text
+    fresh.refilter(min_sigma_major=0.0)
+    totals = []
+    for index in (0, 2):  # sharp/0000.png, then blurry/0000.png
+        assert fresh.run_frame(index) and fresh.wait(600)
+        totals.append(input_coverage(runner.inputs(), SETTINGS.cell_px))
+    name = fresh.entries()[2].name
+    kept = int(fresh.results()[name][1].kept.sum())
+    assert totals[0].sharp.sum() == len(fresh.results()["sharp/0000.png"][0].features) > 0
+    assert totals[0].blurry.sum() == 0 and totals[1].blurry.sum() == kept > 0
+    assert np.array_equal(totals[1].sharp, totals[0].sharp)
+    assert runner.statuses()["sharp/0001.png"] == "not extracted"
+    # Extract the rest, then calibrate: every frame is used.
+    assert runner.run(extract=True) and runner.wait(900)
+    assert {e.status for e in fresh.entries()} == {"ok"}
+    assert runner.result is not None and set(runner.statuses().values()) == {USED}
