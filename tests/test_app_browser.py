@@ -100,7 +100,7 @@ def test_run_tune_and_inspect_in_chromium(tmp_path: Path) -> None:
             expect(page.get_by_text("kept: 0 blocks")).to_be_visible()
             expect(page.get_by_text("0 blocks kept by the filter, alignment needs 12")).to_be_visible()
             assert app.state.quality.tau_loss == 0.0
-            page.get_by_role("button", name="Paper defaults").click()
+            page.get_by_role("button", name="Defaults", exact=True).click()
             expect(page.get_by_text(f"kept: {kept} blocks")).to_be_visible()
 
             page.set_input_files("input[type='file'][accept='image/*']", str(folder / "blurry" / "0000.png"))

@@ -77,9 +77,10 @@ class TuningPanel:
                                             "(grey levels²)")
         self.sigma = gui.add_slider("σ_major pre-filter", min=0.0, max=10.0, step=0.1,
                                     initial_value=q.min_sigma_major,
-                                    hint="drop frames whose median PSF σ_major in the centre region is "
-                                         "below this (px): too little blur for a reliable PSF")
-        self.reset = gui.add_button("Paper defaults")
+                                    hint="drop blurry frames whose median PSF σ_major in the centre region "
+                                         "is below this (px); 0 (the default) keeps every frame, the "
+                                         "paper used 3.8 for its camera")
+        self.reset = gui.add_button("Defaults")
         self.counts = gui.add_markdown("")
         self.alignment = gui.add_markdown("")
         self._apply = Coalescer(self._refilter, 0.05, "tuning-refilter")
