@@ -285,8 +285,8 @@ def fit_front(image: np.ndarray, H0: np.ndarray, num_segments: int, deconv: Deco
 
 
 def refine_ring(image: np.ndarray, pattern: StarPattern, ids: list[int], fit: BlockFit,
-                deconv: DeconvSettings, settings: GrowSettings, tag: np.ndarray | None
-                ) -> tuple[np.ndarray, BlockFit] | None:
+                deconv: DeconvSettings, settings: GrowSettings, tag: np.ndarray | None,
+                adaptive: bool = True) -> tuple[np.ndarray, BlockFit] | None:
     """Re-fit the ring around the tag from the homography of its first fit's star centres.
 
     Args:
@@ -296,6 +296,7 @@ def refine_ring(image: np.ndarray, pattern: StarPattern, ids: list[int], fit: Bl
         fit: the first fit of the ring.
         deconv, settings: as for :func:`fit_front`.
         tag: :func:`tag_mask`.
+        adaptive: choose the window from the first fit's PSFs (else the configured one).
     Returns:
         ``(H0 (B, 3, 3), fit)``: the new predictions and their fit; None when fewer than 6
         blocks were accepted or no homography fits them (RANSAC, 1.5 px).
@@ -309,6 +310,9 @@ def refine_ring(image: np.ndarray, pattern: StarPattern, ids: list[int], fit: Bl
     if H is None or inliers.sum() < 6:
         return None
     H0 = _normalise(block_homography(H, f[:, 0], f[:, 1]))
+    if not adaptive:
+        return H0, fit_blocks(image, H0, pattern.num_star_segments, deconv,
+                              _pixel_mask(tag, deconv.kernel_size))
     size = choose_kernel_size(fit.sigma_major[ok], deconv.kernel_size, settings.max_kernel_size,
                               settings.kernel_per_extent)
     return H0, fit_front(image, H0, pattern.num_star_segments, deconv, settings, size, tag)
@@ -373,8 +377,9 @@ def grow(image: np.ndarray, pattern: StarPattern, seed: Seed,
             adaptive = needs_adaptive_window(fit, settings)
             if adaptive:
                 fit = fit_front(image, H0, N, deconv, settings, kernel_size, tag, first=fit)
-            if adaptive and seed.source == "tag":
-                refined = refine_ring(image, pattern, front_ids, fit, deconv, settings, tag)
+            if seed.source == "tag":
+                refined = refine_ring(image, pattern, front_ids, fit, deconv, settings, tag,
+                                      adaptive)
                 if refined is not None:
                     H0, fit = refined
         elif adaptive:
