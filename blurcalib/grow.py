@@ -21,7 +21,7 @@ length of a straight blur with that second moment; odd, at least the configured
 PSF reaches the window's border (boundary energy above
 :attr:`GrowSettings.refit_boundary_energy`) is re-fitted from the same prediction with a larger
 window, up to the cap, rather than dropped. All of this only in frames whose tag ring shows more
-than about 14 px of blur (:func:`needs_adaptive_window`); below, the configured window is kept,
+than about 18 px of blur (:func:`needs_adaptive_window`); below, the configured window is kept,
 measured best there. Kernels of one growth are zero-padded (centred) to its
 largest window, which leaves them unchanged as convolution kernels. The block model's latent
 pattern is the periodic star field, so pixels nearer to a tag than the kernel radius (which see
@@ -73,7 +73,7 @@ class GrowSettings:
     max_kernel_size: int = 41
     kernel_per_extent: float = 1.5
     refit_boundary_energy: float = 0.1
-    adapt_above_extent_px: float = 14.0
+    adapt_above_extent_px: float = 18.0
 
     def __post_init__(self) -> None:
         if self.max_kernel_size < 3 or self.max_kernel_size % 2 == 0:
