@@ -15,12 +15,14 @@ rejected and seeds nothing. Every decision is reported to an optional callback, 
 the growth live.
 
 The PSF window fits the blur. A front is solved with the window chosen from the previous front's
-PSFs (:func:`choose_kernel_size`: about 1.2 x the blur extent ``sqrt(12) sigma_major``, the
+PSFs (:func:`choose_kernel_size`: about 1.5 x the blur extent ``sqrt(12) sigma_major``, the
 length of a straight blur with that second moment; odd, at least the configured
 :attr:`DeconvSettings.kernel_size`, at most :attr:`GrowSettings.max_kernel_size`). A block whose
 PSF reaches the window's border (boundary energy above
 :attr:`GrowSettings.refit_boundary_energy`) is re-fitted from the same prediction with a larger
-window, up to the cap, rather than dropped. Kernels of one growth are zero-padded (centred) to its
+window, up to the cap, rather than dropped. All of this only in frames whose tag ring shows more
+than about 18 px of blur (:func:`needs_adaptive_window`); below, the configured window is kept,
+measured best there. Kernels of one growth are zero-padded (centred) to its
 largest window, which leaves them unchanged as convolution kernels. The block model's latent
 pattern is the periodic star field, so pixels nearer to a tag than the kernel radius (which see
 the tag through the blur) are left out of every block's loss (:func:`tag_mask`).
@@ -55,8 +57,11 @@ class GrowSettings:
         max_blocks: stop after this many attempted blocks (safety net).
         max_kernel_size: largest PSF window (px, odd); a value not above the deconvolution's
             ``kernel_size`` keeps that window fixed.
-        kernel_per_extent: window side per px of blur extent (1.2: the windows of the
-            4-15 px blur range stay at the 17 px that is measured best there).
+        kernel_per_extent: window side per px of blur extent.
+        adapt_above_extent_px: the window adapts only in frames whose tag ring shows more blur
+            than this (90th percentile of ``sqrt(12) sigma_major``, px) or whose ring PSFs
+            reach the border (median boundary energy above ``refit_boundary_energy``); below,
+            the configured window is kept (the measured best for up to 15 px of blur).
         refit_boundary_energy: blocks whose PSF has more than this share of its energy in the
             window's outer two-pixel ring are re-fitted with a larger window.
     """
@@ -66,8 +71,9 @@ class GrowSettings:
     max_jump: float = 0.3
     max_blocks: int = 5000
     max_kernel_size: int = 41
-    kernel_per_extent: float = 1.2
-    refit_boundary_energy: float = 0.03
+    kernel_per_extent: float = 1.5
+    refit_boundary_energy: float = 0.1
+    adapt_above_extent_px: float = 18.0
 
     def __post_init__(self) -> None:
         if self.max_kernel_size < 3 or self.max_kernel_size % 2 == 0:
@@ -134,7 +140,7 @@ def _normalise(H: np.ndarray) -> np.ndarray:
 
 
 def choose_kernel_size(sigma_major: np.ndarray | float, smallest: int, largest: int,
-                       per_extent: float = 1.2) -> int:
+                       per_extent: float = 1.5) -> int:
     """PSF window side for blurs of second moment ``sigma_major`` (px).
 
     The blur extent is ``e = sqrt(12) sigma_major`` (a straight blur of length ``e`` has that
@@ -191,12 +197,29 @@ def _take(fit: BlockFit, rows: np.ndarray) -> BlockFit:
 
 def _too_small(fit: BlockFit, size: np.ndarray, settings: GrowSettings) -> np.ndarray:
     """``(B,)`` bool: fitted blocks whose window (``size (B,)`` px) is too small for their PSF:
-    it reaches the window's border (the solver zeroes kernel entries below 15 % of the peak, so a
-    PSF that fits leaves the outer ring empty)."""
+    it reaches the window's border, or it touches the border (boundary energy above 0.03; the
+    solver zeroes kernel entries below 15 % of the peak, so a PSF that fits leaves the ring
+    empty) while its extent asks for a larger window (:func:`choose_kernel_size`)."""
     fitted = np.array([st in (BlockStatus.ACCEPTED, BlockStatus.NOT_CONVERGED)
                        for st in fit.status], dtype=bool)
-    border = np.isfinite(fit.boundary_energy) & (fit.boundary_energy > settings.refit_boundary_energy)
-    return fitted & (size < settings.max_kernel_size) & border
+    wanted = np.array([choose_kernel_size(s, k, settings.max_kernel_size,
+                                          settings.kernel_per_extent)
+                       for s, k in zip(fit.sigma_major, size, strict=True)])
+    be = np.where(np.isfinite(fit.boundary_energy), fit.boundary_energy, 0.0)
+    return fitted & (size < settings.max_kernel_size) & (
+        (be > settings.refit_boundary_energy) | ((be > 0.03) & (wanted > size)))
+
+
+def needs_adaptive_window(fit: BlockFit, settings: GrowSettings) -> bool:
+    """Whether the first front's fit ``fit`` shows more blur than the configured window suits
+    (see :attr:`GrowSettings.adapt_above_extent_px`)."""
+    ok = np.array([st is BlockStatus.ACCEPTED for st in fit.status], dtype=bool)
+    ok |= np.isfinite(fit.boundary_energy)
+    if not ok.any():
+        return False
+    extent = math.sqrt(12.0) * np.nanpercentile(fit.sigma_major[ok], 90)
+    return bool(extent > settings.adapt_above_extent_px
+                or np.nanmedian(fit.boundary_energy[ok]) > settings.refit_boundary_energy)
 
 
 def tag_mask(pattern: StarPattern, H_feature: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
@@ -222,15 +245,17 @@ def _pixel_mask(tag: np.ndarray | None, kernel_size: int) -> np.ndarray | None:
 
 
 def fit_front(image: np.ndarray, H0: np.ndarray, num_segments: int, deconv: DeconvSettings,
-              settings: GrowSettings, kernel_size: int, tag: np.ndarray | None = None) -> BlockFit:
+              settings: GrowSettings, kernel_size: int, tag: np.ndarray | None = None,
+              first: BlockFit | None = None) -> BlockFit:
     """Fit one front's blocks ``H0 (B, 3, 3)`` with a window of ``kernel_size`` px; re-fit those
     whose window is too small for their PSF with larger windows (at least 1.4 x larger each
     time, up to :attr:`GrowSettings.max_kernel_size`), keeping a re-fit when it is accepted with
     no more boundary energy; a block whose re-fit is not kept is not re-fitted again (its
     window is not what fails it). Kernels come back padded to the largest window used. ``tag``
-    (:func:`tag_mask`) keeps pixels near the tags out of the fits."""
-    fit = fit_blocks(image, H0, num_segments, replace(deconv, kernel_size=kernel_size),
-                     _pixel_mask(tag, kernel_size))
+    (:func:`tag_mask`) keeps pixels near the tags out of the fits; ``first`` is the fit with
+    ``kernel_size`` when already done."""
+    fit = first if first is not None else fit_blocks(
+        image, H0, num_segments, replace(deconv, kernel_size=kernel_size), _pixel_mask(tag, kernel_size))
     block_size = np.full(len(H0), kernel_size)
     stuck = np.zeros(len(H0), dtype=bool)
     size = kernel_size
@@ -260,8 +285,8 @@ def fit_front(image: np.ndarray, H0: np.ndarray, num_segments: int, deconv: Deco
 
 
 def refine_ring(image: np.ndarray, pattern: StarPattern, ids: list[int], fit: BlockFit,
-                deconv: DeconvSettings, settings: GrowSettings, tag: np.ndarray | None
-                ) -> tuple[np.ndarray, BlockFit] | None:
+                deconv: DeconvSettings, settings: GrowSettings, tag: np.ndarray | None,
+                adaptive: bool = True) -> tuple[np.ndarray, BlockFit] | None:
     """Re-fit the ring around the tag from the homography of its first fit's star centres.
 
     Args:
@@ -271,6 +296,7 @@ def refine_ring(image: np.ndarray, pattern: StarPattern, ids: list[int], fit: Bl
         fit: the first fit of the ring.
         deconv, settings: as for :func:`fit_front`.
         tag: :func:`tag_mask`.
+        adaptive: choose the window from the first fit's PSFs (else the configured one).
     Returns:
         ``(H0 (B, 3, 3), fit)``: the new predictions and their fit; None when fewer than 6
         blocks were accepted or no homography fits them (RANSAC, 1.5 px).
@@ -284,6 +310,9 @@ def refine_ring(image: np.ndarray, pattern: StarPattern, ids: list[int], fit: Bl
     if H is None or inliers.sum() < 6:
         return None
     H0 = _normalise(block_homography(H, f[:, 0], f[:, 1]))
+    if not adaptive:
+        return H0, fit_blocks(image, H0, pattern.num_star_segments, deconv,
+                              _pixel_mask(tag, deconv.kernel_size))
     size = choose_kernel_size(fit.sigma_major[ok], deconv.kernel_size, settings.max_kernel_size,
                               settings.kernel_per_extent)
     return H0, fit_front(image, H0, pattern.num_star_segments, deconv, settings, size, tag)
@@ -338,15 +367,25 @@ def grow(image: np.ndarray, pattern: StarPattern, seed: Seed,
     front_index = 0
     kernel_size = deconv.kernel_size
     tag = tag_mask(pattern, seed.H_feature, (h, w))
+    adaptive: bool | None = None  # decided on the first front
     while front_ids and len(ids_all) < settings.max_blocks:
         if should_stop is not None and should_stop():
             break
         H0 = np.stack(front_H)
-        fit = fit_front(image, H0, N, deconv, settings, kernel_size, tag)
-        if front_index == 0 and seed.source == "tag":
-            refined = refine_ring(image, pattern, front_ids, fit, deconv, settings, tag)
-            if refined is not None:
-                H0, fit = refined
+        if adaptive is None:
+            fit = fit_blocks(image, H0, N, deconv, _pixel_mask(tag, deconv.kernel_size))
+            adaptive = needs_adaptive_window(fit, settings)
+            if adaptive:
+                fit = fit_front(image, H0, N, deconv, settings, kernel_size, tag, first=fit)
+            if seed.source == "tag":
+                refined = refine_ring(image, pattern, front_ids, fit, deconv, settings, tag,
+                                      adaptive)
+                if refined is not None:
+                    H0, fit = refined
+        elif adaptive:
+            fit = fit_front(image, H0, N, deconv, settings, kernel_size, tag)
+        else:
+            fit = fit_blocks(image, H0, N, deconv, _pixel_mask(tag, deconv.kernel_size))
         fits.append(fit)
         predicted_centre = apply_homography(H0, np.zeros((len(H0), 1, 2)))[:, 0]
         fitted_centre = fit.centre
@@ -380,8 +419,9 @@ def grow(image: np.ndarray, pattern: StarPattern, seed: Seed,
                 on_event(event)
         front_ids, front_H = _next_front(pattern, accepted_H, attempted, newly_accepted)
         front_index += 1
-        kernel_size = choose_kernel_size(fit.sigma_major[accepted_rows], deconv.kernel_size,
-                                         settings.max_kernel_size, settings.kernel_per_extent)
+        if adaptive:
+            kernel_size = choose_kernel_size(fit.sigma_major[accepted_rows], deconv.kernel_size,
+                                             settings.max_kernel_size, settings.kernel_per_extent)
     if not fits:
         return None
     return Growth(_concat_fits(fits), np.array(ids_all, dtype=np.int64), status_all,

@@ -16,9 +16,9 @@ def test_kernel_size_grows_with_the_blur() -> None:
     sizes = [choose_kernel_size(s, 17, 41) for s in (0.5, 2.0, 4.0, 5.0, 6.0, 8.0, 20.0)]
     assert sizes == sorted(sizes) and all(k % 2 == 1 for k in sizes)
     assert sizes[0] == 17 and sizes[-1] == 41  # the configured window and the cap
-    # ~1.2 x the extent sqrt(12) sigma of a straight blur: a 24 px blur (sigma 6.9 px) -> 29 px.
-    assert choose_kernel_size(24.0 / np.sqrt(12.0), 17, 41) == 29
-    assert choose_kernel_size(24.0 / np.sqrt(12.0), 17, 41, per_extent=1.5) == 37
+    # ~1.5 x the extent sqrt(12) sigma of a straight blur: a 24 px blur (sigma 6.9 px) -> 37 px.
+    assert choose_kernel_size(24.0 / np.sqrt(12.0), 17, 41) == 37
+    assert choose_kernel_size(24.0 / np.sqrt(12.0), 17, 41, per_extent=1.2) == 29
     assert choose_kernel_size(np.array([np.nan]), 17, 41) == 17
     assert choose_kernel_size(3.0, 17, 15) == 17  # a cap below the configured window is no cap
     with pytest.raises(ValueError, match="odd"):
