@@ -338,9 +338,9 @@ def test_views_draw_rgb_images(finished: tuple[AppState, list[Topic]]) -> None:
     lines = alignment_lines(AlignmentCache(finished), view.entry.name)
     assert lines[0].startswith("**alignment error** after global alignment: median ")
     assert "(reference: ground-truth camera)" in lines[0]
-    # The pre-filter drops the blurry frame only: the sharp frame is used.
-    assert lines[1].startswith("all 1 used frames: alignment median ")
-    assert lines[1].endswith(" blocks (1 dropped by the pre-filter)")
+    # No pre-filter by default: the sharp and the blurry frame are both used.
+    assert lines[1].startswith("all 2 used frames: alignment median ")
+    assert "dropped by the pre-filter" not in lines[1]
     images += [draw_quiver(view.image, (416, 312), field.centre, field.error, 0.02),
                draw_quiver(None, (416, 312), field.centre, field.error, 0.02),
                draw_cells((416, 312), field.centre, field.error, 0.02, 8)]
