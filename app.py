@@ -23,6 +23,7 @@ from typing import Protocol
 
 import viser
 
+from blurcalib.runtime import configure_threads
 from state import AppState, RunSettings, default_dataset
 from state.alignment import AlignmentCache
 from state.calibration import CalibrationRunner, CalibrationSettings
@@ -128,12 +129,16 @@ def build_parser() -> argparse.ArgumentParser:
                    help="TCP port (%(default)s; the next free one if taken)")
     p.add_argument("--host", default="127.0.0.1",
                    help="interface to listen on (%(default)s; 0.0.0.0 exposes the app to the network)")
+    p.add_argument("--threads", type=int, default=1,
+                   help="compute threads of the extraction and calibration (%(default)s, the engine's "
+                        "policy: more only helps on an otherwise idle machine)")
     return p
 
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the app until interrupted."""
     args = build_parser().parse_args(argv)
+    configure_threads(args.threads)
     server, app = serve(args.folder, args.pattern, args.port, host=args.host)
     for notice in app.state.notices:
         if notice.level == "error":
