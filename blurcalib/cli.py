@@ -248,21 +248,6 @@ def _print_camera_accuracy(out: Path, pattern: StarPattern, truth, args: argpars
               f"({100 * a.defined:.0f}% of the image calibrated)")
 
 
-def _check_device(device: str) -> None:
-    """Refuse a torch device that does not exist here, before any work starts."""
-    import torch
-
-    try:
-        kind = torch.device(device).type
-    except RuntimeError:
-        raise CliError(f"--device {device!r}: not a torch device (use cpu or cuda)") from None
-    if kind == "cuda" and not torch.cuda.is_available():
-        raise CliError(f"--device {device!r}: CUDA is not available on this machine (this torch "
-                       f"build or driver has no CUDA device); use --device cpu")
-    if kind not in ("cpu", "cuda"):
-        raise CliError(f"--device {device!r}: unsupported device type {kind!r} (use cpu or cuda)")
-
-
 def cmd_extract(args: argparse.Namespace) -> int:
     """``blurcalib extract``: star features, PSFs and per-block figures from frames."""
     from blurcalib.deconv import DeconvSettings
@@ -275,7 +260,6 @@ def cmd_extract(args: argparse.Namespace) -> int:
     except FrameError as exc:
         raise CliError(str(exc)) from None
     kernel = args.psf_size or (7 if args.sharp else 17)
-    _check_device(args.device)
     try:
         deconv = DeconvSettings(kernel_size=kernel, device=check_device(args.device))
     except ValueError as exc:

@@ -45,21 +45,24 @@ def configure_threads(threads: int | None = None) -> int:
     return n
 
 
-class DeviceError(Exception):
+class DeviceError(ValueError):
     """The requested torch device is not available (a one-line message)."""
 
 
 def check_device(device: str) -> str:
-    """``device`` if torch can compute on it, else :class:`DeviceError`."""
+    """``device`` if torch can compute on it, else :class:`DeviceError`: the one device check
+    of the command line, the experiments and the engine's callers."""
     import torch
 
     try:
         dev = torch.device(device)
     except RuntimeError:
-        raise DeviceError(f"unknown torch device {device!r} (cpu, cuda, cuda:N)") from None
+        raise DeviceError(f"--device {device!r}: not a torch device (use cpu, cuda or cuda:N)") from None
+    if dev.type not in ("cpu", "cuda"):
+        raise DeviceError(f"--device {device!r}: unsupported device type {dev.type!r} (use cpu or cuda)")
     if dev.type == "cuda" and not torch.cuda.is_available():
-        raise DeviceError(f"--device {device}: CUDA is not available on this machine (torch "
+        raise DeviceError(f"--device {device!r}: CUDA is not available on this machine (torch "
                           f"{torch.__version__}); use --device cpu")
     if dev.type == "cuda" and dev.index is not None and dev.index >= torch.cuda.device_count():
-        raise DeviceError(f"--device {device}: only {torch.cuda.device_count()} CUDA device(s)")
+        raise DeviceError(f"--device {device!r}: only {torch.cuda.device_count()} CUDA device(s)")
     return device

@@ -40,9 +40,11 @@ import numpy as np
 
 from blurcalib.calibrate import Calibration, CalibrationError, calibrate_sharp
 from blurcalib.camera import save_camera_yaml
-from blurcalib.experiments.generic import projection_errors
+from blurcalib.evaluate import projection_errors
 from blurcalib.extract import FrameStatus
 from blurcalib.fileio import ensure_writable_dir
+from blurcalib.generic import DEFAULT_CELL_PX
+from blurcalib.global_alignment import MIN_BLOCKS
 from blurcalib.joint import (
     GenericCalibration,
     JointSettings,
@@ -82,10 +84,10 @@ class CalibrationSettings:
         lattice_px: step (px) of the lattice of the difference field and the error against truth.
     """
 
-    cell_px: float = 25.0
+    cell_px: float = DEFAULT_CELL_PX
     min_sharp_frames: int = 5
     min_sharp_features: int = 20
-    min_blurry_blocks: int = 12
+    min_blurry_blocks: int = MIN_BLOCKS
     lattice_px: float = 8.0
 
 

@@ -15,7 +15,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-import torch
 
 from blurcalib.deconv import DeconvSettings
 from blurcalib.extract import ExtractSettings, FrameResult, FrameStatus, extract_frame
@@ -54,16 +53,6 @@ def extract_settings(kernel_size: int = 17, max_blocks: int = 5000, device: str 
     ``max_blocks`` attempted blocks, solve on the torch ``device``."""
     return ExtractSettings(deconv=DeconvSettings(kernel_size=kernel_size, device=device),
                            grow=GrowSettings(max_blocks=max_blocks))
-
-
-def check_device(device: str) -> None:
-    """Raise ValueError unless ``device`` names a usable torch device (``cpu``, ``cuda:0``...)."""
-    try:
-        dev = torch.device(device)
-    except RuntimeError as exc:
-        raise ValueError(f"unknown torch device {device!r} ({exc})") from None
-    if dev.type == "cuda" and not torch.cuda.is_available():
-        raise ValueError(f"device {device!r} requested but CUDA is not available")
 
 
 # ------------------------------------------------------------------------- extracted frames

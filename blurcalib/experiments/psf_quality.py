@@ -57,7 +57,6 @@ from scipy.stats import spearmanr
 from blurcalib.camera import apply_homography
 from blurcalib.experiments.common import (
     ExtractedFrame,
-    check_device,
     experiment_parser,
     experiment_simulator,
     extract_frames,
@@ -67,6 +66,7 @@ from blurcalib.experiments.common import (
 )
 from blurcalib.fileio import atomic_path, atomic_write_text, ensure_writable_dir
 from blurcalib.pattern import StarPattern
+from blurcalib.runtime import check_device
 from blurcalib.synth import Simulator, TrueCamera
 
 SQUARE_CORNERS = np.array([[-1.0, -1.0], [1.0, -1.0], [1.0, 1.0], [-1.0, 1.0]])

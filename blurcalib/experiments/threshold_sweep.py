@@ -64,7 +64,6 @@ from blurcalib.deconv import DeconvSettings
 from blurcalib.evaluate import refit_pose
 from blurcalib.experiments.common import (
     ExtractedFrame,
-    check_device,
     experiment_parser,
     experiment_simulator,
     extract_frames,
@@ -79,6 +78,7 @@ from blurcalib.local_alignment import align_locally
 from blurcalib.pattern import StarPattern
 from blurcalib.quality import QualitySettings, filter_frame
 from blurcalib.results import FeatureFlags, FeatureObservation
+from blurcalib.runtime import check_device
 from blurcalib.synth import Simulator, TrueCamera, sample_pose
 
 CONFIGS: tuple[str, ...] = ("raw", "be_filtered", "local_aligned", "local_aligned_kept")
