@@ -141,9 +141,9 @@ def semi_real(device: str) -> None:
             print(f"{path.name}: sharp {sharp.status.value}, blurry {blurry.status.value} "
                   f"{blurry.message}")
             continue
-        ref = {f.feature_id: (f.x, f.y) for f in sharp.features.to_observations()}
-        d = np.array([[f.x - ref[f.feature_id][0], f.y - ref[f.feature_id][1]]
-                      for f in blurry.features.to_observations() if f.feature_id in ref])
+        s, b = sharp.features, blurry.features
+        _, i, j = np.intersect1d(s.feature_id, b.feature_id, return_indices=True)
+        d = np.stack([b.x[j] - s.x[i], b.y[j] - s.y[i]], axis=1)
         n = np.linalg.norm(d - d.mean(axis=0), axis=1)
         meds.append(n)
         print(f"{path.name}: {len(d)} common features, median {np.median(n):.4f} px, "
