@@ -46,6 +46,7 @@ __all__ = [
     "Pose",
     "Projection",
     "apply_homography",
+    "homography_centre",
     "load_camera_json",
     "load_camera_yaml",
     "plane_homography",
@@ -615,6 +616,17 @@ def apply_homography(H: ArrayLike, pts: ArrayLike) -> np.ndarray:
     with np.errstate(divide="ignore", invalid="ignore"):
         u, v = _homography_xy(H, pts)
     return np.stack([u, v], axis=-1)
+
+
+def homography_centre(H: ArrayLike) -> np.ndarray:
+    """``H(0, 0)``: where homographies ``(..., 3, 3)`` map the origin, ``(..., 2)`` =
+    ``H[:2, 2] / H[2, 2]``; for a block homography, its star centre (px). NaN (both
+    coordinates) where ``H`` is degenerate (maps the origin to infinity or is not finite)."""
+    H = np.asarray(H, dtype=np.float64)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        centre = H[..., :2, 2] / H[..., 2:, 2]
+    centre[~np.isfinite(centre).all(axis=-1)] = np.nan
+    return centre
 
 
 # ---------------------------------------------------------------------------

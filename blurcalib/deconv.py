@@ -73,7 +73,7 @@ import numpy as np
 import torch
 import torch.nn.functional as nnf
 
-from blurcalib.camera import translation
+from blurcalib.camera import homography_centre, translation
 from blurcalib.pattern import smooth_star, star_signed_distance_normal
 from blurcalib.psf import boundary_energy, psf_centroid, psf_moments, recentre
 from blurcalib.results import BlockStatus
@@ -272,8 +272,7 @@ class BlockFit:
     def centre(self) -> np.ndarray:
         """``(B, 2)`` px: the star centres ``H(0, 0)`` (time-averaged image positions); NaN for a
         degenerate ``H``."""
-        with np.errstate(invalid="ignore", divide="ignore"):
-            return self.H[:, :2, 2] / self.H[:, 2:, 2]
+        return homography_centre(self.H)
 
 
 class BlockModel(NamedTuple):

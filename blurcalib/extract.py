@@ -37,10 +37,9 @@ from blurcalib.local_alignment import LocalAlignment, align_locally, shared_corn
 from blurcalib.pattern import StarPattern
 from blurcalib.results import (
     FRAMES_DIR,
-    BlockResult,
-    BlockStatus,
+    BlockTable,
     FeatureFlags,
-    FeatureObservation,
+    FeatureTable,
     collect_results,
     read_frame_status,
     write_frame_results,
@@ -99,7 +98,7 @@ class FrameResult:
         frame: frame name.
         status: outcome; ``message`` says why when not ok.
         blocks: every attempted block with its figures and status.
-        features: one star-centre observation per accepted block.
+        features: one star-centre observation per accepted block (:meth:`BlockTable.features`).
         corners: the square corners shared by accepted neighbouring blocks, after local
             alignment (:func:`corner_rows`), one row each.
         seed, growth, local: the intermediate results (None where not reached).
@@ -109,8 +108,8 @@ class FrameResult:
     frame: str
     status: FrameStatus
     message: str = ""
-    blocks: list[BlockResult] = field(default_factory=list)
-    features: list[FeatureObservation] = field(default_factory=list)
+    blocks: BlockTable = field(default_factory=BlockTable.empty)
+    features: FeatureTable = field(default_factory=FeatureTable.empty)
     corners: list[list] = field(default_factory=list)
     seed: Seed | None = None
     growth: Growth | None = None
@@ -119,7 +118,7 @@ class FrameResult:
 
     def summary(self) -> dict:
         """A JSON-serialisable one-line summary (the row of ``frames.csv``)."""
-        accepted = sum(b.status is BlockStatus.ACCEPTED for b in self.blocks)
+        accepted = int(self.blocks.accepted.sum())
         return {"frame": self.frame, "status": self.status.value, "message": self.message,
                 "seeded_by": self.seed.method if self.seed is not None else "",
                 "blocks": len(self.blocks), "accepted": accepted, "features": len(self.features),
@@ -160,7 +159,7 @@ def extract_frame(image: np.ndarray, pattern: StarPattern, frame: str,
                              "the tag was found but no block around it could be fitted",
                              seed=seed, growth=growth, seconds=seconds)
         if growth is not None:
-            result.blocks = _block_results(frame, pattern, growth, None)
+            result.blocks = _block_table(frame, pattern, growth, None)
         return result
     acc = np.flatnonzero(growth.accepted)
     local = None
@@ -168,8 +167,8 @@ def extract_frame(image: np.ndarray, pattern: StarPattern, frame: str,
         f = pattern.features[growth.feature_id[acc]]
         local = align_locally(growth.fit.H[acc], f[:, 0], f[:, 1])
     seconds["align"] = time.perf_counter() - t2
-    blocks = _block_results(frame, pattern, growth, local if settings.local_alignment else None)
-    features = _features(frame, pattern, blocks, settings)
+    blocks = _block_table(frame, pattern, growth, local if settings.local_alignment else None)
+    features = _features(pattern, blocks, settings)
     f = pattern.features[growth.feature_id[acc]]
     corners = corner_rows(frame, pattern, local.H, f[:, 0], f[:, 1])
     return FrameResult(frame, FrameStatus.OK, "", blocks, features, corners, seed, growth, local,
@@ -192,40 +191,26 @@ def corner_rows(frame: str, pattern: StarPattern, H: np.ndarray, fx: np.ndarray,
             for c, p, n in zip(corner2, xy, count, strict=True)]
 
 
-def _block_results(frame: str, pattern: StarPattern, growth: Growth,
-                   local: LocalAlignment | None) -> list[BlockResult]:
+def _block_table(frame: str, pattern: StarPattern, growth: Growth,
+                 local: LocalAlignment | None) -> BlockTable:
+    """Every attempted block of a growth, with the local alignment's homographies for the
+    accepted ones when ``local`` is given."""
     fit = growth.fit
     H = fit.H.copy()
     if local is not None:
         H[np.flatnonzero(growth.accepted)] = local.H
-    out = []
-    for k, fid in enumerate(growth.feature_id):
-        fx, fy = (int(v) for v in pattern.features[fid])
-        out.append(BlockResult(
-            frame=frame, feature_id=int(fid), fx=fx, fy=fy, H=H[k], psf=np.nan_to_num(fit.psf[k]),
-            coeffs=fit.coeffs[k], loss=float(fit.loss[k]),
-            boundary_energy=float(fit.boundary_energy[k]), sigma_major=float(fit.sigma_major[k]),
-            sigma_minor=float(fit.sigma_minor[k]), eccentricity=float(fit.eccentricity[k]),
-            orientation=float(fit.orientation[k]), centroid=fit.centroid[k],
-            status=growth.status[k]))
-    return out
+    f = pattern.features[growth.feature_id]
+    return BlockTable(np.full(len(f), frame), growth.feature_id, f[:, 0], f[:, 1], growth.status, fit.loss,
+                      fit.boundary_energy, fit.sigma_major, fit.sigma_minor, fit.eccentricity,
+                      fit.orientation, fit.centroid, H, fit.coeffs, np.nan_to_num(fit.psf))
 
 
-def _features(frame: str, pattern: StarPattern, blocks: list[BlockResult],
-              settings: ExtractSettings) -> list[FeatureObservation]:
+def _features(pattern: StarPattern, blocks: BlockTable, settings: ExtractSettings) -> FeatureTable:
     flags = FeatureFlags.STAR_CENTRE | (FeatureFlags.SHARP_FRAME if settings.kind == "sharp"
                                         else FeatureFlags.BLURRY_FRAME)
     if settings.local_alignment:
         flags |= FeatureFlags.LOCALLY_ALIGNED
-    L = pattern.square_length_m
-    out = []
-    for b in blocks:
-        if b.status is not BlockStatus.ACCEPTED:
-            continue
-        x, y = b.H[:2, 2] / b.H[2, 2]
-        out.append(FeatureObservation(frame, b.feature_id, b.fx, b.fy, b.fx * L, b.fy * L,
-                                      float(x), float(y), 1.0 / (1.0 + b.loss), int(flags)))
-    return out
+    return blocks.select(blocks.accepted).features(pattern.square_length_m, flags)
 
 
 # ------------------------------------------------------------------------------- folders
@@ -330,8 +315,7 @@ def write_frames_table(out: Path, summaries: Sequence[dict]) -> Path:
 def extract_to_folder(paths: Sequence[Path], pattern: StarPattern, out_dir: str | os.PathLike,
                       settings: ExtractSettings | None = None, workers: int = 1,
                       progress: Callable[[int, int, dict], None] | None = None,
-                      expected_size: tuple[int, int] | None = None,
-                      names: Sequence[str] | None = None, overwrite: bool = False,
+                      expected_size: tuple[int, int] | None = None, overwrite: bool = False,
                       cluster: str | None = None) -> FolderSummary:
     """Extract every frame of ``paths`` into ``out_dir`` (resumable).
 
@@ -340,9 +324,9 @@ def extract_to_folder(paths: Sequence[Path], pattern: StarPattern, out_dir: str 
     finished by an earlier run is skipped when its result key (the pattern, the settings and
     the input file's size and modification time) is unchanged and its status is final
     (:data:`FINAL_STATUSES`); otherwise it is redone. The top-level tables list exactly the
-    frames of this run. Frames are named by :func:`frame_names` unless ``names`` gives one per
-    path. With ``cluster`` (a Dask scheduler address) the frames run as tasks there
-    (:mod:`blurcalib.cluster`), else in ``workers`` local processes.
+    frames of this run, named by :func:`frame_names`. With ``cluster`` (a Dask scheduler
+    address) the frames run as tasks there (:mod:`blurcalib.cluster`), else in ``workers``
+    local processes.
 
     Args:
         expected_size: ``(width, height)`` every frame must have; None takes the most common
@@ -354,8 +338,8 @@ def extract_to_folder(paths: Sequence[Path], pattern: StarPattern, out_dir: str 
             written.
     """
     settings = settings or ExtractSettings()
-    names = list(names) if names is not None else frame_names(list(paths))
-    if len(names) != len(paths) or len(set(names)) != len(names):
+    names = frame_names(list(paths))
+    if len(set(names)) != len(names):
         raise ValueError("frame names must be unique, one per path")
     record = _settings_record(settings)
     out = claim_output_dir(out_dir, "extract", record, overwrite)

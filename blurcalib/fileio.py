@@ -111,29 +111,40 @@ def run_manifest(folder: str | os.PathLike) -> dict | None:
     return doc if isinstance(doc, dict) and doc.get("tool") == "blurcalib" else None
 
 
+def _command(folder: Path) -> str | None:
+    """The command of the blurcalib output in ``folder`` (None when it holds none)."""
+    manifest = run_manifest(folder)
+    return None if manifest is None else manifest.get("command")
+
+
 def claim_output_dir(path: str | os.PathLike, command: str, settings: dict,
-                     overwrite: bool = False) -> Path:
+                     overwrite: bool = False, extractions: Sequence[str] = ()) -> Path:
     """Make ``path`` the output folder of a ``command`` run and write its run manifest.
 
-    An empty or missing folder, or one whose manifest names the same command (a re-run or
-    resume), is taken; any other non-empty folder is refused unless ``overwrite``, so that
-    files that are not ours are never replaced. The folder's stray temporary files are removed.
+    An empty or missing folder, one whose manifest names the same command (a re-run or
+    resume), or one that holds nothing but ``extract`` outputs in the subfolders named by
+    ``extractions`` (``calibrate``'s ``sharp`` and ``blurry``, made by earlier ``blurcalib
+    extract`` runs) is taken; any other non-empty folder is refused unless ``overwrite``, so
+    that files that are not ours are never replaced. The folder's stray temporary files are
+    removed.
 
     Args:
         path: the output folder.
         command: the kind of output (``"extract"``, ``"calibrate"``).
         settings: JSON-serialisable settings of the run, recorded in the manifest.
         overwrite: write into a non-empty folder that is not an output of ``command``.
+        extractions: subfolders that are ``extract`` outputs of their own.
     Raises:
         OutputError: the folder holds something else, or cannot be created or written.
     """
     folder = Path(path)
     if folder.is_dir() and not overwrite and any(folder.iterdir()):
         manifest = run_manifest(folder)
-        if manifest is None:
+        if manifest is None and not all(p.name in extractions and _command(p) == "extract"
+                                        for p in folder.iterdir()):
             raise OutputError(f"{folder}: output folder is not empty and is not a blurcalib "
                               f"output (no {RUN_MANIFEST}); use --overwrite to write into it")
-        if manifest.get("command") != command:
+        if manifest is not None and manifest.get("command") != command:
             raise OutputError(f"{folder}: output folder holds a blurcalib "
                               f"{manifest.get('command')!r} output, not {command!r}; use "
                               f"--overwrite to write into it")

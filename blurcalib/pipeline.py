@@ -5,7 +5,9 @@ generic camera to sharp and blurry frames together.
 
 1. feature extraction of the sharp frames (small PSF window) and the blurry frames (a window
    that fits the blur), resumable, into ``OUT/sharp/`` and ``OUT/blurry/``
-   (:mod:`blurcalib.extract`);
+   (:mod:`blurcalib.extract`), each an ``extract`` output with the frames named as ``blurcalib
+   extract`` names them, so that earlier ``extract`` runs into these folders are reused; the
+   run's own outputs name the frames ``sharp/<name>`` and ``blurry/<name>``;
 2. Brown-Conrady calibration of the sharp set together with the target points
    (:mod:`blurcalib.calibrate`), saved in ``OUT/calibration/``;
 3. per blurry frame, the optional blur pre-filter (off by default; the paper's 3.8 px is
@@ -46,12 +48,13 @@ import shutil
 from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
+from typing import TypeVar
 
 import cv2
 import numpy as np
 
 from blurcalib.calibrate import Calibration, calibrate_sharp, save_calibration
-from blurcalib.extract import ExtractSettings, extract_to_folder, frame_names
+from blurcalib.extract import ExtractSettings, extract_to_folder
 from blurcalib.fileio import (
     atomic_path,
     atomic_write_csv,
@@ -74,6 +77,7 @@ from blurcalib.quality import QualitySettings, filter_frame
 from blurcalib.refformat import to_ref_dataset, write_ref_dataset
 from blurcalib.report import error_direction_image, save_frame_error_plot
 from blurcalib.results import (
+    FEATURES_FILE,
     BlockTable,
     FeatureFlags,
     FeatureTable,
@@ -82,6 +86,9 @@ from blurcalib.results import (
     write_features,
 )
 
+Table = TypeVar("Table", FeatureTable, BlockTable)
+KINDS: tuple[str, ...] = ("sharp", "blurry")
+"""The run's extractions, each an ``extract`` output folder ``OUT/<kind>/`` of its own."""
 MODELS: tuple[str, ...] = ("generic", "parametric")
 """Camera models :func:`run_pipeline` delivers."""
 
@@ -220,7 +227,7 @@ def run_pipeline(sharp: Sequence[Path], blurry: Sequence[Path], pattern: StarPat
 
     s = settings or PipelineSettings()
     size = _check_sizes(sharp, blurry)
-    out = claim_output_dir(out_dir, "calibrate", asdict(s), overwrite)
+    out = claim_output_dir(out_dir, "calibrate", asdict(s), overwrite, extractions=KINDS)
     staging = out / STAGING_DIR
     shutil.rmtree(staging, ignore_errors=True)  # left by a run killed while writing
 
@@ -229,38 +236,33 @@ def run_pipeline(sharp: Sequence[Path], blurry: Sequence[Path], pattern: StarPat
             return None
         return lambda done, total, row: progress(name, done, total, row)
 
-    all_names = frame_names(list(sharp) + list(blurry))
-    sharp_names, names = all_names[:len(sharp)], all_names[len(sharp):]
-    sharp_run = extract_to_folder(sharp, pattern, out / "sharp", ExtractSettings.sharp(),
-                                  workers=s.workers, progress=stage("sharp"), expected_size=size,
-                                  names=sharp_names, overwrite=overwrite,
-                                  cluster=s.cluster)
     blurry_settings = ExtractSettings(deconv=DeconvSettings(kernel_size=s.blurry_kernel),
                                       local_alignment=s.local_alignment)
-    blurry_run = extract_to_folder(blurry, pattern, out / "blurry", blurry_settings,
-                                   workers=s.workers, progress=stage("blurry"), expected_size=size,
-                                   names=names, overwrite=overwrite,
-                                   cluster=s.cluster)
-    seeded = [r for r in sharp_run.frames + blurry_run.frames if r["status"] != "not_seeded"]
+    runs = {kind: extract_to_folder(paths, pattern, out / kind, settings, workers=s.workers,
+                                    progress=stage(kind), expected_size=size, overwrite=overwrite,
+                                    cluster=s.cluster)
+            for kind, paths, settings in (("sharp", sharp, ExtractSettings.sharp()),
+                                          ("blurry", blurry, blurry_settings))}
+    extracted = {kind: [{**r, "frame": f"{kind}/{r['frame']}"} for r in run.frames]
+                 for kind, run in runs.items()}
+    seeded = [r for r in extracted["sharp"] + extracted["blurry"] if r["status"] != "not_seeded"]
     if not any(r["status"] == "ok" for r in seeded):
         raise PipelineError("no AprilTag of the pattern was found in any frame: does the pattern "
                             "YAML match the target in the frames?")
-    sharp_features = read_feature_table(out / "sharp" / "features.csv")
+    sharp_features = _with_kind(read_feature_table(out / "sharp" / FEATURES_FILE), "sharp")
     try:
         calibration = calibrate_sharp(sharp_features, pattern, size)
     except CalibrationError as exc:
-        bad = [f"{r['frame']} ({r['status']})" for r in sharp_run.frames if r["status"] != "ok"]
+        bad = [f"{r['frame']} ({r['status']})" for r in extracted["sharp"] if r["status"] != "ok"]
         hint = f"; sharp frames without features: {', '.join(bad[:10])}" if bad else ""
         raise PipelineError(f"sharp-set calibration: {exc}{hint}") from None
 
-    sharp_rows = [_sharp_row(r, calibration) for r in sharp_run.frames]
+    sharp_rows = [_sharp_row(r, calibration) for r in extracted["sharp"]]
     left_out = np.isin(sharp_features.frame, [r["frame"] for r in sharp_rows
                                               if r["status"] != "used"])
     sharp_features.flags[left_out] |= int(FeatureFlags.FILTERED_OUT)
-    blocks = read_block_table(out / "blurry")
-    extracted = {r["frame"]: r for r in blurry_run.frames}
-    blurry_frames = [_align_frame(name, extracted.get(name, {}), blocks, pattern, calibration, size, s)
-                     for name in names]
+    blocks = _with_kind(read_block_table(out / "blurry"), "blurry")
+    blurry_frames = [_align_frame(r, blocks, pattern, calibration, size, s) for r in extracted["blurry"]]
     generic = None
     if s.model == "generic":
         generic = _fit_generic(sharp_features, blurry_frames, calibration, pattern, size, s)
@@ -294,6 +296,11 @@ def run_pipeline(sharp: Sequence[Path], blurry: Sequence[Path], pattern: StarPat
         raise PipelineError(f"no blurry frame survived the filters ({counts['blurry']}); the sharp-set "
                             f"calibration and all features are kept in {out}")
     return report
+
+
+def _with_kind(table: Table, kind: str) -> Table:
+    """A table of ``OUT/<kind>/`` with its frames named as in the run's outputs, ``<kind>/<frame>``."""
+    return replace(table, frame=np.char.add(f"{kind}/", table.frame))
 
 
 def _extraction_row(extracted: dict, kind: str) -> dict:
@@ -341,20 +348,17 @@ class _BlurryFrame:
     residuals: np.ndarray | None = None
 
 
-def _align_frame(name: str, extracted: dict, blocks: BlockTable, pattern: StarPattern,
-                 calibration: Calibration, size: tuple[int, int], s: PipelineSettings) -> _BlurryFrame:
+def _align_frame(extracted: dict, blocks: BlockTable, pattern: StarPattern, calibration: Calibration,
+                 size: tuple[int, int], s: PipelineSettings) -> _BlurryFrame:
     """Filter a blurry frame's blocks and align the kept ones to the parametric camera
     (:func:`blurcalib.global_alignment.align_blocks`); the row's status is the parametric
     route's (``used``, ``ill_conditioned``, ``alignment_failed``, or why no block is kept)."""
-    row = _extraction_row({"frame": name, **extracted}, "blurry")
+    row = _extraction_row(extracted, "blurry")
     if "status" in row:
         return _BlurryFrame(row)
-    sel = np.flatnonzero(blocks.frame == name)
-    b = blocks.select(sel)
-    centre = b.H[:, :2, 2] / b.H[:, 2:, 2]
-    filt = filter_frame(b.fx, b.fy, centre, b.status, b.loss, b.boundary_energy, b.sigma_major,
-                        size, s.quality)
-    row.update(blocks=len(sel), kept=int(filt.kept.sum()),
+    b = blocks.select(blocks.frame == row["frame"])
+    filt = filter_frame(b, size, s.quality)
+    row.update(blocks=len(b), kept=int(filt.kept.sum()),
                centre_sigma_major=round(filt.centre_sigma_major, 3), filter_counts=filt.counts())
     if not filt.frame_ok:
         row["status"] = "low_blur"
@@ -366,20 +370,15 @@ def _align_frame(name: str, extracted: dict, blocks: BlockTable, pattern: StarPa
         row["reason"] = (f"{int(filt.kept.sum())} blocks survive the BE/loss/connectivity filter, "
                           f"{MIN_BLOCKS} needed")
         return _BlurryFrame(row)
-    k = np.flatnonzero(filt.kept)
+    kept = b.select(filt.kept)
     flags = FeatureFlags.STAR_CENTRE | FeatureFlags.BLURRY_FRAME
     if s.local_alignment:
         flags |= FeatureFlags.LOCALLY_ALIGNED
-    L = pattern.square_length_m
-    n = len(k)
-    raw = FeatureTable(frame=np.array([name] * n, dtype=object), feature_id=b.feature_id[k].astype(np.int64),
-                       fx=b.fx[k].astype(np.int64), fy=b.fy[k].astype(np.int64),
-                       X=b.fx[k] * L, Y=b.fy[k] * L, x=centre[k, 0], y=centre[k, 1],
-                       weight=1.0 / (1.0 + b.loss[k]), flags=np.full(n, int(flags), dtype=np.int64))
+    raw = kept.features(pattern.square_length_m, flags)
     try:
-        ga = align_blocks(calibration.camera, pattern, calibration.points, raw.feature_id, centre[k],
-                          b.loss[k], AlignmentSettings(loss=s.loss, bias=s.bias,
-                                                       angle_threshold=s.angle_threshold))
+        ga = align_blocks(calibration.camera, pattern, calibration.points, raw.feature_id,
+                          np.stack([raw.x, raw.y], axis=1), kept.loss,
+                          AlignmentSettings(loss=s.loss, bias=s.bias, angle_threshold=s.angle_threshold))
     except AlignmentError as exc:
         row.update(status="alignment_failed", reason=str(exc), alignment="failed")
         return _BlurryFrame(row, raw)
@@ -387,7 +386,7 @@ def _align_frame(name: str, extracted: dict, blocks: BlockTable, pattern: StarPa
     if ga.ill_conditioned:
         flags |= FeatureFlags.FILTERED_OUT
     aligned = replace(raw, x=ga.corrected[:, 0], y=ga.corrected[:, 1],
-                      flags=np.full(n, int(flags), dtype=np.int64))
+                      flags=np.full(len(raw), int(flags), dtype=np.int64))
     row.update(status="ill_conditioned" if ga.ill_conditioned else "used", reason="",
                alignment="ill_conditioned" if ga.ill_conditioned else "ok",
                median_error=round(ga.median_error, 4), mean_error=round(ga.mean_error, 4),

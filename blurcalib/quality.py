@@ -21,7 +21,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from blurcalib.results import BlockStatus
+from blurcalib.results import BlockStatus, BlockTable
 
 
 @dataclass(frozen=True)
@@ -77,26 +77,17 @@ def _in_centre(xy: np.ndarray, image_size: tuple[int, int], fraction: float) -> 
             & (np.abs(xy[:, 1] - (h - 1) / 2) <= half * h))
 
 
-def filter_frame(fx: np.ndarray, fy: np.ndarray, centre: np.ndarray, status: np.ndarray,
-                 loss: np.ndarray, boundary_energy: np.ndarray, sigma_major: np.ndarray,
-                 image_size: tuple[int, int], settings: QualitySettings | None = None
+def filter_frame(blocks: BlockTable, image_size: tuple[int, int], settings: QualitySettings | None = None
                  ) -> FrameFilter:
-    """Filter one frame's blocks.
+    """Filter one frame's blocks, from their figures and star centres (:attr:`BlockTable.centre`).
 
     Args:
-        fx, fy: ``(B,)`` integer feature coordinates of the blocks.
-        centre: ``(B, 2)`` px star centres.
-        status: ``(B,)`` growth statuses (strings or :class:`BlockStatus`).
-        loss: ``(B,)`` grey levels^2.
-        boundary_energy: ``(B,)``.
-        sigma_major: ``(B,)`` px.
+        blocks: the frame's ``B`` blocks (statuses as the growth left them).
         image_size: ``(width, height)`` px.
         settings: thresholds.
     """
     s = settings or QualitySettings()
-    status = np.array([BlockStatus(v).value for v in status], dtype=object)
-    grown = status == BlockStatus.ACCEPTED.value
-    centre = np.asarray(centre, dtype=np.float64).reshape(-1, 2)
+    grown, centre, loss, sigma_major = blocks.accepted, blocks.centre, blocks.loss, blocks.sigma_major
     in_centre = _in_centre(centre, image_size, s.centre_fraction)
     central = grown & in_centre & np.isfinite(sigma_major)
     if not central.any():  # the target does not reach the centre region: use every block
@@ -104,16 +95,16 @@ def filter_frame(fx: np.ndarray, fy: np.ndarray, centre: np.ndarray, status: np.
     centre_sigma = float(np.median(sigma_major[central])) if central.any() else float("nan")
     frame_ok = s.min_sigma_major <= 0 or (np.isfinite(centre_sigma)
                                           and centre_sigma >= s.min_sigma_major)
-    out = status.copy()
-    high_be = grown & ~(boundary_energy <= s.tau_be)
+    out = blocks.status.astype(object)
+    high_be = grown & ~(blocks.boundary_energy <= s.tau_be)
     out[high_be] = BlockStatus.FILTERED_BOUNDARY_ENERGY.value
     high_loss = grown & ~high_be & ~(loss <= s.tau_loss)
     out[high_loss] = BlockStatus.FILTERED_LOSS.value
     survivors = grown & ~high_be & ~high_loss
     seed = _bfs_seed(centre, loss, survivors, image_size)
-    connected = np.zeros(len(fx), dtype=bool)
+    connected = np.zeros(len(blocks), dtype=bool)
     if seed >= 0:
-        connected = _connected(fx, fy, survivors, seed)
+        connected = _connected(blocks.fx, blocks.fy, survivors, seed)
     out[survivors & ~connected] = BlockStatus.DISCONNECTED.value
     return FrameFilter(out, connected, seed, centre_sigma, bool(frame_ok))
 

@@ -33,6 +33,7 @@ from pathlib import Path
 
 import numpy as np
 
+from blurcalib.camera import homography_centre
 from blurcalib.fileio import (
     atomic_path,
     atomic_write_csv,
@@ -101,61 +102,6 @@ class FeatureFlags(IntFlag):
     """Position refined by the frame-wide (global) alignment."""
     FILTERED_OUT = 32
     """Rejected by a later filter; kept for diagnostics, not to be used for calibration."""
-
-
-@dataclass(eq=False)
-class BlockResult:
-    """The fit of one block (star square) in one frame.
-
-    Attributes:
-        frame: frame name (as given to the extractor, usually the image file name).
-        feature_id: id of the feature in :attr:`StarPattern.features`.
-        fx, fy: integer feature coordinates of the star centre (squares).
-        H: ``(3, 3)`` float64 homography, block coordinates ``q`` -> pixels.
-        psf: ``(K, K)`` float32 kernel, sums to 1; pixel ``(i, j)`` at offset ``(j - c, i - c)``.
-        coeffs: ``(6,)`` float64 ``a1, a2, a3, b1, b2, b3`` of the paper's affine intensity model
-            ``A(p) = a1 u + a2 v + a3``, ``B(p) = b1 u + b2 v + b3``.
-        loss: mean squared residual (8-bit grey levels squared).
-        boundary_energy: share of PSF energy in the kernel's outer two-pixel ring (0..1).
-        sigma_major, sigma_minor: px, square roots of the PSF second-moment eigenvalues.
-        eccentricity: ``sqrt(1 - sigma_minor^2 / sigma_major^2)`` (0 round, 1 a line).
-        orientation: rad in ``(-pi/2, pi/2]``, of the major axis, from +x towards +y.
-        centroid: ``(2,)`` px, PSF intensity centroid ``(x, y)`` relative to the kernel centre.
-        status: accepted, or why the block was rejected.
-
-    Equality is identity (the fields are arrays); compare fields to test values.
-    """
-
-    frame: str
-    feature_id: int
-    fx: int
-    fy: int
-    H: np.ndarray
-    psf: np.ndarray
-    coeffs: np.ndarray
-    loss: float
-    boundary_energy: float
-    sigma_major: float
-    sigma_minor: float
-    eccentricity: float
-    orientation: float
-    centroid: np.ndarray
-    status: BlockStatus
-
-    def __post_init__(self) -> None:
-        self.H = np.asarray(self.H, dtype=np.float64)
-        self.psf = np.asarray(self.psf, dtype=np.float32)
-        self.coeffs = np.asarray(self.coeffs, dtype=np.float64)
-        self.centroid = np.asarray(self.centroid, dtype=np.float64)
-        self.status = BlockStatus(self.status)
-        if self.H.shape != (3, 3):
-            raise ValueError(f"H must be (3, 3), got {self.H.shape}")
-        if self.psf.ndim != 2 or self.psf.shape[0] != self.psf.shape[1]:
-            raise ValueError(f"psf must be square (K, K), got {self.psf.shape}")
-        if self.coeffs.shape != (6,):
-            raise ValueError(f"coeffs must be (6,), got {self.coeffs.shape}")
-        if self.centroid.shape != (2,):
-            raise ValueError(f"centroid must be (2,), got {self.centroid.shape}")
 
 
 @dataclass(frozen=True)
@@ -254,12 +200,25 @@ class FeatureTable:
 
 @dataclass(eq=False)
 class BlockTable:
-    """Block results as numpy columns (B rows, one kernel size K); the fast form of a block list.
+    """The fitted blocks (star squares) of one or more frames as numpy columns (B rows, one
+    kernel size K): what extraction returns, the files hold and the pipeline and the app use.
 
-    Columns: ``frame`` (B,) str; ``feature_id, fx, fy`` (B,) int64; ``status`` (B,) str (a
-    :class:`BlockStatus` value); ``loss, boundary_energy, sigma_major, sigma_minor,
-    eccentricity, orientation`` (B,) float64; ``centroid`` (B, 2); ``H`` (B, 3, 3);
-    ``coeffs`` (B, 6) float64; ``psf`` (B, K, K) float32. Units as in :class:`BlockResult`.
+    Columns:
+        frame: ``(B,)`` str, frame name.
+        feature_id, fx, fy: ``(B,)`` int64, the block's feature (:attr:`StarPattern.features`)
+            and its integer feature coordinates (squares).
+        status: ``(B,)`` str, a :class:`BlockStatus` value: accepted, or why it was rejected.
+        loss: ``(B,)`` mean squared residual (8-bit grey levels squared).
+        boundary_energy: ``(B,)`` share of PSF energy in the kernel's outer two-pixel ring.
+        sigma_major, sigma_minor: ``(B,)`` px, square roots of the PSF second-moment eigenvalues.
+        eccentricity: ``(B,)`` ``sqrt(1 - sigma_minor^2 / sigma_major^2)`` (0 round, 1 a line).
+        orientation: ``(B,)`` rad in ``(-pi/2, pi/2]``, major axis from +x towards +y.
+        centroid: ``(B, 2)`` px, PSF intensity centroid relative to the kernel centre.
+        H: ``(B, 3, 3)`` float64 homographies, block coordinates ``q`` -> pixels.
+        coeffs: ``(B, 6)`` float64 ``a1, a2, a3, b1, b2, b3`` of the paper's affine intensity
+            model ``A(p) = a1 u + a2 v + a3``, ``B(p) = b1 u + b2 v + b3`` (grey levels).
+        psf: ``(B, K, K)`` float32 kernels, each summing to 1; pixel ``(i, j)`` at offset
+            ``(j - c, i - c)`` px, ``c = (K - 1) / 2``.
     """
 
     frame: np.ndarray
@@ -306,25 +265,23 @@ class BlockTable:
         return cls([], [], [], [], [], *([] for _ in cls._SCALARS), np.zeros((0, 2)),
                    np.zeros((0, 3, 3)), np.zeros((0, 6)), np.zeros((0, kernel_size, kernel_size)))
 
-    @classmethod
-    def from_blocks(cls, blocks: Sequence[BlockResult]) -> BlockTable:
-        """Columns of a list of block results; all kernels must have the same size."""
-        if not blocks:
-            return cls.empty()
-        sizes = {b.psf.shape for b in blocks}
-        if len(sizes) != 1:
-            raise ValueError(f"all PSFs of a block table must have one size, got {sorted(sizes)}")
-        return cls(*(np.stack([getattr(b, name) for b in blocks])
-                     if name in ("centroid", "H", "coeffs", "psf")
-                     else [getattr(b, name) for b in blocks] for name in cls._FIELDS))
+    @property
+    def centre(self) -> np.ndarray:
+        """``(B, 2)`` px star centres ``H(0, 0)``; NaN for a degenerate ``H``."""
+        return homography_centre(self.H)
 
-    def to_blocks(self) -> list[BlockResult]:
-        """One :class:`BlockResult` per row (arrays are copies)."""
-        rows = zip(self.frame.tolist(), self.feature_id.tolist(), self.fx.tolist(), self.fy.tolist(),
-                   self.H, self.psf, self.coeffs, *(getattr(self, n).tolist() for n in self._SCALARS),
-                   self.centroid, self.status.tolist(), strict=True)
-        return [BlockResult(f, i, x, y, H.copy(), psf.copy(), co.copy(), *sc, ce.copy(), BlockStatus(st))
-                for f, i, x, y, H, psf, co, *sc, ce, st in rows]
+    @property
+    def accepted(self) -> np.ndarray:
+        """``(B,)`` bool, the blocks whose status is ``accepted``."""
+        return self.status == BlockStatus.ACCEPTED.value
+
+    def features(self, square_length_m: float, flags: int) -> FeatureTable:
+        """One star-centre observation per row: ``(x, y)`` the star centre, ``(X, Y) = (fx L,
+        fy L)`` m, weight ``1 / (1 + loss)``, every row with the :class:`FeatureFlags` ``flags``."""
+        centre = self.centre
+        return FeatureTable(self.frame, self.feature_id, self.fx, self.fy, self.fx * square_length_m,
+                            self.fy * square_length_m, centre[:, 0], centre[:, 1], 1.0 / (1.0 + self.loss),
+                            np.full(len(self), int(flags)))
 
     def select(self, rows: np.ndarray) -> BlockTable:
         """The rows chosen by a boolean mask or an index array."""
@@ -381,10 +338,6 @@ def _as_feature_table(features: Sequence[FeatureObservation] | FeatureTable) -> 
     return features if isinstance(features, FeatureTable) else FeatureTable.from_observations(features)
 
 
-def _as_block_table(blocks: Sequence[BlockResult] | BlockTable) -> BlockTable:
-    return blocks if isinstance(blocks, BlockTable) else BlockTable.from_blocks(blocks)
-
-
 def write_features(path: str | os.PathLike, features: Sequence[FeatureObservation] | FeatureTable) -> Path:
     """Write ``features.csv`` (columns :data:`FEATURE_COLUMNS`) atomically; return its path."""
     t = _as_feature_table(features)
@@ -395,9 +348,8 @@ def write_features(path: str | os.PathLike, features: Sequence[FeatureObservatio
 
 
 def write_blocks(csv_path: str | os.PathLike, npz_path: str | os.PathLike,
-                 blocks: Sequence[BlockResult] | BlockTable) -> tuple[Path, Path]:
+                 t: BlockTable) -> tuple[Path, Path]:
     """Write ``blocks.csv`` and ``psfs.npz`` atomically (each on its own); return their paths."""
-    t = _as_block_table(blocks)
     cols = [_str_strings(t.frame), *(_int_strings(getattr(t, n)) for n in ("feature_id", "fx", "fy")),
             _str_strings(t.status), *(_float_strings(getattr(t, n)) for n in BlockTable._SCALARS),
             *(_float_strings(t.centroid[:, i]) for i in range(2)),
@@ -410,7 +362,7 @@ def write_blocks(csv_path: str | os.PathLike, npz_path: str | os.PathLike,
 
 
 def write_results(folder: str | os.PathLike, features: Sequence[FeatureObservation] | FeatureTable,
-                  blocks: Sequence[BlockResult] | BlockTable) -> dict[str, Path]:
+                  blocks: BlockTable) -> dict[str, Path]:
     """Write ``features.csv``, ``blocks.csv`` and ``psfs.npz`` into ``folder`` (created if needed).
 
     The inputs are validated before anything is written; each file is replaced atomically.
@@ -420,10 +372,10 @@ def write_results(folder: str | os.PathLike, features: Sequence[FeatureObservati
     Raises:
         OutputError: the folder cannot be created or written.
     """
-    feature_table, block_table = _as_feature_table(features), _as_block_table(blocks)
+    feature_table = _as_feature_table(features)
     out = ensure_writable_dir(folder)
     paths = {"features": write_features(out / FEATURES_FILE, feature_table)}
-    paths["blocks"], paths["psfs"] = write_blocks(out / BLOCKS_FILE, out / PSFS_FILE, block_table)
+    paths["blocks"], paths["psfs"] = write_blocks(out / BLOCKS_FILE, out / PSFS_FILE, blocks)
     return paths
 
 
@@ -534,11 +486,6 @@ def _read_block_table(csv_path: Path, npz_path: Path) -> BlockTable:
         np.stack([_floats(csv_path, cols, c) for c in COEFF_COLUMNS], axis=1), arrays["psf"])
 
 
-def read_blocks(folder: str | os.PathLike) -> list[BlockResult]:
-    """Read the blocks of a results folder (see :func:`read_block_table`)."""
-    return read_block_table(folder).to_blocks()
-
-
 # ------------------------------------------------------------------------------ per-frame files
 @dataclass(frozen=True)
 class FramePaths:
@@ -596,7 +543,7 @@ def frame_result_paths(folder: str | os.PathLike, frame_name: str) -> FramePaths
 
 def write_frame_results(folder: str | os.PathLike, frame_name: str,
                         features: Sequence[FeatureObservation] | FeatureTable,
-                        blocks: Sequence[BlockResult] | BlockTable,
+                        blocks: BlockTable,
                         corners: Sequence[Sequence[object]], status: dict) -> FramePaths:
     """Write one frame's results under ``folder/frames/`` for resumable runs.
 
@@ -609,9 +556,9 @@ def write_frame_results(folder: str | os.PathLike, frame_name: str,
         ValueError: a row or the status record belongs to another frame.
         OutputError: the folder cannot be written.
     """
-    ft, bt = _as_feature_table(features), _as_block_table(blocks)
+    ft = _as_feature_table(features)
     others = [("feature", str(f)) for f in ft.frame[ft.frame != frame_name][:1]]
-    others += [("block", str(f)) for f in bt.frame[bt.frame != frame_name][:1]]
+    others += [("block", str(f)) for f in blocks.frame[blocks.frame != frame_name][:1]]
     others += [("corner", str(r[0])) for r in corners if r[0] != frame_name][:1]
     if status.get("frame") != frame_name:
         others.append(("status", str(status.get("frame"))))
@@ -622,7 +569,7 @@ def write_frame_results(folder: str | os.PathLike, frame_name: str,
     paths = frame_result_paths(folder, frame_name)
     paths.done.unlink(missing_ok=True)
     write_features(paths.features, ft)
-    write_blocks(paths.blocks, paths.psfs, bt)
+    write_blocks(paths.blocks, paths.psfs, blocks)
     atomic_write_csv(paths.corners, CORNER_COLUMNS, corners)
     atomic_write_text(paths.status, json.dumps(status))
     atomic_write_text(paths.done, frame_name + "\n")

@@ -36,7 +36,7 @@ import cv2
 import numpy as np
 from scipy.interpolate import RectBivariateSpline
 
-from blurcalib.camera import BrownConrady, Pose, translation
+from blurcalib.camera import BrownConrady, Pose, homography_centre, translation
 from blurcalib.fileio import atomic_path, atomic_write_text, ensure_writable_dir
 from blurcalib.pattern import StarPattern, layout_pattern, star_sector_white
 from blurcalib.psf import psf_centroid
@@ -986,8 +986,8 @@ def simulate_blocks(pattern: StarPattern, num_blocks: int, rng: np.random.Genera
         Hi = translation(np.array([tx * tile_px, ty * tile_px], dtype=np.float64)) @ Hb
         H_true[b] = Hi
         kernels[b] = k
-        centre[b] = Hi[:2, 2] / Hi[2, 2] + psf_centroid(k, 0.0)
-        c0 = Hi[:2, 2] / Hi[2, 2]
+        c0 = homography_centre(Hi)
+        centre[b] = c0 + psf_centroid(k, 0.0)
         shift = rng.normal(size=2)
         shift *= rng.uniform(0, init_shift_px) / np.linalg.norm(shift)
         sc = 1.0 + rng.uniform(-init_scale, init_scale)

@@ -45,10 +45,10 @@ def real_fixture() -> None:
     start = time.perf_counter()
     for path in sorted((REAL / "images").glob("*.png")):
         result = extract_frame(load_frame(path), pattern, path.name, ExtractSettings.sharp())
-        features += result.features
+        features.append(result.features)
         print(f"{path.name}: {result.status.value}, {len(result.features)} features")
     extracted = time.perf_counter()
-    calibration = calibrate_sharp(FeatureTable.from_observations(features), pattern, (1280, 720))
+    calibration = calibrate_sharp(FeatureTable.concat(features), pattern, (1280, 720))
     done = time.perf_counter()
     print(f"calibration of {calibration.num_frames} frames: median {calibration.median_error:.4f} px,"
           f" RMS {calibration.rms_error:.4f} px (extraction {extracted - start:.1f} s, "

@@ -24,6 +24,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from blurcalib.camera import homography_centre
 from blurcalib.deconv import DeconvSettings
 from blurcalib.extract import ExtractSettings, extract_frame
 from blurcalib.frames import load_frame
@@ -37,14 +38,12 @@ REAL = FIXTURES / "real_star16"
 
 
 def _errors(result, truth_xy: np.ndarray, use_local: bool = False) -> tuple[np.ndarray, np.ndarray]:
-    ids = np.array([f.feature_id for f in result.features], dtype=np.int64)
+    ids = result.features.feature_id
     if use_local and result.local is not None:
-        acc = np.flatnonzero(result.growth.accepted)
-        H = result.local.H
-        xy = H[:, :2, 2] / H[:, 2:, 2]
-        ids = result.growth.feature_id[acc]
+        xy = homography_centre(result.local.H)
+        ids = result.growth.feature_id[result.growth.accepted]
     else:
-        xy = np.array([[f.x, f.y] for f in result.features]).reshape(-1, 2)
+        xy = np.stack([result.features.x, result.features.y], axis=1)
     d = xy - truth_xy[ids]
     return ids, d - d.mean(axis=0)
 
@@ -142,9 +141,9 @@ def semi_real(device: str) -> None:
             print(f"{path.name}: sharp {sharp.status.value}, blurry {blurry.status.value} "
                   f"{blurry.message}")
             continue
-        ref = {f.feature_id: (f.x, f.y) for f in sharp.features}
-        d = np.array([[f.x - ref[f.feature_id][0], f.y - ref[f.feature_id][1]]
-                      for f in blurry.features if f.feature_id in ref])
+        s, b = sharp.features, blurry.features
+        _, i, j = np.intersect1d(s.feature_id, b.feature_id, return_indices=True)
+        d = np.stack([b.x[j] - s.x[i], b.y[j] - s.y[i]], axis=1)
         n = np.linalg.norm(d - d.mean(axis=0), axis=1)
         meds.append(n)
         print(f"{path.name}: {len(d)} common features, median {np.median(n):.4f} px, "

@@ -24,11 +24,10 @@ import argparse
 
 import numpy as np
 
-from blurcalib.camera import apply_homography
+from blurcalib.camera import homography_centre
 from blurcalib.deconv import DeconvSettings
 from blurcalib.extract import ExtractSettings, extract_frame
 from blurcalib.local_alignment import align_locally, corner_gaps, neighbour_pairs
-from blurcalib.results import BlockStatus
 from blurcalib.synth import Simulator, SynthConfig
 
 
@@ -50,15 +49,13 @@ def main() -> None:
     for i in range(args.frames):
         frame = sim.frame(i)
         result = extract_frame(frame.image.astype(np.float32), sim.pattern, frame.truth.name, settings)
-        blocks = [b for b in result.blocks if b.status is BlockStatus.ACCEPTED]
-        H = np.stack([b.H for b in blocks])
-        fx = np.array([b.fx for b in blocks])
-        fy = np.array([b.fy for b in blocks])
+        blocks = result.blocks.select(result.blocks.accepted)
+        H, fx, fy = blocks.H, blocks.fx, blocks.fy
         truth = {int(f): xy for f, xy in zip(frame.truth.feature_ids, frame.truth.mean, strict=True)}
-        true_xy = np.stack([truth[b.feature_id] for b in blocks])
-        centre = apply_homography(H, np.zeros((len(H), 1, 2)))[:, 0]
+        true_xy = np.stack([truth[int(f)] for f in blocks.feature_id])
+        centre = blocks.centre
         local = align_locally(H, fx, fy)
-        aligned = apply_homography(local.H, np.zeros((len(H), 1, 2)))[:, 0]
+        aligned = homography_centre(local.H)
         d = centre - true_xy
         errors = []
         for xy in (centre, aligned):

@@ -50,9 +50,9 @@ def run(frames: int, seed: int, threads: int, device: str, quiet: bool) -> dict:
         result = extract_frame(image, pattern, t.name, settings)
         cpu, wall = time.process_time() - c0, time.perf_counter() - w0
         err, far = np.nan, 0
-        if result.features:
-            xy = np.array([[f.x, f.y] for f in result.features])
-            ids = np.array([f.feature_id for f in result.features])
+        if len(result.features):
+            xy = np.stack([result.features.x, result.features.y], axis=1)
+            ids = result.features.feature_id
             d = xy - t.mean[ids]
             n = np.linalg.norm(d - np.median(d, axis=0), axis=1)
             err, far = float(np.median(n)), int(np.sum(n > 0.5))

@@ -50,13 +50,8 @@ def frames(blur: tuple[float, float], count: int, seed: int, cache: Path | None
 
 def _filtered(result, image_size: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
     """Feature ids and centres of the blocks kept by the pipeline's block filter."""
-    b = result.blocks
-    centre = np.array([x.H[:2, 2] / x.H[2, 2] for x in b])
-    f = filter_frame(np.array([x.fx for x in b]), np.array([x.fy for x in b]), centre,
-                     [x.status for x in b], np.array([x.loss for x in b]),
-                     np.array([x.boundary_energy for x in b]), np.array([x.sigma_major for x in b]),
-                     image_size)
-    return np.array([x.feature_id for x in b])[f.kept], centre[f.kept]
+    kept = result.blocks.select(filter_frame(result.blocks, image_size).kept)
+    return kept.feature_id, kept.centre
 
 
 def _summary(label: str, errors: list[np.ndarray], returned: list[float], extracted: int,
@@ -83,14 +78,14 @@ def run(title: str, sim: Simulator, simulated: list[SimulatedFrame], settings: E
         wall, cpu = time.perf_counter() - w0, time.process_time() - c0
         walls.append(wall)
         cpus.append(cpu)
-        if r.status.value != "ok" or not r.features:
+        if r.status.value != "ok" or not len(r.features):
             returned.append(0.0)
             returned_q.append(0.0)
             print(f"{t.name}: blur {blur:5.1f} px  {r.status.value}: {r.message}  {wall:5.1f} s")
             continue
         extracted += 1
-        ids = np.array([f.feature_id for f in r.features])
-        d = np.array([[f.x, f.y] for f in r.features]) - t.mean[ids]
+        ids = r.features.feature_id
+        d = np.stack([r.features.x, r.features.y], axis=1) - t.mean[ids]
         n = np.linalg.norm(d - d.mean(axis=0), axis=1)
         errors.append(n)
         returned.append(len(ids) / max(visible, 1))

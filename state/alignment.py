@@ -46,7 +46,7 @@ from blurcalib.global_alignment import AlignmentError, AlignmentSettings, align_
 from blurcalib.pattern import StarPattern
 from blurcalib.quality import FrameFilter
 from blurcalib.results import FeatureTable
-from state.app_state import AppState, block_centres
+from state.app_state import AppState
 from state.folder import Dataset
 
 MIN_SHARP_FRAMES = 5
@@ -239,11 +239,11 @@ def sharp_reference(pattern: StarPattern, sharp: Mapping[str, tuple[FrameResult,
     """
     sizes = Counter(size for _, size in sharp.values())
     size = sizes.most_common(1)[0][0] if sizes else None
-    frames = {name: r for name, (r, s) in sorted(sharp.items()) if s == size and r.features}
+    frames = {name: r for name, (r, s) in sorted(sharp.items()) if s == size and len(r.features)}
     if len(frames) < min_frames:
         return ReferenceChoice(None, f"no reference camera: {NO_REFERENCE} "
                                      f"({len(frames)} sharp frames finished)")
-    table = FeatureTable.from_observations([f for r in frames.values() for f in r.features])
+    table = FeatureTable.concat([r.features for r in frames.values()])
     try:
         calib = calibrate_sharp(table, pattern, size, min_frames=min_frames)
     except CalibrationError as exc:
@@ -299,12 +299,12 @@ def align_frame(reference: Reference, pattern: StarPattern, result: FrameResult,
     if tuple(image_size) != (camera.width, camera.height):
         raise AlignmentError(f"the frame is {image_size[0]} x {image_size[1]} px, the reference camera "
                              f"{camera.width} x {camera.height} px")
-    centres = block_centres(result)
+    centres = result.blocks.centre
     kept = np.zeros(len(result.blocks), dtype=bool) if flt is None else flt.kept
     index = np.flatnonzero(kept & np.all(np.isfinite(centres), axis=1))
-    ids = np.array([result.blocks[i].feature_id for i in index], dtype=np.int64)
-    ga = align_blocks(camera, pattern, reference.points, ids, centres[index],
-                      np.array([result.blocks[i].loss for i in index]), settings)
+    ids = result.blocks.feature_id[index]
+    ga = align_blocks(camera, pattern, reference.points, ids, centres[index], result.blocks.loss[index],
+                      settings)
     return FrameAlignment(result.frame, index, ids, centres[index], ga.residuals, ga.translation, ga.pose,
                           ga.angle_to_normal, orientation_ok(ga.pose), ga.converged, reference)
 

@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from blurcalib.camera import apply_homography
+from blurcalib.camera import homography_centre
 from blurcalib.extract import ExtractSettings, FrameResult, FrameStatus, extract_frame
 from blurcalib.frames import FrameError, load_frame
 from blurcalib.grow import GrowthEvent
@@ -164,31 +164,17 @@ def filter_counts(flt: FrameFilter) -> FilterCounts:
     return FilterCounts(kept, removed_be, removed_loss, disconnected, rejected)
 
 
-def block_centres(result: FrameResult) -> np.ndarray:
-    """``(B, 2)`` px star centres ``H(0, 0)`` of a result's blocks."""
-    if not result.blocks:
-        return np.zeros((0, 2))
-    H = np.stack([b.H for b in result.blocks])
-    with np.errstate(divide="ignore", invalid="ignore"):
-        return H[:, :2, 2] / H[:, 2:, 2]
-
-
 def frame_filter(result: FrameResult, image_size: tuple[int, int], quality: QualitySettings,
                  kind: str = "blurry") -> FrameFilter | None:
     """The quality filter of a result's blocks (None when it has none).
 
     The σ_major pre-filter applies to blurry frames only: a sharp frame has little blur by design.
     """
-    if not result.blocks:
+    if not len(result.blocks):
         return None
     if kind == "sharp":
         quality = replace(quality, min_sigma_major=0.0)
-    blocks = result.blocks
-    return filter_frame(
-        np.array([b.fx for b in blocks]), np.array([b.fy for b in blocks]), block_centres(result),
-        np.array([b.status.value for b in blocks]), np.array([b.loss for b in blocks]),
-        np.array([b.boundary_energy for b in blocks]), np.array([b.sigma_major for b in blocks]),
-        image_size, quality)
+    return filter_frame(result.blocks, image_size, quality)
 
 
 def expected_blocks(pattern: StarPattern, event: GrowthEvent, image_size: tuple[int, int]) -> int:
@@ -196,8 +182,7 @@ def expected_blocks(pattern: StarPattern, event: GrowthEvent, image_size: tuple[
     B = block_homography(np.eye(3), np.array([event.fx]), np.array([event.fy]))[0]
     H_feature = event.H @ np.linalg.inv(B)
     f = pattern.features
-    centres = apply_homography(block_homography(H_feature, f[:, 0], f[:, 1]),
-                               np.zeros((len(f), 1, 2)))[:, 0]
+    centres = homography_centre(block_homography(H_feature, f[:, 0], f[:, 1]))
     w, h = image_size
     inside = (centres[:, 0] >= 0) & (centres[:, 0] <= w - 1) & (centres[:, 1] >= 0) \
         & (centres[:, 1] <= h - 1)
@@ -583,7 +568,7 @@ class AppState:
             entry.seconds = time.perf_counter() - t0
             if result is not None:
                 entry.blocks = len(result.blocks)
-                entry.accepted = sum(b.status is BlockStatus.ACCEPTED for b in result.blocks)
+                entry.accepted = int(result.blocks.accepted.sum())
                 self._results[name] = result
                 flt = frame_filter(result, self._sizes[name], self.quality, entry.kind)
                 if flt is None:

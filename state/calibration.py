@@ -55,7 +55,7 @@ from blurcalib.joint import (
 from blurcalib.quality import QualitySettings
 from blurcalib.results import FeatureFlags, FeatureTable
 from blurcalib.synth import TrueCamera
-from state.app_state import AppState, block_centres
+from state.app_state import AppState
 from state.events import Topic
 from state.folder import EXPORT_DIR
 
@@ -161,18 +161,6 @@ def input_coverage(inputs: CalibrationInputs, cell_px: float) -> Coverage:
                     np.column_stack([inputs.blurry.x, inputs.blurry.y]), inputs.image_size, cell_px)
 
 
-def _blurry_table(name: str, result, kept: np.ndarray, square_m: float) -> FeatureTable:
-    centre = block_centres(result)[kept]
-    blocks = [result.blocks[i] for i in kept]
-    fx = np.array([b.fx for b in blocks], dtype=np.int64)
-    fy = np.array([b.fy for b in blocks], dtype=np.int64)
-    return FeatureTable(frame=np.full(len(kept), name, dtype=object),
-                        feature_id=np.array([b.feature_id for b in blocks], dtype=np.int64), fx=fx, fy=fy,
-                        X=fx * square_m, Y=fy * square_m, x=centre[:, 0], y=centre[:, 1],
-                        weight=1.0 / (1.0 + np.array([b.loss for b in blocks])),
-                        flags=np.full(len(kept), BLURRY_FLAGS, dtype=np.int64))
-
-
 def collect_inputs(state: AppState, settings: CalibrationSettings | None = None) -> CalibrationInputs:
     """The sharp and blurry observations of the finished frames at the state's thresholds, and
     why every other frame is not an input (module docstring)."""
@@ -199,7 +187,7 @@ def collect_inputs(state: AppState, settings: CalibrationSettings | None = None)
                 reasons[entry.name] = (f"too few accepted blocks ({len(result.features)} < "
                                        f"{s.min_sharp_features})")
                 continue
-            sharp.append(FeatureTable.from_observations(result.features))
+            sharp.append(result.features)
             continue
         if flt is None or not flt.frame_ok:
             sigma = flt.centre_sigma_major if flt is not None else float("nan")
@@ -210,7 +198,7 @@ def collect_inputs(state: AppState, settings: CalibrationSettings | None = None)
         if len(kept) < s.min_blurry_blocks:
             reasons[entry.name] = f"too few kept blocks ({len(kept)} < {s.min_blurry_blocks})"
             continue
-        blurry.append(_blurry_table(entry.name, result, kept, square_m))
+        blurry.append(result.blocks.select(kept).features(square_m, BLURRY_FLAGS))
     return CalibrationInputs(FeatureTable.concat(sharp), FeatureTable.concat(blurry), image_size, reasons,
                              state.quality)
 

@@ -15,7 +15,14 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from blurcalib.camera import BrownConrady, Pose, apply_homography, plane_homography, translation
+from blurcalib.camera import (
+    BrownConrady,
+    Pose,
+    apply_homography,
+    homography_centre,
+    plane_homography,
+    translation,
+)
 from blurcalib.global_alignment import align_global
 from blurcalib.local_alignment import align_locally, corner_gaps, neighbour_pairs
 from blurcalib.pattern import star_sector_white
@@ -176,7 +183,7 @@ def _demo_pose(tilt_deg: float = 40.0, square_px: float = 40.0) -> Pose:
 
 def _step(name: str, H: np.ndarray, truth: np.ndarray, fx: np.ndarray, fy: np.ndarray) -> AlignmentStep:
     quads = apply_homography(H, np.broadcast_to(CORNERS, (len(H), 4, 2)))
-    centres = apply_homography(H, np.zeros((len(H), 1, 2)))[:, 0]
+    centres = homography_centre(H)
     gaps = corner_gaps(H, *neighbour_pairs(fx, fy))
     gap_rms = float(np.sqrt(np.mean(np.sum(gaps**2, axis=-1))))
     return AlignmentStep(name, quads, centres, centres - truth, gap_rms)
@@ -199,14 +206,14 @@ def alignment_demo(shift: tuple[float, float], scatter_px: float = 1.5, noise_px
     H_feature = plane_homography(DEMO_CAMERA.K, _demo_pose()) @ np.diag([SQUARE_M, SQUARE_M, 1.0])
     H_true = block_homography(H_feature, fx, fy)
     true_quads = apply_homography(H_true, np.broadcast_to(CORNERS, (len(H_true), 4, 2)))
-    truth = apply_homography(H_true, np.zeros((len(H_true), 1, 2)))[:, 0]
+    truth = homography_centre(H_true)
     offsets = np.asarray(shift, dtype=np.float64) + rng.uniform(-scatter_px, scatter_px, (len(H_true), 2))
     noisy = true_quads + offsets[:, None, :] + rng.normal(scale=noise_px, size=true_quads.shape)
     H_deconv = np.stack([cv2.getPerspectiveTransform(CORNERS.astype(np.float32), q.astype(np.float32))
                          for q in noisy])
     local = align_locally(H_deconv, fx, fy)
     points = np.column_stack([fx * SQUARE_M, fy * SQUARE_M, np.zeros(len(fx))])
-    centres = apply_homography(local.H, np.zeros((len(fx), 1, 2)))[:, 0]
+    centres = homography_centre(local.H)
     ga = align_global(DEMO_CAMERA, points, centres, bias="translation")
     H_global = translation(-ga.translation) @ local.H
     steps = (_step("after deconvolution", H_deconv, truth, fx, fy),

@@ -18,10 +18,9 @@ from blurcalib.extract import FrameResult, FrameStatus
 from blurcalib.joint import GenericCalibration
 from blurcalib.pattern import StarPattern
 from blurcalib.quality import FrameFilter
-from blurcalib.results import BlockStatus
 from blurcalib.synth import DatasetTruth, FrameTruth
 from state.alignment import AlignmentCache, FrameAlignment
-from state.app_state import AppState, block_centres
+from state.app_state import AppState
 
 ERROR_SOURCES = ("global alignment", "ground truth", "local alignment")
 """Where an error field comes from, in the order ``auto`` tries them."""
@@ -67,8 +66,7 @@ def used_blocks(result: FrameResult, flt: FrameFilter | None) -> np.ndarray:
     """Indices of the blocks that count: kept by the filter, else accepted by the growth."""
     if flt is not None:
         return np.flatnonzero(flt.kept)
-    return np.array([i for i, b in enumerate(result.blocks) if b.status is BlockStatus.ACCEPTED],
-                    dtype=np.int64)
+    return np.flatnonzero(result.blocks.accepted)
 
 
 def error_field(result: FrameResult, flt: FrameFilter | None, truth: FrameTruth | None,
@@ -106,11 +104,11 @@ def _field(source: str, result: FrameResult, flt: FrameFilter | None, truth: Fra
             if truth is None:
                 return None
             position = {int(fid): truth.mean[k] for k, fid in enumerate(truth.feature_ids)}
-            idx = np.array([i for i in idx if result.blocks[i].feature_id in position], dtype=np.int64)
+            idx = idx[np.isin(result.blocks.feature_id[idx], truth.feature_ids)]
             if len(idx) == 0:
                 return None
-            error = block_centres(result)[idx] - np.stack([position[result.blocks[i].feature_id]
-                                                           for i in idx])
+            truth_xy = [position[int(f)] for f in result.blocks.feature_id[idx]]
+            error = result.blocks.centre[idx] - np.stack(truth_xy)
         else:
             if result.local is None or result.growth is None:
                 return None
@@ -120,8 +118,7 @@ def _field(source: str, result: FrameResult, flt: FrameFilter | None, truth: Fra
             if len(idx) == 0:
                 return None
             error = -result.local.translation[[row[int(i)] for i in idx]]
-    H = np.stack([result.blocks[i].H for i in idx])
-    return ErrorField(idx, block_centres(result)[idx], block_quads(H), error, source)
+    return ErrorField(idx, result.blocks.centre[idx], block_quads(result.blocks.H[idx]), error, source)
 
 
 @dataclass(frozen=True)
@@ -291,9 +288,8 @@ def feature_poses(pattern: StarPattern,
         idx = used_blocks(result, flt)
         if frame_size != size or len(idx) < min_features:
             continue
-        ids = np.array([result.blocks[i].feature_id for i in idx])
-        obj.append(pattern.points_3d(ids).astype(np.float32))
-        img.append(block_centres(result)[idx].astype(np.float32))
+        obj.append(pattern.points_3d(result.blocks.feature_id[idx]).astype(np.float32))
+        img.append(result.blocks.centre[idx].astype(np.float32))
         names.append(name)
     if not names:
         return None

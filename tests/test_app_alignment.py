@@ -12,7 +12,7 @@ from blurcalib.camera import BrownConrady, Pose, project_points
 from blurcalib.extract import FrameResult, FrameStatus
 from blurcalib.pattern import layout_pattern
 from blurcalib.quality import QualitySettings
-from blurcalib.results import BlockResult, BlockStatus, FeatureFlags, FeatureObservation, FeatureTable
+from blurcalib.results import BlockStatus, BlockTable, FeatureFlags, FeatureObservation, FeatureTable
 from blurcalib.synth import DatasetTruth, TrueCamera
 from state.alignment import (
     AlignmentError,
@@ -54,7 +54,7 @@ def sharp_result(name: str, pose: Pose, camera: BrownConrady = CAMERA) -> FrameR
                                    PATTERN.features[i, 0] * L, PATTERN.features[i, 1] * L, float(x), float(y),
                                    1.0, int(FeatureFlags.STAR_CENTRE | FeatureFlags.SHARP_FRAME))
                 for i, (x, y) in zip(ids, px, strict=True)]
-    return FrameResult(name, FrameStatus.OK, features=features)
+    return FrameResult(name, FrameStatus.OK, features=FeatureTable.from_observations(features))
 
 
 SHARP_POSES = [view_pose(r) for r in ((0.5, 0.1, 0.0), (-0.5, 0.2, 0.1), (0.1, 0.55, -0.1),
@@ -70,13 +70,14 @@ def blurry_result(pose: Pose, shift: np.ndarray = SHIFT) -> FrameResult:
     """Blocks whose star centres are projections shifted by ``shift`` px; the loss grows with
     ``fx`` (5 at the left edge, 55 at the right), so tau_L cuts the target into a left part."""
     ids, px = visible(pose)
-    blocks = []
-    for i, (x, y) in zip(ids, px + shift, strict=True):
-        fx, fy = (int(v) for v in PATTERN.features[i])
-        H = np.array([[12.0, 1.0, x], [-1.0, 12.0, y], [0.0, 0.0, 1.0]])
-        blocks.append(BlockResult("blurry/0000.png", int(i), fx, fy, H, np.zeros((17, 17)), np.zeros(6),
-                                  5.0 + 50.0 * fx / (PATTERN.squares_x - 2), 0.05, 5.0, 2.0, 0.9, 0.0,
-                                  np.zeros(2), BlockStatus.ACCEPTED))
+    n = len(ids)
+    fx, fy = PATTERN.features[ids].T
+    H = np.broadcast_to([[12.0, 1.0, 0.0], [-1.0, 12.0, 0.0], [0.0, 0.0, 1.0]], (n, 3, 3)).copy()
+    H[:, :2, 2] = px + shift
+    blocks = BlockTable(["blurry/0000.png"] * n, ids, fx, fy, [BlockStatus.ACCEPTED] * n,
+                        5.0 + 50.0 * fx / (PATTERN.squares_x - 2), np.full(n, 0.05), np.full(n, 5.0),
+                        np.full(n, 2.0), np.full(n, 0.9), np.zeros(n), np.zeros((n, 2)), H, np.zeros((n, 6)),
+                        np.zeros((n, 17, 17)))
     return FrameResult("blurry/0000.png", FrameStatus.OK, blocks=blocks)
 
 
@@ -87,7 +88,7 @@ def make_dataset(folder: Path, truth: bool) -> Dataset:
 
 
 def save_sharp_calibration(folder: Path) -> None:
-    table = FeatureTable.from_observations([f for r, _ in sharp_frames(6).values() for f in r.features])
+    table = FeatureTable.concat([r.features for r, _ in sharp_frames(6).values()])
     save_calibration(folder, calibrate_sharp(table, PATTERN, SIZE))
 
 
@@ -101,7 +102,7 @@ def test_aligned_residuals_vanish_and_x_g_is_the_shift() -> None:
     assert np.allclose(a.translation, SHIFT, atol=1e-6)
     assert a.median_error < 1e-6 and a.rms_error < 1e-6 and a.orientation_ok and a.converged
     assert np.allclose(a.pose.R, pose.R, atol=1e-8) and np.allclose(a.pose.t, pose.t, atol=1e-9)
-    assert np.allclose(a.observed, np.stack([b.H[:2, 2] for b in result.blocks])[a.index])
+    assert np.allclose(a.observed, result.blocks.H[a.index, :2, 2])
     # The error field of the global alignment shows these residuals, block by block.
     field = error_field(result, flt, None, a)
     assert field.source == "global alignment" and np.array_equal(field.index, a.index)

@@ -170,7 +170,7 @@ def test_pattern_that_matches_nothing_leaves_frames_unseeded(dataset: Path, tmp_
     assert state.wait(300)
     entry = state.entries()[0]
     assert entry.status == "not_seeded" and "found tag ids [0], the pattern has [5]" in entry.message
-    assert state.notices[-1].level == "warning" and state.view().result.blocks == []
+    assert state.notices[-1].level == "warning" and len(state.view().result.blocks) == 0
 
 
 def test_current_frame_survives_the_image_cache(dataset: Path) -> None:
@@ -262,7 +262,7 @@ def test_alignment_follows_the_thresholds_and_covers_the_used_frames(
     a = cache.frame(name)
     assert a.num_blocks == filter_counts(flt).kept >= 12 and a.median_error < 0.1
     assert cache.frame(name) is a
-    losses = sorted(state.results()[name][0].blocks[i].loss for i in a.index)
+    losses = sorted(state.results()[name][0].blocks.loss[a.index])
     defaults = QualitySettings()
     try:
         state.refilter(tau_loss=losses[-3])
@@ -326,7 +326,8 @@ def test_views_draw_rgb_images(finished: tuple[AppState, list[Topic]]) -> None:
     finished.select_frame(1)
     view = finished.view()
     worst = jump_target(view, "highest loss")
-    assert view.result.blocks[worst].loss == max(b.loss for b in view.result.blocks if np.isfinite(b.loss))
+    loss = view.result.blocks.loss
+    assert loss[worst] == loss[np.isfinite(loss)].max()
     assert finished.select_block(worst)
     view = finished.view()
     images = [draw_frame(view, mode, True, True) for mode in ("kept / removed", "loss", "boundary energy")]
@@ -346,7 +347,7 @@ def test_views_draw_rgb_images(finished: tuple[AppState, list[Topic]]) -> None:
                draw_cells((416, 312), field.centre, field.error, 0.02, 8)]
     for image in images:
         assert image.dtype == np.uint8 and image.ndim == 3 and image.shape[2] == 3 and image.std() > 5
-    outside = next(i for i, b in enumerate(view.result.blocks) if b.status is BlockStatus.OUTSIDE_IMAGE)
+    outside = int(np.flatnonzero(view.result.blocks.status == BlockStatus.OUTSIDE_IMAGE.value)[0])
     assert block_images(view, outside).shape[2] == 3
     colours = direction_colours(np.array([[1.0, 0.0], [0.0, 1.0], [0.0, 0.0]]), 1.0)
     assert colours.tolist() == [[127, 254, 127], [254, 127, 127], [0, 0, 0]]

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 import blurcalib.extract as extract_module
-from blurcalib.camera import BrownConrady, apply_homography, translation
+from blurcalib.camera import BrownConrady, apply_homography, homography_centre, translation
 from blurcalib.deconv import DeconvSettings
 from blurcalib.extract import (
     ExtractSettings,
@@ -23,7 +23,7 @@ from blurcalib.frames import load_frame
 from blurcalib.local_alignment import align_locally, shared_corners
 from blurcalib.pattern import layout_pattern, load_pattern
 from blurcalib.refformat import read_ref_dataset
-from blurcalib.results import BlockStatus, FeatureObservation, frame_result_paths, read_features
+from blurcalib.results import FeatureObservation, FeatureTable, frame_result_paths, read_features
 from blurcalib.seed import SeedError, block_homography, detect_tags, seed_frame
 from blurcalib.synth import Simulator, SynthConfig, TrueCamera
 from tests.conftest import FIXTURE_YAML, REAL
@@ -57,8 +57,7 @@ def test_seed_from_tag_matches_truth(sim: Simulator, sharp_frame) -> None:
     ids = np.flatnonzero(truth.block_inside & near_tag)
     assert len(ids) >= 12  # the ring around the tag is in view
     f = sim.pattern.features[ids]
-    pred = apply_homography(block_homography(seed.H_feature, f[:, 0], f[:, 1]),
-                            np.zeros((len(f), 1, 2)))[:, 0]
+    pred = homography_centre(block_homography(seed.H_feature, f[:, 0], f[:, 1]))
     assert np.abs(pred - truth.mid[ids]).max() < 1.5
 
 
@@ -85,25 +84,26 @@ def test_sharp_frame_features_match_truth(sim: Simulator, sharp_frame) -> None:
     result = extract_frame(sharp_frame.image.astype(np.float32), sim.pattern, "f.png",
                            ExtractSettings.sharp())
     assert result.status is FrameStatus.OK
-    ids = np.array([f.feature_id for f in result.features])
-    xy = np.array([[f.x, f.y] for f in result.features])
+    ids = result.features.feature_id
+    xy = np.stack([result.features.x, result.features.y], axis=1)
+    assert np.array_equal(xy, result.blocks.select(result.blocks.accepted).centre)
     assert len(ids) >= 0.8 * truth.block_inside.sum()
     err = np.linalg.norm(xy - truth.mid[ids], axis=1)
     assert np.median(err) < 0.05
     assert err.max() < 0.5
     # Growing never accepts a block outside the pattern or whose square leaves the image.
-    for b in result.blocks:
-        if b.status is BlockStatus.ACCEPTED:
-            assert sim.pattern.is_valid_feature(b.fx, b.fy)
-            corners = apply_homography(b.H, np.array([[-1.0, -1], [1, -1], [1, 1], [-1, 1]]))
-            assert np.all(corners >= -0.5) and np.all(corners <= np.array([479.5, 359.5]))
+    accepted = result.blocks.select(result.blocks.accepted)
+    assert all(sim.pattern.is_valid_feature(x, y) for x, y in zip(accepted.fx, accepted.fy, strict=True))
+    corners = apply_homography(accepted.H, np.broadcast_to([[-1.0, -1], [1, -1], [1, 1], [-1, 1]],
+                                                           (len(accepted), 4, 2)))
+    assert np.all(corners >= -0.5) and np.all(corners <= np.array([479.5, 359.5]))
     # Square corners shared by neighbouring blocks land on the projected corners.
     corners = np.array([[r[3], r[4], 0.0] for r in result.corners])
     corner_xy = np.array([[r[5], r[6]] for r in result.corners])
     assert len(corners) > 50
     true_xy = sim.camera.project(truth.pose.transform(corners))
     assert np.median(np.linalg.norm(corner_xy - true_xy, axis=1)) < 0.15
-    f0 = result.features[0]
+    f0 = result.features.to_observations()[0]
     assert (f0.X, f0.Y) == pytest.approx((f0.fx * sim.pattern.square_length_m,
                                           f0.fy * sim.pattern.square_length_m))
 
@@ -167,9 +167,9 @@ def test_real_frame_agrees_with_reference_detector(shared_fixtures) -> None:
     reference = read_ref_dataset(REAL / "features_10px.bin").image("2.png")
     result = extract_frame(load_frame(REAL / "images" / "2.png"), pattern, "2.png",
                            ExtractSettings.sharp())
-    ref = dict(zip(reference.features.tolist(), reference.xy, strict=True))
-    err = np.array([np.hypot(f.x - ref[f.feature_id][0], f.y - ref[f.feature_id][1])
-                    for f in result.features if f.feature_id in ref])
+    f = result.features
+    _, i, j = np.intersect1d(f.feature_id, reference.features, return_indices=True)
+    err = np.hypot(f.x[i] - reference.xy[j, 0], f.y[i] - reference.xy[j, 1])
     assert len(err) > 150
     assert np.median(err) < 0.05
 
@@ -191,7 +191,7 @@ def engine(monkeypatch: pytest.MonkeyPatch) -> list[str]:
         kernel = settings.deconv.kernel_size
         obs = FeatureObservation(frame, 0, 0, 0, 0.0, 0.0, float(image.mean()), float(kernel),
                                  1.0, 1)
-        return FrameResult(frame, FrameStatus.OK, features=[obs],
+        return FrameResult(frame, FrameStatus.OK, features=FeatureTable.from_observations([obs]),
                            corners=[[frame, 1, 1, 0.005, 0.005, 1.0, 2.0, 2]])
 
     monkeypatch.setattr(extract_module, "extract_frame", fake)

@@ -128,7 +128,7 @@ def test_rerun_resumes_and_a_killed_write_never_mixes_runs(tmp_path, finished, d
     seen: list[tuple[str, str]] = []
     run_pipeline(*_frames(dataset), layout_pattern(), out, _settings(),
                  progress=lambda stage, done, total, row: seen.append((stage, row["frame"])))
-    assert seen == [("blurry", "blurry/0002_1x1.png")]  # only the unreadable frame is retried
+    assert seen == [("blurry", "0002_1x1.png")]  # only the unreadable frame is retried
     reference = _published(out)
     run_pipeline(*_frames(dataset), layout_pattern(), out, _settings())
     assert _published(out) == reference  # bit-identical re-run
@@ -172,6 +172,28 @@ def test_rerun_resumes_and_a_killed_write_never_mixes_runs(tmp_path, finished, d
     assert not [p.name for p in out.iterdir() if p.name.startswith(".")]
     run_pipeline(*_frames(dataset), layout_pattern(), out, _settings())
     assert _published(out) == reference
+
+
+def test_calibrate_reuses_an_extract_output(tmp_path, finished, dataset) -> None:
+    """``blurcalib extract BLURRY --out OUT/blurry`` before ``calibrate --out OUT``: calibrate
+    refits none of its frames (only the unreadable one is retried) and collects each once."""
+    out = tmp_path / "out"
+    pattern = dataset / "pattern.yaml"
+    assert main(["extract", str(dataset / "blurry"), "--pattern", str(pattern), "--out",
+                 str(out / "blurry")]) == 0
+    extracted = (out / "blurry" / "features.csv").read_bytes()
+    seen: list[tuple[str, str]] = []
+    report = run_pipeline(*_frames(dataset), layout_pattern(), out, _settings(),
+                          progress=lambda stage, done, total, row: seen.append((stage, row["frame"])))
+    assert [name for stage, name in seen if stage == "blurry"] == ["0002_1x1.png"]
+    assert sorted(name for stage, name in seen if stage == "sharp") == [f"{i:04d}.png" for i in range(6)]
+    assert (out / "blurry" / "features.csv").read_bytes() == extracted
+    blurry = read_feature_table(out / "blurry" / "features.csv")
+    assert len(set(zip(blurry.frame, blurry.feature_id, strict=True))) == len(blurry)
+    assert [r["frame"] for r in report.frames] == [r["frame"] for r in finished[1].frames]
+    ours, theirs = read_feature_table(out / "features.csv"), read_feature_table(finished[0] / "features.csv")
+    assert np.array_equal(ours.frame, theirs.frame) and np.array_equal(ours.feature_id, theirs.feature_id)
+    assert np.allclose(ours.x, theirs.x, atol=1e-5) and np.allclose(ours.y, theirs.y, atol=1e-5)
 
 
 def test_foreign_output_folder_is_refused(tmp_path, dataset) -> None:

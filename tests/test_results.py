@@ -10,7 +10,6 @@ import pytest
 
 from blurcalib.psf import boundary_energy, psf_moments
 from blurcalib.results import (
-    BlockResult,
     BlockStatus,
     BlockTable,
     FeatureFlags,
@@ -21,7 +20,6 @@ from blurcalib.results import (
     frame_result_paths,
     frame_stem,
     read_block_table,
-    read_blocks,
     read_feature_table,
     read_features,
     read_frame_status,
@@ -41,31 +39,26 @@ def _features(frame: str, n: int, seed: int) -> list[FeatureObservation]:
             for i in range(n)]
 
 
-def _blocks(frame: str, n: int, seed: int, k: int = 7) -> list[BlockResult]:
+def _blocks(frame: str, n: int, seed: int, k: int = 7) -> BlockTable:
     rng = np.random.default_rng(seed)
     statuses = list(BlockStatus)
-    out = []
-    for i in range(n):
-        psf = rng.random((k, k)).astype(np.float32)
-        psf /= psf.sum()
-        m = psf_moments(psf)
-        H = rng.normal(size=(3, 3))
-        H[0, 0] = AWKWARD_FLOATS[i % len(AWKWARD_FLOATS)]
-        out.append(BlockResult(frame, i, i % 5, i // 5, H, psf, rng.normal(size=6), float(rng.random()) * 50,
-                               boundary_energy(psf), m.sigma_major, m.sigma_minor, m.eccentricity,
-                               m.orientation, m.centroid, statuses[i % len(statuses)]))
-    return out
+    psf = rng.random((n, k, k)).astype(np.float32)
+    psf /= psf.sum(axis=(1, 2), keepdims=True)
+    m = psf_moments(psf)
+    H = rng.normal(size=(n, 3, 3))
+    H[:, 0, 0] = [AWKWARD_FLOATS[i % len(AWKWARD_FLOATS)] for i in range(n)]
+    i = np.arange(n)
+    return BlockTable([frame] * n, i, i % 5, i // 5, [statuses[j % len(statuses)] for j in i],
+                      rng.random(n) * 50, boundary_energy(psf), m.sigma_major, m.sigma_minor, m.eccentricity,
+                      m.orientation, m.centroid, H, rng.normal(size=(n, 6)), psf)
 
 
-def _assert_blocks_equal(a: list[BlockResult], b: list[BlockResult]) -> None:
+def _assert_blocks_equal(a: BlockTable, b: BlockTable) -> None:
     assert len(a) == len(b)
-    for x, y in zip(a, b, strict=True):
-        for name in ("frame", "feature_id", "fx", "fy", "loss", "boundary_energy", "sigma_major",
-                     "sigma_minor", "eccentricity", "orientation", "status"):
-            assert getattr(x, name) == getattr(y, name), name
-        for name in ("H", "psf", "coeffs", "centroid"):
-            assert getattr(x, name).dtype == getattr(y, name).dtype, name
-            assert getattr(x, name).tobytes() == getattr(y, name).tobytes(), name  # bit-exact
+    for name in BlockTable._FIELDS:
+        x, y = getattr(a, name), getattr(b, name)
+        assert x.dtype == y.dtype and x.shape == y.shape, name
+        assert x.tobytes() == y.tobytes(), name  # bit-exact
 
 
 def test_round_trip_exact(tmp_path: Path) -> None:
@@ -77,14 +70,14 @@ def test_round_trip_exact(tmp_path: Path) -> None:
     back = read_features(paths["features"])
     assert back == features
     assert all(math.copysign(1, a.Y) == math.copysign(1, b.Y) for a, b in zip(back, features, strict=True))
-    _assert_blocks_equal(read_blocks(tmp_path / "out"), blocks)
+    _assert_blocks_equal(read_block_table(tmp_path / "out"), blocks)
     assert sorted(p.name for p in (tmp_path / "out").iterdir()) == ["blocks.csv", "features.csv", "psfs.npz"]
 
 
 def test_empty_round_trip(tmp_path: Path) -> None:
-    write_results(tmp_path, [], [])
+    write_results(tmp_path, [], BlockTable.empty())
     assert read_features(tmp_path / "features.csv") == []
-    assert read_blocks(tmp_path) == []
+    assert len(read_block_table(tmp_path)) == 0
 
 
 def test_large_tables_round_trip(tmp_path: Path) -> None:
@@ -101,15 +94,17 @@ def test_large_tables_round_trip(tmp_path: Path) -> None:
     observations = small.to_observations()
     assert FeatureTable.from_observations(observations).to_observations() == observations
     blocks = _blocks("f", 6, 4)
-    _assert_blocks_equal(BlockTable.from_blocks(blocks).to_blocks(), blocks)
+    _assert_blocks_equal(BlockTable.concat([blocks.select(np.arange(2)), blocks.select(np.arange(2, 6))]),
+                         blocks)
     assert read_block_table(tmp_path).psf.shape == (0, 7, 7)
 
 
 def test_atomic_writes(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     write_results(tmp_path, _features("a", 3, 0), _blocks("a", 2, 0))
     before = {p.name: p.read_bytes() for p in tmp_path.iterdir()}
-    with pytest.raises(ValueError, match="one size"):  # invalid input: nothing is written
-        write_results(tmp_path, _features("b", 3, 1), _blocks("b", 1, 0, k=5) + _blocks("b", 1, 0, k=7))
+    bad = [*_features("b", 2, 1), FeatureObservation("b", 9, 0, 0, 0.0, 0.0, "12px", 0.0, 1.0, 0)]
+    with pytest.raises(ValueError, match="12px"):  # invalid input: nothing is written
+        write_results(tmp_path, bad, _blocks("b", 1, 0))
     assert {p.name: p.read_bytes() for p in tmp_path.iterdir()} == before
 
     def failing_savez(handle, **arrays) -> None:
@@ -142,10 +137,10 @@ def test_corrupt_files_raise(tmp_path: Path) -> None:
     blocks = tmp_path / "blocks.csv"
     blocks.write_text(blocks.read_text().replace(",accepted,", ",acceptd,"))
     with pytest.raises(ResultsFileError, match=r"blocks\.csv: column 'status', row 1: 'acceptd'"):
-        read_blocks(tmp_path)
+        read_block_table(tmp_path)
     (tmp_path / "psfs.npz").unlink()
     with pytest.raises(ResultsFileError, match=r"psfs\.npz: results file not found"):
-        read_blocks(tmp_path)
+        read_block_table(tmp_path)
 
 
 def _write_frame(folder: Path, name: str, n: int, seed: int, blocks: int = 2) -> Path:
@@ -168,13 +163,15 @@ def test_per_frame_results_resume_and_collect(tmp_path: Path) -> None:
     with pytest.raises(ResultsFileError, match=r"frame 'c\.png' has no finished"):
         collect_results(tmp_path, ["a.png", "c.png"])
     with pytest.raises(ValueError, match=r"frame 'a\.png' passed for frame 'c\.png'"):
-        write_frame_results(tmp_path, "c.png", _features("a.png", 1, 0), [], [], {"frame": "c.png"})
+        write_frame_results(tmp_path, "c.png", _features("a.png", 1, 0), BlockTable.empty(), [],
+                            {"frame": "c.png"})
     with pytest.raises(ValueError, match=r"status row of frame 'a\.png' passed for frame 'c\.png'"):
-        write_frame_results(tmp_path, "c.png", [], [], [], {"frame": "a.png"})
+        write_frame_results(tmp_path, "c.png", [], BlockTable.empty(), [], {"frame": "a.png"})
     # exactly the frames asked for are collected, in the order asked
     outputs = collect_results(tmp_path, ["a.png", "seq/b.png"])
     assert read_features(tmp_path / "features.csv") == _features("a.png", 3, 0) + _features("seq/b.png", 4, 1)
-    _assert_blocks_equal(read_blocks(tmp_path), _blocks("a.png", 2, 0) + _blocks("seq/b.png", 2, 1))
+    _assert_blocks_equal(read_block_table(tmp_path),
+                         BlockTable.concat([_blocks("a.png", 2, 0), _blocks("seq/b.png", 2, 1)]))
     assert outputs["corners"].read_text().splitlines() == [
         "frame,cx2,cy2,X,Y,x,y,blocks", "a.png,1,3,0.005,0.015,10.5,20.25,2",
         "seq/b.png,1,3,0.005,0.015,10.5,20.25,2"]

@@ -12,9 +12,9 @@ import cv2
 import numpy as np
 import viser
 
+from blurcalib.camera import homography_centre
 from blurcalib.results import BlockStatus
 from state import AppState, FrameView, Topic
-from state.app_state import block_centres
 from state.figures import block_quads
 from views.common import (
     SEED_COLOUR,
@@ -61,12 +61,10 @@ def draw_frame(view: FrameView, mode: str, centres: bool, seeds: bool, width: in
         be = np.full(len(H), np.nan)
     else:
         blocks = result.blocks
-        if not blocks:
+        if not len(blocks):
             return canvas
-        H = np.stack([b.H for b in blocks])
-        status = flt.status.astype(str) if flt is not None else np.array([b.status.value for b in blocks])
-        loss = np.array([b.loss for b in blocks])
-        be = np.array([b.boundary_energy for b in blocks])
+        H, loss, be = blocks.H, blocks.loss, blocks.boundary_energy
+        status = flt.status.astype(str) if flt is not None else blocks.status
     fitted = status != BlockStatus.OUTSIDE_IMAGE.value
     if mode == "loss":
         colours = colour_map(loss, 0.0, 2.0 * q.tau_loss)
@@ -79,8 +77,7 @@ def draw_frame(view: FrameView, mode: str, centres: bool, seeds: bool, width: in
     polylines(canvas, quads[fitted], colours[fitted], s, line)
     if centres:
         good = (status == BlockStatus.ACCEPTED.value)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            dots(canvas, H[good, :2, 2] / H[good, 2:, 2], CENTRE_COLOUR, s, line + 1)
+        dots(canvas, homography_centre(H[good]), CENTRE_COLOUR, s, line + 1)
     if seeds and result is not None and result.seed is not None and len(result.seed.corners_px):
         corners = to_draw(result.seed.corners_px, s)
         cv2.polylines(canvas, [corners], True, TAG_COLOUR, 2 * line, cv2.LINE_AA, SHIFT)
@@ -91,7 +88,7 @@ def draw_frame(view: FrameView, mode: str, centres: bool, seeds: bool, width: in
         polylines(canvas, quads[[flt.seed]], [SEED_COLOUR], s, 3 * line)
     if not live and view.selected is not None:
         polylines(canvas, quads[[view.selected]], [SELECTED_COLOUR], s, 3 * line)
-        c = block_centres(result)[view.selected]
+        c = result.blocks.centre[view.selected]
         label(canvas, f"#{view.selected}", (int(s * c[0]) + 8, int(s * c[1]) - 8), 0.45 * max(1.0, s),
               SELECTED_COLOUR)
     return canvas

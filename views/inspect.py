@@ -18,8 +18,8 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
 from blurcalib.deconv import render_model
+from blurcalib.results import BlockTable
 from state import AppState, FrameView, Topic
-from state.app_state import block_centres
 from views.common import Coalescer, grey_rgb, heat, hstack, label, placeholder, upscale
 
 JUMPS = ("choose…", "highest loss", "lowest loss", "highest boundary energy", "largest blur (σ_major)",
@@ -28,8 +28,8 @@ PANEL_PX = 180
 
 
 def _figures(view: FrameView) -> dict[str, np.ndarray]:
-    blocks = view.result.blocks if view.result is not None else []
-    return {name: np.array([getattr(b, name) for b in blocks], dtype=np.float64)
+    blocks = view.result.blocks if view.result is not None else BlockTable.empty()
+    return {name: getattr(blocks, name)
             for name in ("loss", "boundary_energy", "sigma_major", "eccentricity")}
 
 
@@ -67,7 +67,7 @@ def block_images(view: FrameView, index: int) -> np.ndarray:
     span = max(3.0 * float(np.sqrt(np.mean(m.residual[m.mask] ** 2))) if m.mask.any() else 0.0, 5.0)
     residual = upscale((colormaps["RdBu_r"](np.clip(0.5 + 0.5 * r / span, 0, 1))[..., :3] * 255)
                        .astype(np.uint8), PANEL_PX)
-    psf = upscale(heat(result.blocks[index].psf), PANEL_PX)
+    psf = upscale(heat(result.blocks.psf[index]), PANEL_PX)
     for panel, text in ((observed, "observed"), (model, "model"), (residual, f"residual ±{span:.0f}"),
                         (psf, "PSF")):
         label(panel, text, (6, 18), 0.5)
@@ -155,7 +155,7 @@ class InspectPanel:
 
     def _draw_block(self) -> None:
         view = self.state.view()
-        if view is None or view.result is None or not view.result.blocks:
+        if view is None or view.result is None or not len(view.result.blocks):
             self.images.image = placeholder("run the frame, then choose a block", (4 * PANEL_PX, PANEL_PX))
             self.figures.content = ""
             return
@@ -167,16 +167,17 @@ class InspectPanel:
             return
         i = view.selected
         self.block.value = i
-        b = view.result.blocks[i]
-        x, y = block_centres(view.result)[i]
-        status = view.filter.status[i] if view.filter is not None else b.status.value
-        lines = [f"**block #{i}** feature ({b.fx}, {b.fy}), id {b.feature_id}: "
+        b = view.result.blocks
+        x, y = b.centre[i]
+        status = str(view.filter.status[i] if view.filter is not None else b.status[i])
+        lines = [f"**block #{i}** feature ({b.fx[i]}, {b.fy[i]}), id {b.feature_id[i]}: "
                  f"**{status.replace('_', ' ')}**",
-                 f"star centre ({x:.2f}, {y:.2f}) px · loss {b.loss:.1f} · BE {b.boundary_energy:.3f} · "
-                 f"σ_major {b.sigma_major:.2f} px · σ_minor {b.sigma_minor:.2f} px · "
-                 f"eccentricity {b.eccentricity:.2f} · orientation {np.degrees(b.orientation):.0f}°"]
+                 f"star centre ({x:.2f}, {y:.2f}) px · loss {b.loss[i]:.1f} · "
+                 f"BE {b.boundary_energy[i]:.3f} · "
+                 f"σ_major {b.sigma_major[i]:.2f} px · σ_minor {b.sigma_minor[i]:.2f} px · "
+                 f"eccentricity {b.eccentricity[i]:.2f} · orientation {np.degrees(b.orientation[i]):.0f}°"]
         if view.truth is not None:
-            row = np.flatnonzero(view.truth.feature_ids == b.feature_id)
+            row = np.flatnonzero(view.truth.feature_ids == b.feature_id[i])
             if len(row):
                 ex, ey = np.array([x, y]) - view.truth.mean[row[0]]
                 lines.append(f"error vs ground truth ({ex:+.3f}, {ey:+.3f}) px, "
@@ -187,7 +188,7 @@ class InspectPanel:
 
     def _draw_plots(self) -> None:
         view = self.state.view()
-        if view is None or view.result is None or not view.result.blocks:
+        if view is None or view.result is None or not len(view.result.blocks):
             self.plots.image = placeholder("no result", (880, 330))
             return
         self.plots.image = scatter_plots(view)

@@ -11,6 +11,7 @@ import cv2
 import numpy as np
 import viser
 
+from blurcalib.camera import homography_centre
 from blurcalib.results import BlockStatus
 from state import AppState, FrameView, Topic
 from state.figures import block_quads
@@ -30,18 +31,16 @@ def psf_mosaic(view: FrameView, tile: float, show: str, width: int = DISPLAY_WID
     if result is None or view.entry.status == "running":
         items = [(e.H, e.psf) for e in view.live if e.status is BlockStatus.ACCEPTED]
     else:
-        if show == SHOW[0] and view.filter is not None:
-            use = view.filter.kept
-        else:
-            use = np.array([np.isfinite(b.loss) for b in result.blocks], dtype=bool)
-        items = [(b.H, b.psf) for b, u in zip(result.blocks, use, strict=True) if u]
+        blocks = result.blocks
+        use = view.filter.kept if show == SHOW[0] and view.filter is not None else np.isfinite(blocks.loss)
+        items = list(zip(blocks.H[use], blocks.psf[use], strict=True))
     if not items:
         return canvas
     H = np.stack([h for h, _ in items])
     quads = block_quads(H)
     d1, d2 = quads[:, 2] - quads[:, 0], quads[:, 3] - quads[:, 1]
     side = np.sqrt(0.5 * np.abs(d1[:, 0] * d2[:, 1] - d1[:, 1] * d2[:, 0])) * s
-    centres = scaled(H[:, :2, 2] / H[:, 2:, 2], s)
+    centres = scaled(homography_centre(H), s)
     h, w = canvas.shape[:2]
     for (_, psf), c, a in zip(items, centres, side, strict=True):
         n = max(3, round(tile * a))

@@ -54,7 +54,7 @@ from matplotlib.figure import Figure
 from matplotlib.patches import Rectangle
 from scipy.stats import spearmanr
 
-from blurcalib.camera import apply_homography
+from blurcalib.camera import apply_homography, homography_centre
 from blurcalib.experiments.common import (
     ExtractedFrame,
     experiment_parser,
@@ -159,7 +159,7 @@ def block_figures(frames: Sequence[ExtractedFrame], pattern: StarPattern) -> Blo
             "accepted": growth.accepted[k], "loss": fit.loss[k],
             "boundary_energy": fit.boundary_energy[k], "sigma_major": fit.sigma_major[k],
             "eccentricity": fit.eccentricity[k], "centroid": fit.centroid[k],
-            "centre_fit": apply_homography(fit.H_fit[k], np.zeros((len(k), 1, 2)))[:, 0],
+            "centre_fit": homography_centre(fit.H_fit[k]),
             "centre": centre, "true_mean": f.truth.mean[ids], "true_blur": f.truth.blur_length[ids],
             "radius": np.hypot(centre[:, 0] - (w - 1) / 2, centre[:, 1] - (h - 1) / 2) / half_diagonal,
         }
@@ -514,8 +514,8 @@ def save_fig_exp_real1(frames: Sequence[ExtractedFrame], choice: FieldChoice, pa
             ax.plot(c + centroid[0], c + centroid[1], "o", color="cyan", ms=3)
             ax.set_xticks([])
             ax.set_yticks([])
-            block = frame.result.blocks[k]
-            ax.set_title(f"({block.fx},{block.fy}) {label}\nBE {max(fit.boundary_energy[k], 0.0):.2f}, "
+            fx, fy = frame.result.blocks.fx[k], frame.result.blocks.fy[k]
+            ax.set_title(f"({fx},{fy}) {label}\nBE {max(fit.boundary_energy[k], 0.0):.2f}, "
                          f"c=({centroid[0]:+.2f},{centroid[1]:+.2f})", fontsize=6)
     truth = frame.truth
     blur = float(np.median(truth.blur_length[truth.visible]))

@@ -50,7 +50,7 @@ import argparse
 import json
 import math
 from collections.abc import Callable, Sequence
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -59,7 +59,7 @@ from matplotlib.figure import Figure
 from matplotlib.ticker import FormatStrFormatter, LogLocator, NullFormatter, NullLocator
 
 from blurcalib.calibrate import Calibration, calibrate_sharp
-from blurcalib.camera import apply_homography
+from blurcalib.camera import homography_centre
 from blurcalib.deconv import DeconvSettings
 from blurcalib.evaluate import refit_pose
 from blurcalib.experiments.common import (
@@ -77,7 +77,7 @@ from blurcalib.global_alignment import MIN_BLOCKS, AlignmentError, AlignmentSett
 from blurcalib.local_alignment import align_locally
 from blurcalib.pattern import StarPattern
 from blurcalib.quality import QualitySettings, filter_frame
-from blurcalib.results import FeatureFlags, FeatureObservation
+from blurcalib.results import FeatureFlags, FeatureObservation, FeatureTable
 from blurcalib.runtime import check_device
 from blurcalib.synth import Simulator, TrueCamera, sample_pose
 
@@ -190,17 +190,17 @@ def sharp_observations_from_truth(sim: Simulator, indices: Sequence[int], noise_
 
 
 def sharp_observations_extracted(sim: Simulator, indices: Sequence[int], device: str,
-                                 progress: Callable[[str], None] | None = None) -> list[FeatureObservation]:
+                                 progress: Callable[[str], None] | None = None) -> FeatureTable:
     """Sharp-frame star centres from rendering and extracting the frames (7 x 7 PSF window)."""
     settings = ExtractSettings.sharp(deconv=DeconvSettings(kernel_size=7, device=device))
     out = []
     for index in indices:
         frame = sim.frame(index)
         result = extract_frame(frame.image.astype(np.float32), sim.pattern, frame.truth.name, settings)
-        out.extend(result.features)
+        out.append(result.features)
         if progress is not None:
             progress(f"  {frame.truth.name}: {result.status.value}, {len(result.features)} features")
-    return out
+    return FeatureTable.concat(out)
 
 
 # ------------------------------------------------------------------------------------ sweep
@@ -225,20 +225,18 @@ class FrameAlignment:
     angle: float = math.nan
 
 
-def config_centres(frame: ExtractedFrame, config: str) -> np.ndarray:
-    """``(B, 2)`` px star centres of a frame's blocks in a configuration (before its filter):
-    ``H_fit(0, 0)`` for ``raw``, ``H(0, 0)`` otherwise, with the extraction's local alignment
-    for the accepted blocks in ``local_aligned`` (``local_aligned_kept`` re-solves it after
-    filtering, :func:`sweep_frame`)."""
+def config_homographies(frame: ExtractedFrame, config: str) -> np.ndarray:
+    """``(B, 3, 3)`` block homographies of a frame in a configuration (before its filter), whose
+    ``H(0, 0)`` are the star centres: ``H_fit`` for ``raw``, ``H`` otherwise, with the
+    extraction's local alignment for the accepted blocks in ``local_aligned``
+    (``local_aligned_kept`` re-solves it after filtering, :func:`sweep_frame`)."""
     growth = frame.result.growth
-    fit = growth.fit
     if config == "raw":
-        return apply_homography(fit.H_fit, np.zeros((len(fit), 1, 2)))[:, 0]
-    centre = fit.centre.copy()
+        return growth.fit.H_fit
+    H = growth.fit.H.copy()
     if config == "local_aligned" and frame.result.local is not None:
-        acc = np.flatnonzero(growth.accepted)
-        centre[acc] = apply_homography(frame.result.local.H, np.zeros((len(acc), 1, 2)))[:, 0]
-    return centre
+        H[growth.accepted] = frame.result.local.H
+    return H
 
 
 def true_floor(frame: ExtractedFrame, camera: TrueCamera, pattern: StarPattern) -> float:
@@ -276,24 +274,23 @@ def sweep_frame(frame: ExtractedFrame, calibration: Calibration, camera: TrueCam
 
     Thresholds that keep the same blocks share one alignment.
     """
-    growth = frame.result.growth
-    fit = growth.fit
-    fx, fy = pattern.features[growth.feature_id].T
+    blocks = frame.result.blocks
     out: dict[tuple[str, float, str], FrameAlignment] = {}
     cache: dict[tuple[str, bytes, str], FrameAlignment] = {}
     for config in CONFIGS:
-        base = config_centres(frame, "be_filtered" if config == "local_aligned_kept" else config)
+        own = "be_filtered" if config == "local_aligned_kept" else config
+        table = replace(blocks, H=config_homographies(frame, own))
+        base = table.centre
         tau_be = math.inf if config == "raw" else settings.tau_be
         for tau in settings.tau_losses:
             quality = QualitySettings(tau_be=tau_be, tau_loss=tau, min_sigma_major=0.0)
-            filt = filter_frame(fx, fy, base, growth.status, fit.loss, fit.boundary_energy, fit.sigma_major,
-                                frame.image_size, quality)
+            filt = filter_frame(table, frame.image_size, quality)
             kept = np.flatnonzero(filt.kept)
             centre = base
             if config == "local_aligned_kept" and len(kept):
                 centre = base.copy()
-                local = align_locally(fit.H[kept], fx[kept], fy[kept])
-                centre[kept] = apply_homography(local.H, np.zeros((len(kept), 1, 2)))[:, 0]
+                local = align_locally(table.H[kept], table.fx[kept], table.fy[kept])
+                centre[kept] = homography_centre(local.H)
             for bias in BIASES:
                 key = (config, kept.tobytes(), bias)
                 if key not in cache:
