@@ -14,6 +14,7 @@ from blurcalib.cli import main
 from blurcalib.cluster import ClusterError, run_on_cluster
 from blurcalib.extract import ExtractSettings, extract_to_folder
 from blurcalib.results import read_features
+from blurcalib.runtime import configure_threads
 from blurcalib.synth import Simulator, SynthConfig, TrueCamera
 
 distributed = pytest.importorskip(
@@ -53,11 +54,23 @@ def cluster():
             os.environ["PYTHONPATH"] = old
 
 
+@pytest.fixture
+def one_thread():
+    """The cluster's workers compute with one thread; so does the local run compared with them
+    (floating-point sums, hence the last digits, depend on the thread count)."""
+    import torch
+
+    before = torch.get_num_threads()
+    configure_threads(1)
+    yield
+    configure_threads(before)
+
+
 def _features(path: Path) -> dict:
     return {(f.frame, f.feature_id): (f.x, f.y) for f in read_features(path)}
 
 
-def test_cluster_run_matches_local_run_and_resumes(tmp_path, frames, cluster) -> None:
+def test_cluster_run_matches_local_run_and_resumes(tmp_path, frames, cluster, one_thread) -> None:
     paths, sim = frames
     settings = ExtractSettings.sharp()
     local = extract_to_folder(paths, sim.pattern, tmp_path / "local", settings)
