@@ -32,7 +32,8 @@ deblurring (:attr:`blurcalib.seed.Seed.method`) always adapt: their blur is long
 A block that settled in a wrong place (its long PSF shifted within the window, the centre off by
 px at a low loss) is neither kept nor allowed to seed a drifting chain: each front's accepted
 centres must agree within :attr:`GrowSettings.max_inconsistency_px` with the homography of the
-nearest accepted blocks (:func:`inconsistent`). A block rejected after its fit is tried once more
+nearest accepted blocks (:func:`inconsistent`), and once more when the growth ends, when every
+block has neighbours on all sides. A block rejected after its fit is tried once more
 when a later front accepts a neighbour of it, from that better prediction.
 """
 
@@ -462,7 +463,8 @@ def grow(image: np.ndarray, pattern: StarPattern, seed: Seed,
         seed: where the target is (:func:`blurcalib.seed.seed_frame`).
         deconv: block solver settings.
         settings: acceptance rules.
-        on_event: called once per attempted block, in order, as fronts finish.
+        on_event: called once per attempted block, in order, as fronts finish (and once more
+            for a block that the final check rejects).
         should_stop: polled between fronts; growth ends early when it returns True.
     Returns:
         The growth, or None when not a single block could be attempted or the blur near the tag
@@ -580,9 +582,23 @@ def grow(image: np.ndarray, pattern: StarPattern, seed: Seed,
     if not fits:
         return None
     last = np.array(sorted(attempted.values()), dtype=np.int64)  # each block's last attempt
-    return Growth(_take(_concat_fits(fits), last), np.array(ids_all, dtype=np.int64)[last],
-                  [status_all[r] for r in last], np.array(front_all, dtype=np.int64)[last],
-                  np.stack(predicted_all)[last], events)
+    fit = _take(_concat_fits(fits), last)
+    ids = np.array(ids_all, dtype=np.int64)[last]
+    status = [status_all[r] for r in last]
+    front = np.array(front_all, dtype=np.int64)[last]
+    # Once grown, every block has neighbours on all sides: check each against them once more.
+    ok = np.flatnonzero([st is BlockStatus.ACCEPTED for st in status])
+    f = pattern.features[ids[ok]]
+    for k in ok[inconsistent(f, fit.centre[ok], f, fit.centre[ok],
+                             settings.consistency_neighbours, settings.max_inconsistency_px)]:
+        status[k] = BlockStatus.NOT_CONVERGED
+        fx, fy = (int(v) for v in pattern.features[ids[k]])
+        event = GrowthEvent(int(ids[k]), fx, fy, status[k], fit.H[k], fit.psf[k],
+                            float(fit.loss[k]), int(front[k]))
+        events.append(event)
+        if on_event is not None:
+            on_event(event)
+    return Growth(fit, ids, status, front, np.stack(predicted_all)[last], events)
 
 
 def _next_front(pattern: StarPattern, accepted_H: dict[int, np.ndarray],
