@@ -117,7 +117,7 @@ class FrameView:
         entry: a copy of its list entry.
         image: ``(H, W)`` grey levels, or None when unreadable.
         result: the last extraction result (None before the first run).
-        live: growth events of the run in progress or the last run.
+        live: the latest growth event of each block of the run in progress or the last run.
         filter: the quality filter of ``result`` at the current thresholds.
         selected: the selected block (index into ``result.blocks``), or None.
         truth: ground truth of a simulated frame.
@@ -206,7 +206,7 @@ class AppState:
         self._sizes: dict[str, tuple[int, int]] = {}
         self._results: dict[str, FrameResult] = {}
         self._filters: dict[str, FrameFilter] = {}
-        self._live: dict[str, list[GrowthEvent]] = {}
+        self._live: dict[str, dict[int, GrowthEvent]] = {}  # frame -> feature id -> last event
         self._queue: deque[str] = deque()
         self._cancel = threading.Event()
         self._worker: threading.Thread | None = None
@@ -430,7 +430,7 @@ class AppState:
             if self.dataset.truth is not None:
                 truth = next((f for f in self.dataset.truth.frames if f.name == entry.name), None)
             return FrameView(self.current, replace(entry), image, self._results.get(entry.name),
-                             tuple(self._live.get(entry.name, ())), self._filters.get(entry.name),
+                             tuple(self._live.get(entry.name, {}).values()), self._filters.get(entry.name),
                              self.selected, truth, self.dataset.pattern, self.quality)
 
     def results(self) -> dict[str, tuple[FrameResult, FrameFilter | None, tuple[int, int]]]:
@@ -522,7 +522,7 @@ class AppState:
                     break
                 name = self._queue.popleft()
                 self._entry(name).status = "running"
-                self._live[name] = []
+                self._live[name] = {}
                 self._progress = replace(self._progress, frame=name, frame_blocks=0, frame_expected=0)
             self.events.emit(Topic.FRAMES, Topic.RUN, Topic.LIVE)
             t0 = time.perf_counter()
@@ -552,8 +552,8 @@ class AppState:
 
     def _on_event(self, name: str, event: GrowthEvent) -> None:
         with self._lock:
-            events = self._live.setdefault(name, [])
-            events.append(event)
+            events = self._live.setdefault(name, {})
+            events[event.feature_id] = event  # a block judged again (retried, re-checked) counts once
             expected = self._progress.frame_expected
             if not expected and name in self._sizes:
                 expected = expected_blocks(self.dataset.pattern, event, self._sizes[name])
