@@ -130,7 +130,8 @@ class DeconvSettings:
         max_window_px: blocks whose window side exceeds this are degenerate.
         batch_size: blocks solved together (grouped by window size).
         stage_batch_size: after the coarse kernel a batch is solved in groups of at most this
-            many blocks of similar kernel support (less padding; the results do not depend on it).
+            many blocks of similar kernel support, cut where padding costs more than another
+            group (the results do not depend on it).
         converge_tol_px: a block has converged when the last accepted LM step moved its star
             centre by less than this (px).
         device: torch device of the solve (``"cpu"``, ``"cuda"``, ...).
@@ -159,7 +160,7 @@ class DeconvSettings:
     min_contrast: float = 10.0
     max_window_px: int = 256
     batch_size: int = 64
-    stage_batch_size: int = 8
+    stage_batch_size: int = 16
     converge_tol_px: float = 0.05
     device: str = "cpu"
     dtype: str = "float32"
@@ -291,34 +292,66 @@ class BlockModel(NamedTuple):
 
 
 # ----------------------------------------------------------------------------- small helpers
+class _Factor(NamedTuple):
+    """The Cholesky factor of a kernel solve's free system, compacted to its free entries.
+
+    ``chol (b, F, F)`` factors ``G`` restricted to ``index (b, F)`` (the free entries first, in
+    order, then padding); ``weight (b, F)`` is 1 on free entries and 0 on padding, whose rows
+    and columns are the identity.
+    """
+
+    chol: torch.Tensor
+    index: torch.Tensor
+    weight: torch.Tensor
+
+    def solve(self, rhs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """``G_FF^{-1} rhs_F`` for ``rhs (b, M, c)``: ``(rhs_F (b, F, c), solution (b, F, c))``."""
+        index = self.index[..., None].expand(-1, -1, rhs.shape[2])
+        sel = torch.gather(rhs, 1, index) * self.weight[..., None]
+        return sel, torch.cholesky_solve(sel, self.chol)
+
+
 def _solve_nonnegative(G: torch.Tensor, rhs: torch.Tensor, m: int, passes: int
-                       ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+                       ) -> tuple[torch.Tensor, _Factor]:
     """``x = G^{-1} rhs`` with the first ``m`` entries that come out negative fixed at zero.
 
     Active-set passes: each fixes the entries that are negative in the previous solution (the
     others are free) and re-solves the free block of ``G`` (Cholesky, ``G`` is symmetric positive
-    definite through the ridge); the passes stop early once no block's active set changes.
+    definite through the ridge), gathered into a ``(b, F, F)`` system over the largest free count
+    ``F`` (most kernel entries end fixed, so the later passes are cheap); the passes stop early
+    once no block's active set changes.
 
     Args:
         G: ``(b, M, M)`` float64 normal matrices; rhs: ``(b, M, 1)``; m: constrained entries
             (the kernel's); passes: at most this many active-set passes (0: unconstrained).
     Returns:
-        ``x (b, M)`` (fixed entries exactly 0), the Cholesky factor of the final free system
-        (fixed rows and columns replaced by the identity) and ``free (b, M)`` as 0/1 float64.
+        ``x (b, M)`` (fixed entries exactly 0) and the :class:`_Factor` of the final free system.
     """
-    free = torch.ones(rhs.shape[:2], dtype=G.dtype, device=G.device)
-    chol = torch.linalg.cholesky_ex(G)[0]  # _ex: a bad block must not stop the batch
-    x = torch.cholesky_solve(rhs, chol)[..., 0]
+    b, M = rhs.shape[:2]
+    dev = G.device
+    index = torch.arange(M, device=dev).expand(b, M)
+    weight = torch.ones((b, M), dtype=G.dtype, device=dev)
+    # cholesky_ex: a bad block must not stop the batch
+    factor = _Factor(torch.linalg.cholesky_ex(G)[0], index, weight)
+    x = torch.cholesky_solve(rhs, factor.chol)[..., 0]
+    free = torch.ones((b, M), dtype=torch.bool, device=dev)
     for _ in range(passes):
-        keep = torch.cat([(x[:, :m] > 0).to(G.dtype), free[:, m:]], dim=1) * free
+        keep = free.clone()
+        keep[:, :m] &= x[:, :m] > 0
         if torch.equal(keep, free):
             break
         free = keep
-        Gf = G * (free[:, :, None] * free[:, None, :])
-        Gf.diagonal(dim1=1, dim2=2).add_(1.0 - free)
-        chol = torch.linalg.cholesky_ex(Gf)[0]
-        x = torch.cholesky_solve(rhs * free[..., None], chol)[..., 0] * free
-    return x, chol, free
+        F = int(free.sum(dim=1).max())
+        index = torch.argsort((~free).to(torch.int8), dim=1, stable=True)[:, :F]
+        weight = torch.gather(free, 1, index).to(G.dtype)
+        flat = (index[:, :, None] * M + index[:, None, :]).reshape(b, F * F)
+        Gf = torch.gather(G.reshape(b, M * M), 1, flat).reshape(b, F, F)
+        Gf *= weight[:, :, None] * weight[:, None, :]
+        Gf.diagonal(dim1=1, dim2=2).add_(1.0 - weight)
+        factor = _Factor(torch.linalg.cholesky_ex(Gf)[0], index, weight)
+        xf = factor.solve(rhs)[1][..., 0] * weight
+        x = torch.zeros_like(x).scatter_(1, index, xf)
+    return x, factor
 
 
 def _fft_size(n: int) -> int:
@@ -513,36 +546,43 @@ class _Problem:
         j = torch.arange(self.Wl, device=dev, dtype=self.dt)[None, None, :] + ox
         i = torch.arange(self.Hl, device=dev, dtype=self.dt)[None, :, None] + oy
 
-        def row(k: int) -> torch.Tensor:
-            return M[:, k, 0, None, None] * j + M[:, k, 1, None, None] * i + M[:, k, 2, None, None]
+        def row(k: int) -> torch.Tensor:  # one full-grid add: the column and row terms broadcast
+            return (M[:, k, 0, None, None] * j + M[:, k, 2, None, None]) + M[:, k, 1, None, None] * i
 
-        wq = row(2).clamp_min(1e-6)  # > 0 in front of the camera (H is normalised to H[2, 2] = 1)
-        qx, qy = row(0) / wq, row(1) / wq
-        q = torch.stack([qx, qy], dim=-1)
+        inv_w = 1.0 / row(2).clamp_min(1e-6)  # w > 0 in front of the camera (H[2, 2] = 1)
+        qx, qy = row(0) * inv_w, row(1) * inv_w
         if self.s.pattern == "signed_distance":
-            dist, n = star_signed_distance_normal(q, self.N)  # n: unit normal of the nearest edge
+            dist, nx, ny = star_signed_distance_normal(qx, qy, self.N)  # unit normal of the nearest edge
             # |grad_x dist| = |J^T n| with J = dq/dx = (M[:2, :2] - q M[2, :2]) / w
-            jx = n[..., 0] * (M[:, 0, 0, None, None] - qx * M[:, 2, 0, None, None]) \
-                + n[..., 1] * (M[:, 1, 0, None, None] - qy * M[:, 2, 0, None, None])
-            jy = n[..., 0] * (M[:, 0, 1, None, None] - qx * M[:, 2, 1, None, None]) \
-                + n[..., 1] * (M[:, 1, 1, None, None] - qy * M[:, 2, 1, None, None])
-            scale = (torch.sqrt(jx * jx + jy * jy) / wq).clamp_min(1e-9) * self.s.tau
+            nq = nx * qx + ny * qy
+            jx = nx * M[:, 0, 0, None, None] + ny * M[:, 1, 0, None, None] - nq * M[:, 2, 0, None, None]
+            jy = nx * M[:, 0, 1, None, None] + ny * M[:, 1, 1, None, None] - nq * M[:, 2, 1, None, None]
+            scale = (torch.sqrt(jx * jx + jy * jy) * inv_w).clamp_min(1e-9) * self.s.tau
             S = torch.sigmoid(dist / scale)
             if not with_jac:
                 return S, None
-            g = (S * (1.0 - S) / scale)[..., None] * n  # dS/dq, the normaliser held fixed
+            g = S * (1.0 - S) / scale  # dS/dq = g n, the normaliser held fixed
+            gx, gy = g * nx, g * ny
         else:
             with torch.enable_grad():
-                q = q.detach().requires_grad_(True)
+                q = torch.stack([qx, qy], dim=-1).detach().requires_grad_(True)
                 soft = smooth_star(q, self.N, self.s.beta)
                 if not with_jac:
                     return soft.detach(), None
-                (g,) = torch.autograd.grad(soft.sum(), q)
+                (grad,) = torch.autograd.grad(soft.sum(), q)
                 S = soft.detach()
+            gx, gy = grad[..., 0].contiguous(), grad[..., 1].contiguous()
         # dq/d delta at delta = 0: -(Delta q~)_xy + q (Delta q~)_w with q~ = (q_x, q_y, 1)
-        gx, gy = g[..., 0], g[..., 1]
-        radial = gx * qx + gy * qy
-        dS = torch.stack([-gx * qx, -gx * qy, -gx, -gy * qx, -gy * qy, -gy, radial * qx, radial * qy], dim=1)
+        dS = torch.empty((H_loc.shape[0], 8, *S.shape[1:]), dtype=S.dtype, device=dev)
+        torch.neg(gx, out=dS[:, 2])
+        torch.neg(gy, out=dS[:, 5])
+        torch.mul(dS[:, 2], qx, out=dS[:, 0])
+        torch.mul(dS[:, 2], qy, out=dS[:, 1])
+        torch.mul(dS[:, 5], qx, out=dS[:, 3])
+        torch.mul(dS[:, 5], qy, out=dS[:, 4])
+        radial = -(dS[:, 0] + dS[:, 4])
+        torch.mul(radial, qx, out=dS[:, 6])
+        torch.mul(radial, qy, out=dS[:, 7])
         return S, dS
 
     def square_mask(self, H_loc: torch.Tensor) -> torch.Tensor:
@@ -679,7 +719,7 @@ class _Problem:
         G = (D @ D.transpose(1, 2)).double()
         G.diagonal(dim1=1, dim2=2).add_(lam)
         rhs = (des.img[:, None, :] @ D.transpose(1, 2)).double().transpose(1, 2)  # (b, m + 3, 1)
-        x, chol, free = _solve_nonnegative(G, rhs, m, self.s.nonnegative_passes if self.s.nonnegative else 0)
+        x, factor = _solve_nonnegative(G, rhs, m, self.s.nonnegative_passes if self.s.nonnegative else 0)
         res = des.img - (x.to(self.dt)[:, None, :] @ D)[:, 0]
         sse = (res * res).sum(dim=1).double()
         out = {"x": x, "obj": sse + (x * x * lam).sum(dim=1), "sse": sse, "lam": lam}
@@ -698,8 +738,7 @@ class _Problem:
             chans = torch.cat([dS * a_l[:, None], (self.u_l * S)[:, None], (self.v_l * S)[:, None]], dim=1)
             J = torch.gather(self.conv(chans, k).reshape(b, _NUM_NL, -1), 2,
                              des.pix[:, None, :].expand(-1, _NUM_NL, -1)) * des.pix_w[:, None, :]
-        Y = (J @ D.transpose(1, 2)).double().transpose(1, 2) * free[..., None]  # (b, m + 3, 10)
-        Z = torch.cholesky_solve(Y, chol)
+        Y, Z = factor.solve((J @ D.transpose(1, 2)).double().transpose(1, 2))  # (b, F, 10), free rows
         out["N"] = (J @ J.transpose(1, 2)).double() - Y.transpose(1, 2) @ Z
         out["g"] = (J @ res[..., None]).double()[..., 0]
         return out
@@ -798,13 +837,56 @@ class _Problem:
 
 
 # ----------------------------------------------------------------------------------- fitting
+_GROUP_COST = 8.6e7
+"""Fixed cost of solving one more stage group (its Python-level tensor operations), in units of
+the multiply-adds of a normal matrix ``D D^T`` (measured on one CPU thread: ~3 ms per kernel
+solve against ~0.035 ns per multiply-add)."""
+_LATENT_COST = 4.3e3
+"""Cost of one latent-grid pixel of a kernel solve (the pattern, its Jacobian and the FFTs:
+~150 ns), in the same units."""
+
+
+def _stage_groups(support: np.ndarray, pixels: np.ndarray, size: np.ndarray, radius: int, most: int
+                  ) -> list[np.ndarray]:
+    """Blocks sorted by kernel support, cut into consecutive groups of at most ``most`` blocks.
+
+    A group is padded to its largest support ``m``, loss pixel count ``n`` and window; the cuts
+    minimise the modelled cost of its kernel solves, ``sum over groups of (blocks x ((m + 3)^2 n
+    + _LATENT_COST x latent pixels) + _GROUP_COST)`` (dynamic programming over the sorted order).
+
+    Args:
+        support: ``(b,)`` kernel entries per block; pixels: ``(b,)`` loss pixels per block;
+            size: ``(b, 2)`` window ``(w, h)`` px; radius: kernel radius ``c`` px;
+            most: the largest group.
+    Returns:
+        The groups, as arrays of block indices.
+    """
+    order = np.argsort(support, kind="stable")
+    rows = (support[order] + 3).tolist(), pixels[order].tolist(), (size[order] + 2 * radius).tolist()
+    b = len(order)
+    best = [0.0] + [math.inf] * b
+    cut = [0] * (b + 1)
+    for end in range(1, b + 1):
+        m = n = w = h = 0
+        for start in range(end - 1, max(end - most, 0) - 1, -1):
+            m, n = max(m, rows[0][start]), max(n, rows[1][start])
+            w, h = max(w, rows[2][start][0]), max(h, rows[2][start][1])
+            cost = best[start] + (end - start) * (m * m * n + _LATENT_COST * w * h) + _GROUP_COST
+            if cost < best[end]:
+                best[end], cut[end] = cost, start
+    groups = []
+    end = b
+    while end > 0:
+        groups.append(order[cut[end]:end])
+        end = cut[end]
+    return groups[::-1]
+
+
 def _fit_chunk(prob: _Problem, H: np.ndarray) -> dict:
     """The solver schedule (module docstring) on one padded batch; per-block numpy results.
 
     After the coarse kernel the blocks are sorted by the size of their kernel support and solved
-    in groups of :attr:`DeconvSettings.stage_batch_size`, each cropped to its own largest window:
-    the cost of a kernel solve grows with the square of the padded support and with the padded
-    pixel count, so similar blocks are padded together.
+    in consecutive groups (:func:`_stage_groups`), each cropped to its own largest window.
     """
     s = prob.s
     b = H.shape[0]
@@ -814,8 +896,8 @@ def _fit_chunk(prob: _Problem, H: np.ndarray) -> dict:
     k = prob.kernel(prob.evaluate(H_loc, alpha, des, None, with_jac=False)["x"], des)
     H_loc, n = prob.recentre_int(H_loc, k)
     support = prob.support(k, n)
-    order = np.argsort(support.sum(dim=(1, 2)).cpu().numpy(), kind="stable")
-    groups = np.array_split(order, math.ceil(b / s.stage_batch_size))
+    groups = _stage_groups(support.sum(dim=(1, 2)).cpu().numpy(), des.mask.sum(dim=(1, 2)).cpu().numpy(),
+                           prob.size, prob.r, s.stage_batch_size)
     parts = []
     for idx in groups:
         t = torch.as_tensor(idx, device=H_loc.device)

@@ -471,44 +471,44 @@ def star_signed_distance(q: torch.Tensor, num_segments: int) -> torch.Tensor:
     return torch.where(white, dist, -dist)
 
 
-def star_signed_distance_normal(q: torch.Tensor, num_segments: int) -> tuple[torch.Tensor, torch.Tensor]:
+def star_signed_distance_normal(qx: torch.Tensor, qy: torch.Tensor, num_segments: int
+                                ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """:func:`star_signed_distance` and its gradient in ``q``, in closed form (no autograd).
 
-    The gradient of the distance to the nearest edge is that edge's unit normal: across a ray
-    ``sign(u e_y - v e_x) (e_y, -e_x)``, from the star centre ``(u, v) / |(u, v)|``, across the
-    square's border ``-sign`` of the larger coordinate; it points into white.
+    The nearest sector ray is the one at the nearest multiple of the sector angle (with
+    ``N >= 4`` it lies ahead of the point, so the distance is to its line). The gradient of the
+    distance to the nearest edge is that edge's unit normal: across a ray
+    ``sign(u e_y - v e_x) (e_y, -e_x)``, across the square's border ``-sign`` of the larger
+    coordinate; it points into white.
 
+    Args:
+        qx, qy: block coordinates, any common shape ``(...)`` (separate contiguous tensors: the
+            latent pattern's hot path).
+        num_segments: N (a multiple of 4).
     Returns:
-        ``(dist (...), normal (..., 2))``, block units.
+        ``(dist, normal_x, normal_y)``, each ``(...)``, block units.
     """
-    centre = 2.0 * torch.round(q / 2.0)
-    d = q - centre
-    u, v = d[..., 0], d[..., 1]
-    sector_width = 2.0 * math.pi / num_segments
-    sector = torch.floor(torch.remainder(torch.atan2(u, v), 2.0 * math.pi) / sector_width)
-    white = torch.remainder(sector, 2.0) == 1.0
-    radius = torch.sqrt(u * u + v * v + 1e-30)
-    dist = torch.full_like(u, float("inf"))
-    nu, nv = torch.zeros_like(u), torch.zeros_like(u)
-    for k in (sector, sector + 1.0):
-        alpha = k * sector_width
-        ex, ey = torch.sin(alpha), torch.cos(alpha)
-        ahead = u * ex + v * ey > 0
-        cross = u * ey - v * ex
-        ray = torch.where(ahead, torch.abs(cross), radius)
-        closer = ray < dist
-        side = torch.sign(cross)
-        nu = torch.where(closer, torch.where(ahead, side * ey, u / radius), nu)
-        nv = torch.where(closer, torch.where(ahead, -side * ex, v / radius), nv)
-        dist = torch.minimum(dist, ray)
+    u = qx - 2.0 * torch.round(qx / 2.0)
+    v = qy - 2.0 * torch.round(qy / 2.0)
+    t = torch.atan2(u, v) * (num_segments / (2.0 * math.pi))  # angle in sectors
+    sector = torch.floor(t)
+    sign = 4.0 * (sector * 0.5 - torch.floor(sector * 0.5)) - 1.0  # +1 in white (odd) sectors
+    alpha = torch.round(t) * (2.0 * math.pi / num_segments)
+    ex, ey = torch.sin(alpha), torch.cos(alpha)
+    cross = u * ey - v * ex
+    ray = torch.abs(cross)
+    side = torch.sign(cross)
     au, av = torch.abs(u), torch.abs(v)
     border = 1.0 - torch.maximum(au, av)
-    closer = border < dist
-    nu = torch.where(closer, torch.where(au >= av, -torch.sign(u), 0.0), nu)
-    nv = torch.where(closer, torch.where(au >= av, 0.0, -torch.sign(v)), nv)
-    dist = torch.minimum(dist, border)
-    sign = torch.where(white, 1.0, -1.0)
-    return dist * sign, torch.stack([nu * sign, nv * sign], dim=-1)
+    # 0/1 selectors by arithmetic (faster than comparisons on the CPU): the border is nearer,
+    # and |u| >= |v|
+    closer = torch.clamp_min(torch.sign(ray - border), 0.0)
+    wider = 1.0 - torch.clamp_min(torch.sign(av - au), 0.0)
+    ray_x, ray_y = side * ey, -side * ex
+    nu = ray_x + closer * (-torch.sign(u) * wider - ray_x)
+    nv = ray_y + closer * (torch.sign(v) * (wider - 1.0) - ray_y)
+    dist = torch.minimum(ray, border)
+    return dist * sign, nu * sign, nv * sign
 
 
 PAGE_SIZES_MM: dict[str, tuple[float, float]] = {
