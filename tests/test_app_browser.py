@@ -36,6 +36,9 @@ if not CHROMIUM.exists():
 sync_api = pytest.importorskip("playwright.sync_api",
                                reason="playwright not installed: pip install playwright")
 pytest.importorskip("viser", reason="viser not installed: pip install 'viser>=1.1,<1.2'")
+# The app answers within a second on an idle machine; on a loaded 2-core machine a step (an
+# export, a bundle adjustment's figures) can take longer than expect's 5 s default.
+sync_api.expect.set_options(timeout=60_000)
 
 FLAGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
          "--disable-background-networking", "--disable-component-update", "--disable-sync",
