@@ -46,7 +46,7 @@ from dataclasses import dataclass, field, replace
 import cv2
 import numpy as np
 
-from blurcalib.camera import apply_homography, homography_centre
+from blurcalib.camera import apply_homography
 from blurcalib.deconv import BlockFit, DeconvSettings, fit_blocks
 from blurcalib.pattern import StarPattern
 from blurcalib.results import BlockStatus
@@ -491,7 +491,7 @@ def grow(image: np.ndarray, pattern: StarPattern, seed: Seed,
     H_ring = block_homography(seed.H_feature, ring[:, 0], ring[:, 1])
     if seed.source == "given":
         # Without a tag, start from the block nearest to the image centre that lies inside.
-        centres = homography_centre(H_ring)
+        centres = apply_homography(H_ring, np.zeros((len(ring), 1, 2)))[:, 0]
         inside = (centres[:, 0] > 0) & (centres[:, 0] < w - 1) & (centres[:, 1] > 0) \
             & (centres[:, 1] < h - 1)
         if not inside.any():
@@ -527,7 +527,7 @@ def grow(image: np.ndarray, pattern: StarPattern, seed: Seed,
         else:
             fit = fit_blocks(image, H0, N, deconv, _pixel_mask(tag, deconv.kernel_size))
         fits.append(fit)
-        predicted_centre = homography_centre(H0)
+        predicted_centre = apply_homography(H0, np.zeros((len(H0), 1, 2)))[:, 0]
         fitted_centre = fit.centre
         square_px = np.sqrt(np.abs(np.linalg.det(H0[:, :2, :2]))) * 2.0
         newly_accepted, accepted_rows = [], []
@@ -535,7 +535,7 @@ def grow(image: np.ndarray, pattern: StarPattern, seed: Seed,
         fitted_ok = np.array([st is BlockStatus.ACCEPTED for st in fit.status], dtype=bool)
         ref_f = np.concatenate([pattern.features[np.fromiter(accepted_H, np.int64,
                                                              len(accepted_H))], front_f[fitted_ok]])
-        ref_c = np.concatenate([homography_centre(np.array(list(accepted_H.values())).reshape(-1, 3, 3)),
+        ref_c = np.concatenate([np.array([Hb[:2, 2] for Hb in accepted_H.values()]).reshape(-1, 2),
                                 fitted_centre[fitted_ok]])
         off = inconsistent(front_f, fitted_centre, ref_f, ref_c, settings.consistency_neighbours,
                            settings.max_inconsistency_px)
