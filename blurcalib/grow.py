@@ -25,16 +25,7 @@ than about 18 px of blur (:func:`needs_adaptive_window`); below, the configured 
 measured best there. Kernels of one growth are zero-padded (centred) to its
 largest window, which leaves them unchanged as convolution kernels. The block model's latent
 pattern is the periodic star field, so pixels nearer to a tag than the kernel radius (which see
-the tag through the blur) are left out of every block's loss (:func:`tag_mask`); the ring's window
-is capped so that this leaves it half of its square (:func:`ring_kernel_cap`). Frames seeded by
-deblurring (:attr:`blurcalib.seed.Seed.method`) always adapt: their blur is long by construction.
-
-A block that settled in a wrong place (its long PSF shifted within the window, the centre off by
-px at a low loss) is neither kept nor allowed to seed a drifting chain: each front's accepted
-centres must agree within :attr:`GrowSettings.max_inconsistency_px` with the homography of the
-nearest accepted blocks (:func:`inconsistent`), and once more when the growth ends, when every
-block has neighbours on all sides. A block rejected after its fit is tried once more
-when a later front accepts a neighbour of it, from that better prediction.
+the tag through the blur) are left out of every block's loss (:func:`tag_mask`).
 """
 
 from __future__ import annotations
@@ -73,21 +64,6 @@ class GrowSettings:
             the configured window is kept (the measured best for up to 15 px of blur).
         refit_boundary_energy: blocks whose PSF has more than this share of its energy in the
             window's outer two-pixel ring are re-fitted with a larger window.
-        max_inconsistency_px: reject blocks whose star centre is further than this (px) from
-            the homography of the accepted star centres around it (:func:`inconsistent`).
-        consistency_neighbours: that many accepted blocks nearest to it (in the pattern).
-        max_relative_loss: reject blocks whose loss exceeds this multiple of the median loss
-            of the growth's accepted blocks (a fit that settled beside the star field's
-            structure; the absolute ``max_loss`` does not know the frame's noise).
-        max_ring_deviation_px: reject ring blocks whose star centre is further than this (px)
-            from the prediction of the homography re-estimated from the ring
-            (:func:`refine_ring`; the neighbour check needs a consensus of 6 blocks within
-            0.25 px, which a ring of fits 0.1-0.5 px off may not reach).
-        max_blur_per_square: a tag-seeded frame whose blur extent near the tag (the deblur's
-            length, or the median ``sqrt(12) sigma_major`` of the ring's first fit, the larger)
-            exceeds this share of the ring's square side is not grown: there the block fits
-            settle off by 1-3 px, consistently with each other (measured: 22 px of blur on
-            21 px squares, even started from the true homography).
     """
 
     max_loss: float = 400.0
@@ -98,11 +74,6 @@ class GrowSettings:
     kernel_per_extent: float = 1.5
     refit_boundary_energy: float = 0.1
     adapt_above_extent_px: float = 18.0
-    max_inconsistency_px: float = 0.5
-    consistency_neighbours: int = 12
-    max_relative_loss: float = 3.0
-    max_ring_deviation_px: float = 1.0
-    max_blur_per_square: float = 0.9
 
     def __post_init__(self) -> None:
         if self.max_kernel_size < 3 or self.max_kernel_size % 2 == 0:
@@ -158,10 +129,6 @@ class Growth:
     def accepted(self) -> np.ndarray:
         """``(B,)`` bool, blocks accepted by the growth."""
         return np.array([s is BlockStatus.ACCEPTED for s in self.status], dtype=bool)
-
-
-_RETRIED = (BlockStatus.NOT_CONVERGED, BlockStatus.HIGH_LOSS, BlockStatus.PSF_TRUNCATED)
-"""Rejections after a fit, which a later, better prediction may undo (tried once more)."""
 
 
 def _shift_q(dx: int, dy: int) -> np.ndarray:
@@ -255,78 +222,6 @@ def needs_adaptive_window(fit: BlockFit, settings: GrowSettings) -> bool:
                 or np.nanmedian(fit.boundary_energy[ok]) > settings.refit_boundary_energy)
 
 
-def inconsistent(features: np.ndarray, centres: np.ndarray, ref_features: np.ndarray,
-                 ref_centres: np.ndarray, neighbours: int, tol_px: float, min_points: int = 6
-                 ) -> np.ndarray:
-    """``(B,)`` bool: blocks whose star centre disagrees with their accepted neighbours.
-
-    For block ``b`` at integer feature coordinates ``features[b] (2,)`` with star centre
-    ``centres[b] (2,)`` px, the ``neighbours`` reference blocks nearest to it in the pattern
-    (the block itself excluded) give a homography feature coordinates -> px (RANSAC with
-    ``tol_px / 2``); the block is inconsistent when its centre is more than ``tol_px`` from that
-    homography's prediction (found by at least ``min_points`` of them, not all on a line).
-    Near the seed the nearest blocks span the whole accepted region, further out a few squares;
-    over such a span the lens distortion is far below a pixel, so this catches a
-    block that settled with its long PSF shifted (and the chain of blocks predicted from it),
-    which the fit's loss does not see. Blocks with fewer than ``min_points`` reference blocks
-    around them are not judged.
-
-    Args:
-        features: ``(B, 2)`` int feature coordinates of the blocks to judge.
-        centres: ``(B, 2)`` px their star centres.
-        ref_features: ``(R, 2)`` int feature coordinates of accepted blocks.
-        ref_centres: ``(R, 2)`` px their star centres.
-        neighbours: reference blocks per judgement.
-        tol_px: largest disagreement (px).
-        min_points: fewest reference blocks for a judgement.
-    """
-    bad = np.zeros(len(features), dtype=bool)
-    for b in range(len(features)):
-        d = np.linalg.norm(ref_features - features[b], axis=1)
-        d[d == 0] = np.inf
-        near = np.argsort(d, kind="stable")[:neighbours]
-        near = near[np.isfinite(d[near])]
-        if len(near) < min_points or not np.all(np.isfinite(centres[b])):
-            continue
-        src = ref_features[near].astype(np.float64)
-        spread = np.linalg.svd(src - src.mean(axis=0), compute_uv=False)[-1] / math.sqrt(len(src))
-        if spread < 0.5:  # (nearly) on a line: no homography to judge by
-            continue
-        H, inliers = cv2.findHomography(src, ref_centres[near].astype(np.float64), cv2.RANSAC,
-                                        tol_px / 2)
-        if H is None or int(inliers.sum()) < min_points:
-            continue
-        p = apply_homography(H, features[b][None].astype(np.float64))[0]
-        bad[b] = bool(np.linalg.norm(p - centres[b]) > tol_px)
-    return bad
-
-
-def _blur_exceeds_squares(fit: BlockFit, H0: np.ndarray, seed: Seed,
-                          settings: GrowSettings) -> bool:
-    """Whether the ring's blur extent exceeds :attr:`GrowSettings.max_blur_per_square` of its
-    square side (``fit``: the ring's first fit from ``H0 (B, 3, 3)``)."""
-    square = 2.0 * np.sqrt(np.abs(np.linalg.det(H0[:, :2, :2])))
-    sigma = fit.sigma_major[np.isfinite(fit.sigma_major)]
-    extent = math.sqrt(12.0) * float(np.median(sigma)) if sigma.size else 0.0
-    if np.isfinite(seed.blur[0]):
-        extent = max(extent, seed.blur[0])
-    return bool(extent > settings.max_blur_per_square * np.nanmedian(square))
-
-
-def ring_kernel_cap(H0: np.ndarray, largest: int) -> int:
-    """Largest PSF window (px, odd, at most ``largest``) for the ring around the tag, whose
-    blocks ``H0 (B, 3, 3)`` lose the pixels within the kernel radius plus 2 px of the tag
-    (:func:`tag_mask`): ``square - 4`` px keeps at least half of each ring block's square (a
-    larger window left the ring's fits unconverged or off by 0.2-1 px on 21-24 px squares
-    with 17-23 px of blur, even started from the true homography)."""
-    square = 2.0 * np.sqrt(np.abs(np.linalg.det(H0[:, :2, :2])))
-    square = square[np.isfinite(square)]
-    if square.size == 0:
-        return largest
-    k = int(np.floor(np.median(square))) - 4
-    return int(max(3, min(k - 1 + k % 2, largest)))
-
-
 def tag_mask(pattern: StarPattern, H_feature: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
     """``(H, W)`` uint8, 1 on the tags' areas (feature boxes) seen through ``H_feature``."""
     mask = np.zeros(shape, dtype=np.uint8)
@@ -356,9 +251,7 @@ def fit_front(image: np.ndarray, H0: np.ndarray, num_segments: int, deconv: Deco
     whose window is too small for their PSF with larger windows (at least 1.4 x larger each
     time, up to :attr:`GrowSettings.max_kernel_size`), keeping a re-fit when it is accepted with
     no more boundary energy; a block whose re-fit is not kept is not re-fitted again (its
-    window is not what fails it); then blocks still not converged are fitted once more from
-    where they stopped (:func:`_continue_unconverged`). Kernels come back padded to the largest
-    window used. ``tag``
+    window is not what fails it). Kernels come back padded to the largest window used. ``tag``
     (:func:`tag_mask`) keeps pixels near the tags out of the fits; ``first`` is the fit with
     ``kernel_size`` when already done."""
     fit = first if first is not None else fit_blocks(
@@ -388,29 +281,6 @@ def fit_front(image: np.ndarray, H0: np.ndarray, num_segments: int, deconv: Deco
         order = np.argsort(np.concatenate([keep, redo[better]]), kind="stable")
         fit = _take(merged, order)
         block_size[redo[better]] = size
-    return _continue_unconverged(image, fit, block_size, num_segments, deconv, tag)
-
-
-def _continue_unconverged(image: np.ndarray, fit: BlockFit, block_size: np.ndarray,
-                          num_segments: int, deconv: DeconvSettings, tag: np.ndarray | None
-                          ) -> BlockFit:
-    """Re-fit once, from where they stopped (their fitted ``H``), the blocks of ``fit`` that were
-    fitted but not converged (a long blur started a few px off needs more steps than the
-    solver's schedule), each with its own window (``block_size (B,)`` px); a re-fit replaces the
-    first fit when it is accepted."""
-    unconverged = np.array([st is BlockStatus.NOT_CONVERGED for st in fit.status], dtype=bool)
-    unconverged &= np.all(np.isfinite(fit.H.reshape(len(fit.H), -1)), axis=1)
-    for size in np.unique(block_size[unconverged]):
-        rows = np.flatnonzero(unconverged & (block_size == size))
-        refit = fit_blocks(image, _normalise(fit.H[rows]), num_segments,
-                           replace(deconv, kernel_size=int(size)), _pixel_mask(tag, int(size)))
-        better = np.array([st is BlockStatus.ACCEPTED for st in refit.status], dtype=bool)
-        if not better.any():
-            continue
-        keep = np.setdiff1d(np.arange(len(fit.H)), rows[better])
-        merged = _concat_fits([_take(fit, keep), _take(refit, np.flatnonzero(better))])
-        order = np.argsort(np.concatenate([keep, rows[better]]), kind="stable")
-        fit = _take(merged, order)
     return fit
 
 
@@ -429,12 +299,9 @@ def refine_ring(image: np.ndarray, pattern: StarPattern, ids: list[int], fit: Bl
         adaptive: choose the window from the first fit's PSFs (else the configured one).
     Returns:
         ``(H0 (B, 3, 3), fit)``: the new predictions and their fit; None when fewer than 6
-        blocks were fitted (accepted or not converged: a start several px off under a long blur
-        often stops short of convergence but near the star) or no homography fits them
-        (RANSAC, 1.5 px).
+        blocks were accepted or no homography fits them (RANSAC, 1.5 px).
     """
-    ok = np.array([st in (BlockStatus.ACCEPTED, BlockStatus.NOT_CONVERGED)
-                   for st in fit.status], dtype=bool)
+    ok = np.array([st is BlockStatus.ACCEPTED for st in fit.status], dtype=bool)
     ok &= np.all(np.isfinite(fit.centre), axis=1)
     if ok.sum() < 6:
         return None
@@ -463,21 +330,16 @@ def grow(image: np.ndarray, pattern: StarPattern, seed: Seed,
         seed: where the target is (:func:`blurcalib.seed.seed_frame`).
         deconv: block solver settings.
         settings: acceptance rules.
-        on_event: called once per attempted block, in order, as fronts finish (and once more
-            for a block that the final check rejects).
+        on_event: called once per attempted block, in order, as fronts finish.
         should_stop: polled between fronts; growth ends early when it returns True.
     Returns:
-        The growth, or None when not a single block could be attempted or the blur near the tag
-        is too long for its squares (:attr:`GrowSettings.max_blur_per_square`).
+        The growth, or None when not a single block could be attempted.
     """
     deconv = deconv or DeconvSettings()
     settings = settings or GrowSettings()
     h, w = image.shape
     N = pattern.num_star_segments
     attempted: dict[int, int] = {}  # feature id -> row in the concatenated results
-    retry: set[int] = set()  # fitted, rejected once: tried again from new neighbours
-    accepted_loss = np.zeros(0)
-    refined = None  # the ring re-fitted from its own homography
     accepted_H: dict[int, np.ndarray] = {}
     fits: list[BlockFit] = []
     ids_all: list[int] = []
@@ -512,14 +374,12 @@ def grow(image: np.ndarray, pattern: StarPattern, seed: Seed,
         H0 = np.stack(front_H)
         if adaptive is None:
             fit = fit_blocks(image, H0, N, deconv, _pixel_mask(tag, deconv.kernel_size))
-            adaptive = seed.method == "tag_deblurred" or needs_adaptive_window(fit, settings)
-            if seed.source == "tag" and _blur_exceeds_squares(fit, H0, seed, settings):
-                return None
-            ring = replace(settings, max_kernel_size=ring_kernel_cap(H0, settings.max_kernel_size))
+            adaptive = needs_adaptive_window(fit, settings)
             if adaptive:
-                fit = fit_front(image, H0, N, deconv, ring, kernel_size, tag, first=fit)
+                fit = fit_front(image, H0, N, deconv, settings, kernel_size, tag, first=fit)
             if seed.source == "tag":
-                refined = refine_ring(image, pattern, front_ids, fit, deconv, ring, tag, adaptive)
+                refined = refine_ring(image, pattern, front_ids, fit, deconv, settings, tag,
+                                      adaptive)
                 if refined is not None:
                     H0, fit = refined
         elif adaptive:
@@ -531,31 +391,16 @@ def grow(image: np.ndarray, pattern: StarPattern, seed: Seed,
         fitted_centre = fit.centre
         square_px = np.sqrt(np.abs(np.linalg.det(H0[:, :2, :2]))) * 2.0
         newly_accepted, accepted_rows = [], []
-        front_f = pattern.features[np.asarray(front_ids)]
-        fitted_ok = np.array([st is BlockStatus.ACCEPTED for st in fit.status], dtype=bool)
-        ref_f = np.concatenate([pattern.features[np.fromiter(accepted_H, np.int64,
-                                                             len(accepted_H))], front_f[fitted_ok]])
-        ref_c = np.concatenate([np.array([Hb[:2, 2] for Hb in accepted_H.values()]).reshape(-1, 2),
-                                fitted_centre[fitted_ok]])
-        off = inconsistent(front_f, fitted_centre, ref_f, ref_c, settings.consistency_neighbours,
-                           settings.max_inconsistency_px)
-        if front_index == 0 and refined is not None:  # H0: the ring's own homography
-            off |= np.linalg.norm(fitted_centre - predicted_centre, axis=1) \
-                > settings.max_ring_deviation_px
-        losses = np.concatenate([accepted_loss, fit.loss[fitted_ok]])
-        loss_cap = settings.max_relative_loss * np.median(losses) if losses.size else np.inf
         for k, fid in enumerate(front_ids):
             status = fit.status[k]
             if status is BlockStatus.ACCEPTED:
                 jump = np.linalg.norm(fitted_centre[k] - predicted_centre[k]) / square_px[k]
-                if not np.isfinite(fit.loss[k]) or fit.loss[k] > min(settings.max_loss, loss_cap):
+                if not np.isfinite(fit.loss[k]) or fit.loss[k] > settings.max_loss:
                     status = BlockStatus.HIGH_LOSS
                 elif fit.boundary_energy[k] > settings.max_boundary_energy:
                     status = BlockStatus.PSF_TRUNCATED
-                elif not np.isfinite(jump) or jump > settings.max_jump or off[k]:
+                elif not np.isfinite(jump) or jump > settings.max_jump:
                     status = BlockStatus.NOT_CONVERGED
-            if fid not in attempted and status in _RETRIED:
-                retry.add(fid)
             attempted[fid] = len(ids_all)
             ids_all.append(fid)
             status_all.append(status)
@@ -563,7 +408,6 @@ def grow(image: np.ndarray, pattern: StarPattern, seed: Seed,
             predicted_all.append(H0[k])
             if status is BlockStatus.ACCEPTED:
                 accepted_H[fid] = _normalise(fit.H[k])
-                accepted_loss = np.append(accepted_loss, fit.loss[k])
                 newly_accepted.append(fid)
                 accepted_rows.append(k)
             fx, fy = (int(v) for v in pattern.features[fid])
@@ -573,46 +417,27 @@ def grow(image: np.ndarray, pattern: StarPattern, seed: Seed,
             events.append(event)
             if on_event is not None:
                 on_event(event)
-        front_ids, front_H = _next_front(pattern, accepted_H, attempted, newly_accepted, retry)
-        retry -= set(front_ids)
+        front_ids, front_H = _next_front(pattern, accepted_H, attempted, newly_accepted)
         front_index += 1
         if adaptive:
             kernel_size = choose_kernel_size(fit.sigma_major[accepted_rows], deconv.kernel_size,
                                              settings.max_kernel_size, settings.kernel_per_extent)
     if not fits:
         return None
-    last = np.array(sorted(attempted.values()), dtype=np.int64)  # each block's last attempt
-    fit = _take(_concat_fits(fits), last)
-    ids = np.array(ids_all, dtype=np.int64)[last]
-    status = [status_all[r] for r in last]
-    front = np.array(front_all, dtype=np.int64)[last]
-    # Once grown, every block has neighbours on all sides: check each against them once more.
-    ok = np.flatnonzero([st is BlockStatus.ACCEPTED for st in status])
-    f = pattern.features[ids[ok]]
-    for k in ok[inconsistent(f, fit.centre[ok], f, fit.centre[ok],
-                             settings.consistency_neighbours, settings.max_inconsistency_px)]:
-        status[k] = BlockStatus.NOT_CONVERGED
-        fx, fy = (int(v) for v in pattern.features[ids[k]])
-        event = GrowthEvent(int(ids[k]), fx, fy, status[k], fit.H[k], fit.psf[k],
-                            float(fit.loss[k]), int(front[k]))
-        events.append(event)
-        if on_event is not None:
-            on_event(event)
-    return Growth(fit, ids, status, front, np.stack(predicted_all)[last], events)
+    return Growth(_concat_fits(fits), np.array(ids_all, dtype=np.int64), status_all,
+                  np.array(front_all, dtype=np.int64), np.stack(predicted_all), events)
 
 
 def _next_front(pattern: StarPattern, accepted_H: dict[int, np.ndarray],
-                attempted: dict[int, int], new_ids: list[int], retry: set[int]
+                attempted: dict[int, int], new_ids: list[int]
                 ) -> tuple[list[int], list[np.ndarray]]:
-    """Valid neighbours of the newly accepted blocks that are unattempted or in ``retry``
-    (rejected once: a block started from a poor prediction may settle right from a better
-    one), with predictions averaged over their accepted neighbours."""
+    """Unattempted valid neighbours of the newly accepted blocks, with averaged predictions."""
     candidates: dict[int, list[np.ndarray]] = {}
     for fid in new_ids:
         fx, fy = (int(v) for v in pattern.features[fid])
         for dx, dy in ((1, 0), (-1, 0), (0, 1), (0, -1)):
             nid = int(pattern.feature_ids(fx + dx, fy + dy))
-            if nid < 0 or (nid in attempted and nid not in retry) or nid in candidates:
+            if nid < 0 or nid in attempted or nid in candidates:
                 continue
             preds = []
             for ex, ey in ((1, 0), (-1, 0), (0, 1), (0, -1)):

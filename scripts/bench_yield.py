@@ -6,7 +6,7 @@
    was seeded, the PSF window reached, the share of visible blocks returned, the error of the star
    centres against the time-averaged truth after removing the frame's mean offset. Targets:
    >= 90% of frames extracted, >= 85% of visible features returned, median <= 0.03 px, none off
-   by more than 1 px; the growth's rejections by reason. The same figures after the pipeline's block filter
+   by more than 1 px. The same figures after the pipeline's block filter
    (:func:`blurcalib.quality.filter_frame`, default thresholds: BE, loss, connectivity).
 2. Simulated frames with 4 to 15 px of blur (the set of ``scripts/bench_extract.py``, seed 7):
    the same figures with the fixed 17 px window (``GrowSettings(max_kernel_size=17)``, the
@@ -23,7 +23,6 @@ from __future__ import annotations
 import argparse
 import pickle
 import time
-from collections import Counter
 from pathlib import Path
 
 import numpy as np
@@ -32,7 +31,6 @@ import torch
 from blurcalib.extract import ExtractSettings, extract_frame
 from blurcalib.grow import GrowSettings
 from blurcalib.quality import filter_frame
-from blurcalib.results import BlockStatus
 from blurcalib.synth import SimulatedFrame, Simulator, SynthConfig
 
 
@@ -96,12 +94,10 @@ def run(title: str, sim: Simulator, simulated: list[SimulatedFrame], settings: E
         n_q = np.linalg.norm(d_q - d_q.mean(axis=0), axis=1) if len(ids_q) else np.zeros(0)
         errors_q.append(n_q)
         returned_q.append(len(ids_q) / max(visible, 1))
-        rejected = Counter(s.value for s in r.growth.status if s is not BlockStatus.ACCEPTED)
         print(f"{t.name}: blur {blur:5.1f} px  seeded by {r.seed.method:13s}  window "
               f"{r.growth.fit.psf.shape[-1]:2d} px  {len(ids):3d}/{visible:3d} blocks  median "
-              f"{np.median(n):.4f}  max {n.max():.3f} px  {int((n > 1).sum())} > 1 px  (filtered "
-              f"{len(ids_q):3d}, max {n_q.max() if len(n_q) else np.nan:.3f} px)  {wall:5.1f} s "
-              f"wall  {cpu:5.1f} s CPU  rejected: {dict(sorted(rejected.items()))}")
+              f"{np.median(n):.4f}  max {n.max():.3f} px  (filtered {len(ids_q):3d}, max "
+              f"{n_q.max() if len(n_q) else np.nan:.3f} px)  {wall:5.1f} s wall  {cpu:5.1f} s CPU")
     _summary("ALL (growth)", errors, returned, extracted, len(simulated))
     _summary("ALL (block filter)", errors_q, returned_q, extracted, len(simulated))
     print(f"time: {np.mean(walls):.1f} s wall, {np.mean(cpus):.1f} s CPU per frame "

@@ -6,13 +6,7 @@ import numpy as np
 import pytest
 
 from blurcalib.deconv import DeconvSettings, fit_blocks
-from blurcalib.grow import (
-    GrowSettings,
-    choose_kernel_size,
-    fit_front,
-    inconsistent,
-    ring_kernel_cap,
-)
+from blurcalib.grow import GrowSettings, choose_kernel_size, fit_front
 from blurcalib.pattern import layout_pattern
 from blurcalib.results import BlockStatus
 from blurcalib.synth import simulate_blocks
@@ -50,33 +44,3 @@ def test_truncated_psf_is_refitted_with_a_larger_window() -> None:
     assert np.median(err) < 0.1 and np.median(err) < np.median(err_fixed)
     # Padding keeps the kernels: same sums, same centroid convention.
     assert np.allclose(np.nansum(grown.psf[ok], axis=(1, 2)), 1.0, atol=1e-3)
-
-
-def test_a_centre_off_its_neighbours_homography_is_inconsistent() -> None:
-    gx, gy = np.meshgrid(np.arange(4, 11), np.arange(6, 13))
-    features = np.stack([gx.ravel(), gy.ravel()], axis=1)
-    H = np.array([[31.0, 4.0, 200.0], [-3.0, 27.0, 150.0], [4e-3, -2e-3, 1.0]])
-    p = features @ H[:2, :2].T + H[:2, 2]
-    centres = p / (features @ H[2, :2] + 1.0)[:, None]
-    centres += np.random.default_rng(0).normal(0.0, 0.03, centres.shape)
-    moved = centres.copy()
-    moved[24] += [0.7, -0.6]  # 0.92 px off: a block that settled with its PSF shifted
-    moved[10] += [0.2, 0.1]  # within the tolerance
-    bad = inconsistent(features, moved, features, moved, 12, 0.5)
-    assert np.flatnonzero(bad).tolist() == [24]
-    # References on a line decide nothing: no homography is determined by them.
-    row = features[:, 1] == 9
-    assert not inconsistent(features[~row], moved[~row] + 5.0, features[row], moved[row], 12,
-                            0.5).any()
-    # Too few references around a block: not judged.
-    assert not inconsistent(features[:1], moved[:1] + 5.0, features[1:4], moved[1:4], 12, 0.5).any()
-
-
-def test_ring_window_leaves_half_a_square_next_to_the_tag() -> None:
-    def squares(px: float) -> np.ndarray:
-        return np.tile(np.diag([px / 2, px / 2, 1.0]), (5, 1, 1))
-
-    assert ring_kernel_cap(squares(24.4), 41) == 19  # kernel radius + 2 px <= half a square
-    assert ring_kernel_cap(squares(34.0), 41) == 29
-    assert ring_kernel_cap(squares(60.0), 41) == 41  # the cap of the growth
-    assert ring_kernel_cap(squares(5.0), 41) == 3  # still a window
