@@ -37,7 +37,7 @@ from dataclasses import dataclass, field, replace
 import cv2
 import numpy as np
 
-from blurcalib.camera import apply_homography
+from blurcalib.camera import homography_centre
 from blurcalib.deconv import BlockFit, DeconvSettings, fit_blocks
 from blurcalib.pattern import StarPattern
 from blurcalib.results import BlockStatus
@@ -353,7 +353,7 @@ def grow(image: np.ndarray, pattern: StarPattern, seed: Seed,
     H_ring = block_homography(seed.H_feature, ring[:, 0], ring[:, 1])
     if seed.source == "given":
         # Without a tag, start from the block nearest to the image centre that lies inside.
-        centres = apply_homography(H_ring, np.zeros((len(ring), 1, 2)))[:, 0]
+        centres = homography_centre(H_ring)
         inside = (centres[:, 0] > 0) & (centres[:, 0] < w - 1) & (centres[:, 1] > 0) \
             & (centres[:, 1] < h - 1)
         if not inside.any():
@@ -387,7 +387,7 @@ def grow(image: np.ndarray, pattern: StarPattern, seed: Seed,
         else:
             fit = fit_blocks(image, H0, N, deconv, _pixel_mask(tag, deconv.kernel_size))
         fits.append(fit)
-        predicted_centre = apply_homography(H0, np.zeros((len(H0), 1, 2)))[:, 0]
+        predicted_centre = homography_centre(H0)
         fitted_centre = fit.centre
         square_px = np.sqrt(np.abs(np.linalg.det(H0[:, :2, :2]))) * 2.0
         newly_accepted, accepted_rows = [], []
