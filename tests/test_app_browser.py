@@ -18,6 +18,8 @@ from __future__ import annotations
 import os
 import re
 import threading
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import replace
 from functools import partial
 from http.server import SimpleHTTPRequestHandler, ThreadingHTTPServer
@@ -61,6 +63,23 @@ def _kept(page) -> int:
     return int(re.search(r"kept: (\d+) blocks", text).group(1))
 
 
+@contextmanager
+def app_page(server) -> Iterator[tuple[object, object, list[str]]]:
+    """Headless Chromium on the app that ``server`` serves: ``(browser, page, errors)``, the page
+    connected (1600x1000) and ``errors`` collecting its console errors; the browser closes after."""
+    with sync_api.sync_playwright() as p:
+        browser = p.chromium.launch(executable_path=str(CHROMIUM), headless=True, args=FLAGS)
+        try:
+            page = browser.new_page(viewport={"width": 1600, "height": 1000})
+            errors: list[str] = []
+            page.on("console", lambda m: errors.append(m.text) if m.type == "error" else None)
+            page.goto(f"http://127.0.0.1:{server.get_port()}/")
+            page.wait_for_function("() => !document.body.innerText.includes('Connecting...')", timeout=30_000)
+            yield browser, page, errors
+        finally:
+            browser.close()
+
+
 def test_run_tune_and_inspect_in_chromium(tmp_path: Path) -> None:
     from app import serve
 
@@ -68,13 +87,7 @@ def test_run_tune_and_inspect_in_chromium(tmp_path: Path) -> None:
     server, app = serve(folder, None, 0, settings=SETTINGS)
     expect = sync_api.expect
     try:
-        with sync_api.sync_playwright() as p:
-            browser = p.chromium.launch(executable_path=str(CHROMIUM), headless=True, args=FLAGS)
-            page = browser.new_page(viewport={"width": 1600, "height": 1000})
-            errors: list[str] = []
-            page.on("console", lambda m: errors.append(m.text) if m.type == "error" else None)
-            page.goto(f"http://127.0.0.1:{server.get_port()}/")
-            page.wait_for_function("() => !document.body.innerText.includes('Connecting...')", timeout=30_000)
+        with app_page(server) as (browser, page, errors):
             frame_image = page.get_by_text("Frame", exact=True).locator("xpath=..").locator("img")
             expect(frame_image.first).to_have_attribute("src", re.compile("^blob:"), timeout=20_000)
             before = frame_image.first.get_attribute("src")
@@ -170,7 +183,6 @@ def test_run_tune_and_inspect_in_chromium(tmp_path: Path) -> None:
             other.close()
 
             assert not errors, errors
-            browser.close()
     finally:
         app.close()
         server.stop()

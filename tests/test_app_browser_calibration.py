@@ -16,7 +16,7 @@ from pathlib import Path
 import pytest
 
 from state.calibration import EXPORT_DIR, OPENCV_CAMERA_FILE
-from tests.test_app_browser import CHROMIUM, FLAGS, ROOT, _row, sync_api
+from tests.test_app_browser import ROOT, _row, app_page, sync_api
 from tests.test_app_calibration import CONFIG, SETTINGS
 from tests.test_app_state import FAST, make_dataset
 
@@ -38,13 +38,7 @@ def test_calibration_view_in_chromium(tmp_path: Path) -> None:
     server, app = serve(folder, None, 0, settings=FAST, calibration=SETTINGS)
     expect = sync_api.expect
     try:
-        with sync_api.sync_playwright() as p:
-            browser = p.chromium.launch(executable_path=str(CHROMIUM), headless=True, args=FLAGS)
-            page = browser.new_page(viewport={"width": 1600, "height": 1000})
-            errors: list[str] = []
-            page.on("console", lambda m: errors.append(m.text) if m.type == "error" else None)
-            page.goto(f"http://127.0.0.1:{server.get_port()}/")
-            page.wait_for_function("() => !document.body.innerText.includes('Connecting...')", timeout=30_000)
+        with app_page(server) as (_, page, errors):
             page.get_by_role("tab", name="Calibration").click()
             expect(page.get_by_text("No calibration yet")).to_be_visible()
             expect(page.get_by_text("blurry/0000.png: not extracted").first).to_be_visible()
@@ -100,7 +94,6 @@ def test_calibration_view_in_chromium(tmp_path: Path) -> None:
             SCREENSHOT.parent.mkdir(parents=True, exist_ok=True)
             page.screenshot(path=str(SCREENSHOT))
             assert not errors, errors
-            browser.close()
     finally:
         app.close()
         server.stop()
