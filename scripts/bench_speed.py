@@ -8,7 +8,9 @@ machine) and wall time, split into seeding, fitting (region growing with the blo
 alignment; the block count and the median star-centre error against the ground-truth
 time-averaged positions (each frame's median offset removed) and the features off by > 0.5 px;
 at the end the peak resident memory (``getrusage`` maxrss). ``--pair`` then runs the same
-frames in two processes at once and prints the ratio of their wall time to a single run's.
+frames in two processes at once and prints the ratio of their wall time to a single run's, and
+the throughput of the two (wall seconds per frame with one process per core, as ``blurcalib
+extract`` runs a folder on a 2-core machine).
 Targets: <= 2 s per frame, ratio <= 2.5, <= 1 GB per worker.
 """
 
@@ -112,7 +114,8 @@ def main() -> None:
         single = _wall(_child(args.frames, args.seed, args.threads, args.device))
         procs = [_child(args.frames, args.seed, args.threads, args.device) for _ in range(2)]
         both = max(_wall(p) for p in procs)
-        print(f"two runs at once: {both:.1f} s vs {single:.1f} s alone (ratio {both / single:.2f})")
+        print(f"two runs at once: {both:.1f} s vs {single:.1f} s alone (ratio {both / single:.2f}); "
+              f"throughput with one process per core: {both / (2 * n):.2f} s wall per frame")
 
 
 if __name__ == "__main__":

@@ -11,7 +11,7 @@ import torch
 from scipy.ndimage import convolve
 
 from blurcalib.camera import translation
-from blurcalib.deconv import BlockFit, DeconvSettings, fit_blocks, render_model
+from blurcalib.deconv import BlockFit, DeconvSettings, _Problem, fit_blocks, render_model
 from blurcalib.pattern import layout_pattern, star_signed_distance, star_signed_distance_normal
 from blurcalib.psf import boundary_energy, psf_centroid, psf_moments, recentre, shift_pair
 from blurcalib.results import BlockStatus
@@ -206,6 +206,25 @@ def test_batch_equals_one_by_one(sim: SimulatedBlocks, fit: BlockFit) -> None:
 def test_float64_agrees_with_float32(sim: SimulatedBlocks, fit: BlockFit) -> None:
     fit64 = fit_blocks(sim.image, sim.H0[:2], SEGMENTS, dataclasses.replace(SETTINGS, dtype="float64"))
     assert np.abs(fit64.centre - fit.centre[:2]).max() < 2e-3
+
+
+@pytest.mark.parametrize("kernel_size", [7, 29, 31])
+def test_block_convolution_is_the_valid_convolution(kernel_size: int) -> None:
+    """Both paths of the solver's convolution (direct up to 29 px, FFT above) give ``k * L`` on
+    the observed grid, as an independent ``scipy.ndimage.convolve`` does."""
+    rng = np.random.default_rng(5)
+    size = np.array([[23, 19], [17, 21]])
+    s = DeconvSettings(kernel_size=kernel_size, dtype="float64")
+    prob = _Problem(torch.zeros((80, 80), dtype=torch.float64), None, np.array([[3, 4], [9, 2]]), size,
+                    SEGMENTS, s)
+    L = torch.as_tensor(rng.random((2, 3, prob.Hl, prob.Wl)))
+    k = torch.as_tensor(rng.random((2, kernel_size, kernel_size)))
+    out = prob.conv(L, k).numpy()
+    r = s.radius
+    for b in range(2):
+        for c in range(3):
+            ref = convolve(L[b, c].numpy(), k[b].numpy(), mode="constant")[r:r + prob.h, r:r + prob.w]
+            np.testing.assert_allclose(out[b, c], ref, rtol=1e-10, atol=1e-10)
 
 
 # ------------------------------------------------------------------------------- invalid input
