@@ -241,11 +241,13 @@ def _print_camera_accuracy(out: Path, pattern: StarPattern, truth, args: argpars
                                   JointSettings(cell_px=args.cell_px, route=args.route))
         cameras += [("generic, sharp frames", alone.model),
                      ("generic, sharp + blurry frames", read_generic_yaml(intrinsics))]
-    print("camera against the true camera over the image (px, after the best-fit rotation):")
+    print("camera against the true camera over the image (px, after the best-fit rotation; shape: after "
+          "the best-fit focal lengths and principal point too, docs/generic.md):")
     for label, camera in cameras:
         a = camera_accuracy(truth.camera, camera)
         print(f"  {label:<32} median {a.median:.4f}, p95 {a.p95:.4f}, max {a.max:.4f} "
-              f"({100 * a.defined:.0f}% of the image calibrated)")
+              f"({100 * a.defined:.0f}% of the image calibrated); shape median {a.shape_median:.4f}, "
+              f"focal scale {a.scale_px:+.4f} at the corners")
 
 
 def cmd_extract(args: argparse.Namespace) -> int:

@@ -1,0 +1,34 @@
+"""A calibrated camera against the true one: the total error and its split into the best-fit
+focal lengths and principal point (an affine image map) and the shape error that remains."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from blurcalib.camera import BrownConrady
+from blurcalib.evaluate import camera_accuracy
+from blurcalib.synth import TrueCamera
+
+LENS = BrownConrady(fx=640.0, fy=641.0, cx=639.0, cy=361.0, k1=0.05, k2=-0.06, p1=0.001, p2=-0.0005,
+                    k3=0.02, width=1280, height=720)
+CORNER = float(np.hypot(1279 / 2, 719 / 2))
+
+
+def test_a_focal_length_error_is_all_scale_and_no_shape() -> None:
+    eps = 1e-4
+    estimate = dataclasses.replace(LENS, fx=LENS.fx * (1 + eps), fy=LENS.fy * (1 + eps))
+    a = camera_accuracy(TrueCamera(LENS), estimate)
+    assert a.median > 0.3 * eps * CORNER
+    assert a.scale_px == pytest.approx(eps * CORNER, rel=0.05)
+    assert a.shape_median < 0.05 * a.median
+    assert a.defined == 1.0
+
+
+def test_a_deviation_field_is_shape() -> None:
+    wave = np.array([[0.2, -0.1, 2.0, 1.0, 0.3]])
+    a = camera_accuracy(TrueCamera(LENS, wave), LENS)
+    assert 0.05 < a.shape_median < 0.25
+    assert abs(a.scale_px) < 0.05
