@@ -132,7 +132,8 @@ def _pipeline_settings(args: argparse.Namespace):
             quality=QualitySettings(tau_be=args.tau_be, tau_loss=args.tau_loss,
                                     min_sigma_major=args.min_sigma_major),
             loss=args.loss, bias=args.bias, workers=args.workers, cluster=args.cluster,
-            local_alignment=args.local_alignment, model=args.model, route=args.route, cell_px=args.cell_px)
+            local_alignment=args.local_alignment, model=args.model, route=args.route, cell_px=args.cell_px,
+            lens_correction=not args.no_lens_correction)
     except ValueError as exc:
         raise CliError(str(exc)) from None
 
@@ -229,13 +230,14 @@ def _print_camera_accuracy(out: Path, pattern: StarPattern, truth, args: argpars
     from blurcalib.evaluate import camera_accuracy
     from blurcalib.joint import JointSettings, calibrate_generic
     from blurcalib.refcamera import read_generic_yaml
-    from blurcalib.results import read_feature_table
+    from blurcalib.results import FeatureFlags, read_feature_table
 
     calibration = load_calibration(out / "calibration")
     cameras = [("parametric, sharp frames", calibration.camera)]
     intrinsics = out / "calibration" / "intrinsics0.yaml"
     if intrinsics.is_file():
-        sharp = read_feature_table(out / "sharp" / "features.csv")
+        table = read_feature_table(out / "features.csv")  # the calibration's own: lens-corrected
+        sharp = table.select((table.flags & int(FeatureFlags.SHARP_FRAME)) > 0)
         size = (calibration.camera.width, calibration.camera.height)
         alone = calibrate_generic(sharp, None, calibration, pattern, size,
                                   JointSettings(cell_px=args.cell_px, route=args.route))
@@ -375,6 +377,9 @@ def _add_pipeline_options(p: argparse.ArgumentParser) -> None:
                         "(joint), or aligned to the parametric camera first, the paper's route (%(default)s)")
     p.add_argument("--cell-px", type=float, default=25.0,
                    help="cell length of the generic model's grid, px (%(default)s)")
+    p.add_argument("--no-lens-correction", action="store_true",
+                   help="keep star centres as extracted instead of removing the bias of block homographies "
+                        "under the sharp-set camera's distortion (docs/generic.md)")
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -9,7 +9,9 @@ generic camera to sharp and blurry frames together.
    extract`` names them, so that earlier ``extract`` runs into these folders are reused; the
    run's own outputs name the frames ``sharp/<name>`` and ``blurry/<name>``;
 2. Brown-Conrady calibration of the sharp set together with the target points
-   (:mod:`blurcalib.calibrate`), saved in ``OUT/calibration/``;
+   (:mod:`blurcalib.calibrate`); every star centre, sharp and blurry, is then moved by minus the
+   bias of its block homography under that camera's distortion (:mod:`blurcalib.lens_bias`) and
+   the sharp set calibrated again from the corrected features; saved in ``OUT/calibration/``;
 3. per blurry frame, the optional blur pre-filter (off by default; the paper's 3.8 px is
    ``QualitySettings(min_sigma_major=3.8)``) and the BE / loss / connectivity filter on the saved
    block figures (:mod:`blurcalib.quality`);
@@ -72,6 +74,7 @@ from blurcalib.joint import (
     generic_report,
     save_generic_calibration,
 )
+from blurcalib.lens_bias import correct_blocks, correct_features
 from blurcalib.pattern import StarPattern
 from blurcalib.quality import QualitySettings, filter_frame
 from blurcalib.refformat import to_ref_dataset, write_ref_dataset
@@ -134,6 +137,9 @@ class PipelineSettings:
             simulated data (``blurcalib experiment generic``, docs/generic.md): 0.005 px median
             error against the true camera for ``joint``, 0.14 px for ``aligned``.
         cell_px: the generic grid's cell length (px).
+        lens_correction: move every star centre by minus the bias of its block homography
+            under the sharp-set parametric camera's distortion (:mod:`blurcalib.lens_bias`),
+            then calibrate the parametric camera again from the corrected sharp features.
         cluster: a Dask scheduler address; frames are extracted as tasks there (``docs/cluster.md``).
     """
 
@@ -147,6 +153,7 @@ class PipelineSettings:
     model: str = "generic"
     route: str = "joint"
     cell_px: float = DEFAULT_CELL_PX
+    lens_correction: bool = True
     cluster: str | None = None
 
     def __post_init__(self) -> None:
@@ -252,6 +259,10 @@ def run_pipeline(sharp: Sequence[Path], blurry: Sequence[Path], pattern: StarPat
     sharp_features = _with_kind(read_feature_table(out / "sharp" / FEATURES_FILE), "sharp")
     try:
         calibration = calibrate_sharp(sharp_features, pattern, size)
+        if s.lens_correction:
+            sharp_blocks = _with_kind(read_block_table(out / "sharp"), "sharp")
+            sharp_features = correct_features(sharp_features, sharp_blocks, calibration.camera)
+            calibration = calibrate_sharp(sharp_features, pattern, size)
     except CalibrationError as exc:
         bad = [f"{r['frame']} ({r['status']})" for r in extracted["sharp"] if r["status"] != "ok"]
         hint = f"; sharp frames without features: {', '.join(bad[:10])}" if bad else ""
@@ -262,6 +273,8 @@ def run_pipeline(sharp: Sequence[Path], blurry: Sequence[Path], pattern: StarPat
                                               if r["status"] != "used"])
     sharp_features.flags[left_out] |= int(FeatureFlags.FILTERED_OUT)
     blocks = _with_kind(read_block_table(out / "blurry"), "blurry")
+    if s.lens_correction:
+        blocks = correct_blocks(blocks, calibration.camera)
     blurry_frames = [_align_frame(r, blocks, pattern, calibration, size, s) for r in extracted["blurry"]]
     generic = None
     if s.model == "generic":
@@ -288,7 +301,8 @@ def run_pipeline(sharp: Sequence[Path], blurry: Sequence[Path], pattern: StarPat
                                       "angle_threshold": s.angle_threshold,
                                       "blurry_kernel": s.blurry_kernel,
                                       "local_alignment": s.local_alignment, "model": s.model,
-                                      "route": s.route, "cell_px": s.cell_px},
+                                      "route": s.route, "cell_px": s.cell_px,
+                                      "lens_correction": s.lens_correction},
                             generic=None if generic is None else generic_report(generic))
     atomic_write_text(staging / REPORT_FILE, json.dumps(report.to_dict(), indent=2, default=str))
     _publish(staging, out)
@@ -374,6 +388,8 @@ def _align_frame(extracted: dict, blocks: BlockTable, pattern: StarPattern, cali
     flags = FeatureFlags.STAR_CENTRE | FeatureFlags.BLURRY_FRAME
     if s.local_alignment:
         flags |= FeatureFlags.LOCALLY_ALIGNED
+    if s.lens_correction:
+        flags |= FeatureFlags.LENS_CORRECTED
     raw = kept.features(pattern.square_length_m, flags)
     try:
         ga = align_blocks(calibration.camera, pattern, calibration.points, raw.feature_id,

@@ -102,6 +102,9 @@ class FeatureFlags(IntFlag):
     """Position refined by the frame-wide (global) alignment."""
     FILTERED_OUT = 32
     """Rejected by a later filter; kept for diagnostics, not to be used for calibration."""
+    LENS_CORRECTED = 64
+    """Moved by minus the bias of its block homography under the calibrated lens's distortion
+    (:mod:`blurcalib.lens_bias`)."""
 
 
 @dataclass(frozen=True)

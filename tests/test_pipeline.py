@@ -87,6 +87,7 @@ def test_pipeline_end_to_end(finished, dataset) -> None:
     assert (out / "calibration" / "camera.yaml").is_file() and not (out / ".staging").exists()
     table = read_feature_table(out / "features.csv")
     assert np.any(table.flags & int(FeatureFlags.SHARP_FRAME))
+    assert np.all(table.flags & int(FeatureFlags.LENS_CORRECTED))  # every centre, sharp and blurry
     acc = evaluate_features(table, load_ground_truth(dataset), pattern, skip_flags=0)
     assert acc and max(a.median for a in acc) < 0.1
 
