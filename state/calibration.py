@@ -13,7 +13,9 @@ unfinished frames are extracted first, in the state's worker):
 
 1. the parametric camera: :func:`blurcalib.calibrate.calibrate_sharp` of the sharp features; with
    fewer than ``min_sharp_frames`` usable sharp frames the blurry frames' kept blocks join this
-   stage (their per-frame shift is not modelled there; the generic stage models it);
+   stage (their per-frame shift is not modelled there; the generic stage models it); then, as
+   in the pipeline, every star centre is corrected for the lens bias of its block homography
+   under that camera (:mod:`blurcalib.lens_bias`) and the parametric camera fitted again;
 2. the generic camera: :func:`blurcalib.joint.calibrate_generic` (``route="joint"``: a free image
    shift per blurry frame), started from stage 1;
 3. figures: observation coverage per grid cell (sharp and blurry apart), the
@@ -52,8 +54,9 @@ from blurcalib.joint import (
     difference_field,
     save_generic_calibration,
 )
+from blurcalib.lens_bias import correct_features
 from blurcalib.quality import QualitySettings
-from blurcalib.results import FeatureFlags, FeatureTable
+from blurcalib.results import BlockTable, FeatureFlags, FeatureTable
 from blurcalib.synth import TrueCamera
 from state.app_state import AppState
 from state.events import Topic
@@ -97,6 +100,8 @@ class CalibrationInputs:
 
     Attributes:
         sharp, blurry: the sharp frames' and blurry frames' observations.
+        blocks: the blocks they were made from (for the lens-bias correction,
+            :mod:`blurcalib.lens_bias`).
         image_size: ``(width, height)`` px of the frames (the most common size).
         reasons: frame -> why it is not an input (frames absent here are inputs).
         quality: the thresholds the blurry frames were filtered with.
@@ -104,6 +109,7 @@ class CalibrationInputs:
 
     sharp: FeatureTable
     blurry: FeatureTable
+    blocks: BlockTable
     image_size: tuple[int, int]
     reasons: dict[str, str]
     quality: QualitySettings
@@ -172,7 +178,7 @@ def collect_inputs(state: AppState, settings: CalibrationSettings | None = None)
     image_size = sizes.most_common(1)[0][0] if sizes else (0, 0)
     square_m = dataset.pattern.square_length_m if dataset is not None else 0.0
     reasons: dict[str, str] = {}
-    sharp, blurry = [], []
+    sharp, blurry, blocks = [], [], []
     for entry in entries:
         if entry.status != FrameStatus.OK.value or entry.name not in results:
             reasons[entry.name] = "not extracted" if entry.status in ("pending", "queued", "running") \
@@ -188,6 +194,7 @@ def collect_inputs(state: AppState, settings: CalibrationSettings | None = None)
                                        f"{s.min_sharp_features})")
                 continue
             sharp.append(result.features)
+            blocks.append(result.blocks)
             continue
         if flt is None or not flt.frame_ok:
             sigma = flt.centre_sigma_major if flt is not None else float("nan")
@@ -199,8 +206,9 @@ def collect_inputs(state: AppState, settings: CalibrationSettings | None = None)
             reasons[entry.name] = f"too few kept blocks ({len(kept)} < {s.min_blurry_blocks})"
             continue
         blurry.append(result.blocks.select(kept).features(square_m, BLURRY_FLAGS))
-    return CalibrationInputs(FeatureTable.concat(sharp), FeatureTable.concat(blurry), image_size, reasons,
-                             state.quality)
+        blocks.append(result.blocks.select(kept))
+    return CalibrationInputs(FeatureTable.concat(sharp), FeatureTable.concat(blurry),
+                             BlockTable.concat(blocks), image_size, reasons, state.quality)
 
 
 @dataclass(frozen=True)
@@ -289,16 +297,22 @@ def fit(inputs: CalibrationInputs, state: AppState, settings: CalibrationSetting
         return None
     sharp_frames = len(set(inputs.sharp.frame.tolist()))
     with_blurry = sharp_frames < settings.min_sharp_frames
-    table = FeatureTable.concat([inputs.sharp, inputs.blurry]) if with_blurry else inputs.sharp
-    if len(set(table.frame.tolist())) == 0:
+    sharp, blurry = inputs.sharp, inputs.blurry
+    if len(set(sharp.frame.tolist()) | set(blurry.frame.tolist() if with_blurry else [])) == 0:
         raise CalibrationError("no usable frame: run the extraction of some frames first")
-    parametric = calibrate_sharp(table, dataset.pattern, inputs.image_size,
-                                 min_frames=MIN_FRAMES if with_blurry else settings.min_sharp_frames,
-                                 min_features=settings.min_blurry_blocks if with_blurry
-                                 else settings.min_sharp_features)
+    parametric = None
+    for _ in range(2):  # as the pipeline: calibrate, correct the centres' lens bias, calibrate again
+        if parametric is not None:
+            sharp = correct_features(inputs.sharp, inputs.blocks, parametric.camera)
+            blurry = correct_features(inputs.blurry, inputs.blocks, parametric.camera)
+        table = FeatureTable.concat([sharp, blurry]) if with_blurry else sharp
+        parametric = calibrate_sharp(table, dataset.pattern, inputs.image_size,
+                                     min_frames=MIN_FRAMES if with_blurry else settings.min_sharp_frames,
+                                     min_features=settings.min_blurry_blocks if with_blurry
+                                     else settings.min_sharp_features)
     if not stage(3):
         return None
-    generic = calibrate_generic(inputs.sharp, inputs.blurry if len(inputs.blurry) else None, parametric,
+    generic = calibrate_generic(sharp, blurry if len(blurry) else None, parametric,
                                 dataset.pattern, inputs.image_size,
                                 JointSettings(cell_px=settings.cell_px, route="joint"))
     if not stage(4):

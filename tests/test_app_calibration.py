@@ -12,6 +12,7 @@ from blurcalib.calibrate import calibrate_sharp
 from blurcalib.camera import load_camera_yaml
 from blurcalib.experiments.generic import projection_errors
 from blurcalib.joint import JointSettings, calibrate_generic
+from blurcalib.lens_bias import correct_features
 from blurcalib.quality import QualitySettings
 from blurcalib.refcamera import read_generic_yaml
 from blurcalib.results import FeatureTable
@@ -106,12 +107,16 @@ def test_inputs_coverage_and_statuses_follow_the_thresholds(defaults: AppState) 
 
 
 def _engine(state: AppState):
-    """The engine's calibration of the app's inputs, called directly."""
+    """The engine's calibration of the app's inputs, called directly (with the lens-bias correction)."""
     inputs = collect_inputs(state, SETTINGS)
     table = FeatureTable.concat([inputs.sharp, inputs.blurry])
-    parametric = calibrate_sharp(table, state.dataset.pattern, inputs.image_size, min_frames=MIN_FRAMES,
+    first = calibrate_sharp(table, state.dataset.pattern, inputs.image_size, min_frames=MIN_FRAMES,
+                            min_features=SETTINGS.min_blurry_blocks)
+    sharp, blurry = (correct_features(t, inputs.blocks, first.camera) for t in (inputs.sharp, inputs.blurry))
+    parametric = calibrate_sharp(FeatureTable.concat([sharp, blurry]), state.dataset.pattern,
+                                 inputs.image_size, min_frames=MIN_FRAMES,
                                  min_features=SETTINGS.min_blurry_blocks)
-    generic = calibrate_generic(inputs.sharp, inputs.blurry, parametric, state.dataset.pattern,
+    generic = calibrate_generic(sharp, blurry, parametric, state.dataset.pattern,
                                 inputs.image_size, JointSettings(cell_px=SETTINGS.cell_px, route="joint"))
     return parametric, generic
 
