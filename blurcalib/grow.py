@@ -37,7 +37,7 @@ from dataclasses import dataclass, field, replace
 import cv2
 import numpy as np
 
-from blurcalib.camera import homography_centre
+from blurcalib.camera import apply_homography, homography_centre
 from blurcalib.deconv import BlockFit, DeconvSettings, fit_blocks
 from blurcalib.pattern import StarPattern
 from blurcalib.results import BlockStatus
@@ -64,6 +64,14 @@ class GrowSettings:
             the configured window is kept (the measured best for up to 15 px of blur).
         refit_boundary_energy: blocks whose PSF has more than this share of its energy in the
             window's outer two-pixel ring are re-fitted with a larger window.
+        probe_boundary_energy: a ring whose PSFs (configured window) carry more than this
+            median share of their energy in the window's outer ring, while their extent does not
+            ask for the adaptive window, is re-fitted with a 1.4 x larger window to see whether
+            the configured one truncated the blur (:func:`probe_truncation`).
+        max_inconsistency_px: in frames with the adaptive window only, reject blocks whose
+            star centre is further than this (px) from the homography of the previously
+            accepted blocks nearest to it (:func:`inconsistent`).
+        consistency_neighbours: that many previously accepted blocks per judgement.
     """
 
     max_loss: float = 400.0
@@ -74,6 +82,9 @@ class GrowSettings:
     kernel_per_extent: float = 1.5
     refit_boundary_energy: float = 0.1
     adapt_above_extent_px: float = 18.0
+    probe_boundary_energy: float = 0.03
+    max_inconsistency_px: float = 1.0
+    consistency_neighbours: int = 12
 
     def __post_init__(self) -> None:
         if self.max_kernel_size < 3 or self.max_kernel_size % 2 == 0:
@@ -222,6 +233,85 @@ def needs_adaptive_window(fit: BlockFit, settings: GrowSettings) -> bool:
                 or np.nanmedian(fit.boundary_energy[ok]) > settings.refit_boundary_energy)
 
 
+def probe_truncation(image: np.ndarray, H0: np.ndarray, num_segments: int, fit: BlockFit,
+                     deconv: DeconvSettings, settings: GrowSettings, tag: np.ndarray | None
+                     ) -> BlockFit | None:
+    """The ring ``H0 (B, 3, 3)`` re-fitted with a larger window when its fit ``fit`` (configured
+    window) may have truncated the blur, if that fit then asks for the adaptive window.
+
+    A blur longer than the window comes out of the fit truncated: its second moment is that of
+    the part inside the window, so a 22 px blur in a 17 px window reads as a ~15 px extent and
+    :func:`needs_adaptive_window` does not fire. What betrays it is energy along the window's
+    border (the solver zeroes kernel entries below 15 % of the peak, so a PSF that fits leaves
+    the outer ring empty). When the median boundary energy of the ring's fitted PSFs exceeds
+    :attr:`GrowSettings.probe_boundary_energy`, the ring is fitted once more with a window
+    ``ceil(1.4 K)`` (odd, capped); the frame adapts when that fit passes
+    :func:`needs_adaptive_window`.
+
+    Returns:
+        The larger window's fit when the frame should adapt, else None (no probe, or the blur
+        fits the configured window).
+    """
+    if settings.max_kernel_size <= deconv.kernel_size:
+        return None
+    be = fit.boundary_energy[np.isfinite(fit.boundary_energy)]
+    if be.size == 0 or float(np.median(be)) <= settings.probe_boundary_energy:
+        return None
+    k = math.ceil(1.4 * deconv.kernel_size)
+    size = min(k + 1 - k % 2, settings.max_kernel_size)
+    probe = fit_blocks(image, H0, num_segments, replace(deconv, kernel_size=size),
+                       _pixel_mask(tag, size))
+    return probe if needs_adaptive_window(probe, settings) else None
+
+
+def inconsistent(features: np.ndarray, centres: np.ndarray, ref_features: np.ndarray,
+                 ref_centres: np.ndarray, neighbours: int, tol_px: float, min_points: int = 6
+                 ) -> np.ndarray:
+    """``(B,)`` bool: blocks whose star centre disagrees with the accepted blocks near them.
+
+    For block ``b`` at integer feature coordinates ``features[b] (2,)`` with star centre
+    ``centres[b] (2,)`` px, the ``neighbours`` reference blocks nearest to it in the pattern
+    (itself excluded) give a homography feature coordinates -> px (RANSAC, ``tol_px / 2``); the
+    block is inconsistent when its centre is more than ``tol_px`` from that homography's
+    prediction. Blocks with fewer than ``min_points`` reference inliers, or whose references lie
+    (nearly) on a line, are not judged. Over the few squares the neighbours span, lens
+    distortion is far below a pixel; a block that settled with its long PSF shifted in the
+    window (centre px off at a normal loss) is not.
+
+    Args:
+        features: ``(B, 2)`` int feature coordinates of the blocks to judge.
+        centres: ``(B, 2)`` px their star centres.
+        ref_features: ``(R, 2)`` int feature coordinates of accepted blocks.
+        ref_centres: ``(R, 2)`` px their star centres.
+        neighbours: reference blocks per judgement.
+        tol_px: largest disagreement (px).
+        min_points: fewest reference inliers for a judgement.
+    """
+    bad = np.zeros(len(features), dtype=bool)
+    if len(ref_features) < min_points:
+        return bad
+    for b in range(len(features)):
+        if not np.all(np.isfinite(centres[b])):
+            continue
+        d = np.linalg.norm(ref_features - features[b], axis=1)
+        d[d == 0] = np.inf
+        near = np.argsort(d, kind="stable")[:neighbours]
+        near = near[np.isfinite(d[near])]
+        if len(near) < min_points:
+            continue
+        src = ref_features[near].astype(np.float64)
+        spread = np.linalg.svd(src - src.mean(axis=0), compute_uv=False)[-1] / math.sqrt(len(src))
+        if spread < 0.5:
+            continue
+        H, inliers = cv2.findHomography(src, ref_centres[near].astype(np.float64), cv2.RANSAC,
+                                        tol_px / 2)
+        if H is None or int(inliers.sum()) < min_points:
+            continue
+        p = apply_homography(H, features[b][None].astype(np.float64))[0]
+        bad[b] = bool(np.linalg.norm(p - centres[b]) > tol_px)
+    return bad
+
+
 def tag_mask(pattern: StarPattern, H_feature: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
     """``(H, W)`` uint8, 1 on the tags' areas (feature boxes) seen through ``H_feature``."""
     mask = np.zeros(shape, dtype=np.uint8)
@@ -234,28 +324,53 @@ def tag_mask(pattern: StarPattern, H_feature: np.ndarray, shape: tuple[int, int]
     return mask
 
 
-def _pixel_mask(tag: np.ndarray | None, kernel_size: int) -> np.ndarray | None:
-    """Pixels usable by blocks fitted with ``kernel_size``: further from a tag than the kernel
-    radius plus 2 px (seed error)."""
+def blur_footprint(fit: BlockFit, extent_px: float) -> np.ndarray | None:
+    """``(F, F)`` uint8 footprint of the frame's blur, from the ring's fit ``fit``: a segment of
+    length ``extent_px`` along the PSFs' major axis (their orientations averaged as doubled
+    angles), ``2 + 2 sigma_minor`` px wide on each side (median ``sigma_minor``) plus 2 px of seed
+    error at its ends. A pixel sees a tag through the blur only when it lies within the tag
+    dilated by this footprint; None when no PSF was fitted."""
+    ok = np.isfinite(fit.orientation) & np.isfinite(fit.sigma_minor)
+    if not ok.any() or not math.isfinite(extent_px):
+        return None
+    theta = 0.5 * float(np.angle(np.mean(np.exp(2j * fit.orientation[ok]))))
+    half_width = 2 + math.ceil(2.0 * float(np.median(fit.sigma_minor[ok])))
+    half_length = math.ceil(extent_px / 2.0) + 2
+    r = half_length + half_width
+    footprint = np.zeros((2 * r + 1, 2 * r + 1), dtype=np.uint8)
+    dx, dy = half_length * math.cos(theta), half_length * math.sin(theta)
+    cv2.line(footprint, (round(r - dx), round(r - dy)), (round(r + dx), round(r + dy)), 1,
+             thickness=2 * half_width + 1)
+    return footprint
+
+
+def _pixel_mask(tag: np.ndarray | None, kernel_size: int, footprint: np.ndarray | None = None
+                ) -> np.ndarray | None:
+    """Pixels usable by blocks fitted with ``kernel_size``: outside the tags dilated by the
+    blur's ``footprint`` (:func:`blur_footprint`), or without one further from a tag than the
+    kernel radius plus 2 px (seed error)."""
     if tag is None or not tag.any():
         return None
-    r = kernel_size // 2 + 2
-    disk = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
-    return cv2.dilate(tag, disk) == 0
+    if footprint is None:
+        r = kernel_size // 2 + 2
+        footprint = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
+    return cv2.dilate(tag, footprint) == 0
 
 
 def fit_front(image: np.ndarray, H0: np.ndarray, num_segments: int, deconv: DeconvSettings,
               settings: GrowSettings, kernel_size: int, tag: np.ndarray | None = None,
-              first: BlockFit | None = None) -> BlockFit:
+              first: BlockFit | None = None, footprint: np.ndarray | None = None) -> BlockFit:
     """Fit one front's blocks ``H0 (B, 3, 3)`` with a window of ``kernel_size`` px; re-fit those
     whose window is too small for their PSF with larger windows (at least 1.4 x larger each
     time, up to :attr:`GrowSettings.max_kernel_size`), keeping a re-fit when it is accepted with
     no more boundary energy; a block whose re-fit is not kept is not re-fitted again (its
     window is not what fails it). Kernels come back padded to the largest window used. ``tag``
-    (:func:`tag_mask`) keeps pixels near the tags out of the fits; ``first`` is the fit with
-    ``kernel_size`` when already done."""
+    (:func:`tag_mask`) keeps pixels near the tags out of the fits (within the blur's
+    ``footprint`` when given, :func:`_pixel_mask`); ``first`` is the fit with ``kernel_size``
+    when already done."""
     fit = first if first is not None else fit_blocks(
-        image, H0, num_segments, replace(deconv, kernel_size=kernel_size), _pixel_mask(tag, kernel_size))
+        image, H0, num_segments, replace(deconv, kernel_size=kernel_size),
+        _pixel_mask(tag, kernel_size, footprint))
     block_size = np.full(len(H0), kernel_size)
     stuck = np.zeros(len(H0), dtype=bool)
     size = kernel_size
@@ -268,7 +383,7 @@ def fit_front(image: np.ndarray, H0: np.ndarray, num_segments: int, deconv: Deco
                                       settings.kernel_per_extent),
                    min(grown + 1 - grown % 2, settings.max_kernel_size))
         refit = fit_blocks(image, H0[redo], num_segments, replace(deconv, kernel_size=size),
-                           _pixel_mask(tag, size))
+                           _pixel_mask(tag, size, footprint))
         better = np.array([refit.status[j] is BlockStatus.ACCEPTED
                            and (fit.status[i] is not BlockStatus.ACCEPTED
                                 or refit.boundary_energy[j] <= fit.boundary_energy[i])
@@ -286,7 +401,8 @@ def fit_front(image: np.ndarray, H0: np.ndarray, num_segments: int, deconv: Deco
 
 def refine_ring(image: np.ndarray, pattern: StarPattern, ids: list[int], fit: BlockFit,
                 deconv: DeconvSettings, settings: GrowSettings, tag: np.ndarray | None,
-                adaptive: bool = True) -> tuple[np.ndarray, BlockFit] | None:
+                adaptive: bool = True, footprint: np.ndarray | None = None
+                ) -> tuple[np.ndarray, BlockFit] | None:
     """Re-fit the ring around the tag from the homography of its first fit's star centres.
 
     Args:
@@ -297,6 +413,7 @@ def refine_ring(image: np.ndarray, pattern: StarPattern, ids: list[int], fit: Bl
         deconv, settings: as for :func:`fit_front`.
         tag: :func:`tag_mask`.
         adaptive: choose the window from the first fit's PSFs (else the configured one).
+        footprint: :func:`blur_footprint` (adaptive only), for :func:`_pixel_mask`.
     Returns:
         ``(H0 (B, 3, 3), fit)``: the new predictions and their fit; None when fewer than 6
         blocks were accepted or no homography fits them (RANSAC, 1.5 px).
@@ -315,7 +432,8 @@ def refine_ring(image: np.ndarray, pattern: StarPattern, ids: list[int], fit: Bl
                               _pixel_mask(tag, deconv.kernel_size))
     size = choose_kernel_size(fit.sigma_major[ok], deconv.kernel_size, settings.max_kernel_size,
                               settings.kernel_per_extent)
-    return H0, fit_front(image, H0, pattern.num_star_segments, deconv, settings, size, tag)
+    return H0, fit_front(image, H0, pattern.num_star_segments, deconv, settings, size, tag,
+                         footprint=footprint)
 
 
 def grow(image: np.ndarray, pattern: StarPattern, seed: Seed,
@@ -368,6 +486,7 @@ def grow(image: np.ndarray, pattern: StarPattern, seed: Seed,
     kernel_size = deconv.kernel_size
     tag = tag_mask(pattern, seed.H_feature, (h, w))
     adaptive: bool | None = None  # decided on the first front
+    footprint = None  # of the blur, for the tag's mask in adaptive frames
     while front_ids and len(ids_all) < settings.max_blocks:
         if should_stop is not None and should_stop():
             break
@@ -375,15 +494,23 @@ def grow(image: np.ndarray, pattern: StarPattern, seed: Seed,
         if adaptive is None:
             fit = fit_blocks(image, H0, N, deconv, _pixel_mask(tag, deconv.kernel_size))
             adaptive = needs_adaptive_window(fit, settings)
+            if not adaptive:
+                probe = probe_truncation(image, H0, N, fit, deconv, settings, tag)
+                if probe is not None:
+                    adaptive, fit = True, probe
+                    kernel_size = probe.settings.kernel_size
             if adaptive:
                 fit = fit_front(image, H0, N, deconv, settings, kernel_size, tag, first=fit)
+                extent = max(fit.settings.kernel_size / settings.kernel_per_extent,
+                             seed.blur[0] if math.isfinite(seed.blur[0]) else 0.0)
+                footprint = blur_footprint(fit, extent)
             if seed.source == "tag":
                 refined = refine_ring(image, pattern, front_ids, fit, deconv, settings, tag,
-                                      adaptive)
+                                      adaptive, footprint)
                 if refined is not None:
                     H0, fit = refined
         elif adaptive:
-            fit = fit_front(image, H0, N, deconv, settings, kernel_size, tag)
+            fit = fit_front(image, H0, N, deconv, settings, kernel_size, tag, footprint=footprint)
         else:
             fit = fit_blocks(image, H0, N, deconv, _pixel_mask(tag, deconv.kernel_size))
         fits.append(fit)
@@ -391,6 +518,18 @@ def grow(image: np.ndarray, pattern: StarPattern, seed: Seed,
         fitted_centre = fit.centre
         square_px = np.sqrt(np.abs(np.linalg.det(H0[:, :2, :2]))) * 2.0
         newly_accepted, accepted_rows = [], []
+        off = np.zeros(len(front_ids), dtype=bool)
+        if adaptive:
+            front_f = pattern.features[np.asarray(front_ids)]
+            if accepted_H:
+                ref = np.fromiter(accepted_H, dtype=np.int64, count=len(accepted_H))
+                ref_f = pattern.features[ref]
+                ref_c = homography_centre(np.stack(list(accepted_H.values())))
+            else:  # the ring: judged by the rest of the ring
+                fitted = np.array([st is BlockStatus.ACCEPTED for st in fit.status], dtype=bool)
+                ref_f, ref_c = front_f[fitted], fitted_centre[fitted]
+            off = inconsistent(front_f, fitted_centre, ref_f, ref_c,
+                               settings.consistency_neighbours, settings.max_inconsistency_px)
         for k, fid in enumerate(front_ids):
             status = fit.status[k]
             if status is BlockStatus.ACCEPTED:
@@ -399,7 +538,7 @@ def grow(image: np.ndarray, pattern: StarPattern, seed: Seed,
                     status = BlockStatus.HIGH_LOSS
                 elif fit.boundary_energy[k] > settings.max_boundary_energy:
                     status = BlockStatus.PSF_TRUNCATED
-                elif not np.isfinite(jump) or jump > settings.max_jump:
+                elif not np.isfinite(jump) or jump > settings.max_jump or off[k]:
                     status = BlockStatus.NOT_CONVERGED
             attempted[fid] = len(ids_all)
             ids_all.append(fid)
