@@ -31,6 +31,7 @@ the tag through the blur) are left out of every block's loss (:func:`tag_mask`).
 from __future__ import annotations
 
 import math
+from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 
@@ -64,14 +65,13 @@ class GrowSettings:
             the configured window is kept (the measured best for up to 15 px of blur).
         refit_boundary_energy: blocks whose PSF has more than this share of its energy in the
             window's outer two-pixel ring are re-fitted with a larger window.
-        probe_boundary_energy: a ring whose PSFs (configured window) carry more than this
-            median share of their energy in the window's outer ring, while their extent does not
-            ask for the adaptive window, is re-fitted with a 1.4 x larger window to see whether
-            the configured one truncated the blur (:func:`probe_truncation`).
-        max_inconsistency_px: in frames with the adaptive window only, reject blocks whose
-            star centre is further than this (px) from the homography of the previously
-            accepted blocks nearest to it (:func:`inconsistent`).
+        max_inconsistency_px: in blurred frames only (see ``check_above_extent_px``), reject
+            blocks whose star centre is further than this (px) from the homography of the
+            previously accepted blocks nearest to it (:func:`inconsistent`).
         consistency_neighbours: that many previously accepted blocks per judgement.
+        check_above_extent_px: the consistency check runs in frames with the adaptive window
+            and in frames whose tag ring (first fit) shows a blur extent above this (px, 90th
+            percentile of ``sqrt(12) sigma_major``); sharp frames (7 px window) never do.
     """
 
     max_loss: float = 400.0
@@ -82,9 +82,9 @@ class GrowSettings:
     kernel_per_extent: float = 1.5
     refit_boundary_energy: float = 0.1
     adapt_above_extent_px: float = 18.0
-    probe_boundary_energy: float = 0.03
     max_inconsistency_px: float = 1.0
     consistency_neighbours: int = 12
+    check_above_extent_px: float = 10.0
 
     def __post_init__(self) -> None:
         if self.max_kernel_size < 3 or self.max_kernel_size % 2 == 0:
@@ -221,47 +221,22 @@ def _too_small(fit: BlockFit, size: np.ndarray, settings: GrowSettings) -> np.nd
         (be > settings.refit_boundary_energy) | ((be > 0.03) & (wanted > size)))
 
 
+def _ring_blur(fit: BlockFit) -> tuple[float, float]:
+    """``(extent px, boundary energy)`` of the ring's fitted PSFs: the 90th percentile of
+    ``sqrt(12) sigma_major`` and the median boundary energy (NaN when none was fitted)."""
+    ok = np.array([st is BlockStatus.ACCEPTED for st in fit.status], dtype=bool)
+    ok |= np.isfinite(fit.boundary_energy)
+    if not ok.any() or not np.isfinite(fit.sigma_major[ok]).any():
+        return float("nan"), float("nan")
+    return (math.sqrt(12.0) * float(np.nanpercentile(fit.sigma_major[ok], 90)),
+            float(np.nanmedian(fit.boundary_energy[ok])))
+
+
 def needs_adaptive_window(fit: BlockFit, settings: GrowSettings) -> bool:
     """Whether the first front's fit ``fit`` shows more blur than the configured window suits
     (see :attr:`GrowSettings.adapt_above_extent_px`)."""
-    ok = np.array([st is BlockStatus.ACCEPTED for st in fit.status], dtype=bool)
-    ok |= np.isfinite(fit.boundary_energy)
-    if not ok.any():
-        return False
-    extent = math.sqrt(12.0) * np.nanpercentile(fit.sigma_major[ok], 90)
-    return bool(extent > settings.adapt_above_extent_px
-                or np.nanmedian(fit.boundary_energy[ok]) > settings.refit_boundary_energy)
-
-
-def probe_truncation(image: np.ndarray, H0: np.ndarray, num_segments: int, fit: BlockFit,
-                     deconv: DeconvSettings, settings: GrowSettings, tag: np.ndarray | None
-                     ) -> BlockFit | None:
-    """The ring ``H0 (B, 3, 3)`` re-fitted with a larger window when its fit ``fit`` (configured
-    window) may have truncated the blur, if that fit then asks for the adaptive window.
-
-    A blur longer than the window comes out of the fit truncated: its second moment is that of
-    the part inside the window, so a 22 px blur in a 17 px window reads as a ~15 px extent and
-    :func:`needs_adaptive_window` does not fire. What betrays it is energy along the window's
-    border (the solver zeroes kernel entries below 15 % of the peak, so a PSF that fits leaves
-    the outer ring empty). When the median boundary energy of the ring's fitted PSFs exceeds
-    :attr:`GrowSettings.probe_boundary_energy`, the ring is fitted once more with a window
-    ``ceil(1.4 K)`` (odd, capped); the frame adapts when that fit passes
-    :func:`needs_adaptive_window`.
-
-    Returns:
-        The larger window's fit when the frame should adapt, else None (no probe, or the blur
-        fits the configured window).
-    """
-    if settings.max_kernel_size <= deconv.kernel_size:
-        return None
-    be = fit.boundary_energy[np.isfinite(fit.boundary_energy)]
-    if be.size == 0 or float(np.median(be)) <= settings.probe_boundary_energy:
-        return None
-    k = math.ceil(1.4 * deconv.kernel_size)
-    size = min(k + 1 - k % 2, settings.max_kernel_size)
-    probe = fit_blocks(image, H0, num_segments, replace(deconv, kernel_size=size),
-                       _pixel_mask(tag, size))
-    return probe if needs_adaptive_window(probe, settings) else None
+    extent, be = _ring_blur(fit)
+    return bool(extent > settings.adapt_above_extent_px or be > settings.refit_boundary_energy)
 
 
 def inconsistent(features: np.ndarray, centres: np.ndarray, ref_features: np.ndarray,
@@ -448,7 +423,8 @@ def grow(image: np.ndarray, pattern: StarPattern, seed: Seed,
         seed: where the target is (:func:`blurcalib.seed.seed_frame`).
         deconv: block solver settings.
         settings: acceptance rules.
-        on_event: called once per attempted block, in order, as fronts finish.
+        on_event: called once per attempted block, in order, as fronts finish, and once more
+            for a block that the final consistency check of an adaptive frame rejects.
         should_stop: polled between fronts; growth ends early when it returns True.
     Returns:
         The growth, or None when not a single block could be attempted.
@@ -486,6 +462,7 @@ def grow(image: np.ndarray, pattern: StarPattern, seed: Seed,
     kernel_size = deconv.kernel_size
     tag = tag_mask(pattern, seed.H_feature, (h, w))
     adaptive: bool | None = None  # decided on the first front
+    judged = False  # whether blocks are checked against their neighbours (blurred frames)
     footprint = None  # of the blur, for the tag's mask in adaptive frames
     while front_ids and len(ids_all) < settings.max_blocks:
         if should_stop is not None and should_stop():
@@ -494,11 +471,7 @@ def grow(image: np.ndarray, pattern: StarPattern, seed: Seed,
         if adaptive is None:
             fit = fit_blocks(image, H0, N, deconv, _pixel_mask(tag, deconv.kernel_size))
             adaptive = needs_adaptive_window(fit, settings)
-            if not adaptive:
-                probe = probe_truncation(image, H0, N, fit, deconv, settings, tag)
-                if probe is not None:
-                    adaptive, fit = True, probe
-                    kernel_size = probe.settings.kernel_size
+            judged = adaptive or _ring_blur(fit)[0] > settings.check_above_extent_px
             if adaptive:
                 fit = fit_front(image, H0, N, deconv, settings, kernel_size, tag, first=fit)
                 extent = max(fit.settings.kernel_size / settings.kernel_per_extent,
@@ -519,7 +492,7 @@ def grow(image: np.ndarray, pattern: StarPattern, seed: Seed,
         square_px = np.sqrt(np.abs(np.linalg.det(H0[:, :2, :2]))) * 2.0
         newly_accepted, accepted_rows = [], []
         off = np.zeros(len(front_ids), dtype=bool)
-        if adaptive:
+        if judged:
             front_f = pattern.features[np.asarray(front_ids)]
             if accepted_H:
                 ref = np.fromiter(accepted_H, dtype=np.int64, count=len(accepted_H))
@@ -563,8 +536,49 @@ def grow(image: np.ndarray, pattern: StarPattern, seed: Seed,
                                              settings.max_kernel_size, settings.kernel_per_extent)
     if not fits:
         return None
-    return Growth(_concat_fits(fits), np.array(ids_all, dtype=np.int64), status_all,
-                  np.array(front_all, dtype=np.int64), np.stack(predicted_all), events)
+    fit = _concat_fits(fits)
+    ids = np.array(ids_all, dtype=np.int64)
+    front = np.array(front_all, dtype=np.int64)
+    if judged:  # once grown, every block has accepted neighbours on all sides: judge again
+        ok = np.flatnonzero([st is BlockStatus.ACCEPTED for st in status_all])
+        f = pattern.features[ids[ok]]
+        off = ok[inconsistent(f, fit.centre[ok], f, fit.centre[ok],
+                              settings.consistency_neighbours, settings.max_inconsistency_px)]
+        for k in off:
+            status_all[k] = BlockStatus.NOT_CONVERGED
+        cut = _cut_off(pattern, ids, front, status_all)
+        for k in cut:
+            status_all[k] = BlockStatus.DISCONNECTED
+        for k in np.concatenate([off, cut]).astype(np.int64):
+            fx, fy = (int(v) for v in pattern.features[ids[k]])
+            event = GrowthEvent(int(ids[k]), fx, fy, status_all[k], fit.H[k], fit.psf[k],
+                                float(fit.loss[k]), int(front[k]))
+            events.append(event)
+            if on_event is not None:
+                on_event(event)
+    return Growth(fit, ids, status_all, front, np.stack(predicted_all), events)
+
+
+def _cut_off(pattern: StarPattern, ids: np.ndarray, front: np.ndarray,
+             status: list[BlockStatus]) -> np.ndarray:
+    """Rows of accepted blocks no longer 4-connected to the accepted blocks of the earliest
+    front that keeps any (after the final check removed blocks between them; the pipeline's
+    block filter keeps one connected component, which could otherwise be a small island)."""
+    accepted = {(int(pattern.features[i][0]), int(pattern.features[i][1])): r
+                for r, i in enumerate(ids) if status[r] is BlockStatus.ACCEPTED}
+    if not accepted:
+        return np.zeros(0, dtype=np.int64)
+    first = min(int(front[r]) for r in accepted.values())
+    queue = deque(r for r in accepted.values() if front[r] == first)
+    seen = set(queue)
+    while queue:
+        fx, fy = (int(v) for v in pattern.features[ids[queue.popleft()]])
+        for dx, dy in ((1, 0), (-1, 0), (0, 1), (0, -1)):
+            r = accepted.get((fx + dx, fy + dy))
+            if r is not None and r not in seen:
+                seen.add(r)
+                queue.append(r)
+    return np.array(sorted(set(accepted.values()) - seen), dtype=np.int64)
 
 
 def _next_front(pattern: StarPattern, accepted_H: dict[int, np.ndarray],

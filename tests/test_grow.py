@@ -5,8 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from blurcalib.camera import apply_homography
 from blurcalib.deconv import DeconvSettings, fit_blocks
-from blurcalib.grow import GrowSettings, choose_kernel_size, fit_front
+from blurcalib.grow import GrowSettings, choose_kernel_size, fit_front, inconsistent
 from blurcalib.pattern import layout_pattern
 from blurcalib.results import BlockStatus
 from blurcalib.synth import simulate_blocks
@@ -44,3 +45,31 @@ def test_truncated_psf_is_refitted_with_a_larger_window() -> None:
     assert np.median(err) < 0.1 and np.median(err) < np.median(err_fixed)
     # Padding keeps the kernels: same sums, same centroid convention.
     assert np.allclose(np.nansum(grown.psf[ok], axis=(1, 2)), 1.0, atol=1e-3)
+
+
+def _grid(n: int = 8) -> tuple[np.ndarray, np.ndarray]:
+    """``(n^2, 2)`` feature coordinates and their star centres (px) through a perspective
+    homography with 30 px squares."""
+    fy, fx = np.mgrid[0:n, 0:n]
+    f = np.stack([fx.ravel(), fy.ravel()], axis=1)
+    H = np.array([[15.0, 2.0, 100.0], [-1.5, 14.0, 80.0], [3e-3, -2e-3, 1.0]])
+    return f, apply_homography(H, f.astype(np.float64))
+
+
+def test_block_off_its_neighbours_homography_is_inconsistent() -> None:
+    f, c = _grid()
+    moved = c.copy()
+    moved[27] += [1.5, -0.5]  # settled 1.6 px off
+    moved[36] += [0.3, 0.2]  # within the tolerance
+    bad = inconsistent(f, moved, f, moved, 12, 1.0)
+    assert np.flatnonzero(bad).tolist() == [27]
+    # A chain: a whole front that settled 2 px off together agrees with itself, but not with the
+    # blocks accepted before it, which are what a front is judged by during the growth.
+    front = f[:, 0] == 7
+    shifted = c[front] + [2.0, 0.0]
+    assert not inconsistent(f[front], shifted, f[front], shifted, 12, 1.0).any()
+    assert inconsistent(f[front], shifted, f[~front], c[~front], 12, 1.0).all()
+    # Too few references, or references on a line: no judgement.
+    assert not inconsistent(f[:1], c[:1] + 5.0, f[1:5], c[1:5], 12, 1.0).any()
+    row = f[:, 1] == 0
+    assert not inconsistent(f[8:9], c[8:9] + 5.0, f[row], c[row], 12, 1.0).any()
