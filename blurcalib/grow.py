@@ -65,14 +65,15 @@ class GrowSettings:
             the configured window is kept (the measured best for up to 15 px of blur).
         refit_boundary_energy: blocks whose PSF has more than this share of its energy in the
             window's outer two-pixel ring are re-fitted with a larger window.
-        max_inconsistency_px: in blurred frames only (see ``check_above_extent_px``), reject
-            blocks whose star centre is further than this (px) from the homography of the
-            previously accepted blocks nearest to it (:func:`inconsistent`).
+        max_inconsistency_px: in heavily blurred frames only (``heavy_above_extent_px``),
+            reject blocks whose star centre is further than this (px) from the homography of
+            the previously accepted blocks nearest to it (:func:`inconsistent`).
         consistency_neighbours: that many previously accepted blocks per judgement.
-        check_above_extent_px: the consistency check runs in frames whose tag ring (first
-            fit) shows a blur extent above this (px, 90th percentile of ``sqrt(12)
-            sigma_major``); not in sharp frames (7 px window), even those whose ring PSFs reach
-            the border and make the window adapt.
+        heavy_above_extent_px: frames whose tag ring (first fit) shows a blur extent above this
+            (px, 90th percentile of ``sqrt(12) sigma_major``) are heavily blurred: their blocks
+            are checked against their neighbours, and with the adaptive window the tag's mask
+            follows the blur (:func:`blur_footprint`). Sharp frames (7 px window) never are,
+            even those whose ring PSFs reach the border and make the window adapt.
     """
 
     max_loss: float = 400.0
@@ -85,7 +86,7 @@ class GrowSettings:
     adapt_above_extent_px: float = 18.0
     max_inconsistency_px: float = 1.0
     consistency_neighbours: int = 12
-    check_above_extent_px: float = 10.0
+    heavy_above_extent_px: float = 10.0
 
     def __post_init__(self) -> None:
         if self.max_kernel_size < 3 or self.max_kernel_size % 2 == 0:
@@ -323,7 +324,7 @@ def blur_footprint(fit: BlockFit, extent_px: float) -> np.ndarray | None:
     return footprint
 
 
-def _pixel_mask(tag: np.ndarray | None, kernel_size: int, footprint: np.ndarray | None = None
+def pixel_mask(tag: np.ndarray | None, kernel_size: int, footprint: np.ndarray | None = None
                 ) -> np.ndarray | None:
     """Pixels usable by blocks fitted with ``kernel_size``: outside the tags dilated by the
     blur's ``footprint`` (:func:`blur_footprint`), or without one further from a tag than the
@@ -345,11 +346,11 @@ def fit_front(image: np.ndarray, H0: np.ndarray, num_segments: int, deconv: Deco
     no more boundary energy; a block whose re-fit is not kept is not re-fitted again (its
     window is not what fails it). Kernels come back padded to the largest window used. ``tag``
     (:func:`tag_mask`) keeps pixels near the tags out of the fits (within the blur's
-    ``footprint`` when given, :func:`_pixel_mask`); ``first`` is the fit with ``kernel_size``
+    ``footprint`` when given, :func:`pixel_mask`); ``first`` is the fit with ``kernel_size``
     when already done."""
     fit = first if first is not None else fit_blocks(
         image, H0, num_segments, replace(deconv, kernel_size=kernel_size),
-        _pixel_mask(tag, kernel_size, footprint))
+        pixel_mask(tag, kernel_size, footprint))
     block_size = np.full(len(H0), kernel_size)
     stuck = np.zeros(len(H0), dtype=bool)
     size = kernel_size
@@ -362,7 +363,7 @@ def fit_front(image: np.ndarray, H0: np.ndarray, num_segments: int, deconv: Deco
                                       settings.kernel_per_extent),
                    min(grown + 1 - grown % 2, settings.max_kernel_size))
         refit = fit_blocks(image, H0[redo], num_segments, replace(deconv, kernel_size=size),
-                           _pixel_mask(tag, size, footprint))
+                           pixel_mask(tag, size, footprint))
         better = np.array([refit.status[j] is BlockStatus.ACCEPTED
                            and (fit.status[i] is not BlockStatus.ACCEPTED
                                 or refit.boundary_energy[j] <= fit.boundary_energy[i])
@@ -392,7 +393,7 @@ def refine_ring(image: np.ndarray, pattern: StarPattern, ids: list[int], fit: Bl
         deconv, settings: as for :func:`fit_front`.
         tag: :func:`tag_mask`.
         adaptive: choose the window from the first fit's PSFs (else the configured one).
-        footprint: :func:`blur_footprint` (adaptive only), for :func:`_pixel_mask`.
+        footprint: :func:`blur_footprint` (adaptive only), for :func:`pixel_mask`.
     Returns:
         ``(H0 (B, 3, 3), fit)``: the new predictions and their fit; None when fewer than 6
         blocks were accepted or no homography fits them (RANSAC, 1.5 px).
@@ -408,7 +409,7 @@ def refine_ring(image: np.ndarray, pattern: StarPattern, ids: list[int], fit: Bl
     H0 = _normalise(block_homography(H, f[:, 0], f[:, 1]))
     if not adaptive:
         return H0, fit_blocks(image, H0, pattern.num_star_segments, deconv,
-                              _pixel_mask(tag, deconv.kernel_size))
+                              pixel_mask(tag, deconv.kernel_size))
     size = choose_kernel_size(fit.sigma_major[ok], deconv.kernel_size, settings.max_kernel_size,
                               settings.kernel_per_extent)
     return H0, fit_front(image, H0, pattern.num_star_segments, deconv, settings, size, tag,
@@ -466,21 +467,21 @@ def grow(image: np.ndarray, pattern: StarPattern, seed: Seed,
     kernel_size = deconv.kernel_size
     tag = tag_mask(pattern, seed.H_feature, (h, w))
     adaptive: bool | None = None  # decided on the first front
-    judged = False  # whether blocks are checked against their neighbours (blurred frames)
+    heavy = False  # decided on the first front (heavy_above_extent_px)
     footprint = None  # of the blur, for the tag's mask in adaptive frames
     while front_ids and len(ids_all) < settings.max_blocks:
         if should_stop is not None and should_stop():
             break
         H0 = np.stack(front_H)
         if adaptive is None:
-            fit = fit_blocks(image, H0, N, deconv, _pixel_mask(tag, deconv.kernel_size))
+            fit = fit_blocks(image, H0, N, deconv, pixel_mask(tag, deconv.kernel_size))
             adaptive = needs_adaptive_window(fit, settings)
-            judged = bool(_ring_blur(fit)[0] > settings.check_above_extent_px)
+            heavy = bool(_ring_blur(fit)[0] > settings.heavy_above_extent_px)
             if adaptive:
                 fit = fit_front(image, H0, N, deconv, settings, kernel_size, tag, first=fit)
                 extent = max(fit.settings.kernel_size / settings.kernel_per_extent,
                              seed.blur[0] if math.isfinite(seed.blur[0]) else 0.0)
-                footprint = blur_footprint(fit, extent)
+                footprint = blur_footprint(fit, extent) if heavy else None
             if seed.source == "tag":
                 refined = refine_ring(image, pattern, front_ids, fit, deconv, settings, tag,
                                       adaptive, footprint)
@@ -489,14 +490,14 @@ def grow(image: np.ndarray, pattern: StarPattern, seed: Seed,
         elif adaptive:
             fit = fit_front(image, H0, N, deconv, settings, kernel_size, tag, footprint=footprint)
         else:
-            fit = fit_blocks(image, H0, N, deconv, _pixel_mask(tag, deconv.kernel_size))
+            fit = fit_blocks(image, H0, N, deconv, pixel_mask(tag, deconv.kernel_size))
         fits.append(fit)
         predicted_centre = homography_centre(H0)
         fitted_centre = fit.centre
         square_px = np.sqrt(np.abs(np.linalg.det(H0[:, :2, :2]))) * 2.0
         newly_accepted, accepted_rows = [], []
         off = np.zeros(len(front_ids), dtype=bool)
-        if judged:
+        if heavy:
             front_f = pattern.features[np.asarray(front_ids)]
             if accepted_H:
                 ref = np.fromiter(accepted_H, dtype=np.int64, count=len(accepted_H))
@@ -543,7 +544,7 @@ def grow(image: np.ndarray, pattern: StarPattern, seed: Seed,
     fit = _concat_fits(fits)
     ids = np.array(ids_all, dtype=np.int64)
     front = np.array(front_all, dtype=np.int64)
-    if judged:  # once grown, every block has accepted neighbours on all sides: judge again
+    if heavy:  # once grown, every block has accepted neighbours on all sides: judge again
         ok = np.flatnonzero([st is BlockStatus.ACCEPTED for st in status_all])
         f = pattern.features[ids[ok]]
         off = ok[inconsistent(f, fit.centre[ok], f, fit.centre[ok],
