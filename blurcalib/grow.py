@@ -24,8 +24,21 @@ window, up to the cap, rather than dropped. All of this only in frames whose tag
 than about 18 px of blur (:func:`needs_adaptive_window`); below, the configured window is kept,
 measured best there. Kernels of one growth are zero-padded (centred) to its
 largest window, which leaves them unchanged as convolution kernels. The block model's latent
-pattern is the periodic star field, so pixels nearer to a tag than the kernel radius (which see
-the tag through the blur) are left out of every block's loss (:func:`tag_mask`).
+pattern is the periodic star field, so pixels that see a tag through the blur are left out of
+every block's loss (:func:`tag_mask`, :func:`pixel_mask`): those nearer to it than the kernel
+radius, or in a heavily blurred frame with the adaptive window, those within the blur's footprint
+of it (:func:`blur_footprint`, a segment along the blur: a disk of a 35 px window leaves the ring
+of a 22 px blur on 27 px squares almost no pixels).
+
+Heavily blurred frames (tag ring blur extent above :attr:`GrowSettings.heavy_above_extent_px`,
+10 px) are also checked for blocks that settled px off at a normal loss (a long PSF shifted in
+its window), which the loss, boundary energy and jump limit do not see and whose predictions
+drag their neighbours along in chains: every front's blocks must lie within
+:attr:`GrowSettings.max_inconsistency_px` (1 px) of the homography of the 12 blocks accepted
+before them nearest in the pattern (:func:`inconsistent`; the ring is judged by the rest of the
+ring), and once the growth ends every block is judged again by its neighbours on all sides; the
+blocks this cuts off from the earliest front are marked disconnected. Sharp frames and frames
+with little blur are never judged, so their features are the same as without the check.
 """
 
 from __future__ import annotations
@@ -86,7 +99,7 @@ class GrowSettings:
     adapt_above_extent_px: float = 18.0
     max_inconsistency_px: float = 1.0
     consistency_neighbours: int = 12
-    heavy_above_extent_px: float = 10.0
+    heavy_above_extent_px: float = 18.0
 
     def __post_init__(self) -> None:
         if self.max_kernel_size < 3 or self.max_kernel_size % 2 == 0:
