@@ -24,20 +24,34 @@ window, up to the cap, rather than dropped. All of this only in frames whose tag
 than about 18 px of blur (:func:`needs_adaptive_window`); below, the configured window is kept,
 measured best there. Kernels of one growth are zero-padded (centred) to its
 largest window, which leaves them unchanged as convolution kernels. The block model's latent
-pattern is the periodic star field, so pixels nearer to a tag than the kernel radius (which see
-the tag through the blur) are left out of every block's loss (:func:`tag_mask`).
+pattern is the periodic star field, so pixels that see a tag through the blur are left out of
+every block's loss (:func:`tag_mask`, :func:`pixel_mask`): those nearer to it than the kernel
+radius, or in a heavily blurred frame with the adaptive window, those within the blur's footprint
+of it (:func:`blur_footprint`, a segment along the blur: a disk of a 35 px window leaves the ring
+of a 22 px blur on 27 px squares almost no pixels).
+
+Heavily blurred frames (tag ring blur extent above :attr:`GrowSettings.heavy_above_extent_px`,
+10 px) are also checked for blocks that settled px off at a normal loss (a long PSF shifted in
+its window), which the loss, boundary energy and jump limit do not see and whose predictions
+drag their neighbours along in chains: every front's blocks must lie within
+:attr:`GrowSettings.max_inconsistency_px` (1 px) of the homography of the 12 blocks accepted
+before them nearest in the pattern (:func:`inconsistent`; the ring is judged by the rest of the
+ring), and once the growth ends every block is judged again by its neighbours on all sides; the
+blocks this cuts off from the earliest front are marked disconnected. Sharp frames and frames
+with little blur are never judged, so their features are the same as without the check.
 """
 
 from __future__ import annotations
 
 import math
+from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 
 import cv2
 import numpy as np
 
-from blurcalib.camera import homography_centre
+from blurcalib.camera import apply_homography, homography_centre
 from blurcalib.deconv import BlockFit, DeconvSettings, fit_blocks
 from blurcalib.pattern import StarPattern
 from blurcalib.results import BlockStatus
@@ -64,6 +78,15 @@ class GrowSettings:
             the configured window is kept (the measured best for up to 15 px of blur).
         refit_boundary_energy: blocks whose PSF has more than this share of its energy in the
             window's outer two-pixel ring are re-fitted with a larger window.
+        max_inconsistency_px: in heavily blurred frames only (``heavy_above_extent_px``),
+            reject blocks whose star centre is further than this (px) from the homography of
+            the previously accepted blocks nearest to it (:func:`inconsistent`).
+        consistency_neighbours: that many previously accepted blocks per judgement.
+        heavy_above_extent_px: frames whose tag ring (first fit) shows a blur extent above this
+            (px, 90th percentile of ``sqrt(12) sigma_major``) are heavily blurred: their blocks
+            are checked against their neighbours, and with the adaptive window the tag's mask
+            follows the blur (:func:`blur_footprint`). Sharp frames (7 px window) never are,
+            even those whose ring PSFs reach the border and make the window adapt.
     """
 
     max_loss: float = 400.0
@@ -74,6 +97,9 @@ class GrowSettings:
     kernel_per_extent: float = 1.5
     refit_boundary_energy: float = 0.1
     adapt_above_extent_px: float = 18.0
+    max_inconsistency_px: float = 1.0
+    consistency_neighbours: int = 12
+    heavy_above_extent_px: float = 18.0
 
     def __post_init__(self) -> None:
         if self.max_kernel_size < 3 or self.max_kernel_size % 2 == 0:
@@ -210,16 +236,73 @@ def _too_small(fit: BlockFit, size: np.ndarray, settings: GrowSettings) -> np.nd
         (be > settings.refit_boundary_energy) | ((be > 0.03) & (wanted > size)))
 
 
+def _ring_blur(fit: BlockFit) -> tuple[float, float]:
+    """``(extent px, boundary energy)`` of the ring's fitted PSFs: the 90th percentile of
+    ``sqrt(12) sigma_major`` and the median boundary energy (NaN when none was fitted)."""
+    ok = np.array([st is BlockStatus.ACCEPTED for st in fit.status], dtype=bool)
+    ok |= np.isfinite(fit.boundary_energy)
+    if not ok.any() or not np.isfinite(fit.sigma_major[ok]).any():
+        return float("nan"), float("nan")
+    return (math.sqrt(12.0) * float(np.nanpercentile(fit.sigma_major[ok], 90)),
+            float(np.nanmedian(fit.boundary_energy[ok])))
+
+
 def needs_adaptive_window(fit: BlockFit, settings: GrowSettings) -> bool:
     """Whether the first front's fit ``fit`` shows more blur than the configured window suits
     (see :attr:`GrowSettings.adapt_above_extent_px`)."""
-    ok = np.array([st is BlockStatus.ACCEPTED for st in fit.status], dtype=bool)
-    ok |= np.isfinite(fit.boundary_energy)
-    if not ok.any():
-        return False
-    extent = math.sqrt(12.0) * np.nanpercentile(fit.sigma_major[ok], 90)
-    return bool(extent > settings.adapt_above_extent_px
-                or np.nanmedian(fit.boundary_energy[ok]) > settings.refit_boundary_energy)
+    extent, be = _ring_blur(fit)
+    return bool(extent > settings.adapt_above_extent_px or be > settings.refit_boundary_energy)
+
+
+def inconsistent(features: np.ndarray, centres: np.ndarray, ref_features: np.ndarray,
+                 ref_centres: np.ndarray, neighbours: int, tol_px: float, min_points: int = 10,
+                 min_inliers: int = 6) -> np.ndarray:
+    """``(B,)`` bool: blocks whose star centre disagrees with the accepted blocks near them.
+
+    For block ``b`` at integer feature coordinates ``features[b] (2,)`` with star centre
+    ``centres[b] (2,)`` px, the ``neighbours`` reference blocks nearest to it in the pattern
+    (itself excluded) give a homography feature coordinates -> px (RANSAC, ``tol_px / 2``); the
+    block is inconsistent when its centre is more than ``tol_px`` from that homography's
+    prediction. Blocks with fewer than ``min_points`` references (a homography extrapolated from
+    a thin strip of blocks is no judge: measured, a frame whose growth crept out of a ring of 4
+    blocks lost 96 of its 102 blocks with 6), fewer than ``min_inliers`` inliers, or references
+    (nearly) on a line, are not judged. Over the few squares the neighbours span, lens
+    distortion is far below a pixel; a block that settled with its long PSF shifted in the
+    window (centre px off at a normal loss) is not.
+
+    Args:
+        features: ``(B, 2)`` int feature coordinates of the blocks to judge.
+        centres: ``(B, 2)`` px their star centres.
+        ref_features: ``(R, 2)`` int feature coordinates of accepted blocks.
+        ref_centres: ``(R, 2)`` px their star centres.
+        neighbours: reference blocks per judgement.
+        tol_px: largest disagreement (px).
+        min_points: fewest references for a judgement.
+        min_inliers: fewest RANSAC inliers among them.
+    """
+    bad = np.zeros(len(features), dtype=bool)
+    if len(ref_features) < min_points:
+        return bad
+    for b in range(len(features)):
+        if not np.all(np.isfinite(centres[b])):
+            continue
+        d = np.linalg.norm(ref_features - features[b], axis=1)
+        d[d == 0] = np.inf
+        near = np.argsort(d, kind="stable")[:neighbours]
+        near = near[np.isfinite(d[near])]
+        if len(near) < min_points:
+            continue
+        src = ref_features[near].astype(np.float64)
+        spread = np.linalg.svd(src - src.mean(axis=0), compute_uv=False)[-1] / math.sqrt(len(src))
+        if spread < 0.5:
+            continue
+        H, inliers = cv2.findHomography(src, ref_centres[near].astype(np.float64), cv2.RANSAC,
+                                        tol_px / 2)
+        if H is None or int(inliers.sum()) < min_inliers:
+            continue
+        p = apply_homography(H, features[b][None].astype(np.float64))[0]
+        bad[b] = bool(np.linalg.norm(p - centres[b]) > tol_px)
+    return bad
 
 
 def tag_mask(pattern: StarPattern, H_feature: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
@@ -234,28 +317,53 @@ def tag_mask(pattern: StarPattern, H_feature: np.ndarray, shape: tuple[int, int]
     return mask
 
 
-def _pixel_mask(tag: np.ndarray | None, kernel_size: int) -> np.ndarray | None:
-    """Pixels usable by blocks fitted with ``kernel_size``: further from a tag than the kernel
-    radius plus 2 px (seed error)."""
+def blur_footprint(fit: BlockFit, extent_px: float) -> np.ndarray | None:
+    """``(F, F)`` uint8 footprint of the frame's blur, from the ring's fit ``fit``: a segment of
+    length ``extent_px`` along the PSFs' major axis (their orientations averaged as doubled
+    angles), ``2 + 2 sigma_minor`` px wide on each side (median ``sigma_minor``) plus 2 px of seed
+    error at its ends. A pixel sees a tag through the blur only when it lies within the tag
+    dilated by this footprint; None when no PSF was fitted."""
+    ok = np.isfinite(fit.orientation) & np.isfinite(fit.sigma_minor)
+    if not ok.any() or not math.isfinite(extent_px):
+        return None
+    theta = 0.5 * float(np.angle(np.mean(np.exp(2j * fit.orientation[ok]))))
+    half_width = 2 + math.ceil(2.0 * float(np.median(fit.sigma_minor[ok])))
+    half_length = math.ceil(extent_px / 2.0) + 2
+    r = half_length + half_width
+    footprint = np.zeros((2 * r + 1, 2 * r + 1), dtype=np.uint8)
+    dx, dy = half_length * math.cos(theta), half_length * math.sin(theta)
+    cv2.line(footprint, (round(r - dx), round(r - dy)), (round(r + dx), round(r + dy)), 1,
+             thickness=2 * half_width + 1)
+    return footprint
+
+
+def pixel_mask(tag: np.ndarray | None, kernel_size: int, footprint: np.ndarray | None = None
+                ) -> np.ndarray | None:
+    """Pixels usable by blocks fitted with ``kernel_size``: outside the tags dilated by the
+    blur's ``footprint`` (:func:`blur_footprint`), or without one further from a tag than the
+    kernel radius plus 2 px (seed error)."""
     if tag is None or not tag.any():
         return None
-    r = kernel_size // 2 + 2
-    disk = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
-    return cv2.dilate(tag, disk) == 0
+    if footprint is None:
+        r = kernel_size // 2 + 2
+        footprint = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
+    return cv2.dilate(tag, footprint) == 0
 
 
 def fit_front(image: np.ndarray, H0: np.ndarray, num_segments: int, deconv: DeconvSettings,
               settings: GrowSettings, kernel_size: int, tag: np.ndarray | None = None,
-              first: BlockFit | None = None) -> BlockFit:
+              first: BlockFit | None = None, footprint: np.ndarray | None = None) -> BlockFit:
     """Fit one front's blocks ``H0 (B, 3, 3)`` with a window of ``kernel_size`` px; re-fit those
     whose window is too small for their PSF with larger windows (at least 1.4 x larger each
     time, up to :attr:`GrowSettings.max_kernel_size`), keeping a re-fit when it is accepted with
     no more boundary energy; a block whose re-fit is not kept is not re-fitted again (its
     window is not what fails it). Kernels come back padded to the largest window used. ``tag``
-    (:func:`tag_mask`) keeps pixels near the tags out of the fits; ``first`` is the fit with
-    ``kernel_size`` when already done."""
+    (:func:`tag_mask`) keeps pixels near the tags out of the fits (within the blur's
+    ``footprint`` when given, :func:`pixel_mask`); ``first`` is the fit with ``kernel_size``
+    when already done."""
     fit = first if first is not None else fit_blocks(
-        image, H0, num_segments, replace(deconv, kernel_size=kernel_size), _pixel_mask(tag, kernel_size))
+        image, H0, num_segments, replace(deconv, kernel_size=kernel_size),
+        pixel_mask(tag, kernel_size, footprint))
     block_size = np.full(len(H0), kernel_size)
     stuck = np.zeros(len(H0), dtype=bool)
     size = kernel_size
@@ -268,7 +376,7 @@ def fit_front(image: np.ndarray, H0: np.ndarray, num_segments: int, deconv: Deco
                                       settings.kernel_per_extent),
                    min(grown + 1 - grown % 2, settings.max_kernel_size))
         refit = fit_blocks(image, H0[redo], num_segments, replace(deconv, kernel_size=size),
-                           _pixel_mask(tag, size))
+                           pixel_mask(tag, size, footprint))
         better = np.array([refit.status[j] is BlockStatus.ACCEPTED
                            and (fit.status[i] is not BlockStatus.ACCEPTED
                                 or refit.boundary_energy[j] <= fit.boundary_energy[i])
@@ -286,7 +394,8 @@ def fit_front(image: np.ndarray, H0: np.ndarray, num_segments: int, deconv: Deco
 
 def refine_ring(image: np.ndarray, pattern: StarPattern, ids: list[int], fit: BlockFit,
                 deconv: DeconvSettings, settings: GrowSettings, tag: np.ndarray | None,
-                adaptive: bool = True) -> tuple[np.ndarray, BlockFit] | None:
+                adaptive: bool = True, footprint: np.ndarray | None = None
+                ) -> tuple[np.ndarray, BlockFit] | None:
     """Re-fit the ring around the tag from the homography of its first fit's star centres.
 
     Args:
@@ -297,6 +406,7 @@ def refine_ring(image: np.ndarray, pattern: StarPattern, ids: list[int], fit: Bl
         deconv, settings: as for :func:`fit_front`.
         tag: :func:`tag_mask`.
         adaptive: choose the window from the first fit's PSFs (else the configured one).
+        footprint: :func:`blur_footprint` (adaptive only), for :func:`pixel_mask`.
     Returns:
         ``(H0 (B, 3, 3), fit)``: the new predictions and their fit; None when fewer than 6
         blocks were accepted or no homography fits them (RANSAC, 1.5 px).
@@ -312,10 +422,11 @@ def refine_ring(image: np.ndarray, pattern: StarPattern, ids: list[int], fit: Bl
     H0 = _normalise(block_homography(H, f[:, 0], f[:, 1]))
     if not adaptive:
         return H0, fit_blocks(image, H0, pattern.num_star_segments, deconv,
-                              _pixel_mask(tag, deconv.kernel_size))
+                              pixel_mask(tag, deconv.kernel_size))
     size = choose_kernel_size(fit.sigma_major[ok], deconv.kernel_size, settings.max_kernel_size,
                               settings.kernel_per_extent)
-    return H0, fit_front(image, H0, pattern.num_star_segments, deconv, settings, size, tag)
+    return H0, fit_front(image, H0, pattern.num_star_segments, deconv, settings, size, tag,
+                         footprint=footprint)
 
 
 def grow(image: np.ndarray, pattern: StarPattern, seed: Seed,
@@ -330,7 +441,8 @@ def grow(image: np.ndarray, pattern: StarPattern, seed: Seed,
         seed: where the target is (:func:`blurcalib.seed.seed_frame`).
         deconv: block solver settings.
         settings: acceptance rules.
-        on_event: called once per attempted block, in order, as fronts finish.
+        on_event: called once per attempted block, in order, as fronts finish, and once more
+            for a block that the final consistency check of an adaptive frame rejects.
         should_stop: polled between fronts; growth ends early when it returns True.
     Returns:
         The growth, or None when not a single block could be attempted.
@@ -368,29 +480,47 @@ def grow(image: np.ndarray, pattern: StarPattern, seed: Seed,
     kernel_size = deconv.kernel_size
     tag = tag_mask(pattern, seed.H_feature, (h, w))
     adaptive: bool | None = None  # decided on the first front
+    heavy = False  # decided on the first front (heavy_above_extent_px)
+    footprint = None  # of the blur, for the tag's mask in adaptive frames
     while front_ids and len(ids_all) < settings.max_blocks:
         if should_stop is not None and should_stop():
             break
         H0 = np.stack(front_H)
         if adaptive is None:
-            fit = fit_blocks(image, H0, N, deconv, _pixel_mask(tag, deconv.kernel_size))
+            fit = fit_blocks(image, H0, N, deconv, pixel_mask(tag, deconv.kernel_size))
             adaptive = needs_adaptive_window(fit, settings)
+            heavy = bool(_ring_blur(fit)[0] > settings.heavy_above_extent_px)
             if adaptive:
                 fit = fit_front(image, H0, N, deconv, settings, kernel_size, tag, first=fit)
+                extent = max(fit.settings.kernel_size / settings.kernel_per_extent,
+                             seed.blur[0] if math.isfinite(seed.blur[0]) else 0.0)
+                footprint = blur_footprint(fit, extent) if heavy else None
             if seed.source == "tag":
                 refined = refine_ring(image, pattern, front_ids, fit, deconv, settings, tag,
-                                      adaptive)
+                                      adaptive, footprint)
                 if refined is not None:
                     H0, fit = refined
         elif adaptive:
-            fit = fit_front(image, H0, N, deconv, settings, kernel_size, tag)
+            fit = fit_front(image, H0, N, deconv, settings, kernel_size, tag, footprint=footprint)
         else:
-            fit = fit_blocks(image, H0, N, deconv, _pixel_mask(tag, deconv.kernel_size))
+            fit = fit_blocks(image, H0, N, deconv, pixel_mask(tag, deconv.kernel_size))
         fits.append(fit)
         predicted_centre = homography_centre(H0)
         fitted_centre = fit.centre
         square_px = np.sqrt(np.abs(np.linalg.det(H0[:, :2, :2]))) * 2.0
         newly_accepted, accepted_rows = [], []
+        off = np.zeros(len(front_ids), dtype=bool)
+        if heavy:
+            front_f = pattern.features[np.asarray(front_ids)]
+            if accepted_H:
+                ref = np.fromiter(accepted_H, dtype=np.int64, count=len(accepted_H))
+                ref_f = pattern.features[ref]
+                ref_c = homography_centre(np.stack(list(accepted_H.values())))
+            else:  # the ring: judged by the rest of the ring
+                fitted = np.array([st is BlockStatus.ACCEPTED for st in fit.status], dtype=bool)
+                ref_f, ref_c = front_f[fitted], fitted_centre[fitted]
+            off = inconsistent(front_f, fitted_centre, ref_f, ref_c,
+                               settings.consistency_neighbours, settings.max_inconsistency_px)
         for k, fid in enumerate(front_ids):
             status = fit.status[k]
             if status is BlockStatus.ACCEPTED:
@@ -399,7 +529,7 @@ def grow(image: np.ndarray, pattern: StarPattern, seed: Seed,
                     status = BlockStatus.HIGH_LOSS
                 elif fit.boundary_energy[k] > settings.max_boundary_energy:
                     status = BlockStatus.PSF_TRUNCATED
-                elif not np.isfinite(jump) or jump > settings.max_jump:
+                elif not np.isfinite(jump) or jump > settings.max_jump or off[k]:
                     status = BlockStatus.NOT_CONVERGED
             attempted[fid] = len(ids_all)
             ids_all.append(fid)
@@ -424,8 +554,49 @@ def grow(image: np.ndarray, pattern: StarPattern, seed: Seed,
                                              settings.max_kernel_size, settings.kernel_per_extent)
     if not fits:
         return None
-    return Growth(_concat_fits(fits), np.array(ids_all, dtype=np.int64), status_all,
-                  np.array(front_all, dtype=np.int64), np.stack(predicted_all), events)
+    fit = _concat_fits(fits)
+    ids = np.array(ids_all, dtype=np.int64)
+    front = np.array(front_all, dtype=np.int64)
+    if heavy:  # once grown, every block has accepted neighbours on all sides: judge again
+        ok = np.flatnonzero([st is BlockStatus.ACCEPTED for st in status_all])
+        f = pattern.features[ids[ok]]
+        off = ok[inconsistent(f, fit.centre[ok], f, fit.centre[ok],
+                              settings.consistency_neighbours, settings.max_inconsistency_px)]
+        for k in off:
+            status_all[k] = BlockStatus.NOT_CONVERGED
+        cut = _cut_off(pattern, ids, front, status_all)
+        for k in cut:
+            status_all[k] = BlockStatus.DISCONNECTED
+        for k in np.concatenate([off, cut]).astype(np.int64):
+            fx, fy = (int(v) for v in pattern.features[ids[k]])
+            event = GrowthEvent(int(ids[k]), fx, fy, status_all[k], fit.H[k], fit.psf[k],
+                                float(fit.loss[k]), int(front[k]))
+            events.append(event)
+            if on_event is not None:
+                on_event(event)
+    return Growth(fit, ids, status_all, front, np.stack(predicted_all), events)
+
+
+def _cut_off(pattern: StarPattern, ids: np.ndarray, front: np.ndarray,
+             status: list[BlockStatus]) -> np.ndarray:
+    """Rows of accepted blocks no longer 4-connected to the accepted blocks of the earliest
+    front that keeps any (after the final check removed blocks between them; the pipeline's
+    block filter keeps one connected component, which could otherwise be a small island)."""
+    accepted = {(int(pattern.features[i][0]), int(pattern.features[i][1])): r
+                for r, i in enumerate(ids) if status[r] is BlockStatus.ACCEPTED}
+    if not accepted:
+        return np.zeros(0, dtype=np.int64)
+    first = min(int(front[r]) for r in accepted.values())
+    queue = deque(r for r in accepted.values() if front[r] == first)
+    seen = set(queue)
+    while queue:
+        fx, fy = (int(v) for v in pattern.features[ids[queue.popleft()]])
+        for dx, dy in ((1, 0), (-1, 0), (0, 1), (0, -1)):
+            r = accepted.get((fx + dx, fy + dy))
+            if r is not None and r not in seen:
+                seen.add(r)
+                queue.append(r)
+    return np.array(sorted(set(accepted.values()) - seen), dtype=np.int64)
 
 
 def _next_front(pattern: StarPattern, accepted_H: dict[int, np.ndarray],

@@ -5,10 +5,19 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from blurcalib.camera import apply_homography
 from blurcalib.deconv import DeconvSettings, fit_blocks
-from blurcalib.grow import GrowSettings, choose_kernel_size, fit_front
+from blurcalib.grow import (
+    GrowSettings,
+    blur_footprint,
+    choose_kernel_size,
+    fit_front,
+    inconsistent,
+    pixel_mask,
+)
 from blurcalib.pattern import layout_pattern
 from blurcalib.results import BlockStatus
+from blurcalib.seed import line_kernel
 from blurcalib.synth import simulate_blocks
 
 
@@ -44,3 +53,57 @@ def test_truncated_psf_is_refitted_with_a_larger_window() -> None:
     assert np.median(err) < 0.1 and np.median(err) < np.median(err_fixed)
     # Padding keeps the kernels: same sums, same centroid convention.
     assert np.allclose(np.nansum(grown.psf[ok], axis=(1, 2)), 1.0, atol=1e-3)
+
+
+def _grid(n: int = 8) -> tuple[np.ndarray, np.ndarray]:
+    """``(n^2, 2)`` feature coordinates and their star centres (px) through a perspective
+    homography with 30 px squares."""
+    fy, fx = np.mgrid[0:n, 0:n]
+    f = np.stack([fx.ravel(), fy.ravel()], axis=1)
+    H = np.array([[15.0, 2.0, 100.0], [-1.5, 14.0, 80.0], [3e-3, -2e-3, 1.0]])
+    return f, apply_homography(H, f.astype(np.float64))
+
+
+def test_block_off_its_neighbours_homography_is_inconsistent() -> None:
+    f, c = _grid()
+    moved = c.copy()
+    moved[27] += [1.5, -0.5]  # settled 1.6 px off
+    moved[36] += [0.3, 0.2]  # within the tolerance
+    bad = inconsistent(f, moved, f, moved, 12, 1.0)
+    assert np.flatnonzero(bad).tolist() == [27]
+    # A chain: a whole front that settled 2 px off together agrees with itself, but not with the
+    # blocks accepted before it, which are what a front is judged by during the growth.
+    front = f[:, 0] == 7
+    shifted = c[front] + [2.0, 0.0]
+    assert not inconsistent(f[front], shifted, f[front], shifted, 12, 1.0).any()
+    assert inconsistent(f[front], shifted, f[~front], c[~front], 12, 1.0).all()
+    # Too few references, or references on a line: no judgement.
+    assert not inconsistent(f[:1], c[:1] + 5.0, f[1:5], c[1:5], 12, 1.0).any()
+    row = f[:, 1] == 0
+    assert not inconsistent(f[8:9], c[8:9] + 5.0, f[row], c[row], 12, 1.0).any()
+
+
+def test_tag_mask_follows_the_blur() -> None:
+    """A straight 20 px blur: the fitted PSFs give a footprint along the blur, and the pixels it
+    leaves out around a tag are far fewer than a disk of the kernel radius would."""
+    pattern = layout_pattern()
+    angle = 0.6
+    sim = simulate_blocks(pattern, 4, np.random.default_rng(5), psf=line_kernel(20.0, angle),
+                          square_px=(34.0, 38.0), tile_px=128, init_shift_px=0.5)
+    fit = fit_blocks(sim.image.astype(np.float32), sim.H0, pattern.num_star_segments,
+                     DeconvSettings(kernel_size=31))
+    footprint = blur_footprint(fit, 20.0)
+    assert footprint is not None
+    ys, xs = np.nonzero(footprint)
+    c = (footprint.shape[0] - 1) / 2
+    orient = 0.5 * np.arctan2(2 * np.mean((xs - c) * (ys - c)),
+                              np.mean((xs - c) ** 2) - np.mean((ys - c) ** 2))
+    assert abs((orient - angle + np.pi / 2) % np.pi - np.pi / 2) < 0.1
+    extent = np.hypot(xs - c, ys - c).max()
+    assert 11.0 <= extent <= 20.0  # half the blur plus the seed margin and the width
+    tag = np.zeros((200, 200), dtype=np.uint8)
+    tag[80:120, 80:120] = 1
+    along = pixel_mask(tag, 31, footprint)
+    disk = pixel_mask(tag, 31)
+    assert (~along).sum() < 0.75 * (~disk).sum()
+    assert not along[tag == 1].any() and along.sum() > disk.sum()
