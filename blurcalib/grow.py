@@ -31,7 +31,7 @@ of it (:func:`blur_footprint`, a segment along the blur: a disk of a 35 px windo
 of a 22 px blur on 27 px squares almost no pixels).
 
 Heavily blurred frames (tag ring blur extent above :attr:`GrowSettings.heavy_above_extent_px`,
-10 px) are also checked for blocks that settled px off at a normal loss (a long PSF shifted in
+18 px) are also checked for blocks that settled px off at a normal loss (a long PSF shifted in
 its window), which the loss, boundary energy and jump limit do not see and whose predictions
 drag their neighbours along in chains: every front's blocks must lie within
 :attr:`GrowSettings.max_inconsistency_px` (1 px) of the homography of the 12 blocks accepted
