@@ -75,21 +75,24 @@ def fit_homographies(q: np.ndarray, y: np.ndarray) -> np.ndarray:
     return back @ G
 
 
+_CHUNK = 512
+"""Blocks per batch of :func:`centre_bias` (its least-squares systems take ~15 kB per block)."""
+
+
 def centre_bias(camera: BrownConrady, H: np.ndarray) -> np.ndarray:
     """``(N, 2)`` px: the bias ``G(0) - W(0)`` of the star centre of each block homography
     ``H (N, 3, 3)`` under ``camera``'s distortion (module docstring). NaN for a non-finite ``H``."""
     H = np.asarray(H, dtype=np.float64).reshape(-1, 3, 3)
     out = np.full((len(H), 2), np.nan)
-    ok = np.all(np.isfinite(H), axis=(1, 2))
-    if not ok.any():
-        return out
-    n = int(ok.sum())
-    seen = _apply(H[ok], _LATTICE)
-    plane = fit_homographies(_LATTICE, camera.unproject(seen.reshape(-1, 2)).reshape(n, -1, 2))
-    d = camera.distort(_apply(plane, _LATTICE).reshape(-1, 2)).reshape(n, -1, 2)
-    W = np.stack([camera.fx * d[..., 0] + camera.cx, camera.fy * d[..., 1] + camera.cy], axis=-1)
-    G = fit_homographies(_LATTICE, W)
-    out[ok] = G[:, :2, 2] / G[:, 2:, 2] - W[:, _CENTRE]
+    rows = np.flatnonzero(np.all(np.isfinite(H), axis=(1, 2)))
+    for start in range(0, len(rows), _CHUNK):
+        sel = rows[start:start + _CHUNK]
+        seen = _apply(H[sel], _LATTICE)
+        plane = fit_homographies(_LATTICE, camera.unproject(seen.reshape(-1, 2)).reshape(len(sel), -1, 2))
+        d = camera.distort(_apply(plane, _LATTICE).reshape(-1, 2)).reshape(len(sel), -1, 2)
+        W = np.stack([camera.fx * d[..., 0] + camera.cx, camera.fy * d[..., 1] + camera.cy], axis=-1)
+        G = fit_homographies(_LATTICE, W)
+        out[sel] = G[:, :2, 2] / G[:, 2:, 2] - W[:, _CENTRE]
     return out
 
 
