@@ -30,7 +30,7 @@ from dataclasses import replace
 
 import numpy as np
 
-from blurcalib.camera import BrownConrady, translation
+from blurcalib.camera import BrownConrady, apply_homography, translation
 from blurcalib.results import BlockTable, FeatureFlags, FeatureTable
 
 __all__ = ["centre_bias", "correct_blocks", "correct_features", "fit_homographies"]
@@ -39,12 +39,6 @@ _STEPS = np.linspace(-1.0, 1.0, 15)
 _LATTICE = np.stack(np.meshgrid(_STEPS, _STEPS), axis=-1).reshape(-1, 2)
 """``(225, 2)`` block coordinates of the fits; the middle row is ``q = 0``."""
 _CENTRE = len(_LATTICE) // 2
-
-
-def _apply(H: np.ndarray, q: np.ndarray) -> np.ndarray:
-    """``H (N, 3, 3)`` applied to ``q (M, 2)``: ``(N, M, 2)``."""
-    x = np.concatenate([q, np.ones((len(q), 1))], axis=1)[None] @ H.transpose(0, 2, 1)
-    return x[..., :2] / x[..., 2:]
 
 
 def fit_homographies(q: np.ndarray, y: np.ndarray) -> np.ndarray:
@@ -87,9 +81,9 @@ def centre_bias(camera: BrownConrady, H: np.ndarray) -> np.ndarray:
     rows = np.flatnonzero(np.all(np.isfinite(H), axis=(1, 2)))
     for start in range(0, len(rows), _CHUNK):
         sel = rows[start:start + _CHUNK]
-        seen = _apply(H[sel], _LATTICE)
+        seen = apply_homography(H[sel], _LATTICE[None])
         plane = fit_homographies(_LATTICE, camera.unproject(seen.reshape(-1, 2)).reshape(len(sel), -1, 2))
-        d = camera.distort(_apply(plane, _LATTICE).reshape(-1, 2)).reshape(len(sel), -1, 2)
+        d = camera.distort(apply_homography(plane, _LATTICE[None]).reshape(-1, 2)).reshape(len(sel), -1, 2)
         W = np.stack([camera.fx * d[..., 0] + camera.cx, camera.fy * d[..., 1] + camera.cy], axis=-1)
         G = fit_homographies(_LATTICE, W)
         out[sel] = G[:, :2, 2] / G[:, 2:, 2] - W[:, _CENTRE]
