@@ -44,7 +44,6 @@ with little blur are never judged, so their features are the same as without the
 from __future__ import annotations
 
 import math
-from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 
@@ -54,6 +53,7 @@ import numpy as np
 from blurcalib.camera import apply_homography, homography_centre
 from blurcalib.deconv import BlockFit, DeconvSettings, fit_blocks
 from blurcalib.pattern import StarPattern
+from blurcalib.quality import connected_blocks
 from blurcalib.results import BlockStatus
 from blurcalib.seed import Seed, block_homography, tag_ring_features
 
@@ -582,21 +582,12 @@ def _cut_off(pattern: StarPattern, ids: np.ndarray, front: np.ndarray,
     """Rows of accepted blocks no longer 4-connected to the accepted blocks of the earliest
     front that keeps any (after the final check removed blocks between them; the pipeline's
     block filter keeps one connected component, which could otherwise be a small island)."""
-    accepted = {(int(pattern.features[i][0]), int(pattern.features[i][1])): r
-                for r, i in enumerate(ids) if status[r] is BlockStatus.ACCEPTED}
-    if not accepted:
+    accepted = np.array([st is BlockStatus.ACCEPTED for st in status], dtype=bool)
+    if not accepted.any():
         return np.zeros(0, dtype=np.int64)
-    first = min(int(front[r]) for r in accepted.values())
-    queue = deque(r for r in accepted.values() if front[r] == first)
-    seen = set(queue)
-    while queue:
-        fx, fy = (int(v) for v in pattern.features[ids[queue.popleft()]])
-        for dx, dy in ((1, 0), (-1, 0), (0, 1), (0, -1)):
-            r = accepted.get((fx + dx, fy + dy))
-            if r is not None and r not in seen:
-                seen.add(r)
-                queue.append(r)
-    return np.array(sorted(set(accepted.values()) - seen), dtype=np.int64)
+    f = pattern.features[ids]
+    first = np.flatnonzero(accepted & (front == front[accepted].min()))
+    return np.flatnonzero(accepted & ~connected_blocks(f[:, 0], f[:, 1], accepted, first.tolist()))
 
 
 def _next_front(pattern: StarPattern, accepted_H: dict[int, np.ndarray],

@@ -17,6 +17,7 @@ All of it runs on arrays in milliseconds per frame, so a GUI can move the thresh
 from __future__ import annotations
 
 from collections import deque
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -104,7 +105,7 @@ def filter_frame(blocks: BlockTable, image_size: tuple[int, int], settings: Qual
     seed = _bfs_seed(centre, loss, survivors, image_size)
     connected = np.zeros(len(blocks), dtype=bool)
     if seed >= 0:
-        connected = _connected(blocks.fx, blocks.fy, survivors, seed)
+        connected = connected_blocks(blocks.fx, blocks.fy, survivors, [seed])
     out[survivors & ~connected] = BlockStatus.DISCONNECTED.value
     return FrameFilter(out, connected, seed, centre_sigma, bool(frame_ok))
 
@@ -121,11 +122,14 @@ def _bfs_seed(centre: np.ndarray, loss: np.ndarray, survivors: np.ndarray,
     return int(near[np.argmin(loss[near])])
 
 
-def _connected(fx: np.ndarray, fy: np.ndarray, allowed: np.ndarray, seed: int) -> np.ndarray:
+def connected_blocks(fx: np.ndarray, fy: np.ndarray, allowed: np.ndarray, seeds: Sequence[int]
+                     ) -> np.ndarray:
+    """``(B,)`` bool: the blocks reached from ``seeds`` through 4-neighbours in the pattern
+    (feature coordinates ``fx, fy (B,)``) that are ``allowed (B,)`` (breadth-first)."""
     index = {(int(x), int(y)): i for i, (x, y) in enumerate(zip(fx, fy, strict=True)) if allowed[i]}
     seen = np.zeros(len(fx), dtype=bool)
-    seen[seed] = True
-    queue = deque([seed])
+    seen[list(seeds)] = True
+    queue = deque(seeds)
     while queue:
         i = queue.popleft()
         for dx, dy in ((1, 0), (-1, 0), (0, 1), (0, -1)):

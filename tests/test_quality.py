@@ -7,7 +7,7 @@ from dataclasses import replace
 import numpy as np
 
 from blurcalib.camera import translation
-from blurcalib.quality import QualitySettings, filter_frame
+from blurcalib.quality import QualitySettings, connected_blocks, filter_frame
 from blurcalib.results import BlockStatus, BlockTable
 
 
@@ -70,3 +70,14 @@ def test_degenerate_homography_has_no_centre() -> None:
     t = _grid(2)
     t.H[1, 2, 2] = 0.0
     assert np.isnan(t.centre[1]).all() and np.array_equal(t.centre[0], [100.0, 60.0])
+
+
+def test_connected_blocks_from_several_seeds() -> None:
+    """Two islands of allowed blocks on a row: each seed reaches its own island only, a block
+    that is not allowed is never reached, and two seeds reach both islands."""
+    fx = np.array([0, 1, 2, 3, 4, 5])
+    fy = np.zeros(6, dtype=int)
+    allowed = np.array([True, True, False, True, True, True])
+    np.testing.assert_array_equal(connected_blocks(fx, fy, allowed, [0]), [1, 1, 0, 0, 0, 0])
+    np.testing.assert_array_equal(connected_blocks(fx, fy, allowed, [5]), [0, 0, 0, 1, 1, 1])
+    np.testing.assert_array_equal(connected_blocks(fx, fy, allowed, [0, 4]), [1, 1, 0, 1, 1, 1])
