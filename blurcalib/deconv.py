@@ -297,6 +297,7 @@ _DIRECT_CONV_MAX_KERNEL = 29
 (depthwise) convolution of the 9 Jacobian channels takes 0.28x the FFT's time at 7 px, 0.44x at
 19 px and 0.7x at 29 px; at 31 px the FFT is faster (``docs/deconvolution.md``)."""
 
+
 class _Factor(NamedTuple):
     """The Cholesky factor of a kernel solve's free system, compacted to its free entries.
 
@@ -855,8 +856,8 @@ _GROUP_COST = 8.6e7
 the multiply-adds of a normal matrix ``D D^T`` (measured on one CPU thread: ~3 ms per kernel
 solve against ~0.035 ns per multiply-add)."""
 _LATENT_COST = 4.3e3
-"""Cost of one latent-grid pixel of a kernel solve (the pattern, its Jacobian and the FFTs:
-~150 ns), in the same units."""
+"""Cost of one latent-grid pixel of a kernel solve (the pattern, its Jacobian and the
+convolutions: ~150 ns, measured with FFT convolutions), in the same units."""
 
 
 def _stage_groups(support: np.ndarray, pixels: np.ndarray, size: np.ndarray, radius: int, most: int
