@@ -15,30 +15,34 @@ rejected and seeds nothing. Every decision is reported to an optional callback, 
 the growth live.
 
 The PSF window fits the blur. A front is solved with the window chosen from the previous front's
-PSFs (:func:`choose_kernel_size`: about 1.5 x the blur extent ``sqrt(12) sigma_major``, the
-length of a straight blur with that second moment; odd, at least the configured
+PSFs (:func:`choose_kernel_size`: about 1.5 x the blur extent ``sqrt(12) sigma_major``, the length
+of a straight blur with that second moment; odd, at least the configured
 :attr:`DeconvSettings.kernel_size`, at most :attr:`GrowSettings.max_kernel_size`). A block whose
-PSF reaches the window's border (boundary energy above
-:attr:`GrowSettings.refit_boundary_energy`) is re-fitted from the same prediction with a larger
-window, up to the cap, rather than dropped. All of this only in frames whose tag ring shows more
-than about 18 px of blur (:func:`needs_adaptive_window`); below, the configured window is kept,
-measured best there. Kernels of one growth are zero-padded (centred) to its
-largest window, which leaves them unchanged as convolution kernels. The block model's latent
-pattern is the periodic star field, so pixels that see a tag through the blur are left out of
-every block's loss (:func:`tag_mask`, :func:`pixel_mask`): those nearer to it than the kernel
-radius, or in a heavily blurred frame with the adaptive window, those within the blur's footprint
-of it (:func:`blur_footprint`, a segment along the blur: a disk of a 35 px window leaves the ring
-of a 22 px blur on 27 px squares almost no pixels).
+PSF reaches the window's border (boundary energy above :attr:`GrowSettings.refit_boundary_energy`)
+is re-fitted from the same prediction with a larger window, up to the cap, rather than dropped.
+All of this only in frames whose tag ring shows more than about 18 px of blur
+(:func:`needs_adaptive_window`), or from the first later front whose PSFs reach the window's
+border (median boundary energy above :attr:`GrowSettings.refit_boundary_energy`: the blur grows
+away from the tag); below, the configured window is kept, measured best there (a later front's
+extent alone is no signal: the 6 frames of 4-15 px blur of ``scripts/bench_yield.py`` read 18.4 px
+at most, and one of them lost accuracy with the larger window, 0.029 -> 0.037 px). Kernels of one
+growth are zero-padded (centred) to its largest window, which leaves them unchanged as convolution
+kernels. The block model's latent pattern is the periodic star field, so pixels that see a tag
+through the blur are left out of every block's loss (:func:`tag_mask`, :func:`pixel_mask`): those
+nearer to it than the kernel radius, or in a heavily blurred frame with the adaptive window, those
+within the blur's footprint of it (:func:`blur_footprint`, a segment along the blur: a disk of a
+35 px window leaves the ring of a 22 px blur on 27 px squares almost no pixels).
 
-Heavily blurred frames (tag ring blur extent above :attr:`GrowSettings.heavy_above_extent_px`,
-18 px) are also checked for blocks that settled px off at a normal loss (a long PSF shifted in
-its window), which the loss, boundary energy and jump limit do not see and whose predictions
-drag their neighbours along in chains: every front's blocks must lie within
-:attr:`GrowSettings.max_inconsistency_px` (1 px) of the homography of the 12 blocks accepted
-before them nearest in the pattern (:func:`inconsistent`; the ring is judged by the rest of the
-ring), and once the growth ends every block is judged again by its neighbours on all sides; the
-blocks this cuts off from the earliest front are marked disconnected. Sharp frames and frames
-with little blur are never judged, so their features are the same as without the check.
+Heavily blurred frames (blur extent above :attr:`GrowSettings.heavy_above_extent_px`, 18 px, in
+the front that made the window adapt, measured in the adapted window) are also checked for blocks
+that settled px off at a normal loss (a long PSF shifted in its window), which the loss, boundary
+energy and jump limit do not see and whose predictions drag their neighbours along in chains:
+every front's blocks must lie within :attr:`GrowSettings.max_inconsistency_px` (1 px) of the
+homography of the 12 blocks accepted before them nearest in the pattern (:func:`inconsistent`; the
+ring is judged by the rest of the ring), and once the growth ends every block is judged again by
+its neighbours on all sides; the blocks this cuts off from the earliest front are marked
+disconnected. Sharp frames and frames with little blur are never judged, so their features are the
+same as without the check.
 """
 
 from __future__ import annotations
@@ -82,11 +86,11 @@ class GrowSettings:
             reject blocks whose star centre is further than this (px) from the homography of
             the previously accepted blocks nearest to it (:func:`inconsistent`).
         consistency_neighbours: that many previously accepted blocks per judgement.
-        heavy_above_extent_px: frames whose tag ring (first fit) shows a blur extent above this
-            (px, 90th percentile of ``sqrt(12) sigma_major``) are heavily blurred: their blocks
-            are checked against their neighbours, and with the adaptive window the tag's mask
-            follows the blur (:func:`blur_footprint`). Sharp frames (7 px window) never are,
-            even those whose ring PSFs reach the border and make the window adapt.
+        heavy_above_extent_px: frames whose tag ring shows a blur extent above this (px, 90th
+            percentile of ``sqrt(12) sigma_major`` of the ring's fit in the adapted window: a
+            truncated PSF reads shorter) are heavily blurred: their blocks are checked against
+            their neighbours, and with the adaptive window the tag's mask follows the blur
+            (:func:`blur_footprint`).
     """
 
     max_loss: float = 400.0
@@ -479,8 +483,8 @@ def grow(image: np.ndarray, pattern: StarPattern, seed: Seed,
     front_index = 0
     kernel_size = deconv.kernel_size
     tag = tag_mask(pattern, seed.H_feature, (h, w))
-    adaptive: bool | None = None  # decided on the first front
-    heavy = False  # decided on the first front (heavy_above_extent_px)
+    adaptive: bool | None = None  # decided on the first front, or later when a front shows the blur
+    heavy = False  # decided with adaptive (heavy_above_extent_px)
     footprint = None  # of the blur, for the tag's mask in adaptive frames
     while front_ids and len(ids_all) < settings.max_blocks:
         if should_stop is not None and should_stop():
@@ -489,12 +493,14 @@ def grow(image: np.ndarray, pattern: StarPattern, seed: Seed,
         if adaptive is None:
             fit = fit_blocks(image, H0, N, deconv, pixel_mask(tag, deconv.kernel_size))
             adaptive = needs_adaptive_window(fit, settings)
-            heavy = bool(_ring_blur(fit)[0] > settings.heavy_above_extent_px)
             if adaptive:
                 fit = fit_front(image, H0, N, deconv, settings, kernel_size, tag, first=fit)
+            # judged with the window that holds the blur: a truncated PSF reads shorter
+            heavy = bool(_ring_blur(fit)[0] > settings.heavy_above_extent_px)
+            if adaptive and heavy:
                 extent = max(fit.settings.kernel_size / settings.kernel_per_extent,
                              seed.blur[0] if math.isfinite(seed.blur[0]) else 0.0)
-                footprint = blur_footprint(fit, extent) if heavy else None
+                footprint = blur_footprint(fit, extent)
             if seed.source == "tag":
                 refined = refine_ring(image, pattern, front_ids, fit, deconv, settings, tag,
                                       adaptive, footprint)
@@ -504,6 +510,10 @@ def grow(image: np.ndarray, pattern: StarPattern, seed: Seed,
             fit = fit_front(image, H0, N, deconv, settings, kernel_size, tag, footprint=footprint)
         else:
             fit = fit_blocks(image, H0, N, deconv, pixel_mask(tag, deconv.kernel_size))
+            if _ring_blur(fit)[1] > settings.refit_boundary_energy:  # the blur outgrew the window
+                adaptive = True
+                fit = fit_front(image, H0, N, deconv, settings, kernel_size, tag, first=fit)
+                heavy = bool(_ring_blur(fit)[0] > settings.heavy_above_extent_px)
         fits.append(fit)
         predicted_centre = homography_centre(H0)
         fitted_centre = fit.centre
