@@ -55,6 +55,11 @@ negative fixed at zero); Levenberg-Marquardt then updates the 8 homography param
 3. sub-pixel re-centring ``H <- T(c) H`` with ``c`` the PSF centroid (:func:`blurcalib.psf.recentre`), so that
    ``H(0, 0)`` is the centre of the star's time-averaged image.
 
+A block given an expected PSF (``psf_hint`` of :func:`fit_blocks`: region growing passes the mean
+re-centred PSF of the accepted neighbours that predicted it) skips stage 1 and the integer
+re-centring: its first support is the hint's, and it runs :attr:`DeconvSettings.hinted_stages`
+stages (one by default: half the kernel solves; measured in ``docs/deconvolution.md``).
+
 All blocks of a batch are solved together as padded ``(b, ...)`` tensors on
 :attr:`DeconvSettings.device` (after the coarse kernel in groups of similar kernel support,
 :attr:`DeconvSettings.stage_batch_size`): the solver loops over stages and LM steps, never over
@@ -134,6 +139,8 @@ class DeconvSettings:
             group (the results do not depend on it).
         converge_tol_px: a block has converged when the last accepted LM step moved its star
             centre by less than this (px).
+        hinted_stages: stages of blocks given an expected PSF (:func:`fit_blocks`'s
+            ``psf_hint``), which skip the coarse kernel and start from its support.
         device: torch device of the solve (``"cpu"``, ``"cuda"``, ...).
         dtype: ``"float32"`` or ``"float64"`` for image-sized tensors; the small systems and
             ``H`` are always float64.
@@ -162,6 +169,7 @@ class DeconvSettings:
     batch_size: int = 64
     stage_batch_size: int = 16
     converge_tol_px: float = 0.05
+    hinted_stages: int = 1
     device: str = "cpu"
     dtype: str = "float32"
 
@@ -176,10 +184,10 @@ class DeconvSettings:
             raise ValueError(f"dtype must be 'float32' or 'float64', got {self.dtype!r}")
         if self.tau <= 0 or self.beta <= 0 or self.ridge < 0 or self.ridge_border < 0:
             raise ValueError("tau and beta must be positive, ridge and ridge_border non-negative")
-        if min(self.outer_iterations, self.batch_size, self.stage_batch_size, self.supersample) < 1 \
-                or self.gn_steps < 0:
-            raise ValueError("outer_iterations, batch_size, stage_batch_size and supersample must be >= 1, "
-                             "gn_steps >= 0")
+        if min(self.outer_iterations, self.hinted_stages, self.batch_size, self.stage_batch_size,
+               self.supersample) < 1 or self.gn_steps < 0:
+            raise ValueError("outer_iterations, hinted_stages, batch_size, stage_batch_size and supersample "
+                             "must be >= 1, gn_steps >= 0")
         if not 0.0 <= self.support_threshold < 1.0 or self.support_dilation < 0:
             raise ValueError("support_threshold must be in [0, 1), support_dilation >= 0")
 
@@ -358,6 +366,13 @@ def _solve_nonnegative(G: torch.Tensor, rhs: torch.Tensor, m: int, passes: int
         xf = factor.solve(rhs)[1][..., 0] * weight
         x = torch.zeros_like(x).scatter_(1, index, xf)
     return x, factor
+
+
+def _support(k: torch.Tensor, threshold: float, dilation: int) -> torch.Tensor:
+    """``(b, K, K)`` bool: the entries of kernels ``k (b, K, K)`` at or above ``threshold`` of
+    their peak, dilated by ``dilation`` px (a square structuring element)."""
+    core = (k >= threshold * k.amax(dim=(1, 2), keepdim=True)).to(torch.float32)
+    return nnf.max_pool2d(core[:, None], 2 * dilation + 1, stride=1, padding=dilation)[:, 0] > 0
 
 
 def _fft_size(n: int) -> int:
@@ -801,10 +816,7 @@ class _Problem:
         ok = ((ri >= 0) & (ri < K))[:, :, None] & ((cj >= 0) & (cj < K))[:, None, :]
         k = k[torch.arange(b, device=dev)[:, None, None], ri.clamp(0, K - 1)[:, :, None],
               cj.clamp(0, K - 1)[:, None, :]] * ok
-        peak = k.amax(dim=(1, 2), keepdim=True)
-        core = (k >= self.s.support_threshold * peak).to(torch.float32)
-        d = self.s.support_dilation
-        return nnf.max_pool2d(core[:, None], 2 * d + 1, stride=1, padding=d)[:, 0] > 0
+        return _support(k, self.s.support_threshold, self.s.support_dilation)
 
     # --------------------------------------------------------------------------- the LM loop
     def lm_stage(self, H_loc: torch.Tensor, alpha: torch.Tensor, des: _Design, steps: int
@@ -896,26 +908,34 @@ def _stage_groups(support: np.ndarray, pixels: np.ndarray, size: np.ndarray, rad
     return groups[::-1]
 
 
-def _fit_chunk(prob: _Problem, H: np.ndarray) -> dict:
+def _fit_chunk(prob: _Problem, H: np.ndarray, hint: torch.Tensor | None) -> dict:
     """The solver schedule (module docstring) on one padded batch; per-block numpy results.
 
     After the coarse kernel the blocks are sorted by the size of their kernel support and solved
-    in consecutive groups (:func:`_stage_groups`), each cropped to its own largest window.
+    in consecutive groups (:func:`_stage_groups`), each cropped to its own largest window. With
+    expected PSFs ``hint (b, K, K)`` the first support is theirs and the coarse kernel is
+    skipped (:attr:`DeconvSettings.hinted_stages` stages).
     """
     s = prob.s
     b = H.shape[0]
     H_loc = prob.to_local(H)
-    alpha = torch.zeros((b, 2), dtype=torch.float64, device=H_loc.device)
-    des = prob.design(H_loc, None)
-    k = prob.kernel(prob.evaluate(H_loc, alpha, des, None, with_jac=False)["x"], des)
-    H_loc, n = prob.recentre_int(H_loc, k)
-    support = prob.support(k, n)
-    groups = _stage_groups(support.sum(dim=(1, 2)).cpu().numpy(), des.mask.sum(dim=(1, 2)).cpu().numpy(),
-                           prob.size, prob.r, s.stage_batch_size)
+    if hint is None:
+        alpha = torch.zeros((b, 2), dtype=torch.float64, device=H_loc.device)
+        des = prob.design(H_loc, None)
+        k = prob.kernel(prob.evaluate(H_loc, alpha, des, None, with_jac=False)["x"], des)
+        H_loc, n = prob.recentre_int(H_loc, k)
+        support = prob.support(k, n)
+        pixels = des.mask.sum(dim=(1, 2))
+    else:
+        support = _support(hint, s.support_threshold, s.support_dilation)
+        pixels = prob.square_mask(H_loc).sum(dim=(1, 2))
+    stages = s.outer_iterations if hint is None else s.hinted_stages
+    groups = _stage_groups(support.sum(dim=(1, 2)).cpu().numpy(), pixels.cpu().numpy(), prob.size, prob.r,
+                           s.stage_batch_size)
     parts = []
     for idx in groups:
         t = torch.as_tensor(idx, device=H_loc.device)
-        parts.append(_fit_stages(prob.subset(idx), H_loc[t], support[t]))
+        parts.append(_fit_stages(prob.subset(idx), H_loc[t], support[t], stages))
     inverse = np.argsort(np.concatenate(groups))
     out = {key: np.concatenate([part[key] for part in parts])[inverse] for key in parts[0] if key != "masks"}
     masks = [m for part in parts for m in part["masks"]]
@@ -923,17 +943,17 @@ def _fit_chunk(prob: _Problem, H: np.ndarray) -> dict:
     return out
 
 
-def _fit_stages(prob: _Problem, H_loc: torch.Tensor, support: torch.Tensor) -> dict:
-    """The ``outer_iterations`` stages from an integer re-centred ``H_loc`` and its first kernel
-    ``support``, then the sub-pixel re-centring; per-block numpy results."""
+def _fit_stages(prob: _Problem, H_loc: torch.Tensor, support: torch.Tensor, stages: int) -> dict:
+    """``stages`` stages from an integer re-centred ``H_loc`` and its first kernel ``support``,
+    then the sub-pixel re-centring; per-block numpy results."""
     s = prob.s
     K = s.kernel_size
     alpha = torch.zeros((H_loc.shape[0], 2), dtype=torch.float64, device=H_loc.device)
-    for stage in range(s.outer_iterations):
+    for stage in range(stages):
         des = prob.design(H_loc, support)
         H_loc, alpha, best = prob.lm_stage(H_loc, alpha, des, s.gn_steps)
         k = prob.kernel(best["x"], des)
-        if stage < s.outer_iterations - 1:
+        if stage < stages - 1:
             H_loc, n = prob.recentre_int(H_loc, k)
             support = prob.support(k, n)
     x = best["x"].cpu().numpy()
@@ -959,7 +979,8 @@ def _fit_stages(prob: _Problem, H_loc: torch.Tensor, support: torch.Tensor) -> d
 
 
 def fit_blocks(image: np.ndarray, H0: np.ndarray, num_segments: int,
-               settings: DeconvSettings | None = None, pixel_mask: np.ndarray | None = None) -> BlockFit:
+               settings: DeconvSettings | None = None, pixel_mask: np.ndarray | None = None,
+               psf_hint: np.ndarray | None = None) -> BlockFit:
     """Fit ``eq:deconvolution`` to ``B`` star blocks of one grey image, all blocks batched.
 
     Each block's observed window is the bounding box of its square ``H0([-1, 1]^2)`` plus
@@ -977,6 +998,13 @@ def fit_blocks(image: np.ndarray, H0: np.ndarray, num_segments: int,
         pixel_mask: optional ``(height, width)`` bool, False for pixels that must not enter any
             loss (saturation, occluders, a tag nearer to the square than the kernel radius).
             Non-finite pixels never enter a loss.
+        psf_hint: optional ``(B, K, K)`` expected PSFs relative to ``H0`` (``K`` the settings'
+            kernel size; e.g. the re-centred PSFs of the neighbouring blocks that predicted
+            ``H0``): the first kernel support is taken from them (entries above
+            ``support_threshold`` of the peak, dilated by ``support_dilation``, the rule between
+            stages) instead of from a coarse kernel, and the blocks are solved in
+            :attr:`DeconvSettings.hinted_stages` stages. A block whose hint is not finite or
+            all zero gets the whole window as its first support.
     Returns:
         :class:`BlockFit`. A block whose window leaves the image is ``outside_image``; one whose
         ``H0`` is non-finite, crosses the horizon, is not convex or is too small or large is
@@ -992,6 +1020,12 @@ def fit_blocks(image: np.ndarray, H0: np.ndarray, num_segments: int,
         raise ValueError(f"pixel_mask must have the image's shape {img_np.shape}, got {np.shape(pixel_mask)}")
     H0 = np.asarray(H0, dtype=np.float64).reshape(-1, 3, 3)
     B, K = H0.shape[0], s.kernel_size
+    if psf_hint is not None:
+        psf_hint = np.asarray(psf_hint, dtype=np.float64)
+        if psf_hint.shape != (B, K, K):
+            raise ValueError(f"psf_hint must be ({B}, {K}, {K}), got {psf_hint.shape}")
+        empty = ~np.all(np.isfinite(psf_hint), axis=(1, 2)) | ~(np.nan_to_num(psf_hint).max(axis=(1, 2)) > 0)
+        psf_hint = np.where(empty[:, None, None], 1.0, np.nan_to_num(psf_hint))
     origin, size, Hn, status = _validate_blocks(H0, img_np.shape, s)
     out = {"H": H0.copy(), "psf": np.full((B, K, K), np.nan), "psf_fit": np.full((B, K, K), np.nan),
            "coeffs": np.full((B, _NUM_P), np.nan), "loss": np.full(B, np.nan),
@@ -1010,7 +1044,8 @@ def fit_blocks(image: np.ndarray, H0: np.ndarray, num_segments: int,
         for start in range(0, order.size, s.batch_size):
             sel = order[start:start + s.batch_size]
             prob = _Problem(img_t, ok_t, origin[sel], size[sel], num_segments, s)
-            res = _fit_chunk(prob, Hn[sel])
+            hint = None if psf_hint is None else torch.as_tensor(psf_hint[sel], device=dev)
+            res = _fit_chunk(prob, Hn[sel], hint)
             for i, m in zip(sel, res.pop("masks"), strict=True):
                 masks[i] = m
             for key, val in res.items():

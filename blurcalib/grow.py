@@ -91,6 +91,9 @@ class GrowSettings:
             truncated PSF reads shorter) are heavily blurred: their blocks are checked against
             their neighbours, and with the adaptive window the tag's mask follows the blur
             (:func:`blur_footprint`).
+        psf_hints: blocks after the tag ring start from the mean PSF of the accepted neighbours
+            that predicted them (:func:`blurcalib.deconv.fit_blocks`'s ``psf_hint``: no coarse
+            kernel, fewer solver stages).
     """
 
     max_loss: float = 400.0
@@ -104,6 +107,7 @@ class GrowSettings:
     max_inconsistency_px: float = 1.0
     consistency_neighbours: int = 12
     heavy_above_extent_px: float = 18.0
+    psf_hints: bool = True
 
     def __post_init__(self) -> None:
         if self.max_kernel_size < 3 or self.max_kernel_size % 2 == 0:
@@ -356,7 +360,8 @@ def pixel_mask(tag: np.ndarray | None, kernel_size: int, footprint: np.ndarray |
 
 def fit_front(image: np.ndarray, H0: np.ndarray, num_segments: int, deconv: DeconvSettings,
               settings: GrowSettings, kernel_size: int, tag: np.ndarray | None = None,
-              first: BlockFit | None = None, footprint: np.ndarray | None = None) -> BlockFit:
+              first: BlockFit | None = None, footprint: np.ndarray | None = None,
+              psf_hint: np.ndarray | None = None) -> BlockFit:
     """Fit one front's blocks ``H0 (B, 3, 3)`` with a window of ``kernel_size`` px; re-fit those
     whose window is too small for their PSF with larger windows (at least 1.4 x larger each
     time, up to :attr:`GrowSettings.max_kernel_size`), keeping a re-fit when it is accepted with
@@ -364,10 +369,11 @@ def fit_front(image: np.ndarray, H0: np.ndarray, num_segments: int, deconv: Deco
     window is not what fails it). Kernels come back padded to the largest window used. ``tag``
     (:func:`tag_mask`) keeps pixels near the tags out of the fits (within the blur's
     ``footprint`` when given, :func:`pixel_mask`); ``first`` is the fit with ``kernel_size``
-    when already done."""
+    when already done, else it is fitted with ``psf_hint`` (:func:`blurcalib.deconv.fit_blocks`;
+    the re-fits in larger windows are not hinted)."""
     fit = first if first is not None else fit_blocks(
         image, H0, num_segments, replace(deconv, kernel_size=kernel_size),
-        pixel_mask(tag, kernel_size, footprint))
+        pixel_mask(tag, kernel_size, footprint), psf_hint)
     block_size = np.full(len(H0), kernel_size)
     stuck = np.zeros(len(H0), dtype=bool)
     size = kernel_size
@@ -457,6 +463,7 @@ def grow(image: np.ndarray, pattern: StarPattern, seed: Seed,
     N = pattern.num_star_segments
     attempted: dict[int, int] = {}  # feature id -> row in the concatenated results
     accepted_H: dict[int, np.ndarray] = {}
+    accepted_psf: dict[int, np.ndarray] = {}  # their re-centred PSFs
     fits: list[BlockFit] = []
     ids_all: list[int] = []
     status_all: list[BlockStatus] = []
@@ -480,6 +487,7 @@ def grow(image: np.ndarray, pattern: StarPattern, seed: Seed,
         ring_ids, H_ring = ring_ids[keep], H_ring[keep]
     front_ids = [int(i) for i in ring_ids]
     front_H = [_normalise(Hb) for Hb in H_ring]
+    front_src: list[list[int]] = []  # the accepted blocks that predicted each (none for the ring)
     front_index = 0
     kernel_size = deconv.kernel_size
     tag = tag_mask(pattern, seed.H_feature, (h, w))
@@ -507,9 +515,11 @@ def grow(image: np.ndarray, pattern: StarPattern, seed: Seed,
                 if refined is not None:
                     H0, fit = refined
         elif adaptive:
-            fit = fit_front(image, H0, N, deconv, settings, kernel_size, tag, footprint=footprint)
+            fit = fit_front(image, H0, N, deconv, settings, kernel_size, tag, footprint=footprint,
+                            psf_hint=_psf_hint(accepted_psf, front_src, kernel_size, settings))
         else:
-            fit = fit_blocks(image, H0, N, deconv, pixel_mask(tag, deconv.kernel_size))
+            fit = fit_blocks(image, H0, N, deconv, pixel_mask(tag, deconv.kernel_size),
+                             _psf_hint(accepted_psf, front_src, deconv.kernel_size, settings))
             if _ring_blur(fit)[1] > settings.refit_boundary_energy:  # the blur outgrew the window
                 adaptive = True
                 fit = fit_front(image, H0, N, deconv, settings, kernel_size, tag, first=fit)
@@ -548,6 +558,7 @@ def grow(image: np.ndarray, pattern: StarPattern, seed: Seed,
             predicted_all.append(H0[k])
             if status is BlockStatus.ACCEPTED:
                 accepted_H[fid] = _normalise(fit.H[k])
+                accepted_psf[fid] = fit.psf[k]
                 newly_accepted.append(fid)
                 accepted_rows.append(k)
             fx, fy = (int(v) for v in pattern.features[fid])
@@ -557,7 +568,7 @@ def grow(image: np.ndarray, pattern: StarPattern, seed: Seed,
             events.append(event)
             if on_event is not None:
                 on_event(event)
-        front_ids, front_H = _next_front(pattern, accepted_H, attempted, newly_accepted)
+        front_ids, front_H, front_src = _next_front(pattern, accepted_H, attempted, newly_accepted)
         front_index += 1
         if adaptive:
             kernel_size = choose_kernel_size(fit.sigma_major[accepted_rows], deconv.kernel_size,
@@ -602,20 +613,39 @@ def _cut_off(pattern: StarPattern, ids: np.ndarray, front: np.ndarray,
 
 def _next_front(pattern: StarPattern, accepted_H: dict[int, np.ndarray],
                 attempted: dict[int, int], new_ids: list[int]
-                ) -> tuple[list[int], list[np.ndarray]]:
-    """Unattempted valid neighbours of the newly accepted blocks, with averaged predictions."""
+                ) -> tuple[list[int], list[np.ndarray], list[list[int]]]:
+    """Unattempted valid neighbours of the newly accepted blocks, with averaged predictions and
+    the accepted blocks that predicted each."""
     candidates: dict[int, list[np.ndarray]] = {}
+    sources: dict[int, list[int]] = {}
     for fid in new_ids:
         fx, fy = (int(v) for v in pattern.features[fid])
         for dx, dy in ((1, 0), (-1, 0), (0, 1), (0, -1)):
             nid = int(pattern.feature_ids(fx + dx, fy + dy))
             if nid < 0 or nid in attempted or nid in candidates:
                 continue
-            preds = []
+            preds, srcs = [], []
             for ex, ey in ((1, 0), (-1, 0), (0, 1), (0, -1)):
                 src = int(pattern.feature_ids(fx + dx - ex, fy + dy - ey))
                 if src in accepted_H:
                     preds.append(_normalise(accepted_H[src] @ _shift_q(ex, ey)))
-            candidates[nid] = preds
+                    srcs.append(src)
+            candidates[nid], sources[nid] = preds, srcs
     ids = sorted(candidates)
-    return ids, [np.mean(candidates[i], axis=0) for i in ids]
+    return ids, [np.mean(candidates[i], axis=0) for i in ids], [sources[i] for i in ids]
+
+
+def _psf_hint(accepted_psf: dict[int, np.ndarray], sources: list[list[int]], size: int,
+              settings: GrowSettings) -> np.ndarray | None:
+    """``(B, size, size)`` mean re-centred PSF of the accepted blocks that predicted each block
+    of a front (padded or cropped, centred, to ``size``), or None when hints are off
+    (:attr:`GrowSettings.psf_hints`) or some block has no source (the ring)."""
+    if not settings.psf_hints or not sources or not all(sources):
+        return None
+    out = np.zeros((len(sources), size, size))
+    for b, srcs in enumerate(sources):
+        for fid in srcs:
+            k = accepted_psf[fid]
+            p = (size - k.shape[-1]) // 2
+            out[b] += np.pad(k, p) if p > 0 else k[-p:k.shape[-1] + p, -p:k.shape[-1] + p]
+    return out / np.array([len(srcs) for srcs in sources], dtype=np.float64)[:, None, None]
