@@ -401,41 +401,31 @@ def _validate_blocks(H0: np.ndarray, image_shape: tuple[int, int], s: DeconvSett
         window (bounding box of ``H([-1, 1]^2)`` plus the margin), the normalised ``H (B, 3, 3)``
         and a status per block (``accepted`` for those to fit).
     """
-    B = H0.shape[0]
-    status = [BlockStatus.ACCEPTED] * B
-    H = H0.copy()
-    origin = np.zeros((B, 2), dtype=np.int64)
-    size = np.zeros((B, 2), dtype=np.int64)
-    corners = np.array([[-1, -1, 1], [1, -1, 1], [1, 1, 1], [-1, 1, 1]], dtype=np.float64)
     height, width = image_shape
-    for b in range(B):
-        h = H[b]
-        if not np.all(np.isfinite(h)) or abs(h[2, 2]) < 1e-12 * max(np.abs(h).max(), 1e-300):
-            status[b] = BlockStatus.DEGENERATE_HOMOGRAPHY
-            continue
-        h = h / h[2, 2]
-        H[b] = h
-        xs = corners @ h.T
-        if np.any(xs[:, 2] <= 1e-9):
-            status[b] = BlockStatus.DEGENERATE_HOMOGRAPHY
-            continue
-        pts = xs[:, :2] / xs[:, 2:]
-        edges = np.roll(pts, -1, axis=0) - pts
-        nxt = np.roll(edges, -1, axis=0)
-        cross = edges[:, 0] * nxt[:, 1] - edges[:, 1] * nxt[:, 0]
-        area = 0.5 * abs(np.sum(pts[:, 0] * np.roll(pts[:, 1], -1) - np.roll(pts[:, 0], -1) * pts[:, 1]))
-        if not (np.all(cross > 0) or np.all(cross < 0)) or math.sqrt(area) < s.min_square_px:
-            status[b] = BlockStatus.DEGENERATE_HOMOGRAPHY
-            continue
-        lo = np.floor(pts.min(axis=0)).astype(np.int64) - s.window_margin
-        hi = np.ceil(pts.max(axis=0)).astype(np.int64) + s.window_margin
-        if np.any(hi - lo + 1 > s.max_window_px):
-            status[b] = BlockStatus.DEGENERATE_HOMOGRAPHY
-            continue
-        origin[b] = lo
-        size[b] = hi - lo + 1
-        if lo[0] < 0 or lo[1] < 0 or hi[0] > width - 1 or hi[1] > height - 1:
-            status[b] = BlockStatus.OUTSIDE_IMAGE
+    corners = np.array([[-1, -1, 1], [1, -1, 1], [1, 1, 1], [-1, 1, 1]], dtype=np.float64)
+    with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
+        finite = np.all(np.isfinite(H0), axis=(1, 2))
+        h = np.where(finite[:, None, None], H0, 0.0)
+        ok = finite & (np.abs(h[:, 2, 2]) >= 1e-12 * np.maximum(np.abs(h).max(axis=(1, 2)), 1e-300))
+        H = np.where(ok[:, None, None], h / np.where(ok, h[:, 2, 2], 1.0)[:, None, None], H0)
+        xs = np.einsum("cj,bij->bci", corners, np.where(ok[:, None, None], H, np.eye(3)))  # (B, 4, 3)
+        ok &= np.all(xs[..., 2] > 1e-9, axis=1)
+        pts = xs[..., :2] / np.where(ok[:, None], xs[..., 2], 1.0)[..., None]
+        edges = np.roll(pts, -1, axis=1) - pts
+        nxt = np.roll(edges, -1, axis=1)
+        cross = edges[..., 0] * nxt[..., 1] - edges[..., 1] * nxt[..., 0]
+        area = 0.5 * np.abs(np.sum(pts[..., 0] * np.roll(pts[..., 1], -1, axis=1)
+                                   - np.roll(pts[..., 0], -1, axis=1) * pts[..., 1], axis=1))
+        ok &= (np.all(cross > 0, axis=1) | np.all(cross < 0, axis=1)) & (np.sqrt(area) >= s.min_square_px)
+        lo = np.where(ok[:, None], np.floor(pts.min(axis=1)), 0).astype(np.int64) - s.window_margin
+        hi = np.where(ok[:, None], np.ceil(pts.max(axis=1)), 0).astype(np.int64) + s.window_margin
+    ok &= np.all(hi - lo + 1 <= s.max_window_px, axis=1)
+    origin = np.where(ok[:, None], lo, 0)
+    size = np.where(ok[:, None], hi - lo + 1, 0)
+    outside = (lo[:, 0] < 0) | (lo[:, 1] < 0) | (hi[:, 0] > width - 1) | (hi[:, 1] > height - 1)
+    status = [BlockStatus.DEGENERATE_HOMOGRAPHY if not good else
+              BlockStatus.OUTSIDE_IMAGE if out else BlockStatus.ACCEPTED
+              for good, out in zip(ok.tolist(), outside.tolist(), strict=True)]
     return origin, size, H, status
 
 
