@@ -350,12 +350,22 @@ def pixel_mask(tag: np.ndarray | None, kernel_size: int, footprint: np.ndarray |
     """Pixels usable by blocks fitted with ``kernel_size``: outside the tags dilated by the
     blur's ``footprint`` (:func:`blur_footprint`), or without one further from a tag than the
     kernel radius plus 2 px (seed error)."""
-    if tag is None or not tag.any():
+    if tag is None:
+        return None
+    x, y, w, h = cv2.boundingRect(tag)
+    if w == 0:
         return None
     if footprint is None:
         r = kernel_size // 2 + 2
         footprint = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
-    return cv2.dilate(tag, footprint) == 0
+    # dilate the tag's neighbourhood only (the whole frame took ~3 ms per front)
+    ry, rx = footprint.shape[0] // 2, footprint.shape[1] // 2
+    y0, y1 = max(y - ry, 0), min(y + h + ry, tag.shape[0])
+    x0, x1 = max(x - rx, 0), min(x + w + rx, tag.shape[1])
+    ok = np.ones(tag.shape, dtype=bool)
+    ok[y0:y1, x0:x1] = cv2.dilate(tag[y0:y1, x0:x1], footprint, borderType=cv2.BORDER_CONSTANT,
+                                  borderValue=0) == 0
+    return ok
 
 
 def fit_front(image: np.ndarray, H0: np.ndarray, num_segments: int, deconv: DeconvSettings,
