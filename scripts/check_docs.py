@@ -70,9 +70,10 @@ def anchors(path: Path) -> set[str]:
     seen: dict[str, int] = {}
     found: set[str] = set()
     text = path.read_text(encoding="utf-8", errors="replace")
-    for _, line in _prose_lines(text):
+    raw = text.splitlines()
+    for number, line in _prose_lines(text):
         found.update(_HTML_ID.findall(line))
-        match = _HEADING.match(line)
+        match = _HEADING.match(raw[number - 1])  # a heading's code spans count in its anchor
         if match:
             slug = github_slug(match.group(2))
             count = seen.get(slug, 0)

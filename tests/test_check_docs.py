@@ -30,8 +30,10 @@ def _write(path: Path, text: str) -> None:
 def test_sound_links_pass(tmp_path: Path) -> None:
     _write(tmp_path / "README.md", "# Top\n\nSee [the guide](docs/guide.md#step-2-run-it), [a repeat]"
            "(docs/guide.md#notes-1), ![figure](docs/fig.png), [top](#top) and [web](https://example.com).\n"
-           "\n```\n[inside code](missing.md)\n```\n\nA span: `[x](missing.md)`.\n")
-    _write(tmp_path / "docs" / "guide.md", "# Guide\n\n## Step 2: run it\n\n## Notes\n\n## Notes\n")
+           "\n```\n[inside code](missing.md)\n```\n\nA span: `[x](missing.md)`.\n"
+           "[Code in a heading](docs/guide.md#speed-python-bench_speedpy---pair).\n")
+    _write(tmp_path / "docs" / "guide.md", "# Guide\n\n## Step 2: run it\n\n## Notes\n\n## Notes\n"
+           "\n## Speed (`python bench_speed.py --pair`)\n")
     (tmp_path / "docs" / "fig.png").write_bytes(b"\x89PNG")
     result = _run(str(tmp_path))
     assert result.returncode == 0, result.stdout
