@@ -100,8 +100,7 @@ def run(title: str, sim: Simulator, simulated: list[SimulatedFrame], settings: E
               f"{n_q.max() if len(n_q) else np.nan:.3f} px)  {wall:5.1f} s wall  {cpu:5.1f} s CPU")
     _summary("ALL (growth)", errors, returned, extracted, len(simulated))
     _summary("ALL (block filter)", errors_q, returned_q, extracted, len(simulated))
-    print(f"time: {np.mean(walls):.1f} s wall, {np.mean(cpus):.1f} s CPU per frame "
-          f"(machine shared, load ~10 on 2 cores)")
+    print(f"time: {np.mean(walls):.1f} s wall, {np.mean(cpus):.1f} s CPU per frame")
 
 
 def main() -> None:
