@@ -7,7 +7,8 @@
    centres against the time-averaged truth after removing the frame's mean offset. Targets:
    >= 90% of frames extracted, >= 85% of visible features returned, median <= 0.03 px, none off
    by more than 1 px. The same figures after the pipeline's block filter
-   (:func:`blurcalib.quality.filter_frame`, default thresholds: BE, loss, connectivity).
+   (:func:`blurcalib.quality.filter_frame`, default thresholds: BE, loss, connectivity), and the
+   share returned of the visible features whose blur is shorter than their star square.
 2. Simulated frames with 4 to 15 px of blur (the set of ``scripts/bench_extract.py``, seed 7):
    the same figures with the fixed 17 px window (``GrowSettings(max_kernel_size=17)``, the
    previous behaviour) and with the adaptive window (default). Target: accuracy and time per
@@ -48,6 +49,24 @@ def frames(blur: tuple[float, float], count: int, seed: int, cache: Path | None
     return sim, out
 
 
+def _square_px(pattern, truth, ids: np.ndarray) -> np.ndarray:
+    """``(B,)`` px: side (sqrt of the area) of the star squares of features ``ids`` at
+    mid-exposure, from the true image positions of their 4-neighbours (one-sided at the
+    pattern's edge)."""
+    f = pattern.features[ids]
+    mid = truth.mid[ids]
+
+    def step(dx: int, dy: int) -> np.ndarray:
+        fwd, back = (pattern.feature_ids(f[:, 0] + sign * dx, f[:, 1] + sign * dy) for sign in (1, -1))
+        p_f = np.where((fwd >= 0)[:, None], truth.mid[np.maximum(fwd, 0)], np.nan)
+        p_b = np.where((back >= 0)[:, None], truth.mid[np.maximum(back, 0)], np.nan)
+        both = (p_f - p_b) / 2
+        return np.where(np.isnan(both), np.where(np.isnan(p_f), mid - p_b, p_f - mid), both)
+
+    a, b = step(1, 0), step(0, 1)
+    return np.sqrt(np.abs(a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]))
+
+
 def _filtered(result, image_size: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
     """Feature ids and centres of the blocks kept by the pipeline's block filter."""
     kept = result.blocks.select(filter_frame(result.blocks, image_size).kept)
@@ -68,11 +87,15 @@ def run(title: str, sim: Simulator, simulated: list[SimulatedFrame], settings: E
     print(f"== {title} ==")
     errors, returned, walls, cpus = [], [], [], []
     errors_q, returned_q = [], []
+    short_total = short_returned = 0  # blocks whose blur is shorter than their square
     extracted = 0
     for fr in simulated:
         t = fr.truth
         blur = float(np.median(t.blur_length[t.visible]))
         visible = int(t.block_inside.sum())
+        inside = np.flatnonzero(t.block_inside)
+        short = inside[t.blur_length[inside] < _square_px(sim.pattern, t, inside)]
+        short_total += len(short)
         w0, c0 = time.perf_counter(), time.process_time()
         r = extract_frame(fr.image.astype(np.float32), sim.pattern, t.name, settings)
         wall, cpu = time.perf_counter() - w0, time.process_time() - c0
@@ -89,6 +112,7 @@ def run(title: str, sim: Simulator, simulated: list[SimulatedFrame], settings: E
         n = np.linalg.norm(d - d.mean(axis=0), axis=1)
         errors.append(n)
         returned.append(len(ids) / max(visible, 1))
+        short_returned += int(np.isin(short, ids).sum())
         ids_q, xy_q = _filtered(r, fr.image.shape[::-1])
         d_q = xy_q - t.mean[ids_q]
         n_q = np.linalg.norm(d_q - d_q.mean(axis=0), axis=1) if len(ids_q) else np.zeros(0)
@@ -100,6 +124,8 @@ def run(title: str, sim: Simulator, simulated: list[SimulatedFrame], settings: E
               f"{n_q.max() if len(n_q) else np.nan:.3f} px)  {wall:5.1f} s wall  {cpu:5.1f} s CPU")
     _summary("ALL (growth)", errors, returned, extracted, len(simulated))
     _summary("ALL (block filter)", errors_q, returned_q, extracted, len(simulated))
+    print(f"visible features whose blur is shorter than their star square: {short_total}, of which "
+          f"{100 * short_returned / max(short_total, 1):.1f}% returned")
     print(f"time: {np.mean(walls):.1f} s wall, {np.mean(cpus):.1f} s CPU per frame")
 
 
