@@ -12,6 +12,7 @@ from blurcalib.grow import (
     blur_footprint,
     choose_kernel_size,
     fit_front,
+    fit_hinted,
     inconsistent,
     pixel_mask,
 )
@@ -139,3 +140,21 @@ def test_window_adapts_where_the_blur_outgrows_it_away_from_the_tag() -> None:
     assert sizes[0] == 17 and max(sizes) > 17  # the ring kept the window, later fronts widened it
     assert len(adapted) > 100 and adapted.max() < 1.0
     assert len(adapted) > 1.15 * len(fixed) and np.median(adapted) < np.median(fixed)
+
+
+def test_a_front_whose_hints_fail_is_fitted_again_without_them() -> None:
+    """PSF hints far from the true PSF (a corner of the window) leave every block of a front not
+    converged, px off; the front is then fitted with the full schedule and lands on the truth."""
+    pattern = layout_pattern()
+    sim = simulate_blocks(pattern, 4, np.random.default_rng(21), blur_px=(5.0, 9.0), supersample=4,
+                          tile_px=80, init_shift_px=0.4, truth_kernel_size=13)
+    image = sim.image.astype(np.float32)
+    deconv = DeconvSettings(kernel_size=13)
+    wrong = np.zeros((4, 13, 13))
+    wrong[:, :3, :3] = 1.0
+    hinted = fit_blocks(image, sim.H0, pattern.num_star_segments, deconv, psf_hint=wrong)
+    assert all(s is BlockStatus.NOT_CONVERGED for s in hinted.status)
+    assert np.max(np.linalg.norm(hinted.centre - sim.centre_true, axis=1)) > 0.5
+    fit = fit_hinted(image, sim.H0, pattern.num_star_segments, deconv, None, wrong)
+    assert all(s is BlockStatus.ACCEPTED for s in fit.status)
+    assert np.max(np.linalg.norm(fit.centre - sim.centre_true, axis=1)) < 0.05
