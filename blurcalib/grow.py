@@ -191,10 +191,12 @@ def choose_kernel_size(sigma_major: np.ndarray | float, smallest: int, largest: 
     return int(max(min(k, largest), smallest))
 
 
-def _pad_kernels(k: np.ndarray, size: int) -> np.ndarray:
-    """``(B, K, K)`` kernels zero-padded (centred) to ``(B, size, size)``."""
+def _resize_kernels(k: np.ndarray, size: int) -> np.ndarray:
+    """``(..., K, K)`` kernels zero-padded or cropped (centred) to ``(..., size, size)``."""
     p = (size - k.shape[-1]) // 2
-    return np.pad(k, ((0, 0), (p, p), (p, p))) if p > 0 else k
+    if p >= 0:
+        return np.pad(k, [(0, 0)] * (k.ndim - 2) + [(p, p), (p, p)]) if p else k
+    return k[..., -p:k.shape[-1] + p, -p:k.shape[-1] + p]
 
 
 def _concat_fits(fits: list[BlockFit]) -> BlockFit:
@@ -207,7 +209,7 @@ def _concat_fits(fits: list[BlockFit]) -> BlockFit:
         if name == "status":
             values[name] = tuple(s for f in fits for s in f.status)
         elif name in ("psf", "psf_fit"):
-            values[name] = np.concatenate([_pad_kernels(k, size) for k in items], axis=0)
+            values[name] = np.concatenate([_resize_kernels(k, size) for k in items], axis=0)
         elif isinstance(items[0], np.ndarray):
             values[name] = np.concatenate(items, axis=0)
         else:
@@ -679,10 +681,5 @@ def _psf_hint(accepted_psf: dict[int, np.ndarray], sources: list[list[int]], siz
     (:attr:`GrowSettings.psf_hints`) or some block has no source (the ring)."""
     if not settings.psf_hints or not sources or not all(sources):
         return None
-    out = np.zeros((len(sources), size, size))
-    for b, srcs in enumerate(sources):
-        for fid in srcs:
-            k = accepted_psf[fid]
-            p = (size - k.shape[-1]) // 2
-            out[b] += np.pad(k, p) if p > 0 else k[-p:k.shape[-1] + p, -p:k.shape[-1] + p]
-    return out / np.array([len(srcs) for srcs in sources], dtype=np.float64)[:, None, None]
+    return np.stack([np.mean([_resize_kernels(accepted_psf[fid], size) for fid in srcs], axis=0)
+                     for srcs in sources])
