@@ -246,8 +246,8 @@ def _too_small(fit: BlockFit, size: np.ndarray, settings: GrowSettings) -> np.nd
         (be > settings.refit_boundary_energy) | ((be > 0.03) & (wanted > size)))
 
 
-def _ring_blur(fit: BlockFit) -> tuple[float, float]:
-    """``(extent px, boundary energy)`` of the ring's fitted PSFs: the 90th percentile of
+def _front_blur(fit: BlockFit) -> tuple[float, float]:
+    """``(extent px, boundary energy)`` of a front's fitted PSFs: the 90th percentile of
     ``sqrt(12) sigma_major`` and the median boundary energy (NaN when none was fitted)."""
     ok = np.array([st is BlockStatus.ACCEPTED for st in fit.status], dtype=bool)
     ok |= np.isfinite(fit.boundary_energy)
@@ -260,7 +260,7 @@ def _ring_blur(fit: BlockFit) -> tuple[float, float]:
 def needs_adaptive_window(fit: BlockFit, settings: GrowSettings) -> bool:
     """Whether the first front's fit ``fit`` shows more blur than the configured window suits
     (see :attr:`GrowSettings.adapt_above_extent_px`)."""
-    extent, be = _ring_blur(fit)
+    extent, be = _front_blur(fit)
     return bool(extent > settings.adapt_above_extent_px or be > settings.refit_boundary_energy)
 
 
@@ -538,7 +538,7 @@ def grow(image: np.ndarray, pattern: StarPattern, seed: Seed,
             if adaptive:
                 fit = fit_front(image, H0, N, deconv, settings, kernel_size, tag, first=fit)
             # judged with the window that holds the blur: a truncated PSF reads shorter
-            heavy = bool(_ring_blur(fit)[0] > settings.heavy_above_extent_px)
+            heavy = bool(_front_blur(fit)[0] > settings.heavy_above_extent_px)
             if adaptive and heavy:
                 extent = max(fit.settings.kernel_size / settings.kernel_per_extent,
                              seed.blur[0] if math.isfinite(seed.blur[0]) else 0.0)
@@ -554,10 +554,10 @@ def grow(image: np.ndarray, pattern: StarPattern, seed: Seed,
         else:
             fit = fit_hinted(image, H0, N, deconv, pixel_mask(tag, deconv.kernel_size),
                              _psf_hint(accepted_psf, front_src, deconv.kernel_size, settings))
-            if _ring_blur(fit)[1] > settings.refit_boundary_energy:  # the blur outgrew the window
+            if _front_blur(fit)[1] > settings.refit_boundary_energy:  # the blur outgrew the window
                 adaptive = True
                 fit = fit_front(image, H0, N, deconv, settings, kernel_size, tag, first=fit)
-                heavy = bool(_ring_blur(fit)[0] > settings.heavy_above_extent_px)
+                heavy = bool(_front_blur(fit)[0] > settings.heavy_above_extent_px)
         fits.append(fit)
         predicted_centre = homography_centre(H0)
         fitted_centre = fit.centre
