@@ -129,6 +129,9 @@ class DeconvSettings:
         centroid_threshold: kernel values below this share of the peak are ignored by the PSF
             centroid (:func:`psf_centroid`); 0 keeps all (the kernel is non-negative).
         window_margin: px added around the square's bounding box (room for ``H`` to move).
+        loss_extent: ``e``, the loss covers ``|q|_inf <= e`` (block units: 1 is the star's own
+            square, 1.5 adds a band of half a square of its neighbours' squares, which the
+            periodic latent pattern models as well).
         min_square_px: blocks whose square is smaller (sqrt of its area, px) are degenerate.
         min_contrast: a fit whose paper-ink contrast ``a3`` is below this (grey levels) has
             failed (no star in the window) and is ``not_converged``.
@@ -163,6 +166,7 @@ class DeconvSettings:
     nonnegative_passes: int = 3
     centroid_threshold: float = 0.0
     window_margin: int = 2
+    loss_extent: float = 1.0
     min_square_px: float = 6.0
     min_contrast: float = 10.0
     max_window_px: int = 256
@@ -188,6 +192,8 @@ class DeconvSettings:
                self.supersample) < 1 or self.gn_steps < 0:
             raise ValueError("outer_iterations, hinted_stages, batch_size, stage_batch_size and supersample "
                              "must be >= 1, gn_steps >= 0")
+        if not self.loss_extent > 0:
+            raise ValueError(f"loss_extent must be positive, got {self.loss_extent}")
         if not 0.0 <= self.support_threshold < 1.0 or self.support_dilation < 0:
             raise ValueError("support_threshold must be in [0, 1), support_dilation >= 0")
 
@@ -398,11 +404,13 @@ def _validate_blocks(H0: np.ndarray, image_shape: tuple[int, int], s: DeconvSett
 
     Returns:
         ``origin (B, 2)`` int ``(x0, y0)``, ``size (B, 2)`` int ``(w, h)`` of the observed
-        window (bounding box of ``H([-1, 1]^2)`` plus the margin), the normalised ``H (B, 3, 3)``
+        window (bounding box of ``H([-e, e]^2)``, ``e`` the loss extent, plus the margin), the
+        normalised ``H (B, 3, 3)``
         and a status per block (``accepted`` for those to fit).
     """
     height, width = image_shape
-    corners = np.array([[-1, -1, 1], [1, -1, 1], [1, 1, 1], [-1, 1, 1]], dtype=np.float64)
+    e = s.loss_extent
+    corners = np.array([[-e, -e, 1], [e, -e, 1], [e, e, 1], [-e, e, 1]], dtype=np.float64)
     with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
         finite = np.all(np.isfinite(H0), axis=(1, 2))
         h = np.where(finite[:, None, None], H0, 0.0)
@@ -416,7 +424,7 @@ def _validate_blocks(H0: np.ndarray, image_shape: tuple[int, int], s: DeconvSett
         cross = edges[..., 0] * nxt[..., 1] - edges[..., 1] * nxt[..., 0]
         area = 0.5 * np.abs(np.sum(pts[..., 0] * np.roll(pts[..., 1], -1, axis=1)
                                    - np.roll(pts[..., 0], -1, axis=1) * pts[..., 1], axis=1))
-        ok &= (np.all(cross > 0, axis=1) | np.all(cross < 0, axis=1)) & (np.sqrt(area) >= s.min_square_px)
+        ok &= (np.all(cross > 0, axis=1) | np.all(cross < 0, axis=1)) & (np.sqrt(area) / e >= s.min_square_px)
         lo = np.where(ok[:, None], np.floor(pts.min(axis=1)), 0).astype(np.int64) - s.window_margin
         hi = np.where(ok[:, None], np.ceil(pts.max(axis=1)), 0).astype(np.int64) + s.window_margin
     ok &= np.all(hi - lo + 1 <= s.max_window_px, axis=1)
@@ -597,14 +605,16 @@ class _Problem:
         return S, dS
 
     def square_mask(self, H_loc: torch.Tensor) -> torch.Tensor:
-        """Observed pixels inside the block's square ``|q|_inf <= 1`` (and usable), ``(b, h, w)``."""
+        """Observed pixels of the loss, ``|q|_inf <= e`` (the block's square for ``e = 1``; ``e``
+        the loss extent) and usable, ``(b, h, w)``."""
         M = torch.linalg.inv(H_loc)
         dev = M.device
         j = torch.arange(self.w, device=dev, dtype=M.dtype)[None, None, :] + self.r
         i = torch.arange(self.h, device=dev, dtype=M.dtype)[None, :, None] + self.r
         qx, qy, wq = (M[:, k, 0, None, None] * j + M[:, k, 1, None, None] * i + M[:, k, 2, None, None]
                       for k in range(3))
-        inside = (wq > 0) & (qx.abs() <= wq) & (qy.abs() <= wq)
+        ew = self.s.loss_extent * wq
+        inside = (wq > 0) & (qx.abs() <= ew) & (qy.abs() <= ew)
         return inside & self.usable
 
     # ---------------------------------------------------------------------------- convolution
@@ -973,11 +983,12 @@ def fit_blocks(image: np.ndarray, H0: np.ndarray, num_segments: int,
                psf_hint: np.ndarray | None = None) -> BlockFit:
     """Fit ``eq:deconvolution`` to ``B`` star blocks of one grey image, all blocks batched.
 
-    Each block's observed window is the bounding box of its square ``H0([-1, 1]^2)`` plus
-    :attr:`DeconvSettings.window_margin` px. The loss covers the window's pixels inside the square
-    ``|H^{-1} x|_inf <= 1`` (taken at the start of every stage), the latent pattern the window
-    grown by the kernel radius (periodic pattern, see the module docstring). Blocks are grouped by
-    window size into batches of :attr:`DeconvSettings.batch_size`.
+    Each block's observed window is the bounding box of its loss area ``H0([-e, e]^2)`` (``e`` =
+    :attr:`DeconvSettings.loss_extent`, 1: its square) plus :attr:`DeconvSettings.window_margin`
+    px. The loss covers the window's pixels with ``|H^{-1} x|_inf <= e`` (taken at the start of
+    every stage), the latent pattern the window grown by the kernel radius (periodic pattern, see
+    the module docstring). Blocks are grouped by window size into batches of
+    :attr:`DeconvSettings.batch_size`.
 
     Args:
         image: ``(height, width)`` grey levels (uint8 or float; 0..255 expected).

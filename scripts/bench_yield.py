@@ -10,7 +10,9 @@
    (:func:`blurcalib.quality.filter_frame`, default thresholds: BE, loss, connectivity), their
    pose-consistent errors (each frame's best-fit homography removed: a pose change, which a
    calibration refits), and the share returned of the visible features whose blur is shorter than
-   their star square.
+   their star square. Last, per class of blur length over square side (the feature's blur
+   against its star square's side at mid-exposure): the visible features, the share returned and
+   their median error.
 2. Simulated frames with 4 to 15 px of blur (the set of ``scripts/bench_extract.py``, seed 7):
    the same figures with the fixed 17 px window (``GrowSettings(max_kernel_size=17)``, the
    previous behaviour) and with the adaptive window (default). Target: accuracy and time per
@@ -105,13 +107,16 @@ def run(title: str, sim: Simulator, simulated: list[SimulatedFrame], settings: E
     errors_q, returned_q = [], []
     pose_q: list[np.ndarray] = []
     short_total = short_returned = 0  # blocks whose blur is shorter than their square
+    ratio_visible, ratio_returned, ratio_error = [], [], []  # per visible feature
     extracted = 0
     for fr in simulated:
         t = fr.truth
         blur = float(np.median(t.blur_length[t.visible]))
         visible = int(t.block_inside.sum())
         inside = np.flatnonzero(t.block_inside)
-        short = inside[t.blur_length[inside] < _square_px(sim.pattern, t, inside)]
+        ratio = t.blur_length[inside] / _square_px(sim.pattern, t, inside)
+        short = inside[ratio < 1.0]
+        ratio_visible.append(ratio)
         short_total += len(short)
         w0, c0 = time.perf_counter(), time.process_time()
         r = extract_frame(fr.image.astype(np.float32), sim.pattern, t.name, settings)
@@ -121,6 +126,8 @@ def run(title: str, sim: Simulator, simulated: list[SimulatedFrame], settings: E
         if r.status.value != "ok" or not len(r.features):
             returned.append(0.0)
             returned_q.append(0.0)
+            ratio_returned.append(np.zeros(len(inside), dtype=bool))
+            ratio_error.append(np.full(len(inside), np.nan))
             print(f"{t.name}: blur {blur:5.1f} px  {r.status.value}: {r.message}  {wall:5.1f} s")
             continue
         extracted += 1
@@ -130,6 +137,10 @@ def run(title: str, sim: Simulator, simulated: list[SimulatedFrame], settings: E
         errors.append(n)
         returned.append(len(ids) / max(visible, 1))
         short_returned += int(np.isin(short, ids).sum())
+        err = np.full(len(t.blur_length), np.nan)
+        err[ids] = n
+        ratio_returned.append(np.isin(inside, ids))
+        ratio_error.append(err[inside])
         ids_q, xy_q = _filtered(r, fr.image.shape[::-1])
         d_q = xy_q - t.mean[ids_q]
         n_q = np.linalg.norm(d_q - d_q.mean(axis=0), axis=1) if len(ids_q) else np.zeros(0)
@@ -147,6 +158,15 @@ def run(title: str, sim: Simulator, simulated: list[SimulatedFrame], settings: E
           f"of its mean offset): median {np.median(pose):.4f} px, p90 {np.percentile(pose, 90):.4f} px")
     print(f"visible features whose blur is shorter than their star square: {short_total}, of which "
           f"{100 * short_returned / max(short_total, 1):.1f}% returned")
+    ratio, got, err = (np.concatenate(v) for v in (ratio_visible, ratio_returned, ratio_error))
+    print("by blur length / square side of the visible features (growth):")
+    for lo, hi in ((0.0, 0.6), (0.6, 0.8), (0.8, 1.0), (1.0, np.inf)):
+        sel = (ratio >= lo) & (ratio < hi)
+        e = err[sel & got]
+        share = 100 * got[sel].mean() if sel.any() else 0.0
+        print(f"  {lo:.1f}-{hi:.1f}: {int(sel.sum()):5d} visible, {share:5.1f}% returned, median "
+              f"{np.median(e) if e.size else np.nan:.4f} px, p90 "
+              f"{np.percentile(e, 90) if e.size else np.nan:.4f} px")
     print(f"time: {np.mean(walls):.1f} s wall, {np.mean(cpus):.1f} s CPU per frame")
 
 

@@ -318,3 +318,26 @@ def test_psf_hint_replaces_the_coarse_kernel() -> None:
     assert rough.status[0] is BlockStatus.ACCEPTED and _centre_error(rough, sim)[0] < 0.5
     with pytest.raises(ValueError, match="psf_hint"):
         fit_blocks(image, sim.H0, SEGMENTS, SETTINGS, psf_hint=sim.psf_true[:, 1:-1, 1:-1])
+
+
+def test_a_larger_loss_area_sees_more_pixels_and_lands_closer() -> None:
+    """``loss_extent`` 1.5 fits each block over its square and a band of its neighbours' squares:
+    2.25 x the pixels, and the star centre lands closer to the truth (measured 0.025 -> 0.015 px
+    and 0.037 -> 0.025 px median on these two sets of 15-18 px blur)."""
+    errors = {1.0: [], 1.5: []}
+    pixels = {1.0: [], 1.5: []}
+    for seed in (5, 6):
+        sim = _simulate(12, seed, blur_px=(14.0, 18.0), square_px=(26.0, 30.0), tile_px=112,
+                        truth_kernel_size=29, init_shift_px=0.3)
+        for extent in errors:
+            fit = fit_blocks(sim.image.astype(np.float32), sim.H0, SEGMENTS,
+                             DeconvSettings(kernel_size=29, loss_extent=extent), psf_hint=sim.psf_true)
+            assert all(s is BlockStatus.ACCEPTED for s in fit.status)
+            errors[extent].append(_centre_error(fit, sim))
+            pixels[extent].append(fit.num_pixels)
+    ratio = np.concatenate(pixels[1.5]) / np.concatenate(pixels[1.0])
+    assert np.all((ratio > 2.0) & (ratio < 2.5))
+    small, large = np.concatenate(errors[1.0]), np.concatenate(errors[1.5])
+    assert np.median(large) < 0.75 * np.median(small) and large.max() < small.max()
+    with pytest.raises(ValueError, match="loss_extent"):
+        DeconvSettings(loss_extent=0.0)
