@@ -629,6 +629,18 @@ def homography_centre(H: ArrayLike) -> np.ndarray:
     return centre
 
 
+def homography_scale(H: ArrayLike) -> np.ndarray:
+    """Local scale of homographies ``(..., 3, 3)`` at the origin, ``(...)``: ``sqrt(|det J|)``
+    with ``J = (H[:2, :2] - H(0, 0) H[2, :2]) / H[2, 2]`` the Jacobian of the mapping there (px
+    per unit of the source plane; a block homography's square, 2 units wide, is twice this in
+    px). NaN where ``H`` is degenerate."""
+    H = np.asarray(H, dtype=np.float64)
+    c = homography_centre(H)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        J = (H[..., :2, :2] - c[..., :, None] * H[..., None, 2, :2]) / H[..., 2:, 2:]
+        return np.sqrt(np.abs(J[..., 0, 0] * J[..., 1, 1] - J[..., 0, 1] * J[..., 1, 0]))
+
+
 # ---------------------------------------------------------------------------
 # Camera files
 # ---------------------------------------------------------------------------

@@ -60,7 +60,7 @@ from dataclasses import dataclass, field, replace
 import cv2
 import numpy as np
 
-from blurcalib.camera import apply_homography, homography_centre
+from blurcalib.camera import apply_homography, homography_centre, homography_scale
 from blurcalib.deconv import BlockFit, DeconvSettings, fit_blocks
 from blurcalib.pattern import StarPattern
 from blurcalib.quality import connected_blocks
@@ -632,7 +632,7 @@ def grow(image: np.ndarray, pattern: StarPattern, seed: Seed,
         fits.append(fit)
         predicted_centre = homography_centre(H0)
         fitted_centre = fit.centre
-        square_px = np.sqrt(np.abs(np.linalg.det(H0[:, :2, :2]))) * 2.0
+        square_px = 2.0 * homography_scale(H0)  # the square's side at the star centre
         newly_accepted, accepted_rows = [], []
         off = np.zeros(len(front_ids), dtype=bool)
         if heavy:

@@ -362,6 +362,23 @@ class _BlurryFrame:
     residuals: np.ndarray | None = None
 
 
+BLUR_PER_SQUARE_LIMIT = 0.8
+"""Blur extent over star-square side from which few blocks are found and those found are
+poorer (``scripts/bench_yield.py``: 50 % returned at 0.06 px from 0.8, 10 % at 0.14 px from 1)."""
+
+
+def _blur_note(blocks: BlockTable) -> str:
+    """Why a frame keeps few blocks when its blur is as long as its squares: ``""`` or a clause
+    with the median :attr:`BlockTable.blur_per_square` of its fitted blocks."""
+    ratio = blocks.blur_per_square
+    ratio = ratio[np.isfinite(ratio)]
+    if not ratio.size or np.median(ratio) < BLUR_PER_SQUARE_LIMIT:
+        return ""
+    return (f"; its blur is {np.median(ratio):.2f} x the star squares' side (median of its fitted "
+            f"blocks), and from {BLUR_PER_SQUARE_LIMIT} few stars can be located: a closer view "
+            f"(larger squares) or a shorter exposure helps")
+
+
 def _align_frame(extracted: dict, blocks: BlockTable, pattern: StarPattern, calibration: Calibration,
                  size: tuple[int, int], s: PipelineSettings) -> _BlurryFrame:
     """Filter a blurry frame's blocks and align the kept ones to the parametric camera
@@ -382,7 +399,7 @@ def _align_frame(extracted: dict, blocks: BlockTable, pattern: StarPattern, cali
     if filt.kept.sum() < MIN_BLOCKS:
         row["status"] = "too_few_blocks"
         row["reason"] = (f"{int(filt.kept.sum())} blocks survive the BE/loss/connectivity filter, "
-                          f"{MIN_BLOCKS} needed")
+                          f"{MIN_BLOCKS} needed{_blur_note(b)}")
         return _BlurryFrame(row)
     kept = b.select(filt.kept)
     flags = FeatureFlags.STAR_CENTRE | FeatureFlags.BLURRY_FRAME

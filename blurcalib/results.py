@@ -33,7 +33,7 @@ from pathlib import Path
 
 import numpy as np
 
-from blurcalib.camera import homography_centre
+from blurcalib.camera import homography_centre, homography_scale
 from blurcalib.fileio import (
     atomic_path,
     atomic_write_csv,
@@ -277,6 +277,16 @@ class BlockTable:
     def accepted(self) -> np.ndarray:
         """``(B,)`` bool, the blocks whose status is ``accepted``."""
         return self.status == BlockStatus.ACCEPTED.value
+
+    @property
+    def blur_per_square(self) -> np.ndarray:
+        """``(B,)`` blur extent over the star square's side: ``sqrt(12) sigma_major`` (the length
+        of a straight blur with the PSF's second moment) over ``2 |det J|^(1/2)`` (``J`` the
+        Jacobian of ``H`` at the star centre, :func:`blurcalib.camera.homography_scale`). From
+        about 0.8 the block model loses the star's position along the blur
+        (docs/deconvolution.md); NaN where not fitted."""
+        with np.errstate(divide="ignore", invalid="ignore"):
+            return np.sqrt(12.0) * self.sigma_major / (2.0 * homography_scale(self.H))
 
     def features(self, square_length_m: float, flags: int) -> FeatureTable:
         """One star-centre observation per row: ``(x, y)`` the star centre, ``(X, Y) = (fx L,

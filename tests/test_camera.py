@@ -16,6 +16,7 @@ from blurcalib.camera import (
     CameraFileError,
     Pose,
     apply_homography,
+    homography_scale,
     load_camera_json,
     load_camera_yaml,
     plane_homography,
@@ -153,6 +154,22 @@ def test_apply_homography_batched(rng: np.random.Generator) -> None:
         homog = np.column_stack([pts[b], np.ones(7)]) @ H[b].T
         np.testing.assert_allclose(batched[b], homog[:, :2] / homog[:, 2:], rtol=1e-13)
         np.testing.assert_allclose(apply_homography(H[b], pts[b]), batched[b], rtol=0, atol=0)
+
+
+def test_homography_scale_is_the_local_area_scale_at_the_origin(rng: np.random.Generator) -> None:
+    """``sqrt(|det J|)`` of the mapping at the origin, against finite differences, for strongly
+    perspective homographies (where ``H[:2, :2]`` alone is far off)."""
+    scale = [[0.2, 0.2, 300.0], [0.2, 0.2, 300.0], [0.05, 0.05, 0.0]]
+    H = np.eye(3) + rng.normal(scale=scale, size=(5, 3, 3))
+    H[:, :2, :2] *= 15.0
+    eps = 1e-6
+    c = apply_homography(H, np.zeros((5, 1, 2)))[:, 0]
+    dx = (apply_homography(H, np.full((5, 1, 2), [eps, 0.0]))[:, 0] - c) / eps
+    dy = (apply_homography(H, np.full((5, 1, 2), [0.0, eps]))[:, 0] - c) / eps
+    area = np.abs(dx[:, 0] * dy[:, 1] - dx[:, 1] * dy[:, 0])
+    np.testing.assert_allclose(homography_scale(H), np.sqrt(area), rtol=1e-5)
+    np.testing.assert_allclose(homography_scale(3.0 * H[0]), homography_scale(H[0]), rtol=1e-12)
+    assert np.isnan(homography_scale(np.zeros((3, 3))))
 
 
 # ---------------------------------------------------------------------------

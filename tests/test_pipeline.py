@@ -263,3 +263,28 @@ def test_default_calibrate_uses_little_blur_and_gives_reasons(tmp_path, dataset,
     unflagged = set(features.frame[(features.flags & int(FeatureFlags.FILTERED_OUT)) == 0])
     assert unflagged == {f for f in frames if status[f] == "used"}
     assert "blurry frames:" in capsys.readouterr().out
+
+
+def test_a_frame_with_blur_as_long_as_its_squares_is_told_so() -> None:
+    """The ``too_few_blocks`` reason names the blur over square side when it is from 0.8 (median of
+    the fitted blocks, unfitted ones ignored); below, it adds nothing."""
+    from blurcalib.psf import psf_moments
+    from blurcalib.results import BlockStatus, BlockTable
+    from blurcalib.seed import block_homography, line_kernel
+
+    def table(blur_px: float) -> BlockTable:
+        n = 4
+        psf = np.repeat(line_kernel(blur_px, 0.3)[None], n, axis=0)
+        m = psf_moments(psf)
+        sigma = m.sigma_major.copy()
+        sigma[0] = np.nan  # not fitted
+        H = block_homography(np.diag([24.0, 24.0, 1.0]), np.arange(n, dtype=float), np.ones(n))
+        return BlockTable(["f"] * n, np.arange(n), np.arange(n), np.ones(n, dtype=int),
+                          [BlockStatus.ACCEPTED] * n, np.ones(n), np.zeros(n), sigma, m.sigma_minor,
+                          m.eccentricity, m.orientation, m.centroid, H, np.zeros((n, 6)), psf)
+
+    long, short = table(24.0), table(12.0)
+    assert np.nanmedian(long.blur_per_square) > 0.95 and np.nanmedian(short.blur_per_square) < 0.55
+    ratio = np.nanmedian(long.blur_per_square)
+    assert pipeline._blur_note(long).startswith(f"; its blur is {ratio:.2f} x the star squares' side")
+    assert pipeline._blur_note(short) == ""

@@ -252,3 +252,15 @@ def test_boundary_energy() -> None:
     assert boundary_energy(uniform) == pytest.approx((121 - 49) / 121)
     assert boundary_energy(uniform, ring=1) == pytest.approx((121 - 81) / 121)
     assert np.allclose(boundary_energy(np.stack([delta, uniform])), [0.0, 72 / 121])
+
+
+def test_blur_per_square_is_the_blur_extent_over_the_square_side() -> None:
+    """A straight 20 px blur (sigma_major 20 / sqrt(12)) on squares 25 px wide: 0.8."""
+    from blurcalib.seed import block_homography
+
+    H_feature = np.array([[25.0, 0.0, 100.0], [0.0, 25.0, 80.0], [0.0, 0.0, 1.0]])
+    table = _blocks("f", 3, 0)
+    table.H = block_homography(H_feature, np.array([1.0, 2.0, 3.0]), np.array([1.0, 1.0, 1.0]))
+    table.sigma_major = np.array([20.0, 10.0, np.nan]) / math.sqrt(12.0)
+    np.testing.assert_allclose(table.blur_per_square[:2], [0.8, 0.4], rtol=1e-12)
+    assert np.isnan(table.blur_per_square[2])
