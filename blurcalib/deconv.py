@@ -405,8 +405,7 @@ def _validate_blocks(H0: np.ndarray, image_shape: tuple[int, int], s: DeconvSett
     Returns:
         ``origin (B, 2)`` int ``(x0, y0)``, ``size (B, 2)`` int ``(w, h)`` of the observed
         window (bounding box of ``H([-e, e]^2)``, ``e`` the loss extent, plus the margin), the
-        normalised ``H (B, 3, 3)``
-        and a status per block (``accepted`` for those to fit).
+        normalised ``H (B, 3, 3)`` and a status per block (``accepted`` for those to fit).
     """
     height, width = image_shape
     e = s.loss_extent

@@ -56,6 +56,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
+from typing import Literal
 
 import cv2
 import numpy as np
@@ -66,6 +67,9 @@ from blurcalib.pattern import StarPattern
 from blurcalib.quality import connected_blocks
 from blurcalib.results import BlockStatus
 from blurcalib.seed import Seed, block_homography, tag_ring_features
+
+FinalFitFrames = Literal["adaptive", "all", "none"]
+"""Which frames get :func:`final_fit` (:attr:`GrowSettings.final_fit_frames`)."""
 
 
 @dataclass(frozen=True)
@@ -121,7 +125,7 @@ class GrowSettings:
     heavy_above_extent_px: float = 18.0
     psf_hints: bool = True
     final_extent: float = 1.5
-    final_fit_frames: str = "adaptive"
+    final_fit_frames: FinalFitFrames = "adaptive"
     final_max_shift_px: float = 0.5
 
     def __post_init__(self) -> None:

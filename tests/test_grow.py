@@ -194,3 +194,7 @@ def test_final_fit_over_a_larger_area_moves_inner_blocks_closer_to_the_truth() -
     assert all(rim_kept) and sum(inner_changed) >= 0.9 * sum(inner) and sum(inner) >= 60
     b, a = np.concatenate(before), np.concatenate(after)
     assert np.median(a) < 0.9 * np.median(b) and np.percentile(a, 90) < np.percentile(b, 90)
+    with pytest.raises(ValueError, match="final_fit_frames"):
+        GrowSettings(final_fit_frames="sharp")  # type: ignore[arg-type]
+    with pytest.raises(ValueError, match="final_extent"):
+        GrowSettings(final_extent=0.5)
