@@ -145,6 +145,8 @@ def test_run_tune_and_inspect_in_chromium(tmp_path: Path) -> None:
             page.get_by_role("option", name="highest loss").click()
             expect(page.get_by_text(re.compile(r"block #\d+ feature"))).to_be_visible()
             assert app.state.selected is not None
+            ratio = app.state.view().result.blocks.blur_per_square[app.state.selected]
+            expect(page.get_by_text(f"blur / square side {ratio:.2f}")).to_be_visible()
             page.get_by_role("tab", name="Errors").click()
             expect(page.get_by_text(re.compile(r"global alignment \(reference: ground-truth camera\): star "
                                                r"centre minus x_G"))).to_be_visible()

@@ -328,6 +328,9 @@ def test_views_draw_rgb_images(finished: tuple[AppState, list[Topic]]) -> None:
     worst = jump_target(view, "highest loss")
     loss = view.result.blocks.loss
     assert loss[worst] == loss[np.isfinite(loss)].max()
+    longest = jump_target(view, "longest blur for its square")
+    ratio = view.result.blocks.blur_per_square
+    assert ratio[longest] == ratio[np.isfinite(loss) & np.isfinite(ratio)].max() > 0
     assert finished.select_block(worst)
     view = finished.view()
     images = [draw_frame(view, mode, True, True) for mode in ("kept / removed", "loss", "boundary energy")]

@@ -23,14 +23,14 @@ from state import AppState, FrameView, Topic
 from views.common import Coalescer, grey_rgb, heat, hstack, label, placeholder, upscale
 
 JUMPS = ("choose…", "highest loss", "lowest loss", "highest boundary energy", "largest blur (σ_major)",
-         "most eccentric")
+         "longest blur for its square", "most eccentric")
 PANEL_PX = 180
 
 
 def _figures(view: FrameView) -> dict[str, np.ndarray]:
     blocks = view.result.blocks if view.result is not None else BlockTable.empty()
     return {name: getattr(blocks, name)
-            for name in ("loss", "boundary_energy", "sigma_major", "eccentricity")}
+            for name in ("loss", "boundary_energy", "sigma_major", "eccentricity", "blur_per_square")}
 
 
 def jump_target(view: FrameView, choice: str) -> int | None:
@@ -41,7 +41,8 @@ def jump_target(view: FrameView, choice: str) -> int | None:
     if not fitted.any():
         return None
     key = {"highest loss": loss, "lowest loss": -loss, "highest boundary energy": f["boundary_energy"],
-           "largest blur (σ_major)": f["sigma_major"], "most eccentric": f["eccentricity"]}.get(choice)
+           "largest blur (σ_major)": f["sigma_major"], "longest blur for its square": f["blur_per_square"],
+           "most eccentric": f["eccentricity"]}.get(choice)
     if key is None:
         return None
     return int(np.argmax(np.where(fitted & np.isfinite(key), key, -np.inf)))
@@ -175,7 +176,8 @@ class InspectPanel:
                  f"star centre ({x:.2f}, {y:.2f}) px · loss {b.loss[i]:.1f} · "
                  f"BE {b.boundary_energy[i]:.3f} · "
                  f"σ_major {b.sigma_major[i]:.2f} px · σ_minor {b.sigma_minor[i]:.2f} px · "
-                 f"eccentricity {b.eccentricity[i]:.2f} · orientation {np.degrees(b.orientation[i]):.0f}°"]
+                 f"eccentricity {b.eccentricity[i]:.2f} · orientation {np.degrees(b.orientation[i]):.0f}° · "
+                 f"blur / square side {b.blur_per_square[i]:.2f} (from 0.8 stars are hard to locate)"]
         if view.truth is not None:
             row = np.flatnonzero(view.truth.feature_ids == b.feature_id[i])
             if len(row):
