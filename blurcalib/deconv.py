@@ -245,6 +245,8 @@ class BlockFit:
         origin: ``(B, 2)`` int, ``(x0, y0)`` px of the observed window's top-left pixel.
         window_size: ``(B, 2)`` int, ``(width, height)`` px of the observed window.
         num_pixels: ``(B,)`` int, pixels in the loss.
+        loss_extent: ``(B,)`` the :attr:`DeconvSettings.loss_extent` each block was fitted with
+            (its loss covered ``|q|_inf <= loss_extent``; rows of several fits may differ).
         masks: ``(B,)`` object array of bool ``(height, width)`` arrays over each window: the
             loss's pixels (empty for blocks that were not fitted).
         num_segments: star segments ``N``.
@@ -271,6 +273,7 @@ class BlockFit:
     origin: np.ndarray
     window_size: np.ndarray
     num_pixels: np.ndarray
+    loss_extent: np.ndarray
     masks: np.ndarray
     num_segments: int
     settings: DeconvSettings = field(default_factory=DeconvSettings)
@@ -1070,7 +1073,7 @@ def fit_blocks(image: np.ndarray, H0: np.ndarray, num_segments: int,
         uv_scale=out["uv_scale"], loss=out["loss"], residual_rms=np.sqrt(out["loss"]),
         centroid=out["centroid"], converged=converged, status=tuple(status),
         centre_step=out["centre_step"], origin=origin, window_size=size, num_pixels=out["num_pixels"],
-        masks=masks, num_segments=num_segments, settings=s, **figures)
+        loss_extent=np.full(B, s.loss_extent), masks=masks, num_segments=num_segments, settings=s, **figures)
 
 
 def render_model(fit: BlockFit, image: np.ndarray, index: int) -> BlockModel:

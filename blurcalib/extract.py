@@ -202,7 +202,7 @@ def _block_table(frame: str, pattern: StarPattern, growth: Growth,
     f = pattern.features[growth.feature_id]
     return BlockTable(np.full(len(f), frame), growth.feature_id, f[:, 0], f[:, 1], growth.status, fit.loss,
                       fit.boundary_energy, fit.sigma_major, fit.sigma_minor, fit.eccentricity,
-                      fit.orientation, fit.centroid, H, fit.coeffs, np.nan_to_num(fit.psf))
+                      fit.orientation, fit.centroid, H, fit.coeffs, np.nan_to_num(fit.psf), fit.loss_extent)
 
 
 def _features(pattern: StarPattern, blocks: BlockTable, settings: ExtractSettings) -> FeatureTable:

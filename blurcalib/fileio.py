@@ -180,13 +180,15 @@ def atomic_write_csv(path: str | os.PathLike, header: Sequence[str],
     return atomic_write_text(path, buffer.getvalue())
 
 
-def read_csv_columns(path: Path, required: Sequence[str], error: type[Exception], what: str
-                     ) -> tuple[dict[str, list[str]], int]:
-    """The ``required`` columns of a CSV with a header, as lists of strings, and its row count.
+def read_csv_columns(path: Path, required: Sequence[str], error: type[Exception], what: str,
+                     optional: Sequence[str] = ()) -> tuple[dict[str, list[str]], int]:
+    """The ``required`` columns of a CSV with a header, and those of ``optional`` it has, as
+    lists of strings, and its row count.
 
     Args:
         path: the file.
         required: column names that must be in the header (others are ignored).
+        optional: column names read when the header has them (columns added to a format later).
         error: the exception raised for a missing, unreadable or malformed file; its message
             starts with the path.
         what: what the file is, for the messages (``"results file"``, ``"calibration file"``).
@@ -211,4 +213,5 @@ def read_csv_columns(path: Path, required: Sequence[str], error: type[Exception]
                         f"{len(row)} fields, expected {len(header)}")
         rows.append(row)
     by_index = list(zip(*rows, strict=True)) if rows else [() for _ in header]
-    return {name: list(by_index[header.index(name)]) for name in required}, len(rows)
+    wanted = [*required, *(name for name in optional if name in header)]
+    return {name: list(by_index[header.index(name)]) for name in wanted}, len(rows)

@@ -17,9 +17,11 @@ Given a camera (the sharp-set parametric calibration), the bias is predicted blo
     G = argmin sum_q |G q - W(q)|^2                 (the homography a fit finds)
     bias = G(0) - W(0)                              (px)
 
-over a 15 x 15 lattice of ``q`` on the square (least squares in the homography's entries with
-``h33 = 1``). Subtracting it removes the trend (median radial error within 0.0006 px at every
-radius on the frames above, median error 0.0060 -> 0.0049 px, ``docs/generic.md``).
+over a 15 x 15 lattice of ``q`` on the area the block was fitted over (its square, or
+``|q|_inf <= e`` for a block fitted with a loss extent ``e``, :attr:`BlockTable.loss_extent`: the
+bias grows about as ``e^2``), by least squares in the homography's entries with ``h33 = 1``.
+Subtracting it removes the trend (median radial error within 0.0006 px at every radius on the
+frames above, median error 0.0060 -> 0.0049 px, ``docs/generic.md``).
 
 Pixel convention: OpenCV (the centre of the top-left pixel is ``(0, 0)``).
 """
@@ -73,10 +75,13 @@ _CHUNK = 512
 """Blocks per batch of :func:`centre_bias` (its least-squares systems take ~15 kB per block)."""
 
 
-def centre_bias(camera: BrownConrady, H: np.ndarray) -> np.ndarray:
+def centre_bias(camera: BrownConrady, H: np.ndarray, extent: np.ndarray | float = 1.0) -> np.ndarray:
     """``(N, 2)`` px: the bias ``G(0) - W(0)`` of the star centre of each block homography
-    ``H (N, 3, 3)`` under ``camera``'s distortion (module docstring). NaN for a non-finite ``H``."""
+    ``H (N, 3, 3)`` fitted over ``|q|_inf <= extent`` (``(N,)`` or a scalar) under ``camera``'s
+    distortion (module docstring). NaN for a non-finite ``H``."""
     H = np.asarray(H, dtype=np.float64).reshape(-1, 3, 3)
+    e = np.broadcast_to(np.asarray(extent, dtype=np.float64), (len(H),))
+    H = H * np.stack([e, e, np.ones_like(e)], axis=-1)[:, None, :]  # H S(e): the area is [-1, 1]^2
     out = np.full((len(H), 2), np.nan)
     rows = np.flatnonzero(np.all(np.isfinite(H), axis=(1, 2)))
     for start in range(0, len(rows), _CHUNK):
@@ -93,7 +98,7 @@ def centre_bias(camera: BrownConrady, H: np.ndarray) -> np.ndarray:
 def correct_blocks(blocks: BlockTable, camera: BrownConrady) -> BlockTable:
     """The blocks with each ``H`` moved by minus its :func:`centre_bias` (``H <- T(-bias) H``),
     so that their centres, and the features made from them, are corrected."""
-    bias = np.nan_to_num(centre_bias(camera, blocks.H))
+    bias = np.nan_to_num(centre_bias(camera, blocks.H, blocks.loss_extent))
     return replace(blocks, H=translation(-bias) @ blocks.H)
 
 
@@ -106,6 +111,6 @@ def correct_features(features: FeatureTable, blocks: BlockTable, camera: BrownCo
     match = np.array([row.get((f, int(i)), -1) for f, i in pairs], dtype=np.int64)
     found = match >= 0
     bias = np.zeros((len(features), 2))
-    bias[found] = np.nan_to_num(centre_bias(camera, blocks.H[match[found]]))
+    bias[found] = np.nan_to_num(centre_bias(camera, blocks.H[match[found]], blocks.loss_extent[match[found]]))
     flags = np.where(found, features.flags | int(FeatureFlags.LENS_CORRECTED), features.flags)
     return replace(features, x=features.x - bias[:, 0], y=features.y - bias[:, 1], flags=flags)

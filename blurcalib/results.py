@@ -59,8 +59,9 @@ COEFF_COLUMNS: tuple[str, ...] = ("a1", "a2", "a3", "b1", "b2", "b3")
 BLOCK_COLUMNS: tuple[str, ...] = (
     "frame", "feature_id", "fx", "fy", "status", "loss", "boundary_energy", "sigma_major",
     "sigma_minor", "eccentricity", "orientation", "centroid_x", "centroid_y",
-    *H_COLUMNS, *COEFF_COLUMNS)
-"""Columns of ``blocks.csv``, in order."""
+    *H_COLUMNS, *COEFF_COLUMNS, "loss_extent")
+"""Columns of ``blocks.csv``, in order (a file without the last, ``loss_extent``, added later, reads
+as 1)."""
 
 CORNER_COLUMNS: tuple[str, ...] = ("frame", "cx2", "cy2", "X", "Y", "x", "y", "blocks")
 """Columns of ``corners.csv``: the corner's feature coordinates doubled (``cx2 = 2 fx + 1`` for
@@ -222,6 +223,8 @@ class BlockTable:
             model ``A(p) = a1 u + a2 v + a3``, ``B(p) = b1 u + b2 v + b3`` (grey levels).
         psf: ``(B, K, K)`` float32 kernels, each summing to 1; pixel ``(i, j)`` at offset
             ``(j - c, i - c)`` px, ``c = (K - 1) / 2``.
+        loss_extent: ``(B,)`` the area the block was fitted over, ``|q|_inf <= loss_extent``
+            (1: its square; :attr:`blurcalib.deconv.DeconvSettings.loss_extent`); 1 when not given.
     """
 
     frame: np.ndarray
@@ -239,9 +242,11 @@ class BlockTable:
     H: np.ndarray
     coeffs: np.ndarray
     psf: np.ndarray
+    loss_extent: np.ndarray | None = None
 
     _SCALARS = ("loss", "boundary_energy", "sigma_major", "sigma_minor", "eccentricity", "orientation")
-    _FIELDS = ("frame", "feature_id", "fx", "fy", "status", *_SCALARS, "centroid", "H", "coeffs", "psf")
+    _FIELDS = ("frame", "feature_id", "fx", "fy", "status", *_SCALARS, "centroid", "H", "coeffs", "psf",
+               "loss_extent")
 
     def __post_init__(self) -> None:
         n = len(self.frame)
@@ -255,6 +260,8 @@ class BlockTable:
         self.centroid = np.asarray(self.centroid, dtype=np.float64).reshape(n, 2)
         self.H = np.asarray(self.H, dtype=np.float64).reshape(n, 3, 3)
         self.coeffs = np.asarray(self.coeffs, dtype=np.float64).reshape(n, 6)
+        self.loss_extent = _column(np.ones(n) if self.loss_extent is None else self.loss_extent,
+                                   np.float64, n)
         self.psf = np.asarray(self.psf, dtype=np.float32)
         if self.psf.ndim != 3 or self.psf.shape[0] != n or self.psf.shape[1] != self.psf.shape[2]:
             raise ValueError(f"psf must be ({n}, K, K), got {self.psf.shape}")
@@ -367,7 +374,7 @@ def write_blocks(csv_path: str | os.PathLike, npz_path: str | os.PathLike,
             _str_strings(t.status), *(_float_strings(getattr(t, n)) for n in BlockTable._SCALARS),
             *(_float_strings(t.centroid[:, i]) for i in range(2)),
             *(_float_strings(t.H[:, r, c]) for r in range(3) for c in range(3)),
-            *(_float_strings(t.coeffs[:, i]) for i in range(6))]
+            *(_float_strings(t.coeffs[:, i]) for i in range(6)), _float_strings(t.loss_extent)]
     atomic_write_text(csv_path, _csv_text(BLOCK_COLUMNS, cols))
     with atomic_path(npz_path) as tmp, open(tmp, "wb") as handle:
         np.savez(handle, frame=t.frame, feature_id=t.feature_id, psf=t.psf, H=t.H)
@@ -479,7 +486,8 @@ def read_block_table(folder: str | os.PathLike) -> BlockTable:
 
 
 def _read_block_table(csv_path: Path, npz_path: Path) -> BlockTable:
-    cols, n = read_csv_columns(csv_path, BLOCK_COLUMNS, ResultsFileError, "results file")
+    cols, n = read_csv_columns(csv_path, BLOCK_COLUMNS[:-1], ResultsFileError, "results file",
+                               optional=BLOCK_COLUMNS[-1:])
     frame = np.array(cols["frame"], dtype=np.str_)
     feature_id = _ints(csv_path, cols, "feature_id")
     H = np.stack([_floats(csv_path, cols, c) for c in H_COLUMNS], axis=1).reshape(n, 3, 3)
@@ -496,7 +504,8 @@ def _read_block_table(csv_path: Path, npz_path: Path) -> BlockTable:
         frame, feature_id, _ints(csv_path, cols, "fx"), _ints(csv_path, cols, "fy"),
         _status(csv_path, cols["status"]), *(_floats(csv_path, cols, c) for c in BlockTable._SCALARS),
         np.stack([_floats(csv_path, cols, c) for c in ("centroid_x", "centroid_y")], axis=1), H,
-        np.stack([_floats(csv_path, cols, c) for c in COEFF_COLUMNS], axis=1), arrays["psf"])
+        np.stack([_floats(csv_path, cols, c) for c in COEFF_COLUMNS], axis=1), arrays["psf"],
+        _floats(csv_path, cols, "loss_extent") if "loss_extent" in cols else None)
 
 
 # ------------------------------------------------------------------------------ per-frame files

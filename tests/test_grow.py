@@ -182,6 +182,7 @@ def test_final_fit_over_a_larger_area_moves_inner_blocks_closer_to_the_truth() -
         rim = (f[:, 0] == 0) | (f[:, 1] == 0) | (f[:, 0] == pattern.squares_x - 2) \
             | (f[:, 1] == pattern.squares_y - 2)
         changed = np.any(final.H != fit.H, axis=(1, 2))
+        assert np.all(final.loss_extent == np.where(changed, 1.5, 1.0))
         rim_kept.append(not changed[rim].any())
         inner_changed.append(int(changed[~rim & ok].sum()))
         inner.append(int((~rim & ok).sum()))

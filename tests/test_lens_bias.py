@@ -45,6 +45,17 @@ def test_bias_is_second_order_in_the_distortion() -> None:
     assert np.isnan(centre_bias(PINHOLE, np.full((1, 3, 3), np.nan))).all()
 
 
+def test_bias_grows_with_the_square_of_the_fitted_area() -> None:
+    """A block fitted over 1.5 x its square (the growth's final fit) has 2.25 x the bias, and
+    the correction follows each block's ``loss_extent``."""
+    H = np.concatenate([_block(x, y) for x, y in ((900.0, 500.0), (1200.0, 650.0), (150.0, 100.0))])
+    lens = dataclasses.replace(PINHOLE, k1=0.02)
+    one, wide = centre_bias(lens, H), centre_bias(lens, H, np.array([1.5, 1.5, 2.0]))
+    np.testing.assert_allclose(np.linalg.norm(wide, axis=1) / np.linalg.norm(one, axis=1), [2.25, 2.25, 4.0],
+                               rtol=0.01)
+    np.testing.assert_allclose(centre_bias(lens, H, 1.5)[:2], wide[:2], rtol=0, atol=0)
+
+
 def test_correction_removes_the_radial_trend_on_simulated_frames() -> None:
     lens = d435i_like_camera(0).model
     sim = Simulator(SynthConfig(sharp=2, blurry=0, seed=3), camera=TrueCamera(lens))

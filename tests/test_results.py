@@ -264,3 +264,19 @@ def test_blur_per_square_is_the_blur_extent_over_the_square_side() -> None:
     table.sigma_major = np.array([20.0, 10.0, np.nan]) / math.sqrt(12.0)
     np.testing.assert_allclose(table.blur_per_square[:2], [0.8, 0.4], rtol=1e-12)
     assert np.isnan(table.blur_per_square[2])
+
+
+def test_loss_extent_round_trips_and_reads_as_one_from_older_files(tmp_path: Path) -> None:
+    """``blocks.csv`` carries each block's loss extent (the growth's final fit uses 1.5); a file
+    written before the column existed reads with 1 everywhere."""
+    blocks = _blocks("a.png", 6, 4)
+    blocks.loss_extent = np.array([1.0, 1.5, 1.5, 1.0, 1.25, 1.0])
+    write_results(tmp_path / "new", [], blocks)
+    _assert_blocks_equal(read_block_table(tmp_path / "new"), blocks)
+    assert read_block_table(tmp_path / "new").select(np.array([1, 4])).loss_extent.tolist() == [1.5, 1.25]
+    old = tmp_path / "old"
+    write_results(old, [], blocks)
+    lines = (old / "blocks.csv").read_text().splitlines()
+    assert lines[0].endswith(",loss_extent")
+    (old / "blocks.csv").write_text("\n".join(line.rsplit(",", 1)[0] for line in lines) + "\n")
+    assert read_block_table(old).loss_extent.tolist() == [1.0] * 6
