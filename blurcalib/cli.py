@@ -133,7 +133,7 @@ def _pipeline_settings(args: argparse.Namespace):
                                     min_sigma_major=args.min_sigma_major),
             loss=args.loss, bias=args.bias, workers=args.workers, cluster=args.cluster,
             local_alignment=args.local_alignment, model=args.model, route=args.route, cell_px=args.cell_px,
-            lens_correction=not args.no_lens_correction)
+            lens_correction=not args.no_lens_correction, final_fit=args.final_fit)
     except ValueError as exc:
         raise CliError(str(exc)) from None
 
@@ -257,6 +257,7 @@ def cmd_extract(args: argparse.Namespace) -> int:
     from blurcalib.deconv import DeconvSettings
     from blurcalib.extract import ExtractSettings, extract_to_folder
     from blurcalib.frames import FrameError, list_frames
+    from blurcalib.grow import GrowSettings
 
     pattern = load_pattern(args.pattern)
     try:
@@ -268,8 +269,8 @@ def cmd_extract(args: argparse.Namespace) -> int:
         deconv = DeconvSettings(kernel_size=kernel, device=check_device(args.device))
     except ValueError as exc:
         raise CliError(str(exc)) from None
-    settings = ExtractSettings(deconv=deconv, local_alignment=args.local_alignment,
-                               kind="sharp" if args.sharp else "blurry")
+    settings = ExtractSettings(deconv=deconv, grow=GrowSettings(final_fit_frames=args.final_fit),
+                               local_alignment=args.local_alignment, kind="sharp" if args.sharp else "blurry")
     bar = tqdm(total=len(paths), desc="extracting", unit="frame", file=sys.stderr,
                dynamic_ncols=True, disable=None)
     counts: dict[str, int] = {}
@@ -355,6 +356,14 @@ def _add_run_options(p: argparse.ArgumentParser, workers: bool = True) -> None:
                    help="run frames as tasks on this Dask scheduler (tcp://host:8786; docs/cluster.md)")
 
 
+def _add_final_fit_option(p: argparse.ArgumentParser, which: str) -> None:
+    p.add_argument("--final-fit", choices=["adaptive", "all", "none"], default="adaptive",
+                   help=f"which {which}frames get a final fit of each block over 1.5 x its square: "
+                        "those whose PSF window grew with the blur, all (more accurate features, "
+                        "about 1 s more per frame with little blur) or none (%(default)s; "
+                        "docs/deconvolution.md)")
+
+
 def _add_pipeline_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--tau-be", type=float, default=0.12,
                    help="largest PSF boundary energy kept (%(default)s)")
@@ -369,6 +378,7 @@ def _add_pipeline_options(p: argparse.ArgumentParser) -> None:
                    help="bias model of the global alignment (%(default)s)")
     p.add_argument("--local-alignment", action="store_true",
                    help="use the local-alignment translations for blurry frames")
+    _add_final_fit_option(p, "blurry ")
     p.add_argument("--model", choices=["generic", "parametric"], default="generic",
                    help="camera model delivered: the generic B-spline ray grid fitted to sharp and blurry "
                         "frames together, or Brown-Conrady from the sharp set only (%(default)s)")
@@ -437,6 +447,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="PSF window side, odd px (17 for blurry, 7 with --sharp)")
     p.add_argument("--local-alignment", action="store_true",
                    help="move star centres by the local-alignment translations")
+    _add_final_fit_option(p, "")
     _add_run_options(p)
     p.add_argument("--device", default="cpu", help="torch device for the block solver (cpu, cuda)")
     p.add_argument("--overwrite", action="store_true",

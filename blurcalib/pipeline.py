@@ -67,6 +67,7 @@ from blurcalib.fileio import (
 from blurcalib.frames import frame_size, frame_size_problem
 from blurcalib.generic import DEFAULT_CELL_PX
 from blurcalib.global_alignment import MIN_BLOCKS, AlignmentError, AlignmentSettings, align_blocks
+from blurcalib.grow import FinalFitFrames, GrowSettings
 from blurcalib.joint import (
     GenericCalibration,
     JointSettings,
@@ -126,6 +127,10 @@ class PipelineSettings:
         angle_threshold: frames whose optical axis is within this angle (rad) of the target
             normal are flagged (translation ill-conditioned).
         blurry_kernel: PSF window of blurry frames (px, odd).
+        final_fit: which blurry frames get the growth's final fit over 1.5 x each block's square
+            (:attr:`blurcalib.grow.GrowSettings.final_fit_frames`): ``adaptive`` (default: those
+            whose PSF window grew), ``all`` (more accurate features, about 1 s more per frame
+            with little blur) or ``none``. Sharp frames never get it.
         local_alignment: use the local-alignment translations for blurry frames.
         workers: frames extracted in parallel.
         model: ``generic`` (default: the central generic camera fitted to sharp and blurry
@@ -148,6 +153,7 @@ class PipelineSettings:
     bias: str = "translation"
     angle_threshold: float = math.pi / 10
     blurry_kernel: int = 17
+    final_fit: FinalFitFrames = "adaptive"
     local_alignment: bool = False
     workers: int = 1
     model: str = "generic"
@@ -160,6 +166,7 @@ class PipelineSettings:
         if self.model not in MODELS:
             raise ValueError(f"model must be one of {MODELS}, got {self.model!r}")
         JointSettings(cell_px=self.cell_px, route=self.route)  # validates both
+        GrowSettings(final_fit_frames=self.final_fit)  # validates it
 
 
 @dataclass
@@ -244,6 +251,7 @@ def run_pipeline(sharp: Sequence[Path], blurry: Sequence[Path], pattern: StarPat
         return lambda done, total, row: progress(name, done, total, row)
 
     blurry_settings = ExtractSettings(deconv=DeconvSettings(kernel_size=s.blurry_kernel),
+                                      grow=GrowSettings(final_fit_frames=s.final_fit),
                                       local_alignment=s.local_alignment)
     runs = {kind: extract_to_folder(paths, pattern, out / kind, settings, workers=s.workers,
                                     progress=stage(kind), expected_size=size, overwrite=overwrite,
@@ -299,7 +307,7 @@ def run_pipeline(sharp: Sequence[Path], blurry: Sequence[Path], pattern: StarPat
                             counts=counts,
                             settings={"quality": asdict(s.quality), "loss": s.loss, "bias": s.bias,
                                       "angle_threshold": s.angle_threshold,
-                                      "blurry_kernel": s.blurry_kernel,
+                                      "blurry_kernel": s.blurry_kernel, "final_fit": s.final_fit,
                                       "local_alignment": s.local_alignment, "model": s.model,
                                       "route": s.route, "cell_px": s.cell_px,
                                       "lens_correction": s.lens_correction},

@@ -288,3 +288,28 @@ def test_a_frame_with_blur_as_long_as_its_squares_is_told_so() -> None:
     ratio = np.nanmedian(long.blur_per_square)
     assert pipeline._blur_note(long).startswith(f"; its blur is {ratio:.2f} x the star squares' side")
     assert pipeline._blur_note(short) == ""
+
+
+def test_final_fit_option_reaches_every_blurry_frame(tmp_path, dataset) -> None:
+    """``extract --final-fit all`` fits the inner accepted blocks of a little-blurred frame (its
+    window does not grow) over 1.5 x their square, and those blocks' centres move; the default
+    leaves such a frame as the growth fitted it. The pipeline's settings validate the choice."""
+    from blurcalib.results import read_block_table
+
+    frame = str(dataset / "blurry" / "0000.png")
+    pattern = str(dataset / "pattern.yaml")
+    tables = {}
+    for choice in ("adaptive", "all"):
+        assert main(["extract", frame, "--pattern", pattern, "--out", str(tmp_path / choice),
+                     "--final-fit", choice, "--workers", "1"]) == 0
+        tables[choice] = read_block_table(tmp_path / choice)
+    default, every = tables["adaptive"], tables["all"]
+    assert np.all(default.loss_extent == 1.0)
+    wide = every.loss_extent == 1.5
+    assert wide.sum() >= 0.5 * every.accepted.sum() > 20
+    assert np.all(every.accepted[wide])
+    moved = np.linalg.norm(every.centre[wide] - default.centre[wide], axis=1)
+    assert 0.0 < np.median(moved) < 0.1
+    assert PipelineSettings(final_fit="all").final_fit == "all"
+    with pytest.raises(ValueError, match="final_fit_frames"):
+        PipelineSettings(final_fit="some")  # type: ignore[arg-type]
