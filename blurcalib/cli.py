@@ -13,11 +13,13 @@ import sys
 import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
+from typing import get_args
 
 from tqdm import tqdm
 
 from blurcalib.cluster import ClusterError
 from blurcalib.fileio import OutputError
+from blurcalib.grow import FinalFitFrames, GrowSettings
 from blurcalib.pattern import PAGE_SIZES_MM, PatternFileError, StarPattern, layout_pattern, load_pattern
 from blurcalib.runtime import DeviceError, available_cores, check_device, configure_threads
 
@@ -257,7 +259,6 @@ def cmd_extract(args: argparse.Namespace) -> int:
     from blurcalib.deconv import DeconvSettings
     from blurcalib.extract import ExtractSettings, extract_to_folder
     from blurcalib.frames import FrameError, list_frames
-    from blurcalib.grow import GrowSettings
 
     pattern = load_pattern(args.pattern)
     try:
@@ -357,7 +358,7 @@ def _add_run_options(p: argparse.ArgumentParser, workers: bool = True) -> None:
 
 
 def _add_final_fit_option(p: argparse.ArgumentParser, which: str) -> None:
-    p.add_argument("--final-fit", choices=["adaptive", "all", "none"], default="adaptive",
+    p.add_argument("--final-fit", choices=get_args(FinalFitFrames), default=GrowSettings.final_fit_frames,
                    help=f"which {which}frames get a final fit of each block over 1.5 x its square: "
                         "those whose PSF window grew with the blur, all (more accurate features, "
                         "about 1 s more per frame with little blur) or none (%(default)s; "

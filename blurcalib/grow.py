@@ -56,7 +56,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
-from typing import Literal
+from typing import Literal, get_args
 
 import cv2
 import numpy as np
@@ -129,8 +129,8 @@ class GrowSettings:
     final_max_shift_px: float = 0.5
 
     def __post_init__(self) -> None:
-        if self.final_fit_frames not in ("adaptive", "all", "none"):
-            raise ValueError(f"final_fit_frames must be 'adaptive', 'all' or 'none', got "
+        if self.final_fit_frames not in get_args(FinalFitFrames):
+            raise ValueError(f"final_fit_frames must be one of {get_args(FinalFitFrames)}, got "
                              f"{self.final_fit_frames!r}")
         if not self.final_extent >= 1.0:
             raise ValueError(f"final_extent must be >= 1, got {self.final_extent}")
