@@ -81,6 +81,7 @@ from blurcalib.quality import QualitySettings, filter_frame
 from blurcalib.refformat import to_ref_dataset, write_ref_dataset
 from blurcalib.report import error_direction_image, save_frame_error_plot
 from blurcalib.results import (
+    BLUR_PER_SQUARE_LIMIT,
     FEATURES_FILE,
     BlockTable,
     FeatureFlags,
@@ -368,11 +369,6 @@ class _BlurryFrame:
     raw: FeatureTable | None = None
     aligned: FeatureTable | None = None
     residuals: np.ndarray | None = None
-
-
-BLUR_PER_SQUARE_LIMIT = 0.8
-"""Blur extent over star-square side from which few blocks are found and those found are
-poorer (``scripts/bench_yield.py``: 50 % returned at 0.06 px from 0.8, 10 % at 0.14 px from 1)."""
 
 
 def _blur_note(blocks: BlockTable) -> str:

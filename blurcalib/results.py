@@ -63,6 +63,10 @@ BLOCK_COLUMNS: tuple[str, ...] = (
 """Columns of ``blocks.csv``, in order (a file without the last, ``loss_extent``, added later, reads
 as 1)."""
 
+BLUR_PER_SQUARE_LIMIT = 0.8
+""":attr:`BlockTable.blur_per_square` from which few blocks are found and those found are poorer
+(``scripts/bench_yield.py``: 50 % returned at 0.06 px from 0.8, 10 % at 0.14 px from 1)."""
+
 CORNER_COLUMNS: tuple[str, ...] = ("frame", "cx2", "cy2", "X", "Y", "x", "y", "blocks")
 """Columns of ``corners.csv``: the corner's feature coordinates doubled (``cx2 = 2 fx + 1`` for
 the corner half a square right of feature ``fx``), its metric point ``(cx2 L / 2, cy2 L / 2)``
@@ -290,7 +294,7 @@ class BlockTable:
         """``(B,)`` blur extent over the star square's side: ``sqrt(12) sigma_major`` (the length
         of a straight blur with the PSF's second moment) over ``2 |det J|^(1/2)`` (``J`` the
         Jacobian of ``H`` at the star centre, :func:`blurcalib.camera.homography_scale`). From
-        about 0.8 the block model loses the star's position along the blur
+        :data:`BLUR_PER_SQUARE_LIMIT` the block model loses the star's position along the blur
         (docs/deconvolution.md); NaN where not fitted."""
         with np.errstate(divide="ignore", invalid="ignore"):
             return np.sqrt(12.0) * self.sigma_major / (2.0 * homography_scale(self.H))

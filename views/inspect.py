@@ -18,7 +18,7 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
 from blurcalib.deconv import render_model
-from blurcalib.results import BlockTable
+from blurcalib.results import BLUR_PER_SQUARE_LIMIT, BlockTable
 from state import AppState, FrameView, Topic
 from views.common import Coalescer, grey_rgb, heat, hstack, label, placeholder, upscale
 
@@ -177,7 +177,8 @@ class InspectPanel:
                  f"BE {b.boundary_energy[i]:.3f} · "
                  f"σ_major {b.sigma_major[i]:.2f} px · σ_minor {b.sigma_minor[i]:.2f} px · "
                  f"eccentricity {b.eccentricity[i]:.2f} · orientation {np.degrees(b.orientation[i]):.0f}° · "
-                 f"blur / square side {b.blur_per_square[i]:.2f} (from 0.8 stars are hard to locate)"]
+                 f"blur / square side {b.blur_per_square[i]:.2f} "
+                 f"(from {BLUR_PER_SQUARE_LIMIT} stars are hard to locate)"]
         if view.truth is not None:
             row = np.flatnonzero(view.truth.feature_ids == b.feature_id[i])
             if len(row):
