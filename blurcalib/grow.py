@@ -64,6 +64,7 @@ import numpy as np
 from blurcalib.camera import apply_homography, homography_centre, homography_scale
 from blurcalib.deconv import BlockFit, DeconvSettings, fit_blocks
 from blurcalib.pattern import StarPattern
+from blurcalib.psf import blur_extent
 from blurcalib.quality import connected_blocks
 from blurcalib.results import BlockStatus
 from blurcalib.seed import Seed, block_homography, tag_ring_features
@@ -201,16 +202,16 @@ def choose_kernel_size(sigma_major: np.ndarray | float, smallest: int, largest: 
                        per_extent: float = 1.5) -> int:
     """PSF window side for blurs of second moment ``sigma_major`` (px).
 
-    The blur extent is ``e = sqrt(12) sigma_major`` (a straight blur of length ``e`` has that
-    second moment); the window is ``ceil(per_extent e)`` rounded up to odd, within
-    ``[smallest, largest]``. ``sigma_major`` may be several values (their 90th percentile is
-    used); none finite gives ``smallest``.
+    The blur extent is ``e = sqrt(12) sigma_major`` (:func:`blurcalib.psf.blur_extent`); the
+    window is ``ceil(per_extent e)`` rounded up to odd, within ``[smallest, largest]``.
+    ``sigma_major`` may be several values (their 90th percentile is used); none finite gives
+    ``smallest``.
     """
     s = np.asarray(sigma_major, dtype=np.float64).ravel()
     s = s[np.isfinite(s)]
     if s.size == 0:
         return smallest
-    k = math.ceil(per_extent * math.sqrt(12.0) * float(np.percentile(s, 90)))
+    k = math.ceil(per_extent * blur_extent(float(np.percentile(s, 90))))
     k += 1 - k % 2
     return int(max(min(k, largest), smallest))
 
@@ -277,7 +278,7 @@ def _front_blur(fit: BlockFit) -> tuple[float, float]:
     ok |= np.isfinite(fit.boundary_energy)
     if not ok.any() or not np.isfinite(fit.sigma_major[ok]).any():
         return float("nan"), float("nan")
-    return (math.sqrt(12.0) * float(np.nanpercentile(fit.sigma_major[ok], 90)),
+    return (blur_extent(float(np.nanpercentile(fit.sigma_major[ok], 90))),
             float(np.nanmedian(fit.boundary_energy[ok])))
 
 

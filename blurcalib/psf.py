@@ -82,6 +82,12 @@ def psf_moments(psf: np.ndarray) -> PsfMoments:
     return PsfMoments(centroid, major, minor, ecc, orient)
 
 
+def blur_extent(sigma_major: np.ndarray | float) -> np.ndarray | float:
+    """Blur extent (px) of PSFs with major-axis second moment ``sigma_major`` (px): ``sqrt(12)
+    sigma_major``, the length of a straight blur with that second moment."""
+    return np.sqrt(12.0) * sigma_major
+
+
 def boundary_energy(psf: np.ndarray, ring: int = 2) -> np.ndarray | float:
     """Share of a PSF's energy in its outer ``ring``-pixel border (a truncation indicator).
 

@@ -41,6 +41,7 @@ from blurcalib.fileio import (
     ensure_writable_dir,
     read_csv_columns,
 )
+from blurcalib.psf import blur_extent
 
 FEATURES_FILE = "features.csv"
 BLOCKS_FILE = "blocks.csv"
@@ -291,13 +292,13 @@ class BlockTable:
 
     @property
     def blur_per_square(self) -> np.ndarray:
-        """``(B,)`` blur extent over the star square's side: ``sqrt(12) sigma_major`` (the length
-        of a straight blur with the PSF's second moment) over ``2 |det J|^(1/2)`` (``J`` the
+        """``(B,)`` blur extent over the star square's side: ``sqrt(12) sigma_major``
+        (:func:`blurcalib.psf.blur_extent`) over ``2 |det J|^(1/2)`` (``J`` the
         Jacobian of ``H`` at the star centre, :func:`blurcalib.camera.homography_scale`). From
         :data:`BLUR_PER_SQUARE_LIMIT` the block model loses the star's position along the blur
         (docs/deconvolution.md); NaN where not fitted."""
         with np.errstate(divide="ignore", invalid="ignore"):
-            return np.sqrt(12.0) * self.sigma_major / (2.0 * homography_scale(self.H))
+            return blur_extent(self.sigma_major) / (2.0 * homography_scale(self.H))
 
     def features(self, square_length_m: float, flags: int) -> FeatureTable:
         """One star-centre observation per row: ``(x, y)`` the star centre, ``(X, Y) = (fx L,
