@@ -60,6 +60,11 @@ re-centred PSF of the accepted neighbours that predicted it) skips stage 1 and t
 re-centring: its first support is the hint's, and it runs :attr:`DeconvSettings.hinted_stages`
 stages (one by default: half the kernel solves; measured in ``docs/deconvolution.md``).
 
+A block given its PSF (``psf_fixed`` of :func:`fit_blocks`: the frame's motion-path PSF field,
+:mod:`blurcalib.psf_field`) keeps it: only ``H``, ``alpha`` and the brightness are fitted, in one
+stage of :attr:`DeconvSettings.fixed_steps` LM steps, and the re-centring moves ``H`` by the given
+kernel's centroid.
+
 All blocks of a batch are solved together as padded ``(b, ...)`` tensors on
 :attr:`DeconvSettings.device` (after the coarse kernel in groups of similar kernel support,
 :attr:`DeconvSettings.stage_batch_size`): the solver loops over stages and LM steps, never over
@@ -86,7 +91,9 @@ from blurcalib.results import BlockStatus
 __all__ = [
     "BlockFit",
     "BlockModel",
+    "BlockProblem",
     "DeconvSettings",
+    "block_windows",
     "fit_blocks",
     "render_model",
 ]
@@ -144,6 +151,7 @@ class DeconvSettings:
             centre by less than this (px).
         hinted_stages: stages of blocks given an expected PSF (:func:`fit_blocks`'s
             ``psf_hint``), which skip the coarse kernel and start from its support.
+        fixed_steps: LM steps of blocks given their PSF (:func:`fit_blocks`'s ``psf_fixed``).
         device: torch device of the solve (``"cpu"``, ``"cuda"``, ...).
         dtype: ``"float32"`` or ``"float64"`` for image-sized tensors; the small systems and
             ``H`` are always float64.
@@ -174,6 +182,7 @@ class DeconvSettings:
     stage_batch_size: int = 16
     converge_tol_px: float = 0.05
     hinted_stages: int = 1
+    fixed_steps: int = 6
     device: str = "cpu"
     dtype: str = "float32"
 
@@ -189,9 +198,9 @@ class DeconvSettings:
         if self.tau <= 0 or self.beta <= 0 or self.ridge < 0 or self.ridge_border < 0:
             raise ValueError("tau and beta must be positive, ridge and ridge_border non-negative")
         if min(self.outer_iterations, self.hinted_stages, self.batch_size, self.stage_batch_size,
-               self.supersample) < 1 or self.gn_steps < 0:
-            raise ValueError("outer_iterations, hinted_stages, batch_size, stage_batch_size and supersample "
-                             "must be >= 1, gn_steps >= 0")
+               self.supersample, self.fixed_steps) < 1 or self.gn_steps < 0:
+            raise ValueError("outer_iterations, hinted_stages, fixed_steps, batch_size, stage_batch_size and "
+                             "supersample must be >= 1, gn_steps >= 0")
         if not self.loss_extent > 0:
             raise ValueError(f"loss_extent must be positive, got {self.loss_extent}")
         if not 0.0 <= self.support_threshold < 1.0 or self.support_dilation < 0:
@@ -401,10 +410,13 @@ def _fft_size(n: int) -> int:
 
 
 # ----------------------------------------------------------------------------- block windows
-def _validate_blocks(H0: np.ndarray, image_shape: tuple[int, int], s: DeconvSettings
-                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[BlockStatus]]:
-    """Windows of the blocks and which can be fitted.
+def block_windows(H0: np.ndarray, image_shape: tuple[int, int], s: DeconvSettings
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[BlockStatus]]:
+    """Windows of the blocks and which can be fitted (:func:`fit_blocks`'s rules).
 
+    Args:
+        H0: ``(B, 3, 3)`` block homographies; image_shape: ``(height, width)``; s: the settings
+            (loss extent, window margin, size limits).
     Returns:
         ``origin (B, 2)`` int ``(x0, y0)``, ``size (B, 2)`` int ``(w, h)`` of the observed
         window (bounding box of ``H([-e, e]^2)``, ``e`` the loss extent, plus the margin), the
@@ -452,6 +464,9 @@ class _Design:
         taps_w: ``(b, m)`` 0/1 weights of the kernel entries; ``kernel_index`` their flat index
             ``i K + j`` in the kernel; ``rho`` their ridge weights.
         coarse: the entries are the 2-px lattice taps of the initial solve (tent-interpolated).
+        fixed: ``(b, K, K)`` given kernels, or None. With them the kernel has one unknown, its
+            scale ``a3`` (``m = 1``; ``patch``, ``taps_w``, ``kernel_index`` and ``rho`` are
+            empty): the design row is the convolution ``k * S`` at the pixels.
         u, v: ``(b, n)`` normalised coordinates at the pixels.
         U: ``(b, 3, n)`` the offset's design rows ``(u, v, 1)`` (0 on padding).
         img: ``(b, n)`` observed grey levels (0 on padding).
@@ -465,13 +480,14 @@ class _Design:
     kernel_index: torch.Tensor
     rho: torch.Tensor
     coarse: bool
+    fixed: torch.Tensor | None
     u: torch.Tensor
     v: torch.Tensor
     U: torch.Tensor
     img: torch.Tensor
 
 
-class _Problem:
+class BlockProblem:
     """Tensors of one batch of blocks padded to a common window (``b`` blocks).
 
     Observed (evaluation) grid ``(h, w)``; latent grid ``(h + 2c, w + 2c)`` whose pixel
@@ -518,7 +534,7 @@ class _Problem:
         self.rho = (1.0 + s.ridge_border * rad**s.ridge_power).reshape(-1)
         self.offs = d
 
-    def subset(self, idx: np.ndarray) -> _Problem:
+    def subset(self, idx: np.ndarray) -> BlockProblem:
         """The blocks ``idx`` alone, the padded windows cropped to their largest one (the
         latent-local coordinates of a block do not change)."""
         out = copy.copy(self)
@@ -623,29 +639,35 @@ class _Problem:
     def conv(self, L: torch.Tensor, k: torch.Tensor) -> torch.Tensor:
         """Valid convolution ``(k * L)`` of latent channels ``(b, C, Hl, Wl)`` -> ``(b, C, h, w)``.
 
-        Kernels up to :data:`_DIRECT_CONV_MAX_KERNEL` px: direct, as one depthwise
-        ``conv2d`` over the ``b C`` channels (a correlation, so with the kernel flipped). Larger:
-        circular FFT convolution on a grid of at least ``(Hl, Wl)`` (5-smooth sides, the fast FFT
-        sizes): the wrap-around only reaches the first ``2c`` rows and columns, outside the output.
+        ``k`` is ``(b, K, K)`` (one kernel for every channel of a block) or ``(b, C, K, K)`` (one
+        per channel; ``L`` may then have one channel, shared). Kernels up to
+        :data:`_DIRECT_CONV_MAX_KERNEL` px: direct, as one depthwise ``conv2d`` over the ``b C``
+        channels (a correlation, so with the kernel flipped). Larger: circular FFT convolution on
+        a grid of at least ``(Hl, Wl)`` (5-smooth sides, the fast FFT sizes): the wrap-around only
+        reaches the first ``2c`` rows and columns, outside the output.
         """
-        b, C = L.shape[:2]
+        k = k[:, None] if k.ndim == 3 else k
+        b, C = L.shape[0], max(L.shape[1], k.shape[1])
         K = k.shape[-1]
         if K <= _DIRECT_CONV_MAX_KERNEL:
-            weight = k.flip(-2, -1)[:, None].expand(b, C, K, K).reshape(b * C, 1, K, K)
+            weight = k.flip(-2, -1).expand(b, C, K, K).reshape(b * C, 1, K, K)
+            L = L.expand(b, C, self.Hl, self.Wl)
             out = nnf.conv2d(L.reshape(1, b * C, self.Hl, self.Wl), weight, groups=b * C)
             return out.reshape(b, C, self.h, self.w)
         size = (_fft_size(self.Hl), _fft_size(self.Wl))
         kf = torch.fft.rfft2(k, s=size)
-        out = torch.fft.irfft2(torch.fft.rfft2(L, s=size) * kf[:, None], s=size)
+        out = torch.fft.irfft2(torch.fft.rfft2(L, s=size) * kf, s=size)
         r2 = 2 * self.r
         return out[..., r2:r2 + self.h, r2:r2 + self.w]
 
     # ------------------------------------------------------------------- the linear sub-problem
-    def design(self, H_loc: torch.Tensor, support: torch.Tensor | None) -> _Design:
+    def design(self, H_loc: torch.Tensor, support: torch.Tensor | None,
+               fixed: torch.Tensor | None = None) -> _Design:
         """Index sets of a stage: the square's pixels at ``H`` and the kernel entries.
 
         ``support`` ``(b, K, K)`` bool selects the kernel entries; None selects the coarse
-        initial kernel (taps on the 2-px lattice, tent-interpolated).
+        initial kernel (taps on the 2-px lattice, tent-interpolated), or with ``fixed``
+        ``(b, K, K)`` given kernels, of which only the scale is unknown.
         """
         b, K, r = H_loc.shape[0], self.s.kernel_size, self.r
         dev = H_loc.device
@@ -655,6 +677,15 @@ class _Problem:
         pix = torch.argsort((~flat).to(torch.int8), dim=1, stable=True)[:, :n]
         pix_w = torch.gather(flat, 1, pix).to(self.dt)
         base = (pix // self.w) * self.Wl + pix % self.w
+        u = torch.gather(self.u_e.reshape(b, -1), 1, pix)
+        v = torch.gather(self.v_e.reshape(b, -1), 1, pix)
+        U = torch.stack([u, v, torch.ones_like(u)], dim=1) * pix_w[:, None, :]
+        img = torch.gather(self.img.reshape(b, -1), 1, pix) * pix_w
+        if fixed is not None:
+            none = torch.zeros((b, 0), dtype=torch.int64, device=dev)
+            return _Design(mask=mask, pix=pix, pix_w=pix_w, patch=none, taps_w=none.to(self.dt),
+                           kernel_index=none, rho=self.rho[none], coarse=False, fixed=fixed.to(self.dt),
+                           u=u, v=v, U=U, img=img)
         if support is None:
             rc = (r - 1) // 2  # taps at 2 px spacing whose tents stay inside the window
             c = torch.arange(-rc, rc + 1, device=dev) * 2
@@ -672,13 +703,9 @@ class _Problem:
         size = self.Hl * self.Wl
         taps = torch.where(taps_w > 0, (2 * r - kidx // K) * self.Wl + (2 * r - kidx % K), size)
         base = torch.where(pix_w > 0, base, size)
-        u = torch.gather(self.u_e.reshape(b, -1), 1, pix)
-        v = torch.gather(self.v_e.reshape(b, -1), 1, pix)
-        U = torch.stack([u, v, torch.ones_like(u)], dim=1) * pix_w[:, None, :]
-        img = torch.gather(self.img.reshape(b, -1), 1, pix) * pix_w
         patch = (base[:, None, :] + taps[:, :, None]).reshape(b, -1)
         return _Design(mask=mask, pix=pix, pix_w=pix_w, patch=patch, taps_w=taps_w, kernel_index=kidx,
-                       rho=self.rho[kidx], coarse=support is None, u=u, v=v, U=U, img=img)
+                       rho=self.rho[kidx], coarse=support is None, fixed=None, u=u, v=v, U=U, img=img)
 
     def _patch_source(self, S: torch.Tensor, alpha: torch.Tensor, des: _Design
                       ) -> tuple[torch.Tensor, torch.Tensor]:
@@ -698,6 +725,8 @@ class _Problem:
 
     def kernel(self, x: torch.Tensor, des: _Design) -> torch.Tensor:
         """The kernel ``k~ (b, K, K)`` of a solution ``x`` (unnormalised, ``a3 k``)."""
+        if des.fixed is not None:
+            return x[:, :1, None].to(des.fixed.dtype) * des.fixed
         b, K = x.shape[0], self.s.kernel_size
         m = des.kernel_index.shape[1]
         k = torch.zeros((b, K * K), dtype=x.dtype, device=x.device)
@@ -724,6 +753,10 @@ class _Problem:
         ``Lambda = lambda rho(d)`` times the mean energy of a kernel column (``lam``; None computes
         it here, to be kept fixed through a stage so that objectives compare).
 
+        With given kernels (``des.fixed``, brightness after the blur) ``D``'s kernel part is the
+        one row ``(k * S) A / a3`` and ``x = (a3, b)``; the same Jacobian follows from the same
+        convolutions.
+
         Returns:
             dict with ``x (b, m + 3)`` float64, ``obj (b,)`` (``sum r^2 + k~^T Lambda k~``),
             ``sse (b,)``, ``lam (b, m + 3)``, and with ``with_jac`` also ``N (b, 10, 10)`` and
@@ -732,17 +765,24 @@ class _Problem:
         b = H_loc.shape[0]
         S, dS = self.latent(H_loc, with_jac=with_jac)
         src, w = self._patch_source(S, alpha, des)
-        m, n = des.kernel_index.shape[1], des.pix.shape[1]
+        fixed = des.fixed is not None
+        m, n = (1 if fixed else des.kernel_index.shape[1]), des.pix.shape[1]
         if lam is None:
             scale = ((w * w).sum(dim=1) * (src * src).mean(dim=(1, 2))).double().clamp_min(1e-12)
             tail = torch.full((b, 3), 1e-9, dtype=des.rho.dtype, device=des.rho.device)
-            lam = torch.cat([self.s.ridge * des.rho, tail], dim=1)
-            lam = lam * scale[:, None]
-        padded = torch.cat([src.reshape(b, -1), torch.zeros_like(src.reshape(b, -1)),
-                            torch.zeros_like(src[:, 0, :1])], dim=1)
+            ridge = tail[:, :1] if fixed else self.s.ridge * des.rho
+            lam = torch.cat([ridge, tail], dim=1) * scale[:, None]
         # D = [P; U] (b, m + 3, n): the kernel entries' patches, then the offset's rows (u, v, 1)
         D = torch.empty((b, m + 3, n), dtype=self.dt, device=src.device)
-        D[:, :m] = torch.gather(padded, 1, des.patch).reshape(b, m, n)
+        if fixed:
+            chans = torch.cat([S[:, None], dS], dim=1) if with_jac else S[:, None]
+            conv = torch.gather(self.conv(chans, des.fixed).reshape(b, chans.shape[1], -1), 2,
+                                des.pix[:, None, :].expand(-1, chans.shape[1], -1))
+            D[:, :1] = conv[:, :1]
+        else:
+            padded = torch.cat([src.reshape(b, -1), torch.zeros_like(src.reshape(b, -1)),
+                                torch.zeros_like(src[:, 0, :1])], dim=1)
+            D[:, :m] = torch.gather(padded, 1, des.patch).reshape(b, m, n)
         P = D[:, :m]
         if self.s.brightness == "after_blur":
             P.mul_(w[:, None, :])
@@ -750,16 +790,19 @@ class _Problem:
         G = (D @ D.transpose(1, 2)).double()
         G.diagonal(dim1=1, dim2=2).add_(lam)
         rhs = (des.img[:, None, :] @ D.transpose(1, 2)).double().transpose(1, 2)  # (b, m + 3, 1)
-        x, factor = _solve_nonnegative(G, rhs, m, self.s.nonnegative_passes if self.s.nonnegative else 0)
+        passes = self.s.nonnegative_passes if self.s.nonnegative and not fixed else 0
+        x, factor = _solve_nonnegative(G, rhs, m, passes)
         res = des.img - (x.to(self.dt)[:, None, :] @ D)[:, 0]
         sse = (res * res).sum(dim=1).double()
         out = {"x": x, "obj": sse + (x * x * lam).sum(dim=1), "sse": sse, "lam": lam}
         if not with_jac:
             return out
-        k = self.kernel(x, des).to(self.dt)
+        if fixed:  # the model is a3 (k * S): its convolutions, scaled
+            conv = conv * x[:, :1, None].to(self.dt)
+        elif self.s.brightness == "after_blur":
+            conv = self.conv(torch.cat([S[:, None], dS], dim=1), self.kernel(x, des).to(self.dt))
+            conv = torch.gather(conv.reshape(b, 9, -1), 2, des.pix[:, None, :].expand(-1, 9, -1))
         if self.s.brightness == "after_blur":
-            conv = self.conv(torch.cat([S[:, None], dS], dim=1), k).reshape(b, 9, -1)
-            conv = torch.gather(conv, 2, des.pix[:, None, :].expand(-1, 9, -1))
             C = conv[:, 0]
             J = torch.cat([conv[:, 1:] * w[:, None, :], (des.u * C * des.pix_w)[:, None],
                            (des.v * C * des.pix_w)[:, None]], dim=1)
@@ -767,7 +810,7 @@ class _Problem:
             a_l = (1.0 + alpha[:, 0, None, None].to(self.dt) * self.u_l
                    + alpha[:, 1, None, None].to(self.dt) * self.v_l)
             chans = torch.cat([dS * a_l[:, None], (self.u_l * S)[:, None], (self.v_l * S)[:, None]], dim=1)
-            J = torch.gather(self.conv(chans, k).reshape(b, _NUM_NL, -1), 2,
+            J = torch.gather(self.conv(chans, self.kernel(x, des).to(self.dt)).reshape(b, _NUM_NL, -1), 2,
                              des.pix[:, None, :].expand(-1, _NUM_NL, -1)) * des.pix_w[:, None, :]
         Y, Z = factor.solve((J @ D.transpose(1, 2)).double().transpose(1, 2))  # (b, F, 10), free rows
         out["N"] = (J @ J.transpose(1, 2)).double() - Y.transpose(1, 2) @ Z
@@ -910,17 +953,25 @@ def _stage_groups(support: np.ndarray, pixels: np.ndarray, size: np.ndarray, rad
     return groups[::-1]
 
 
-def _fit_chunk(prob: _Problem, H: np.ndarray, hint: torch.Tensor | None) -> dict:
+def _fit_chunk(prob: BlockProblem, H: np.ndarray, hint: torch.Tensor | None,
+               fixed: torch.Tensor | None = None) -> dict:
     """The solver schedule (module docstring) on one padded batch; per-block numpy results.
 
     After the coarse kernel the blocks are sorted by the size of their kernel support and solved
     in consecutive groups (:func:`_stage_groups`), each cropped to its own largest window. With
     expected PSFs ``hint (b, K, K)`` the first support is theirs and the coarse kernel is
-    skipped (:attr:`DeconvSettings.hinted_stages` stages).
+    skipped (:attr:`DeconvSettings.hinted_stages` stages). With given PSFs ``fixed (b, K, K)``
+    one stage of :attr:`DeconvSettings.fixed_steps` LM steps fits ``H`` and the brightness.
     """
     s = prob.s
     b = H.shape[0]
     H_loc = prob.to_local(H)
+    if fixed is not None:
+        groups = _stage_groups(np.ones(b), prob.square_mask(H_loc).sum(dim=(1, 2)).cpu().numpy(), prob.size,
+                               prob.r, s.stage_batch_size)
+        parts = [_fit_stages(prob.subset(idx), H_loc[t], None, 1, fixed[t])
+                 for idx in groups for t in [torch.as_tensor(idx, device=H_loc.device)]]
+        return _merge_groups(parts, groups)
     if hint is None:
         alpha = torch.zeros((b, 2), dtype=torch.float64, device=H_loc.device)
         des = prob.design(H_loc, None)
@@ -938,6 +989,11 @@ def _fit_chunk(prob: _Problem, H: np.ndarray, hint: torch.Tensor | None) -> dict
     for idx in groups:
         t = torch.as_tensor(idx, device=H_loc.device)
         parts.append(_fit_stages(prob.subset(idx), H_loc[t], support[t], stages))
+    return _merge_groups(parts, groups)
+
+
+def _merge_groups(parts: list[dict], groups: list[np.ndarray]) -> dict:
+    """Per-block results of the stage groups back in the batch's order."""
     inverse = np.argsort(np.concatenate(groups))
     out = {key: np.concatenate([part[key] for part in parts])[inverse] for key in parts[0] if key != "masks"}
     masks = [m for part in parts for m in part["masks"]]
@@ -945,15 +1001,18 @@ def _fit_chunk(prob: _Problem, H: np.ndarray, hint: torch.Tensor | None) -> dict
     return out
 
 
-def _fit_stages(prob: _Problem, H_loc: torch.Tensor, support: torch.Tensor, stages: int) -> dict:
-    """``stages`` stages from an integer re-centred ``H_loc`` and its first kernel ``support``,
-    then the sub-pixel re-centring; per-block numpy results."""
+def _fit_stages(prob: BlockProblem, H_loc: torch.Tensor, support: torch.Tensor | None, stages: int,
+                fixed: torch.Tensor | None = None) -> dict:
+    """``stages`` stages from an integer re-centred ``H_loc`` and its first kernel ``support``
+    (or with the given kernels ``fixed``), then the sub-pixel re-centring; per-block numpy
+    results."""
     s = prob.s
     K = s.kernel_size
     alpha = torch.zeros((H_loc.shape[0], 2), dtype=torch.float64, device=H_loc.device)
+    steps = s.gn_steps if fixed is None else s.fixed_steps
     for stage in range(stages):
-        des = prob.design(H_loc, support)
-        H_loc, alpha, best = prob.lm_stage(H_loc, alpha, des, s.gn_steps)
+        des = prob.design(H_loc, support, fixed)
+        H_loc, alpha, best = prob.lm_stage(H_loc, alpha, des, steps)
         k = prob.kernel(best["x"], des)
         if stage < stages - 1:
             H_loc, n = prob.recentre_int(H_loc, k)
@@ -982,7 +1041,7 @@ def _fit_stages(prob: _Problem, H_loc: torch.Tensor, support: torch.Tensor, stag
 
 def fit_blocks(image: np.ndarray, H0: np.ndarray, num_segments: int,
                settings: DeconvSettings | None = None, pixel_mask: np.ndarray | None = None,
-               psf_hint: np.ndarray | None = None) -> BlockFit:
+               psf_hint: np.ndarray | None = None, psf_fixed: np.ndarray | None = None) -> BlockFit:
     """Fit ``eq:deconvolution`` to ``B`` star blocks of one grey image, all blocks batched.
 
     Each block's observed window is the bounding box of its loss area ``H0([-e, e]^2)`` (``e`` =
@@ -1008,6 +1067,11 @@ def fit_blocks(image: np.ndarray, H0: np.ndarray, num_segments: int,
             stages) instead of from a coarse kernel, and the blocks are solved in
             :attr:`DeconvSettings.hinted_stages` stages. A block whose hint is not finite or
             all zero gets the whole window as its first support.
+        psf_fixed: optional ``(B, K, K)`` known PSFs (non-negative, e.g. the frame's motion-path
+            field, :mod:`blurcalib.psf_field`): the kernels are kept, ``H``, the brightness
+            gradient and its scale and offset are fitted (:attr:`DeconvSettings.fixed_steps` LM
+            steps); the re-centring then moves ``H`` by each kernel's centroid. Brightness after
+            the blur only; not with ``psf_hint``.
     Returns:
         :class:`BlockFit`. A block whose window leaves the image is ``outside_image``; one whose
         ``H0`` is non-finite, crosses the horizon, is not convex or is too small or large is
@@ -1029,7 +1093,15 @@ def fit_blocks(image: np.ndarray, H0: np.ndarray, num_segments: int,
             raise ValueError(f"psf_hint must be ({B}, {K}, {K}), got {psf_hint.shape}")
         empty = ~np.all(np.isfinite(psf_hint), axis=(1, 2)) | ~(np.nan_to_num(psf_hint).max(axis=(1, 2)) > 0)
         psf_hint = np.where(empty[:, None, None], 1.0, np.nan_to_num(psf_hint))
-    origin, size, Hn, status = _validate_blocks(H0, img_np.shape, s)
+    if psf_fixed is not None:
+        psf_fixed = np.asarray(psf_fixed, dtype=np.float64)
+        if psf_fixed.shape != (B, K, K) or psf_hint is not None or s.brightness != "after_blur":
+            raise ValueError(f"psf_fixed must be ({B}, {K}, {K}), without psf_hint, with brightness "
+                             f"'after_blur'; got {psf_fixed.shape}, brightness {s.brightness!r}")
+        if not np.all(np.isfinite(psf_fixed)) or np.any(psf_fixed < 0) \
+                or not np.all(psf_fixed.sum(axis=(1, 2)) > 0):
+            raise ValueError("psf_fixed must be finite, non-negative and non-zero")
+    origin, size, Hn, status = block_windows(H0, img_np.shape, s)
     out = {"H": H0.copy(), "psf": np.full((B, K, K), np.nan), "psf_fit": np.full((B, K, K), np.nan),
            "coeffs": np.full((B, _NUM_P), np.nan), "loss": np.full(B, np.nan),
            "centroid": np.full((B, 2), np.nan), "num_pixels": np.zeros(B, dtype=np.int64),
@@ -1046,9 +1118,10 @@ def fit_blocks(image: np.ndarray, H0: np.ndarray, num_segments: int,
         order = idx[np.argsort(size[idx].prod(axis=1), kind="stable")]
         for start in range(0, order.size, s.batch_size):
             sel = order[start:start + s.batch_size]
-            prob = _Problem(img_t, ok_t, origin[sel], size[sel], num_segments, s)
+            prob = BlockProblem(img_t, ok_t, origin[sel], size[sel], num_segments, s)
             hint = None if psf_hint is None else torch.as_tensor(psf_hint[sel], device=dev)
-            res = _fit_chunk(prob, Hn[sel], hint)
+            fixed = None if psf_fixed is None else torch.as_tensor(psf_fixed[sel], device=dev)
+            res = _fit_chunk(prob, Hn[sel], hint, fixed)
             for i, m in zip(sel, res.pop("masks"), strict=True):
                 masks[i] = m
             for key, val in res.items():
@@ -1098,7 +1171,7 @@ def render_model(fit: BlockFit, image: np.ndarray, index: int) -> BlockModel:
     img_t = torch.as_tensor(np.asarray(image, dtype=np.float64 if s.dtype == "float64" else np.float32),
                             device=dev)
     sel = slice(index, index + 1)
-    prob = _Problem(img_t, None, fit.origin[sel], fit.window_size[sel], fit.num_segments, s)
+    prob = BlockProblem(img_t, None, fit.origin[sel], fit.window_size[sel], fit.num_segments, s)
     k = torch.as_tensor(fit.psf_fit[sel], device=dev, dtype=prob.dt)
     p = torch.as_tensor(fit.coeffs[sel], device=dev, dtype=torch.float64)
     model = prob.model(prob.to_local(fit.H_fit[sel]), k, p)[0].double().cpu().numpy()

@@ -65,6 +65,7 @@ from blurcalib.camera import apply_homography, homography_centre, homography_sca
 from blurcalib.deconv import BlockFit, DeconvSettings, fit_blocks
 from blurcalib.pattern import StarPattern
 from blurcalib.psf import blur_extent
+from blurcalib.psf_field import FieldSettings, PathField, constant_field, fit_path_field
 from blurcalib.quality import connected_blocks
 from blurcalib.results import BlockStatus
 from blurcalib.seed import Seed, block_homography, tag_ring_features
@@ -111,6 +112,13 @@ class GrowSettings:
             adapted to the blur, the default), ``"all"`` or ``"none"``.
         final_max_shift_px: a final fit whose star centre moved further than this (px) from
             the growth's fit is not kept.
+        psf_field: in frames whose window adapted, fit the frame's field of motion-path PSFs
+            and fit and grow on with it (:func:`field_growth`) instead of the final fit.
+        field_min_blocks: fewest accepted blocks to fit a field from.
+        field_blocks: most blocks in the field's fit (spread over the accepted ones).
+        field_loss_factor: a block fitted with the field is rejected when its loss exceeds
+            this multiple of the median loss of the accepted blocks' field fits.
+        field_max_kernel: largest window of a field PSF (px, odd).
     """
 
     max_loss: float = 400.0
@@ -128,6 +136,11 @@ class GrowSettings:
     final_extent: float = 1.5
     final_fit_frames: FinalFitFrames = "adaptive"
     final_max_shift_px: float = 0.5
+    psf_field: bool = True
+    field_min_blocks: int = 8
+    field_blocks: int = 40
+    field_loss_factor: float = 3.0
+    field_max_kernel: int = 61
 
     def __post_init__(self) -> None:
         if self.final_fit_frames not in get_args(FinalFitFrames):
@@ -135,8 +148,11 @@ class GrowSettings:
                              f"{self.final_fit_frames!r}")
         if not self.final_extent >= 1.0:
             raise ValueError(f"final_extent must be >= 1, got {self.final_extent}")
-        if self.max_kernel_size < 3 or self.max_kernel_size % 2 == 0:
-            raise ValueError(f"max_kernel_size must be odd and >= 3, got {self.max_kernel_size}")
+        for name in ("max_kernel_size", "field_max_kernel"):
+            if getattr(self, name) < 3 or getattr(self, name) % 2 == 0:
+                raise ValueError(f"{name} must be odd and >= 3, got {getattr(self, name)}")
+        if self.field_min_blocks < 1 or self.field_blocks < self.field_min_blocks:
+            raise ValueError("need 1 <= field_min_blocks <= field_blocks")
         if self.kernel_per_extent <= 0:
             raise ValueError(f"kernel_per_extent must be positive, got {self.kernel_per_extent}")
 
@@ -175,6 +191,8 @@ class Growth:
         status: ``B`` statuses after the growth rules (``fit.status`` refined).
         front: ``(B,)`` growth front of each block.
         predicted: ``(B, 3, 3)`` the predictions the fits started from.
+        events: every decision, in order (as reported to the callback).
+        psf_field: the frame's path-PSF field when the growth used one (:func:`field_growth`).
     """
 
     fit: BlockFit
@@ -183,6 +201,7 @@ class Growth:
     front: np.ndarray
     predicted: np.ndarray
     events: list[GrowthEvent] = field(default_factory=list)
+    psf_field: PathField | None = None
 
     @property
     def accepted(self) -> np.ndarray:
@@ -635,9 +654,7 @@ def grow(image: np.ndarray, pattern: StarPattern, seed: Seed,
                 fit = fit_front(image, H0, N, deconv, settings, kernel_size, tag, first=fit)
                 heavy = bool(_front_blur(fit)[0] > settings.heavy_above_extent_px)
         fits.append(fit)
-        predicted_centre = homography_centre(H0)
         fitted_centre = fit.centre
-        square_px = 2.0 * homography_scale(H0)  # the square's side at the star centre
         newly_accepted, accepted_rows = [], []
         off = np.zeros(len(front_ids), dtype=bool)
         if heavy:
@@ -651,16 +668,7 @@ def grow(image: np.ndarray, pattern: StarPattern, seed: Seed,
                 ref_f, ref_c = front_f[fitted], fitted_centre[fitted]
             off = inconsistent(front_f, fitted_centre, ref_f, ref_c,
                                settings.consistency_neighbours, settings.max_inconsistency_px)
-        for k, fid in enumerate(front_ids):
-            status = fit.status[k]
-            if status is BlockStatus.ACCEPTED:
-                jump = np.linalg.norm(fitted_centre[k] - predicted_centre[k]) / square_px[k]
-                if not np.isfinite(fit.loss[k]) or fit.loss[k] > settings.max_loss:
-                    status = BlockStatus.HIGH_LOSS
-                elif fit.boundary_energy[k] > settings.max_boundary_energy:
-                    status = BlockStatus.PSF_TRUNCATED
-                elif not np.isfinite(jump) or jump > settings.max_jump or off[k]:
-                    status = BlockStatus.NOT_CONVERGED
+        for k, (fid, status) in enumerate(zip(front_ids, judge_front(fit, H0, settings, off), strict=True)):
             attempted[fid] = len(ids_all)
             ids_all.append(fid)
             status_all.append(status)
@@ -685,30 +693,231 @@ def grow(image: np.ndarray, pattern: StarPattern, seed: Seed,
                                              settings.max_kernel_size, settings.kernel_per_extent)
     if not fits:
         return None
-    fit = _concat_fits(fits)
-    ids = np.array(ids_all, dtype=np.int64)
-    front = np.array(front_all, dtype=np.int64)
-    if settings.final_fit_frames == "all" or (adaptive and settings.final_fit_frames == "adaptive"):
-        fit = final_fit(image, pattern, ids, fit, np.array([st is BlockStatus.ACCEPTED for st in status_all]),
-                        deconv, settings, tag, footprint)
-    if heavy:  # once grown, every block has accepted neighbours on all sides: judge again
-        ok = np.flatnonzero([st is BlockStatus.ACCEPTED for st in status_all])
-        f = pattern.features[ids[ok]]
-        off = ok[inconsistent(f, fit.centre[ok], f, fit.centre[ok],
-                              settings.consistency_neighbours, settings.max_inconsistency_px)]
-        for k in off:
-            status_all[k] = BlockStatus.NOT_CONVERGED
-        cut = _cut_off(pattern, ids, front, status_all)
-        for k in cut:
-            status_all[k] = BlockStatus.DISCONNECTED
-        for k in np.concatenate([off, cut]).astype(np.int64):
-            fx, fy = (int(v) for v in pattern.features[ids[k]])
-            event = GrowthEvent(int(ids[k]), fx, fy, status_all[k], fit.H[k], fit.psf[k],
-                                float(fit.loss[k]), int(front[k]))
-            events.append(event)
-            if on_event is not None:
-                on_event(event)
-    return Growth(fit, ids, status_all, front, np.stack(predicted_all), events)
+    growth = Growth(_concat_fits(fits), np.array(ids_all, dtype=np.int64), status_all,
+                    np.array(front_all, dtype=np.int64), np.stack(predicted_all), events)
+    if adaptive and settings.psf_field and settings.max_kernel_size > deconv.kernel_size:
+        growth = field_growth(image, pattern, growth, deconv, settings, tag, on_event)
+    if growth.psf_field is None and (settings.final_fit_frames == "all"
+                                     or (adaptive and settings.final_fit_frames == "adaptive")):
+        growth.fit = final_fit(image, pattern, growth.feature_id, growth.fit, growth.accepted, deconv,
+                               settings, tag, footprint)
+    if heavy or growth.psf_field is not None:  # every block now has neighbours on all sides: judge again
+        _judge_again(pattern, growth, settings, on_event)
+    return growth
+
+
+def _judge_again(pattern: StarPattern, growth: Growth, settings: GrowSettings,
+                 on_event: Callable[[GrowthEvent], None] | None) -> None:
+    """Once grown, judge every accepted block by its neighbours (:func:`inconsistent`) and mark
+    the accepted blocks cut off from the earliest front ``disconnected``; in place, with an event
+    for every change."""
+    ids, fit, status = growth.feature_id, growth.fit, growth.status
+    ok = np.flatnonzero(growth.accepted)
+    f = pattern.features[ids[ok]]
+    off = ok[inconsistent(f, fit.centre[ok], f, fit.centre[ok],
+                          settings.consistency_neighbours, settings.max_inconsistency_px)]
+    for k in off:
+        status[k] = BlockStatus.NOT_CONVERGED
+    cut = _cut_off(pattern, ids, growth.front, status)
+    for k in cut:
+        status[k] = BlockStatus.DISCONNECTED
+    for k in np.concatenate([off, cut]).astype(np.int64):
+        fx, fy = (int(v) for v in pattern.features[ids[k]])
+        event = GrowthEvent(int(ids[k]), fx, fy, status[k], fit.H[k], fit.psf[k], float(fit.loss[k]),
+                            int(growth.front[k]))
+        growth.events.append(event)
+        if on_event is not None:
+            on_event(event)
+
+
+def field_degree(xy: np.ndarray, image_size: tuple[int, int]) -> int:
+    """Polynomial degree of a path field fitted from blocks at ``xy (B, 2)`` px: 2 from 30 blocks
+    spanning 0.3 of the image's longer side, 1 from 10 spanning 0.15, else 0 (a field of higher
+    degree than its blocks span would be extrapolated)."""
+    if len(xy) == 0:
+        return 0
+    span = float((xy.max(axis=0) - xy.min(axis=0)).max()) / max(image_size)
+    if len(xy) >= 30 and span >= 0.3:
+        return 2
+    return 1 if len(xy) >= 10 and span >= 0.15 else 0
+
+
+def _spread(xy: np.ndarray, most: int) -> np.ndarray:
+    """Sorted indices of at most ``most`` of the points ``xy (B, 2)``, spread over them
+    (farthest-point sampling from the point nearest their mean)."""
+    if len(xy) <= most:
+        return np.arange(len(xy))
+    chosen = [int(np.argmin(np.linalg.norm(xy - xy.mean(axis=0), axis=1)))]
+    dist = np.linalg.norm(xy - xy[chosen[0]], axis=1)
+    for _ in range(most - 1):
+        chosen.append(int(np.argmax(dist)))
+        dist = np.minimum(dist, np.linalg.norm(xy - xy[chosen[-1]], axis=1))
+    return np.sort(np.array(chosen))
+
+
+def _tag_centre(tag: np.ndarray | None) -> np.ndarray | None:
+    """``(2,)`` px, the centroid of a :func:`tag_mask`, or None."""
+    if tag is None or not tag.any():
+        return None
+    m = cv2.moments(tag, binaryImage=True)
+    return np.array([m["m10"] / m["m00"], m["m01"] / m["m00"]])
+
+
+def fit_with_field(image: np.ndarray, H0: np.ndarray, num_segments: int, psf_field: PathField,
+                   deconv: DeconvSettings, settings: GrowSettings, tag: np.ndarray | None) -> BlockFit:
+    """Fit blocks ``H0 (B, 3, 3)`` with their PSFs held at the field's
+    (:func:`blurcalib.deconv.fit_blocks` with ``psf_fixed``), over ``|q|_inf <=``
+    :attr:`GrowSettings.final_extent`, in one window that holds every block's path; pixels that
+    see the tag through the field's blur at the tag are left out (:func:`pixel_mask`)."""
+    xy = homography_centre(H0)
+    xy = np.where(np.isfinite(xy), xy, 0.0)  # degenerate blocks are not fitted
+    size = psf_field.kernel_size(xy, settings.field_max_kernel)
+    centre = _tag_centre(tag)
+    footprint = None if centre is None else psf_field.footprint(centre, settings.field_max_kernel)
+    return fit_blocks(image, H0, num_segments,
+                      replace(deconv, kernel_size=size, loss_extent=settings.final_extent),
+                      pixel_mask(tag, size, footprint), psf_fixed=psf_field.kernels(xy, size))
+
+
+def field_growth(image: np.ndarray, pattern: StarPattern, growth: Growth, deconv: DeconvSettings,
+                 settings: GrowSettings, tag: np.ndarray | None,
+                 on_event: Callable[[GrowthEvent], None] | None = None) -> Growth:
+    """Fit the frame's path-PSF field from a growth and grow on with it.
+
+    Under blur as long as the star squares a block's free PSF trades its shape against the
+    star's position; the frame's motion-path field (:mod:`blurcalib.psf_field`) does not. So:
+
+    1. the field is fitted (:func:`blurcalib.psf_field.fit_path_field`) with at most
+       :attr:`GrowSettings.field_blocks` accepted blocks spread over the frame, from a straight
+       path along their PSFs (:func:`blurcalib.psf_field.constant_field`), its degree by their
+       spread (:func:`field_degree`);
+    2. every accepted block is fitted again with the field's PSF over
+       :attr:`GrowSettings.final_extent` x its square (:func:`fit_with_field`), kept where
+       accepted and moved less than :attr:`GrowSettings.final_max_shift_px`;
+    3. the growth goes on, front by front, from the accepted blocks into every block the first
+       growth did not accept, each fitted with the field's PSF and judged by the growth's rules
+       (:func:`judge_front`, the loss limited to :attr:`GrowSettings.field_loss_factor` x the
+       median of step 2's) and by its neighbours (:func:`inconsistent`).
+
+    Returns the growth unchanged when fewer than :attr:`GrowSettings.field_min_blocks` blocks
+    were accepted or no field could be fitted; else a new growth (rows of blocks accepted now
+    replace their earlier ones, new blocks are appended) with :attr:`Growth.psf_field` set.
+    """
+    h, w = image.shape
+    N = pattern.num_star_segments
+    acc = np.flatnonzero(growth.accepted)
+    if acc.size < settings.field_min_blocks:
+        return growth
+    xy = growth.fit.centre[acc]
+    sel = acc[_spread(xy, settings.field_blocks)]
+    largest = settings.field_max_kernel
+    centre = _tag_centre(tag)
+    try:
+        start = constant_field(growth.fit.psf[acc], (w, h), field_degree(xy, (w, h)))
+        size = start.kernel_size(growth.fit.centre[sel], largest)
+        mask = pixel_mask(tag, size, None if centre is None else start.footprint(centre, largest))
+        psf_field = fit_path_field(image, growth.fit.H[sel], N, start, deconv,
+                                   FieldSettings(loss_extent=settings.final_extent, largest_kernel=largest),
+                                   mask).field
+    except ValueError:  # no usable PSF or block to fit a field from
+        return growth
+    events = list(growth.events)
+    status = list(growth.status)
+    front = growth.front.copy()
+    predicted = growth.predicted.copy()
+
+    def report(k: int, fit: BlockFit, row: int) -> None:
+        fx, fy = (int(v) for v in pattern.features[growth_ids[row]])
+        event = GrowthEvent(int(growth_ids[row]), fx, fy, status[row], fit.H[k], fit.psf[k],
+                            float(fit.loss[k]), int(front[row]))
+        events.append(event)
+        if on_event is not None:
+            on_event(event)
+
+    growth_ids = list(growth.feature_id)
+    refit = fit_with_field(image, growth.fit.H[acc], N, psf_field, deconv, settings, tag)
+    ok = np.array([st is BlockStatus.ACCEPTED for st in refit.status], dtype=bool) & np.isfinite(refit.loss)
+    ok &= np.linalg.norm(refit.centre - xy, axis=1) < settings.final_max_shift_px
+    if not ok.any():
+        return growth
+    max_loss = min(settings.max_loss, settings.field_loss_factor * float(np.median(refit.loss[ok])))
+    ok &= (refit.loss <= max_loss) & (refit.boundary_energy <= settings.max_boundary_energy)
+    fit = _replace_rows(growth.fit, acc[ok], refit, np.flatnonzero(ok))
+    for k in np.flatnonzero(ok):
+        report(k, refit, int(acc[k]))
+    row = {int(fid): k for k, fid in enumerate(growth_ids)}
+    accepted_H = {int(growth_ids[k]): _normalise(fit.H[k]) for k in acc}
+    tried = dict.fromkeys(accepted_H, 0)
+    new_ids = list(accepted_H)
+    appended: list[BlockFit] = []
+    front_index = int(front.max()) + 1
+    new_front: list[int] = []
+    new_predicted: list[np.ndarray] = []
+    while new_ids and len(growth_ids) < settings.max_blocks:
+        fids, preds, _ = _next_front(pattern, accepted_H, tried, new_ids)
+        if not fids:
+            break
+        H0 = np.stack(preds)
+        ffit = fit_with_field(image, H0, N, psf_field, deconv, settings, tag)
+        ref = np.fromiter(accepted_H, dtype=np.int64, count=len(accepted_H))
+        off = inconsistent(pattern.features[np.asarray(fids)], ffit.centre, pattern.features[ref],
+                           homography_centre(np.stack(list(accepted_H.values()))),
+                           settings.consistency_neighbours, settings.max_inconsistency_px)
+        judged = judge_front(ffit, H0, settings, off, max_loss)
+        new_ids, again, fresh = [], [], []
+        for k, (fid, st) in enumerate(zip(fids, judged, strict=True)):
+            tried[fid] = 0
+            if fid in row and st is not BlockStatus.ACCEPTED:
+                continue  # tried before and failed again: its first record stands
+            if fid in row:
+                again.append(k)
+                r = row[fid]
+                status[r], front[r], predicted[r] = st, front_index, H0[k]
+            else:
+                fresh.append(k)
+                row[fid] = len(growth_ids)
+                growth_ids.append(fid)
+                status.append(st)
+                new_front.append(front_index)
+                new_predicted.append(H0[k])
+            if st is BlockStatus.ACCEPTED:
+                accepted_H[fid] = _normalise(ffit.H[k])
+                new_ids.append(fid)
+        if again:
+            fit = _replace_rows(fit, np.array([row[fids[k]] for k in again]), ffit, np.array(again))
+        if fresh:
+            appended.append(_take(ffit, np.array(fresh)))
+        front = np.concatenate([front, np.array(new_front, dtype=np.int64)])
+        predicted = np.concatenate([predicted, np.array(new_predicted).reshape(-1, 3, 3)])
+        new_front, new_predicted = [], []
+        for k in again + fresh:
+            report(k, ffit, row[fids[k]])
+        front_index += 1
+    fit = _concat_fits([fit, *appended])
+    return Growth(fit, np.array(growth_ids, dtype=np.int64), status, front, predicted, events, psf_field)
+
+
+def judge_front(fit: BlockFit, H0: np.ndarray, settings: GrowSettings, off: np.ndarray,
+                max_loss: float | None = None) -> list[BlockStatus]:
+    """The growth's rules on a front's fits ``fit`` started from ``H0 (B, 3, 3)``: a fitted block
+    is rejected for a loss above ``max_loss`` (default :attr:`GrowSettings.max_loss`), boundary
+    energy above :attr:`GrowSettings.max_boundary_energy`, a centre more than
+    :attr:`GrowSettings.max_jump` squares (the side at the predicted centre,
+    :func:`blurcalib.camera.homography_scale`) from its prediction, or ``off (B,)`` (inconsistent
+    with its neighbours)."""
+    limit = settings.max_loss if max_loss is None else max_loss
+    jump = np.linalg.norm(fit.centre - homography_centre(H0), axis=1) / (2.0 * homography_scale(H0))
+    out = []
+    for k, status in enumerate(fit.status):
+        if status is BlockStatus.ACCEPTED:
+            if not np.isfinite(fit.loss[k]) or fit.loss[k] > limit:
+                status = BlockStatus.HIGH_LOSS
+            elif fit.boundary_energy[k] > settings.max_boundary_energy:
+                status = BlockStatus.PSF_TRUNCATED
+            elif not np.isfinite(jump[k]) or jump[k] > settings.max_jump or off[k]:
+                status = BlockStatus.NOT_CONVERGED
+        out.append(status)
+    return out
 
 
 def _cut_off(pattern: StarPattern, ids: np.ndarray, front: np.ndarray,

@@ -11,7 +11,7 @@ import torch
 from scipy.ndimage import convolve
 
 from blurcalib.camera import translation
-from blurcalib.deconv import BlockFit, DeconvSettings, _Problem, fit_blocks, render_model
+from blurcalib.deconv import BlockFit, BlockProblem, DeconvSettings, fit_blocks, render_model
 from blurcalib.pattern import layout_pattern, star_signed_distance, star_signed_distance_normal
 from blurcalib.psf import boundary_energy, psf_centroid, psf_moments, recentre, shift_pair
 from blurcalib.results import BlockStatus
@@ -215,7 +215,7 @@ def test_block_convolution_is_the_valid_convolution(kernel_size: int) -> None:
     rng = np.random.default_rng(5)
     size = np.array([[23, 19], [17, 21]])
     s = DeconvSettings(kernel_size=kernel_size, dtype="float64")
-    prob = _Problem(torch.zeros((80, 80), dtype=torch.float64), None, np.array([[3, 4], [9, 2]]), size,
+    prob = BlockProblem(torch.zeros((80, 80), dtype=torch.float64), None, np.array([[3, 4], [9, 2]]), size,
                     SEGMENTS, s)
     L = torch.as_tensor(rng.random((2, 3, prob.Hl, prob.Wl)))
     k = torch.as_tensor(rng.random((2, kernel_size, kernel_size)))
