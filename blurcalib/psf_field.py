@@ -152,6 +152,14 @@ class PathField:
         k = k.numpy()
         return k / k.sum(axis=(1, 2), keepdims=True)
 
+    def with_degree(self, degree: int) -> PathField:
+        """The same field as a polynomial of ``degree`` (higher terms 0; lower ones dropped)."""
+        P = {0: 1, 1: 3, 2: 6}[degree]
+        coeffs = np.zeros((P, 4))
+        n = min(P, len(self.coeffs))
+        coeffs[:n] = self.coeffs[:n]
+        return PathField(coeffs, self.log_sigma, self.image_size)
+
     def footprint(self, xy: np.ndarray, largest: int, margin_px: int = 2) -> np.ndarray:
         """``(F, F)`` uint8: where the PSF at image point ``xy (2,)`` px has weight (above 1 % of
         its peak), dilated by ``margin_px`` px: a pixel sees a tag through the blur only within
@@ -188,8 +196,9 @@ def monomials(xy: np.ndarray, image_size: tuple[int, int], degree: int) -> np.nd
 def constant_field(psfs: np.ndarray, image_size: tuple[int, int], degree: int) -> PathField:
     """A field of straight paths, the same everywhere, from fitted (re-centred) PSFs
     ``(B, K, K)``: the median blur extent ``sqrt(12) sigma_major`` along their mean orientation
-    (averaged as doubled angles), the median ``sigma_minor`` as the spread (at least 0.5 px);
-    the higher-degree coefficients 0 (:func:`fit_path_field`'s start)."""
+    (averaged as doubled angles), the median ``sigma_minor`` as the spread (within 0.5-1 px: free
+    PSFs under long blur spread into noise, measured up to 4 px where the truth is 0.8 px); the
+    higher-degree coefficients 0 (:func:`fit_path_field`'s start)."""
     ok = np.all(np.isfinite(psfs), axis=(1, 2)) & (np.nan_to_num(psfs).sum(axis=(1, 2)) > 0)
     if not ok.any():
         raise ValueError("no finite PSF to start a path field from")
@@ -198,7 +207,7 @@ def constant_field(psfs: np.ndarray, image_size: tuple[int, int], degree: int) -
     length = math.sqrt(12.0) * float(np.median(m.sigma_major))
     coeffs = np.zeros(({0: 1, 1: 3, 2: 6}[degree], 4))
     coeffs[0, :2] = length * math.cos(angle), length * math.sin(angle)
-    return PathField(coeffs, math.log(max(float(np.median(m.sigma_minor)), 0.5)), image_size)
+    return PathField(coeffs, math.log(min(max(float(np.median(m.sigma_minor)), 0.5), 1.0)), image_size)
 
 
 @dataclass(frozen=True)
@@ -214,6 +223,10 @@ class FieldSettings:
             settled off must not bend the field).
         tolerance: stop when a step lowers the objective by less than this share.
         min_sigma_px: the Gaussian spread is kept above this (px).
+        hold_steps: at most this many first steps hold the blocks' homographies at their
+            starts (only the field and the brightness move; not when tied): a block fitted
+            with a poor early field runs away (measured on a 24 px curved blur: 10 of 40 blocks
+            that started 0.05-0.27 px off ended 5-27 px off).
     """
 
     iterations: int = 25
@@ -222,6 +235,7 @@ class FieldSettings:
     outlier_loss: float = 2.0
     tolerance: float = 1e-4
     min_sigma_px: float = 0.35
+    hold_steps: int = 10
 
 
 @dataclass
@@ -300,9 +314,47 @@ class _FieldProblem:
         return out
 
 
+_UPDATE_ENTRIES = ((0, 0), (0, 1), (0, 2), (1, 0), (1, 1), (1, 2), (2, 0), (2, 1))
+"""Entries of the 8-parameter update ``Delta`` of a homography (``H <- H (I + Delta)``)."""
+
+
+def _update(H: torch.Tensor, delta: torch.Tensor) -> torch.Tensor:
+    """``H (I + Delta)`` normalised (``H[2, 2] = 1``) for ``H (b, 3, 3)``, ``delta (b, 8)``."""
+    step = torch.zeros_like(H)
+    for j, (r, c) in enumerate(_UPDATE_ENTRIES):
+        step[:, r, c] = delta[:, j]
+    out = H + H @ step
+    return out / out[:, 2:, 2:]
+
+
+def _tied_map(A: np.ndarray) -> np.ndarray:
+    """``(b, 8, 8)``: the block-side updates ``Delta_b`` (rows, :data:`_UPDATE_ENTRIES`) that a
+    feature-side update ``H_F (I + Delta_F)`` makes of the blocks ``H_b = H_F A_b`` (columns):
+    ``Delta_b = A_b^-1 Delta_F A_b``, its ``[2, 2]`` entry moved into the others (to first order
+    ``I + Delta`` and ``(I + Delta) / (1 + Delta_22)`` are the same homography)."""
+    A_inv = np.linalg.inv(A)
+    out = np.zeros((len(A), 8, 8))
+    for j, (r, c) in enumerate(_UPDATE_ENTRIES):
+        E = np.zeros((3, 3))
+        E[r, c] = 1.0
+        D = A_inv @ E @ A
+        D -= D[:, 2:, 2:] * np.eye(3)
+        out[:, :, j] = np.stack([D[:, rr, cc] for rr, cc in _UPDATE_ENTRIES], axis=1)
+    return out
+
+
+def _feature_blocks(features: np.ndarray) -> np.ndarray:
+    """``(B, 3, 3)``: block coordinates -> feature coordinates ``(fx, fy) + q / 2``."""
+    A = np.zeros((len(features), 3, 3))
+    A[:, 0, 0] = A[:, 1, 1] = 0.5
+    A[:, :2, 2] = features
+    A[:, 2, 2] = 1.0
+    return A
+
+
 def fit_path_field(image: np.ndarray, H0: np.ndarray, num_segments: int, start: PathField,
                    deconv: DeconvSettings | None = None, settings: FieldSettings | None = None,
-                   pixel_mask: np.ndarray | None = None) -> FieldFit:
+                   pixel_mask: np.ndarray | None = None, features: np.ndarray | None = None) -> FieldFit:
     """Fit a frame's path field and its blocks together (``eq:field_fit``)::
 
         argmin_{field, H_i, p_i}  sum_i w_i sum_{x in block i} (I(x) - m_i(x))^2,
@@ -313,36 +365,63 @@ def fit_path_field(image: np.ndarray, H0: np.ndarray, num_segments: int, start: 
     Levenberg-Marquardt on all parameters; each step solves the shared ``4 P + 1`` after
     eliminating every block's 14 (Schur complement, ``(b, 14, 14)`` batched solves).
 
+    *Tied* (``features`` given): the blocks are those of one feature homography, ``H_i = H_F
+    B(f_i)`` (:func:`blurcalib.seed.block_homography`), and ``H_F``'s 8 parameters are shared
+    instead of each block's: the blocks around a tag, whose starts are px off under long blur,
+    move together (a plane over a few squares; the lens bends it by far less than that).
+
     Args:
         image: ``(height, width)`` grey levels.
         H0: ``(B, 3, 3)`` block homographies to start from (the blocks' fits; a few tenths of a
-            px off is fine).
+            px off is fine, or, tied, a few px).
         num_segments: star segments ``N``.
         start: the field to start from, e.g. :func:`constant_field` (its degree is the fit's).
         deconv: settings of the blocks' windows and latent pattern (kernel size and loss extent
             are set here).
         settings: :class:`FieldSettings`.
         pixel_mask: as for :func:`blurcalib.deconv.fit_blocks`.
+        features: ``(B, 2)`` feature coordinates of the blocks to tie them (``H_F`` starts from
+            the least-squares homography of ``H0``'s star centres), or None.
     Returns:
         :class:`FieldFit`.
     Raises:
-        ValueError: no block can be fitted (all windows outside the image or degenerate).
+        ValueError: no block can be fitted (all windows outside the image or degenerate), or,
+            tied, fewer than 4 blocks.
     """
     fs = settings or FieldSettings()
     H0 = np.asarray(H0, dtype=np.float64).reshape(-1, 3, 3)
     centres = H0[:, :2, 2] / H0[:, 2:, 2]
+    if features is not None:
+        features = np.asarray(features, dtype=np.float64).reshape(-1, 2)
+        ok = np.all(np.isfinite(centres), axis=1)
+        if ok.sum() < 4:
+            raise ValueError("a tied path field needs at least 4 blocks")
+        H_F, _ = cv2.findHomography(features[ok], centres[ok], 0)
+        if H_F is None:
+            raise ValueError("no homography fits the tied blocks' centres")
+        H0 = H_F[None] @ _feature_blocks(features)
+        H0 = H0 / H0[:, 2:, 2:]
+        centres = H0[:, :2, 2]
     K = start.kernel_size(centres, fs.largest_kernel)
     K = max(K, 2 * math.ceil(1.25 * (K // 2)) + 1)  # room for the path to grow during the fit
     K = min(K, fs.largest_kernel - 1 + fs.largest_kernel % 2)
     s = replace(deconv or DeconvSettings(), kernel_size=K, loss_extent=fs.loss_extent)
     fp = _FieldProblem(image, H0, num_segments, s, pixel_mask, start.basis(centres))
-    if fp.rows.size == 0:
-        raise ValueError("no block of the path field's fit lies inside the image")
-    dev, b = fp.H_loc.device, len(fp.rows)
+    b = len(fp.rows)
+    if b == 0 or (features is not None and b < 4):
+        raise ValueError("too few blocks of the path field's fit lie inside the image")
+    dev = fp.H_loc.device
     P = len(start.coeffs)
     coeffs = torch.as_tensor(start.coeffs, dtype=torch.float64, device=dev)
     log_sigma = torch.tensor([start.log_sigma], dtype=torch.float64, device=dev)
     H_loc = fp.H_loc
+    if features is not None:  # the blocks in latent-local px: T(-origin) H_F A_b
+        H_F = torch.as_tensor(H_F / H_F[2, 2], dtype=torch.float64, device=dev)
+        A = torch.as_tensor(_feature_blocks(features[fp.rows]), dtype=torch.float64, device=dev)
+        to_local = H_loc @ torch.linalg.inv(torch.as_tensor(H0[fp.rows], dtype=torch.float64, device=dev))
+        tie = torch.as_tensor(_tied_map(_feature_blocks(features[fp.rows])), device=dev)
+    nh = 8 if features is not None else 0  # shared homography parameters
+    hold = 0 if features is not None else fs.hold_steps  # steps left with the blocks' H held
     cur = fp.evaluate(H_loc, None, coeffs, log_sigma, with_jac=True)
     npix = fp.mask.reshape(b, -1).sum(dim=1).double().clamp_min(1)
 
@@ -353,13 +432,20 @@ def fit_path_field(image: np.ndarray, H0: np.ndarray, num_segments: int, start: 
         limit = fs.outlier_loss * loss.median()
         return torch.where(loss > limit, limit / loss, torch.ones_like(loss))
 
+    def jacobians(cur: dict[str, torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]:
+        """``(Jl (b, 14 or 6, n), Js (b, nh + 4 P + 1, n))``: the blocks' own and the shared
+        ones (each block's ``H`` is its own unless tied or held)."""
+        if nh:
+            J_F = torch.einsum("bin,bij->bjn", cur["Jl"][:, :8], tie.to(cur["Jl"].dtype))
+            return cur["Jl"][:, 8:], torch.cat([J_F, cur["Js"]], dim=1)
+        return (cur["Jl"][:, 8:] if hold else cur["Jl"]), cur["Js"]
+
     w = weights(block_loss(cur["r"]))
     obj = float((w * block_loss(cur["r"]) * npix).sum())
     history, mu, steps = [obj], 1e-3, 0
-    eye3 = torch.eye(3, dtype=torch.float64, device=dev)
     while steps < fs.iterations:
         steps += 1
-        Jl, Js, r = cur["Jl"], cur["Js"], cur["r"]
+        (Jl, Js), r = jacobians(cur), cur["r"]
         wt = w.to(r.dtype)[:, None, None]
         Nll = ((Jl * wt) @ Jl.transpose(1, 2)).double()
         Nls = ((Jl * wt) @ Js.transpose(1, 2)).double()
@@ -370,30 +456,35 @@ def fit_path_field(image: np.ndarray, H0: np.ndarray, num_segments: int, start: 
         Nss.diagonal().mul_(1.0 + mu).add_(1e-12)
         X = torch.linalg.solve_ex(Nll, torch.cat([Nls, gl], dim=2))[0]
         reduced = Nss - (Nls.transpose(1, 2) @ X[..., :-1]).sum(dim=0)
-        ds = torch.linalg.solve_ex(reduced, gs - (Nls.transpose(1, 2) @ X[..., -1:]).sum(dim=0))[0]
-        dl = torch.linalg.solve_ex(Nll, gl - Nls @ ds)[0][..., 0]
-        step = torch.zeros((b, 3, 3), dtype=torch.float64, device=dev)
-        step[:, 0], step[:, 1], step[:, 2, :2] = dl[:, 0:3], dl[:, 3:6], dl[:, 6:8]
-        H_try = H_loc @ (eye3 + step)
-        H_try = H_try / H_try[:, 2:, 2:]
-        coeffs_try = coeffs + ds[:4 * P, 0].reshape(P, 4)
-        sigma_try = (log_sigma + ds[4 * P:, 0]).clamp_min(math.log(fs.min_sigma_px))
-        trial = fp.evaluate(H_try, cur["bright"] + dl[:, 8:14], coeffs_try, sigma_try, with_jac=True)
+        ds = torch.linalg.solve_ex(reduced, gs - (Nls.transpose(1, 2) @ X[..., -1:]).sum(dim=0))[0][:, 0]
+        dl = torch.linalg.solve_ex(Nll, gl - Nls @ ds[:, None])[0][..., 0]
+        if nh:
+            H_F_try = _update(H_F[None], ds[None, :8])[0]
+            H_try = to_local @ H_F_try[None] @ A
+            H_try = H_try / H_try[:, 2:, 2:]
+        else:
+            H_try = H_loc if hold else _update(H_loc, dl[:, :8])
+        coeffs_try = coeffs + ds[nh:nh + 4 * P].reshape(P, 4)
+        sigma_try = (log_sigma + ds[nh + 4 * P:]).clamp_min(math.log(fs.min_sigma_px))
+        trial = fp.evaluate(H_try, cur["bright"] + dl[:, -6:], coeffs_try, sigma_try, with_jac=True)
         obj_try = float((w * block_loss(trial["r"]) * npix).sum())
-        if math.isfinite(obj_try) and obj_try < obj:
-            done = (obj - obj_try) < fs.tolerance * obj
-            H_loc, coeffs, log_sigma, cur, obj = H_try, coeffs_try, sigma_try, trial, obj_try
+        accepted = math.isfinite(obj_try) and obj_try < obj
+        converged = (not accepted and mu > 1e5) or (accepted and (obj - obj_try) < fs.tolerance * obj)
+        if accepted:
+            H_loc, coeffs, log_sigma, cur = H_try, coeffs_try, sigma_try, trial
+            if nh:
+                H_F = H_F_try
             mu /= 3.0
-            w_new = weights(block_loss(cur["r"]))  # re-weight (IRLS); the objective follows
-            obj = float((w_new * block_loss(cur["r"]) * npix).sum())
-            w = w_new
+            w = weights(block_loss(cur["r"]))  # re-weighted (IRLS); the objective follows
+            obj = float((w * block_loss(cur["r"]) * npix).sum())
             history.append(obj)
-            if done:
-                break
         else:
             mu *= 4.0
-            if mu > 1e6:
-                break
+        if hold:  # the held phase ends when it has converged or after hold_steps
+            hold = 0 if converged else hold - 1
+            mu = 1e-3 if not hold else mu
+        elif converged:
+            break
     B = len(H0)
     H = H0.copy()
     H[fp.rows] = fp.prob.to_image(H_loc)
