@@ -138,7 +138,7 @@ class GrowSettings:
     final_max_shift_px: float = 0.5
     psf_field: bool = True
     field_min_blocks: int = 8
-    field_blocks: int = 40
+    field_blocks: int = 24
     field_loss_factor: float = 3.0
     field_max_kernel: int = 61
 
