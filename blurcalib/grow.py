@@ -64,7 +64,7 @@ import numpy as np
 from blurcalib.camera import apply_homography, homography_centre, homography_scale
 from blurcalib.deconv import BlockFit, DeconvSettings, fit_blocks
 from blurcalib.pattern import StarPattern
-from blurcalib.psf import blur_extent
+from blurcalib.psf import blur_extent, blur_per_square
 from blurcalib.psf_field import FieldSettings, PathField, constant_field, fit_path_field
 from blurcalib.quality import connected_blocks
 from blurcalib.results import BlockStatus
@@ -112,8 +112,12 @@ class GrowSettings:
             adapted to the blur, the default), ``"all"`` or ``"none"``.
         final_max_shift_px: a final fit whose star centre moved further than this (px) from
             the growth's fit is not kept.
-        psf_field: in frames whose window adapted, fit the frame's field of motion-path PSFs
-            and fit and grow on with it (:func:`field_growth`) instead of the final fit.
+        psf_field: in frames whose window adapted, or whose blur is long for their squares
+            (``field_above_blur_per_square``), fit the frame's field of motion-path PSFs and
+            fit and grow on with it (:func:`field_growth`) instead of the final fit.
+        field_above_blur_per_square: frames whose fitted blocks' median blur over square side
+            (:func:`blurcalib.psf.blur_per_square`) reaches this get the field growth even when
+            their window did not adapt (small squares, moderate blur).
         field_min_blocks: fewest accepted blocks to fit a field from.
         field_blocks: most blocks in the field's fit (spread over the accepted ones).
         field_loss_factor: a block fitted with the field is rejected when its loss exceeds
@@ -137,6 +141,7 @@ class GrowSettings:
     final_fit_frames: FinalFitFrames = "adaptive"
     final_max_shift_px: float = 0.5
     psf_field: bool = True
+    field_above_blur_per_square: float = 0.6
     field_min_blocks: int = 8
     field_blocks: int = 24
     field_loss_factor: float = 3.0
@@ -700,7 +705,8 @@ def grow(image: np.ndarray, pattern: StarPattern, seed: Seed,
         return None
     growth = Growth(_concat_fits(fits), np.array(ids_all, dtype=np.int64), status_all,
                     np.array(front_all, dtype=np.int64), np.stack(predicted_all), events)
-    if adaptive and settings.psf_field and settings.max_kernel_size > deconv.kernel_size:
+    if settings.psf_field and settings.max_kernel_size > deconv.kernel_size and (
+            adaptive or _median_blur_per_square(growth.fit) >= settings.field_above_blur_per_square):
         growth = field_growth(image, pattern, growth, deconv, settings, tag, on_event)
     if growth.psf_field is None and (settings.final_fit_frames == "all"
                                      or (adaptive and settings.final_fit_frames == "adaptive")):
@@ -709,6 +715,13 @@ def grow(image: np.ndarray, pattern: StarPattern, seed: Seed,
     if heavy or growth.psf_field is not None:  # every block now has neighbours on all sides: judge again
         _judge_again(pattern, growth, settings, on_event)
     return growth
+
+
+def _median_blur_per_square(fit: BlockFit) -> float:
+    """Median blur over square side (:func:`blurcalib.psf.blur_per_square`) of the fitted blocks
+    (NaN when none was fitted)."""
+    ratio = blur_per_square(fit.sigma_major, fit.H)
+    return float(np.median(ratio[np.isfinite(ratio)])) if np.isfinite(ratio).any() else math.nan
 
 
 def _judge_again(pattern: StarPattern, growth: Growth, settings: GrowSettings,

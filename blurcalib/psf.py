@@ -12,10 +12,12 @@ from typing import NamedTuple
 
 import numpy as np
 
-from blurcalib.camera import translation
+from blurcalib.camera import homography_scale, translation
 
 __all__ = [
     "PsfMoments",
+    "blur_extent",
+    "blur_per_square",
     "boundary_energy",
     "psf_centroid",
     "psf_moments",
@@ -86,6 +88,14 @@ def blur_extent(sigma_major: np.ndarray | float) -> np.ndarray | float:
     """Blur extent (px) of PSFs with major-axis second moment ``sigma_major`` (px): ``sqrt(12)
     sigma_major``, the length of a straight blur with that second moment."""
     return np.sqrt(12.0) * sigma_major
+
+
+def blur_per_square(sigma_major: np.ndarray, H: np.ndarray) -> np.ndarray:
+    """``(B,)`` blur extent over the star square's side: :func:`blur_extent` over ``2 |det
+    J|^(1/2)``, ``J`` the Jacobian of the block homographies ``H (B, 3, 3)`` at the star centre
+    (:func:`blurcalib.camera.homography_scale`); NaN where ``sigma_major`` is."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return blur_extent(np.asarray(sigma_major, dtype=np.float64)) / (2.0 * homography_scale(H))
 
 
 def boundary_energy(psf: np.ndarray, ring: int = 2) -> np.ndarray | float:

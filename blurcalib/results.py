@@ -33,7 +33,7 @@ from pathlib import Path
 
 import numpy as np
 
-from blurcalib.camera import homography_centre, homography_scale
+from blurcalib.camera import homography_centre
 from blurcalib.fileio import (
     atomic_path,
     atomic_write_csv,
@@ -41,7 +41,7 @@ from blurcalib.fileio import (
     ensure_writable_dir,
     read_csv_columns,
 )
-from blurcalib.psf import blur_extent
+from blurcalib.psf import blur_per_square
 
 FEATURES_FILE = "features.csv"
 BLOCKS_FILE = "blocks.csv"
@@ -292,13 +292,10 @@ class BlockTable:
 
     @property
     def blur_per_square(self) -> np.ndarray:
-        """``(B,)`` blur extent over the star square's side: ``sqrt(12) sigma_major``
-        (:func:`blurcalib.psf.blur_extent`) over ``2 |det J|^(1/2)`` (``J`` the
-        Jacobian of ``H`` at the star centre, :func:`blurcalib.camera.homography_scale`). From
-        :data:`BLUR_PER_SQUARE_LIMIT` the block model loses the star's position along the blur
-        (docs/deconvolution.md); NaN where not fitted."""
-        with np.errstate(divide="ignore", invalid="ignore"):
-            return blur_extent(self.sigma_major) / (2.0 * homography_scale(self.H))
+        """``(B,)`` blur extent over the star square's side (:func:`blurcalib.psf.blur_per_square`).
+        From :data:`BLUR_PER_SQUARE_LIMIT` the block model with a free PSF loses the star's
+        position along the blur (docs/deconvolution.md); NaN where not fitted."""
+        return blur_per_square(self.sigma_major, self.H)
 
     def features(self, square_length_m: float, flags: int) -> FeatureTable:
         """One star-centre observation per row: ``(x, y)`` the star centre, ``(X, Y) = (fx L,
