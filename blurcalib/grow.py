@@ -705,9 +705,10 @@ def grow(image: np.ndarray, pattern: StarPattern, seed: Seed,
         return None
     growth = Growth(_concat_fits(fits), np.array(ids_all, dtype=np.int64), status_all,
                     np.array(front_all, dtype=np.int64), np.stack(predicted_all), events)
-    if settings.psf_field and settings.max_kernel_size > deconv.kernel_size and (
+    stopped = should_stop is not None and should_stop()
+    if not stopped and settings.psf_field and settings.max_kernel_size > deconv.kernel_size and (
             adaptive or _median_blur_per_square(growth.fit) >= settings.field_above_blur_per_square):
-        growth = field_growth(image, pattern, growth, deconv, settings, tag, on_event)
+        growth = field_growth(image, pattern, growth, deconv, settings, tag, on_event, should_stop)
     if growth.psf_field is None and (settings.final_fit_frames == "all"
                                      or (adaptive and settings.final_fit_frames == "adaptive")):
         growth.fit = final_fit(image, pattern, growth.feature_id, growth.fit, growth.accepted, deconv,
@@ -882,7 +883,8 @@ def _local_predictions(pattern: StarPattern, ids: np.ndarray, accepted_H: dict[i
 
 def field_growth(image: np.ndarray, pattern: StarPattern, growth: Growth, deconv: DeconvSettings,
                  settings: GrowSettings, tag: np.ndarray | None,
-                 on_event: Callable[[GrowthEvent], None] | None = None) -> Growth:
+                 on_event: Callable[[GrowthEvent], None] | None = None,
+                 should_stop: Callable[[], bool] | None = None) -> Growth:
     """Fit the frame's path-PSF field from a growth and grow on with it.
 
     Under blur as long as the star squares a block's free PSF trades its shape against the
@@ -906,7 +908,8 @@ def field_growth(image: np.ndarray, pattern: StarPattern, growth: Growth, deconv
        blocks have doubled since the field was fitted, it is fitted again from them (warm
        start); if it was, every accepted block is fitted once more with the last field.
 
-    Returns the growth unchanged when no field could be fitted; else a new growth (rows of
+    ``on_event`` and ``should_stop`` are :func:`grow`'s (polled between fronts). Returns the
+    growth unchanged when no field could be fitted; else a new growth (rows of
     blocks accepted now replace their earlier ones, new blocks are appended) with
     :attr:`Growth.psf_field` set.
     """
@@ -965,6 +968,8 @@ def field_growth(image: np.ndarray, pattern: StarPattern, growth: Growth, deconv
     appended: list[BlockFit] = []
     front_index = int(front.max()) + 1
     while new_ids and len(growth_ids) < settings.max_blocks:
+        if should_stop is not None and should_stop():
+            break
         if len(accepted_H) >= 2 * fitted_with:
             ids = np.fromiter(accepted_H, dtype=np.int64, count=len(accepted_H))
             H_acc = np.stack(list(accepted_H.values()))
