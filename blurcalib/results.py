@@ -64,9 +64,11 @@ BLOCK_COLUMNS: tuple[str, ...] = (
 """Columns of ``blocks.csv``, in order (a file without the last, ``loss_extent``, added later, reads
 as 1)."""
 
-BLUR_PER_SQUARE_LIMIT = 0.8
-""":attr:`BlockTable.blur_per_square` from which few blocks are found and those found are poorer
-(``scripts/bench_yield.py``: 50 % returned at 0.06 px from 0.8, 10 % at 0.14 px from 1)."""
+BLUR_PER_SQUARE_LIMIT = 1.25
+""":attr:`BlockTable.blur_per_square` from which fewer blocks are found, and those found are poorer,
+even with the frame's path-PSF field (``scripts/bench_yield.py``: 86 % returned at 0.046 px from
+0.8, 77 % at 0.064 px from 1, 58 % at 0.078 px from 1.25, 21 % at 0.10 px from 1.5; with free
+PSFs alone it was 50 % from 0.8 and 10 % from 1)."""
 
 CORNER_COLUMNS: tuple[str, ...] = ("frame", "cx2", "cy2", "X", "Y", "x", "y", "blocks")
 """Columns of ``corners.csv``: the corner's feature coordinates doubled (``cx2 = 2 fx + 1`` for
@@ -293,8 +295,8 @@ class BlockTable:
     @property
     def blur_per_square(self) -> np.ndarray:
         """``(B,)`` blur extent over the star square's side (:func:`blurcalib.psf.blur_per_square`).
-        From :data:`BLUR_PER_SQUARE_LIMIT` the block model with a free PSF loses the star's
-        position along the blur (docs/deconvolution.md); NaN where not fitted."""
+        From :data:`BLUR_PER_SQUARE_LIMIT` even the frame's path-PSF field locates few stars
+        (docs/deconvolution.md); NaN where not fitted."""
         return blur_per_square(self.sigma_major, self.H)
 
     def features(self, square_length_m: float, flags: int) -> FeatureTable:

@@ -266,8 +266,9 @@ def test_default_calibrate_uses_little_blur_and_gives_reasons(tmp_path, dataset,
 
 
 def test_a_frame_with_blur_as_long_as_its_squares_is_told_so() -> None:
-    """The ``too_few_blocks`` reason names the blur over square side when it is from 0.8 (median of
-    the fitted blocks, unfitted ones ignored); below, it adds nothing."""
+    """The ``too_few_blocks`` reason names the blur over square side when it is from
+    ``BLUR_PER_SQUARE_LIMIT`` (1.25, median of the fitted blocks, unfitted ones ignored); below,
+    it adds nothing."""
     from blurcalib.psf import psf_moments
     from blurcalib.results import BlockStatus, BlockTable
     from blurcalib.seed import block_homography, line_kernel
@@ -283,8 +284,8 @@ def test_a_frame_with_blur_as_long_as_its_squares_is_told_so() -> None:
                           [BlockStatus.ACCEPTED] * n, np.ones(n), np.zeros(n), sigma, m.sigma_minor,
                           m.eccentricity, m.orientation, m.centroid, H, np.zeros((n, 6)), psf)
 
-    long, short = table(24.0), table(12.0)
-    assert np.nanmedian(long.blur_per_square) > 0.95 and np.nanmedian(short.blur_per_square) < 0.55
+    long, short = table(34.0), table(24.0)
+    assert np.nanmedian(long.blur_per_square) > 1.3 and np.nanmedian(short.blur_per_square) < 1.05
     ratio = np.nanmedian(long.blur_per_square)
     assert pipeline._blur_note(long).startswith(f"; its blur is {ratio:.2f} x the star squares' side")
     assert pipeline._blur_note(short) == ""
