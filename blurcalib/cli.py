@@ -135,7 +135,8 @@ def _pipeline_settings(args: argparse.Namespace):
                                     min_sigma_major=args.min_sigma_major),
             loss=args.loss, bias=args.bias, workers=args.workers, cluster=args.cluster,
             local_alignment=args.local_alignment, model=args.model, route=args.route, cell_px=args.cell_px,
-            lens_correction=not args.no_lens_correction, final_fit=args.final_fit)
+            lens_correction=not args.no_lens_correction, final_fit=args.final_fit,
+            psf_field=not args.no_psf_field)
     except ValueError as exc:
         raise CliError(str(exc)) from None
 
@@ -270,8 +271,10 @@ def cmd_extract(args: argparse.Namespace) -> int:
         deconv = DeconvSettings(kernel_size=kernel, device=check_device(args.device))
     except ValueError as exc:
         raise CliError(str(exc)) from None
-    settings = ExtractSettings(deconv=deconv, grow=GrowSettings(final_fit_frames=args.final_fit),
-                               local_alignment=args.local_alignment, kind="sharp" if args.sharp else "blurry")
+    # sharp frames: free PSFs only, as calibrate's (ExtractSettings.sharp), so that its runs reuse these
+    grow = GrowSettings(final_fit_frames=args.final_fit, psf_field=not (args.no_psf_field or args.sharp))
+    settings = ExtractSettings(deconv=deconv, grow=grow, local_alignment=args.local_alignment,
+                               kind="sharp" if args.sharp else "blurry")
     bar = tqdm(total=len(paths), desc="extracting", unit="frame", file=sys.stderr,
                dynamic_ncols=True, disable=None)
     counts: dict[str, int] = {}
@@ -357,12 +360,16 @@ def _add_run_options(p: argparse.ArgumentParser, workers: bool = True) -> None:
                    help="run frames as tasks on this Dask scheduler (tcp://host:8786; docs/cluster.md)")
 
 
-def _add_final_fit_option(p: argparse.ArgumentParser, which: str) -> None:
+def _add_fit_options(p: argparse.ArgumentParser, which: str) -> None:
     p.add_argument("--final-fit", choices=get_args(FinalFitFrames), default=GrowSettings.final_fit_frames,
-                   help=f"which {which}frames get a final fit of each block over 1.5 x its square: "
-                        "those whose PSF window grew with the blur, all (more accurate features, "
-                        "about 1 s more per frame with little blur) or none (%(default)s; "
-                        "docs/deconvolution.md)")
+                   help=f"which {which}frames without the path-PSF field get a final fit of each block "
+                        "over 1.5 x its square: those whose PSF window grew with the blur, all (more "
+                        "accurate features, about 1 s more per frame with little blur) or none "
+                        "(%(default)s; docs/deconvolution.md)")
+    p.add_argument("--no-psf-field", action="store_true",
+                   help=f"fit {which}frames with free PSFs only: no field of motion-path PSFs in frames "
+                        "whose blur is long (for a rolling shutter, whose paths bend with the image row; "
+                        "docs/deconvolution.md; sharp frames never use it)")
 
 
 def _add_pipeline_options(p: argparse.ArgumentParser) -> None:
@@ -379,7 +386,7 @@ def _add_pipeline_options(p: argparse.ArgumentParser) -> None:
                    help="bias model of the global alignment (%(default)s)")
     p.add_argument("--local-alignment", action="store_true",
                    help="use the local-alignment translations for blurry frames")
-    _add_final_fit_option(p, "blurry ")
+    _add_fit_options(p, "blurry ")
     p.add_argument("--model", choices=["generic", "parametric"], default="generic",
                    help="camera model delivered: the generic B-spline ray grid fitted to sharp and blurry "
                         "frames together, or Brown-Conrady from the sharp set only (%(default)s)")
@@ -448,7 +455,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="PSF window side, odd px (17 for blurry, 7 with --sharp)")
     p.add_argument("--local-alignment", action="store_true",
                    help="move star centres by the local-alignment translations")
-    _add_final_fit_option(p, "")
+    _add_fit_options(p, "")
     _add_run_options(p)
     p.add_argument("--device", default="cpu", help="torch device for the block solver (cpu, cuda)")
     p.add_argument("--overwrite", action="store_true",

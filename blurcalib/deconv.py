@@ -96,6 +96,7 @@ __all__ = [
     "block_windows",
     "fit_blocks",
     "render_model",
+    "update_homography",
 ]
 
 Brightness = Literal["after_blur", "before_blur"]
@@ -407,6 +408,18 @@ def _fft_size(n: int) -> int:
             p35 *= 3
         p5 *= 5
     return best
+
+
+def update_homography(H: torch.Tensor, delta: torch.Tensor) -> torch.Tensor:
+    """The block-side update ``H (I + Delta)``, normalised (``H[2, 2] = 1``), for ``H (b, 3, 3)``
+    and ``delta (b, 8)``: ``Delta = [[d1, d2, d3], [d4, d5, d6], [d7, d8, 0]]`` (the parameters of
+    :meth:`BlockProblem.latent`'s Jacobian)."""
+    step = torch.zeros_like(H)
+    step[:, 0] = delta[:, 0:3]
+    step[:, 1] = delta[:, 3:6]
+    step[:, 2, :2] = delta[:, 6:8]
+    out = H @ (torch.eye(3, dtype=H.dtype, device=H.device) + step)
+    return out / out[:, 2:, 2:]
 
 
 # ----------------------------------------------------------------------------- block windows
@@ -880,17 +893,11 @@ class BlockProblem:
         c_best = self.centre_estimate(H_best, best["x"], des)
         move = torch.zeros(b, dtype=torch.float64, device=dev)
         mu = torch.full((b,), 1e-3, device=dev, dtype=torch.float64)
-        eye3 = torch.eye(3, device=dev, dtype=torch.float64)
         for it in range(steps):
             diag = best["N"].diagonal(dim1=1, dim2=2)
             A = best["N"] + torch.diag_embed(mu[:, None] * diag + 1e-12 * diag.mean(1, keepdim=True) + 1e-30)
             delta = torch.nan_to_num(torch.linalg.solve_ex(A, best["g"][..., None])[0][..., 0])
-            step = torch.zeros((b, 3, 3), device=dev, dtype=torch.float64)
-            step[:, 0] = delta[:, 0:3]
-            step[:, 1] = delta[:, 3:6]
-            step[:, 2, :2] = delta[:, 6:8]
-            H_try = H_best @ (eye3 + step)
-            H_try = H_try / H_try[:, 2:, 2:]
+            H_try = update_homography(H_best, delta[:, :8])
             a_try = a_best + delta[:, 8:10]
             cur = self.evaluate(H_try, a_try, des, lam, with_jac=it < steps - 1)
             accept = torch.isfinite(cur["obj"]) & (cur["obj"] < best["obj"])

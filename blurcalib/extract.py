@@ -85,9 +85,11 @@ class ExtractSettings:
 
     @staticmethod
     def sharp(**changes) -> ExtractSettings:
-        """Settings for sharp frames: the same engine with a small (7 x 7) PSF window."""
-        return replace(ExtractSettings(deconv=DeconvSettings(kernel_size=7), kind="sharp"),
-                       **changes)
+        """Settings for sharp frames: the same engine with a small (7 x 7) PSF window and free
+        PSFs only (no motion-path field: a sharp frame's PSF is its defocus; 4 of the demo's 20
+        sharp frames adapt their window, and their features stay as measured before the field)."""
+        return replace(ExtractSettings(deconv=DeconvSettings(kernel_size=7),
+                                       grow=GrowSettings(psf_field=False), kind="sharp"), **changes)
 
 
 @dataclass
@@ -117,10 +119,16 @@ class FrameResult:
     seconds: dict[str, float] = field(default_factory=dict)
 
     def summary(self) -> dict:
-        """A JSON-serialisable one-line summary (the row of ``frames.csv``)."""
+        """A JSON-serialisable one-line summary (the row of ``frames.csv``; ``psf`` says whether
+        the blocks were fitted with the frame's path-PSF field, ``field``, or with free PSFs,
+        ``free``, and ``psf_field`` holds the field, :meth:`blurcalib.psf_field.PathField.to_dict`)."""
         accepted = int(self.blocks.accepted.sum())
+        path_field = self.growth.psf_field if self.growth is not None else None
+        psf = {"psf": "" if self.growth is None else "free" if path_field is None else "field"}
+        if path_field is not None:
+            psf["psf_field"] = path_field.to_dict()
         return {"frame": self.frame, "status": self.status.value, "message": self.message,
-                "seeded_by": self.seed.method if self.seed is not None else "",
+                "seeded_by": self.seed.method if self.seed is not None else "", **psf,
                 "blocks": len(self.blocks), "accepted": accepted, "features": len(self.features),
                 "seconds": round(sum(self.seconds.values()), 3),
                 **{f"seconds_{k}": round(v, 3) for k, v in self.seconds.items()}}
@@ -305,9 +313,9 @@ def _common_size(sizes: Sequence[tuple[int, int] | None]) -> tuple[int, int] | N
 
 
 def write_frames_table(out: Path, summaries: Sequence[dict]) -> Path:
-    """``frames.csv``: one row per frame (frame, status, message, seeded_by, blocks, accepted,
+    """``frames.csv``: one row per frame (frame, status, message, seeded_by, psf, blocks, accepted,
     features, seconds)."""
-    cols = ["frame", "status", "message", "seeded_by", "blocks", "accepted", "features", "seconds"]
+    cols = ["frame", "status", "message", "seeded_by", "psf", "blocks", "accepted", "features", "seconds"]
     rows = [[s.get(c, "") for c in cols] for s in sorted(summaries, key=lambda r: r["frame"])]
     return atomic_write_csv(out / FRAMES_TABLE, cols, rows)
 

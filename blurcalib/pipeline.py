@@ -132,6 +132,8 @@ class PipelineSettings:
             (:attr:`blurcalib.grow.GrowSettings.final_fit_frames`): ``adaptive`` (default: those
             whose PSF window grew), ``all`` (more accurate features, about 1 s more per frame
             with little blur) or ``none``. Sharp frames never get it.
+        psf_field: fit blurry frames whose blur is long with their field of motion-path PSFs
+            (:attr:`blurcalib.grow.GrowSettings.psf_field`; default on).
         local_alignment: use the local-alignment translations for blurry frames.
         workers: frames extracted in parallel.
         model: ``generic`` (default: the central generic camera fitted to sharp and blurry
@@ -155,6 +157,7 @@ class PipelineSettings:
     angle_threshold: float = math.pi / 10
     blurry_kernel: int = 17
     final_fit: FinalFitFrames = "adaptive"
+    psf_field: bool = True
     local_alignment: bool = False
     workers: int = 1
     model: str = "generic"
@@ -252,7 +255,7 @@ def run_pipeline(sharp: Sequence[Path], blurry: Sequence[Path], pattern: StarPat
         return lambda done, total, row: progress(name, done, total, row)
 
     blurry_settings = ExtractSettings(deconv=DeconvSettings(kernel_size=s.blurry_kernel),
-                                      grow=GrowSettings(final_fit_frames=s.final_fit),
+                                      grow=GrowSettings(final_fit_frames=s.final_fit, psf_field=s.psf_field),
                                       local_alignment=s.local_alignment)
     runs = {kind: extract_to_folder(paths, pattern, out / kind, settings, workers=s.workers,
                                     progress=stage(kind), expected_size=size, overwrite=overwrite,
@@ -309,6 +312,7 @@ def run_pipeline(sharp: Sequence[Path], blurry: Sequence[Path], pattern: StarPat
                             settings={"quality": asdict(s.quality), "loss": s.loss, "bias": s.bias,
                                       "angle_threshold": s.angle_threshold,
                                       "blurry_kernel": s.blurry_kernel, "final_fit": s.final_fit,
+                                      "psf_field": s.psf_field,
                                       "local_alignment": s.local_alignment, "model": s.model,
                                       "route": s.route, "cell_px": s.cell_px,
                                       "lens_correction": s.lens_correction},
@@ -330,7 +334,8 @@ def _extraction_row(extracted: dict, kind: str) -> dict:
     """The start of a frame's row from its extraction summary; not-ok extractions keep their
     status and message as the row's status and reason."""
     row = {"frame": extracted["frame"], "kind": kind, "extraction": extracted.get("status", ""),
-           "seeded_by": extracted.get("seeded_by", ""), "features": extracted.get("features", 0)}
+           "seeded_by": extracted.get("seeded_by", ""), "psf": extracted.get("psf", ""),
+           "features": extracted.get("features", 0)}
     if row["extraction"] != "ok":
         row["status"] = row["extraction"] or "failed"
         row["reason"] = extracted.get("message") or f"extraction ended with {row['status']!r}"
@@ -517,7 +522,7 @@ def _write_outputs(out: Path, pattern: StarPattern, size: tuple[int, int],
                          features.feature_id[usable], features.x[usable], features.y[usable],
                          pattern)
     outputs["reference_features"] = write_ref_dataset(out / "features.bin", ref)
-    cols = ["frame", "kind", "status", "reason", "extraction", "seeded_by", "features", "blocks",
+    cols = ["frame", "kind", "status", "reason", "extraction", "seeded_by", "psf", "features", "blocks",
             "kept", "centre_sigma_major", "alignment", "median_error", "mean_error", "angle_deg"]
     outputs["frames"] = atomic_write_csv(out / "frames.csv", cols,
                                          [[r.get(c, "") for c in cols] for r in rows])

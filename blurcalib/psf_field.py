@@ -40,7 +40,7 @@ import cv2
 import numpy as np
 import torch
 
-from blurcalib.deconv import BlockProblem, DeconvSettings, block_windows
+from blurcalib.deconv import BlockProblem, DeconvSettings, block_windows, update_homography
 from blurcalib.psf import psf_moments
 from blurcalib.results import BlockStatus
 
@@ -315,16 +315,8 @@ class _FieldProblem:
 
 
 _UPDATE_ENTRIES = ((0, 0), (0, 1), (0, 2), (1, 0), (1, 1), (1, 2), (2, 0), (2, 1))
-"""Entries of the 8-parameter update ``Delta`` of a homography (``H <- H (I + Delta)``)."""
-
-
-def _update(H: torch.Tensor, delta: torch.Tensor) -> torch.Tensor:
-    """``H (I + Delta)`` normalised (``H[2, 2] = 1``) for ``H (b, 3, 3)``, ``delta (b, 8)``."""
-    step = torch.zeros_like(H)
-    for j, (r, c) in enumerate(_UPDATE_ENTRIES):
-        step[:, r, c] = delta[:, j]
-    out = H + H @ step
-    return out / out[:, 2:, 2:]
+"""Entries of the 8-parameter update ``Delta`` of a homography
+(:func:`blurcalib.deconv.update_homography`)."""
 
 
 def _tied_map(A: np.ndarray) -> np.ndarray:
@@ -459,11 +451,11 @@ def fit_path_field(image: np.ndarray, H0: np.ndarray, num_segments: int, start: 
         ds = torch.linalg.solve_ex(reduced, gs - (Nls.transpose(1, 2) @ X[..., -1:]).sum(dim=0))[0][:, 0]
         dl = torch.linalg.solve_ex(Nll, gl - Nls @ ds[:, None])[0][..., 0]
         if nh:
-            H_F_try = _update(H_F[None], ds[None, :8])[0]
+            H_F_try = update_homography(H_F[None], ds[None, :8])[0]
             H_try = to_local @ H_F_try[None] @ A
             H_try = H_try / H_try[:, 2:, 2:]
         else:
-            H_try = H_loc if hold else _update(H_loc, dl[:, :8])
+            H_try = H_loc if hold else update_homography(H_loc, dl[:, :8])
         coeffs_try = coeffs + ds[nh:nh + 4 * P].reshape(P, 4)
         sigma_try = (log_sigma + ds[nh + 4 * P:]).clamp_min(math.log(fs.min_sigma_px))
         trial = fp.evaluate(H_try, cur["bright"] + dl[:, -6:], coeffs_try, sigma_try, with_jac=True)

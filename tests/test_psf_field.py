@@ -156,3 +156,36 @@ def test_tied_fit_brings_blocks_started_px_off_onto_their_stars() -> None:
     assert np.median(np.linalg.norm(homography_centre(free.H) - true, axis=1)) > 1.0
     with pytest.raises(ValueError, match="at least 4"):
         fit_path_field(image, H0[:3], SEGMENTS, start, features=f[:3])
+
+
+def test_extract_records_the_field_and_the_option_turns_it_off(tmp_path) -> None:
+    """A frame with 22 px of straight blur on 28 px squares is fitted with its path-PSF field by
+    default (``frames.csv``'s ``psf`` column says ``field``, its status record holds the field,
+    whose path is as long as the blur); ``--no-psf-field`` fits it with free PSFs."""
+    import csv
+
+    from blurcalib.cli import main
+    from blurcalib.pattern import load_pattern
+    from blurcalib.results import read_frame_status
+    from tests.conftest import FIXTURE_YAML
+    from tests.test_seed import _homography, _render
+
+    pattern = load_pattern(FIXTURE_YAML)
+    image = _render(pattern, _homography(pattern), (640, 480), 22.0, 0.6, np.random.default_rng(0))
+    frame = tmp_path / "blurry.png"
+    cv2.imwrite(str(frame), np.clip(np.round(image), 0, 255).astype(np.uint8))
+    rows = {}
+    for name, extra in (("field", []), ("free", ["--no-psf-field"])):
+        out = tmp_path / name
+        assert main(["extract", str(frame), "--pattern", str(FIXTURE_YAML), "--out", str(out),
+                     "--workers", "1", *extra]) == 0
+        with open(out / "frames.csv", newline="") as handle:
+            rows[name] = next(csv.DictReader(handle))
+        status = read_frame_status(out, "blurry.png")
+        assert status is not None and ("psf_field" in status) == (name == "field")
+        if name == "field":
+            field = PathField.from_dict(status["psf_field"])
+            length = np.linalg.norm(field.theta(np.array([[320.0, 240.0]]))[0, :2])
+            assert abs(length - 22.0) < 2.0, length
+    assert rows["field"]["psf"] == "field" and rows["free"]["psf"] == "free"
+    assert rows["field"]["status"] == rows["free"]["status"] == "ok"
