@@ -160,6 +160,10 @@ class FramesPanel:
             if e.status == "ok":
                 lines.append(f"**done**: {e.accepted} blocks accepted of {e.blocks} "
                              f"({md(e.name)}, {e.seconds:.1f} s)")
+                growth = view.result.growth if view.result is not None else None
+                if growth is not None and growth.psf_field is not None:
+                    lines.append("PSFs from the frame's **motion-path field** (its blur is long for "
+                                 "its squares; docs/deconvolution.md)")
             elif e.status == "cancelled":
                 lines.append(f"**cancelled**: {e.accepted} blocks accepted of {e.blocks} ({md(e.name)})")
             elif e.status in ("pending", "queued", "running"):
