@@ -920,11 +920,22 @@ def field_growth(image: np.ndarray, pattern: StarPattern, growth: Growth, deconv
     ring = np.flatnonzero(growth.front == 0)
     fitted = int(np.isfinite(growth.fit.loss).sum())
     from_ring = ring.size >= 6 and (acc.size < settings.field_min_blocks or 2 * acc.size < fitted)
+    events = list(growth.events)
+    front = growth.front.copy()
+    predicted = growth.predicted.copy()
+
+    def report(k: int, fit: BlockFit, row: int) -> None:
+        """The event of row ``row``'s decision, fitted as row ``k`` of ``fit``."""
+        fx, fy = (int(v) for v in pattern.features[growth_ids[row]])
+        event = GrowthEvent(growth_ids[row], fx, fy, status[row], fit.H[k], fit.psf[k],
+                            float(fit.loss[k]), int(front[row]))
+        events.append(event)
+        if on_event is not None:
+            on_event(event)
+
     try:
         if from_ring:
             seeds, H_seed, psf_field = _ring_seed(image, pattern, growth, deconv, settings, tag)
-            for k in np.setdiff1d(acc, seeds):
-                status[k] = BlockStatus.NOT_CONVERGED  # settled off with the ring: tried again
         elif acc.size >= settings.field_min_blocks:
             seeds, H_seed = acc, growth.fit.H[acc]
             start = constant_field(growth.fit.psf[acc], (w, h), field_degree(growth.fit.centre[acc], (w, h)))
@@ -934,18 +945,6 @@ def field_growth(image: np.ndarray, pattern: StarPattern, growth: Growth, deconv
             return growth
     except ValueError:  # no usable PSF or block to fit a field from
         return growth
-    events = list(growth.events)
-    front = growth.front.copy()
-    predicted = growth.predicted.copy()
-
-    def report(k: int, fit: BlockFit, row: int) -> None:
-        fx, fy = (int(v) for v in pattern.features[growth_ids[row]])
-        event = GrowthEvent(growth_ids[row], fx, fy, status[row], fit.H[k], fit.psf[k],
-                            float(fit.loss[k]), int(front[row]))
-        events.append(event)
-        if on_event is not None:
-            on_event(event)
-
     refit = fit_with_field(image, pattern, growth.feature_id[seeds], H_seed, psf_field, deconv, settings, tag)
     ok = np.array([st is BlockStatus.ACCEPTED for st in refit.status], dtype=bool) & np.isfinite(refit.loss)
     ok &= np.linalg.norm(refit.centre - homography_centre(H_seed), axis=1) < settings.final_max_shift_px
@@ -957,8 +956,13 @@ def field_growth(image: np.ndarray, pattern: StarPattern, growth: Growth, deconv
     for k in np.flatnonzero(ok):
         status[seeds[k]] = BlockStatus.ACCEPTED
         report(k, refit, int(seeds[k]))
-    for k in seeds[~ok]:  # its two fits disagree (measured: free fits next to the tag 0.6-1 px off)
-        status[k] = BlockStatus.NOT_CONVERGED
+    # tried again below: blocks whose two fits disagree (measured: free fits next to the tag
+    # 0.6-1 px off), and with seeds from the ring the other blocks the growth accepted
+    demoted = np.union1d(seeds[~ok], np.setdiff1d(acc, seeds) if from_ring else [])
+    for k in demoted.astype(np.int64):
+        if status[k] is BlockStatus.ACCEPTED:
+            status[k] = BlockStatus.NOT_CONVERGED
+            report(int(k), growth.fit, int(k))
     row = {fid: k for k, fid in enumerate(growth_ids)}
     accepted_H = {growth_ids[k]: _normalise(fit.H[k])
                   for k, st in enumerate(status) if st is BlockStatus.ACCEPTED}
