@@ -12,6 +12,7 @@ import os
 import sys
 import time
 from collections.abc import Callable, Sequence
+from dataclasses import replace
 from pathlib import Path
 from typing import get_args
 
@@ -271,10 +272,11 @@ def cmd_extract(args: argparse.Namespace) -> int:
         deconv = DeconvSettings(kernel_size=kernel, device=check_device(args.device))
     except ValueError as exc:
         raise CliError(str(exc)) from None
-    # sharp frames: free PSFs only, as calibrate's (ExtractSettings.sharp), so that its runs reuse these
-    grow = GrowSettings(final_fit_frames=args.final_fit, psf_field=not (args.no_psf_field or args.sharp))
-    settings = ExtractSettings(deconv=deconv, grow=grow, local_alignment=args.local_alignment,
-                               kind="sharp" if args.sharp else "blurry")
+    # --sharp: calibrate's sharp settings (ExtractSettings.sharp), so that its runs reuse these
+    base = ExtractSettings.sharp() if args.sharp else ExtractSettings()
+    grow = replace(base.grow, final_fit_frames=args.final_fit,
+                   psf_field=base.grow.psf_field and not args.no_psf_field)
+    settings = replace(base, deconv=deconv, grow=grow, local_alignment=args.local_alignment)
     bar = tqdm(total=len(paths), desc="extracting", unit="frame", file=sys.stderr,
                dynamic_ncols=True, disable=None)
     counts: dict[str, int] = {}

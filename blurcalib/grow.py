@@ -339,29 +339,45 @@ def inconsistent(features: np.ndarray, centres: np.ndarray, ref_features: np.nda
         min_points: fewest references for a judgement.
         min_inliers: fewest RANSAC inliers among them.
     """
+    finite = np.all(np.isfinite(centres), axis=1)
     bad = np.zeros(len(features), dtype=bool)
+    homographies = neighbour_homographies(features[finite], ref_features, ref_centres, neighbours,
+                                          cv2.RANSAC, tol_px / 2, min_points, min_inliers)
+    for b, H in zip(np.flatnonzero(finite), homographies, strict=True):
+        if H is not None:
+            p = apply_homography(H, features[b][None].astype(np.float64))[0]
+            bad[b] = bool(np.linalg.norm(p - centres[b]) > tol_px)
+    return bad
+
+
+def neighbour_homographies(features: np.ndarray, ref_features: np.ndarray, ref_centres: np.ndarray,
+                           neighbours: int, method: int, threshold_px: float, min_points: int = 10,
+                           min_inliers: int = 6) -> list[np.ndarray | None]:
+    """Per block at integer feature coordinates ``features (B, 2)``: the homography feature
+    coordinates -> px (``cv2.findHomography`` with ``method`` and ``threshold_px``) of the
+    ``neighbours`` reference blocks nearest it in the pattern (``ref_features (R, 2)`` at star
+    centres ``ref_centres (R, 2)`` px; the block itself excluded), or None with fewer than
+    ``min_points`` references, references (nearly) on a line, or fewer than ``min_inliers``
+    inliers (:func:`inconsistent`'s judges, :func:`field_growth`'s predictions)."""
+    out: list[np.ndarray | None] = [None] * len(features)
     if len(ref_features) < min_points:
-        return bad
+        return out
+    ref_f = ref_features.astype(np.float64)
     for b in range(len(features)):
-        if not np.all(np.isfinite(centres[b])):
-            continue
-        d = np.linalg.norm(ref_features - features[b], axis=1)
+        d = np.linalg.norm(ref_f - features[b], axis=1)
         d[d == 0] = np.inf
         near = np.argsort(d, kind="stable")[:neighbours]
         near = near[np.isfinite(d[near])]
         if len(near) < min_points:
             continue
-        src = ref_features[near].astype(np.float64)
+        src = ref_f[near]
         spread = np.linalg.svd(src - src.mean(axis=0), compute_uv=False)[-1] / math.sqrt(len(src))
         if spread < 0.5:
             continue
-        H, inliers = cv2.findHomography(src, ref_centres[near].astype(np.float64), cv2.RANSAC,
-                                        tol_px / 2)
-        if H is None or int(inliers.sum()) < min_inliers:
-            continue
-        p = apply_homography(H, features[b][None].astype(np.float64))[0]
-        bad[b] = bool(np.linalg.norm(p - centres[b]) > tol_px)
-    return bad
+        H, inliers = cv2.findHomography(src, ref_centres[near].astype(np.float64), method, threshold_px)
+        if H is not None and int(inliers.sum()) >= min_inliers:
+            out[b] = H
+    return out
 
 
 def tag_mask(pattern: StarPattern, H_feature: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
@@ -689,13 +705,7 @@ def grow(image: np.ndarray, pattern: StarPattern, seed: Seed,
                 accepted_psf[fid] = fit.psf[k]
                 newly_accepted.append(fid)
                 accepted_rows.append(k)
-            fx, fy = (int(v) for v in pattern.features[fid])
-            event = GrowthEvent(fid, fx, fy, status,
-                                fit.H[k] if status is not BlockStatus.OUTSIDE_IMAGE else H0[k],
-                                fit.psf[k], float(fit.loss[k]), front_index)
-            events.append(event)
-            if on_event is not None:
-                on_event(event)
+            _emit(events, on_event, pattern, fid, status, fit, k, front_index)
         front_ids, front_H, front_src = _next_front(pattern, accepted_H, attempted, newly_accepted)
         front_index += 1
         if adaptive:
@@ -716,6 +726,17 @@ def grow(image: np.ndarray, pattern: StarPattern, seed: Seed,
     if heavy or growth.psf_field is not None:  # every block now has neighbours on all sides: judge again
         _judge_again(pattern, growth, settings, on_event)
     return growth
+
+
+def _emit(events: list[GrowthEvent], on_event: Callable[[GrowthEvent], None] | None, pattern: StarPattern,
+          feature_id: int, status: BlockStatus, fit: BlockFit, k: int, front: int) -> None:
+    """Record, and report to ``on_event``, the decision ``status`` on block ``feature_id`` fitted
+    as row ``k`` of ``fit`` (a block not fitted keeps its prediction as ``H``) in ``front``."""
+    fx, fy = (int(v) for v in pattern.features[feature_id])
+    event = GrowthEvent(int(feature_id), fx, fy, status, fit.H[k], fit.psf[k], float(fit.loss[k]), int(front))
+    events.append(event)
+    if on_event is not None:
+        on_event(event)
 
 
 def _median_blur_per_square(fit: BlockFit) -> float:
@@ -741,12 +762,7 @@ def _judge_again(pattern: StarPattern, growth: Growth, settings: GrowSettings,
     for k in cut:
         status[k] = BlockStatus.DISCONNECTED
     for k in np.concatenate([off, cut]).astype(np.int64):
-        fx, fy = (int(v) for v in pattern.features[ids[k]])
-        event = GrowthEvent(int(ids[k]), fx, fy, status[k], fit.H[k], fit.psf[k], float(fit.loss[k]),
-                            int(growth.front[k]))
-        growth.events.append(event)
-        if on_event is not None:
-            on_event(event)
+        _emit(growth.events, on_event, pattern, ids[k], status[k], fit, k, growth.front[k])
 
 
 def field_degree(xy: np.ndarray, image_size: tuple[int, int], count: int | None = None) -> int:
@@ -854,31 +870,24 @@ def _ring_seed(image: np.ndarray, pattern: StarPattern, growth: Growth, deconv: 
 
 
 def _local_predictions(pattern: StarPattern, ids: np.ndarray, accepted_H: dict[int, np.ndarray],
-                       fallback: np.ndarray, neighbours: int) -> np.ndarray:
-    """``(B, 3, 3)`` predictions of blocks ``ids`` from the homography (feature coordinates ->
-    star centres, least median of squares) of the ``neighbours`` accepted blocks nearest each in the
-    pattern, where at least 10 not on a line exist; else ``fallback (B, 3, 3)`` (the mean of
-    the adjacent blocks' predictions). Under blur as long as the squares a block's fit stays
-    where it starts along the blur, so a prediction from one or two neighbours passes their
-    errors on in chains (measured: 10 blocks 0.5-1 px off in a row); many neighbours, most with
-    shorter blur, hold it."""
+                       fallback: np.ndarray, neighbours: int) -> tuple[np.ndarray, np.ndarray]:
+    """``(B, 3, 3)`` predictions of blocks ``ids`` from the homography of the ``neighbours``
+    accepted blocks nearest each in the pattern (:func:`neighbour_homographies`, least median of
+    squares), where one exists, else ``fallback (B, 3, 3)`` (the mean of the adjacent blocks'
+    predictions); and ``(B,)`` bool, where it exists. Under blur as long as the squares a
+    block's fit stays where it starts along the blur, so a prediction from one or two neighbours
+    passes their errors on in chains (measured: 10 blocks 0.5-1 px off in a row); many
+    neighbours, most with shorter blur, hold it."""
     ref = np.fromiter(accepted_H, dtype=np.int64, count=len(accepted_H))
-    if len(ref) < 10:
-        return fallback
-    ref_f = pattern.features[ref].astype(np.float64)
-    ref_c = homography_centre(np.stack([accepted_H[i] for i in ref]))
+    f = pattern.features[ids]
+    homographies = neighbour_homographies(f, pattern.features[ref],
+                                          homography_centre(np.stack([accepted_H[i] for i in ref])),
+                                          neighbours, cv2.LMEDS, 0.0)
     out = fallback.copy()
-    for b, fid in enumerate(ids):
-        f = pattern.features[fid]
-        near = np.argsort(np.abs(ref_f - f).sum(axis=1), kind="stable")[:neighbours]
-        src = ref_f[near]
-        spread = np.linalg.svd(src - src.mean(axis=0), compute_uv=False)[-1] / math.sqrt(len(src))
-        if len(near) < 10 or spread < 0.5:
-            continue
-        H, _ = cv2.findHomography(src, ref_c[near], cv2.LMEDS)
-        if H is not None:
-            out[b] = _normalise(block_homography(H, f[0:1], f[1:2])[0])
-    return out
+    local = np.array([H is not None for H in homographies], dtype=bool)
+    for b in np.flatnonzero(local):
+        out[b] = _normalise(block_homography(homographies[b], f[b, 0:1], f[b, 1:2])[0])
+    return out, local
 
 
 def field_growth(image: np.ndarray, pattern: StarPattern, growth: Growth, deconv: DeconvSettings,
@@ -906,7 +915,7 @@ def field_growth(image: np.ndarray, pattern: StarPattern, growth: Growth, deconv
        (:func:`judge_front`, the loss limited to :attr:`GrowSettings.field_loss_factor` x the
        median of step 2's) and by its neighbours (:func:`inconsistent`). Whenever the accepted
        blocks have doubled since the field was fitted, it is fitted again from them (warm
-       start); if it was, every accepted block is fitted once more with the last field.
+       start); at the end the blocks fitted with an earlier field are fitted with the last.
 
     ``on_event`` and ``should_stop`` are :func:`grow`'s (polled between fronts). Returns the
     growth unchanged when no field could be fitted; else a new growth (rows of
@@ -921,17 +930,12 @@ def field_growth(image: np.ndarray, pattern: StarPattern, growth: Growth, deconv
     fitted = int(np.isfinite(growth.fit.loss).sum())
     from_ring = ring.size >= 6 and (acc.size < settings.field_min_blocks or 2 * acc.size < fitted)
     events = list(growth.events)
-    front = growth.front.copy()
-    predicted = growth.predicted.copy()
+    front = growth.front.tolist()
+    predicted = list(growth.predicted)
 
     def report(k: int, fit: BlockFit, row: int) -> None:
         """The event of row ``row``'s decision, fitted as row ``k`` of ``fit``."""
-        fx, fy = (int(v) for v in pattern.features[growth_ids[row]])
-        event = GrowthEvent(growth_ids[row], fx, fy, status[row], fit.H[k], fit.psf[k],
-                            float(fit.loss[k]), int(front[row]))
-        events.append(event)
-        if on_event is not None:
-            on_event(event)
+        _emit(events, on_event, pattern, growth_ids[row], status[row], fit, k, front[row])
 
     try:
         if from_ring:
@@ -968,9 +972,11 @@ def field_growth(image: np.ndarray, pattern: StarPattern, growth: Growth, deconv
                   for k, st in enumerate(status) if st is BlockStatus.ACCEPTED}
     tried = dict.fromkeys(accepted_H, 0)
     new_ids = list(accepted_H)
-    fitted_with, refitted = len(accepted_H), False  # accepted blocks when the field was last fitted
+    generation = 0  # fits of the field so far, after the first
+    fitted_in = dict.fromkeys(accepted_H, generation)  # the field each accepted block was fitted with
+    fitted_with = len(accepted_H)  # accepted blocks when the field was last fitted
     appended: list[BlockFit] = []
-    front_index = int(front.max()) + 1
+    front_index = max(front) + 1
     while new_ids and len(growth_ids) < settings.max_blocks:
         if should_stop is not None and should_stop():
             break
@@ -981,20 +987,19 @@ def field_growth(image: np.ndarray, pattern: StarPattern, growth: Growth, deconv
             try:
                 psf_field, _ = _fit_field(image, pattern, ids, H_acc, psf_field.with_degree(degree), deconv,
                                           settings, tag)
-                refitted = True
+                generation += 1
             except ValueError:
                 pass
             fitted_with = len(accepted_H)
         fids, preds, _ = _next_front(pattern, accepted_H, tried, new_ids)
         if not fids:
             break
-        H0 = _local_predictions(pattern, np.asarray(fids), accepted_H, np.stack(preds),
-                                settings.consistency_neighbours)
+        H0, local = _local_predictions(pattern, np.asarray(fids), accepted_H, np.stack(preds),
+                                       settings.consistency_neighbours)
         ffit = fit_with_field(image, pattern, np.asarray(fids), H0, psf_field, deconv, settings, tag)
-        ref = np.fromiter(accepted_H, dtype=np.int64, count=len(accepted_H))
-        off = inconsistent(pattern.features[np.asarray(fids)], ffit.centre, pattern.features[ref],
-                           homography_centre(np.stack(list(accepted_H.values()))),
-                           settings.consistency_neighbours, settings.max_inconsistency_px)
+        # judged by the neighbours that predicted it (inconsistent's rule, one fit per block)
+        off = local & (np.linalg.norm(ffit.centre - homography_centre(H0), axis=1)
+                       > settings.max_inconsistency_px)
         new_ids, again, fresh = [], [], []
         for k, (fid, st) in enumerate(zip(fids, judge_front(ffit, H0, settings, off, max_loss), strict=True)):
             tried[fid] = 0
@@ -1008,10 +1013,11 @@ def field_growth(image: np.ndarray, pattern: StarPattern, growth: Growth, deconv
                 row[fid] = len(growth_ids)
                 growth_ids.append(fid)
                 status.append(st)
-                front = np.append(front, front_index)
-                predicted = np.concatenate([predicted, H0[k][None]])
+                front.append(front_index)
+                predicted.append(H0[k])
             if st is BlockStatus.ACCEPTED:
                 accepted_H[fid] = _normalise(ffit.H[k])
+                fitted_in[fid] = generation
                 new_ids.append(fid)
         if again:
             fit = _replace_rows(fit, np.array([row[fids[k]] for k in again]), ffit, np.array(again))
@@ -1021,8 +1027,10 @@ def field_growth(image: np.ndarray, pattern: StarPattern, growth: Growth, deconv
             report(k, ffit, row[fids[k]])
         front_index += 1
     fit = _concat_fits([fit, *appended])
-    if refitted:  # the blocks fitted with an earlier field, with the last one
-        rows = np.flatnonzero([st is BlockStatus.ACCEPTED for st in status])
+    # the blocks fitted with an earlier field, with the last one
+    rows = np.array([k for k, (fid, st) in enumerate(zip(growth_ids, status, strict=True))
+                     if st is BlockStatus.ACCEPTED and fitted_in[fid] < generation], dtype=np.int64)
+    if rows.size:
         last = fit_with_field(image, pattern, np.array(growth_ids)[rows], fit.H[rows], psf_field, deconv,
                               settings, tag)
         keep = np.array([st is BlockStatus.ACCEPTED for st in last.status], dtype=bool)
@@ -1031,7 +1039,9 @@ def field_growth(image: np.ndarray, pattern: StarPattern, growth: Growth, deconv
         fit = _replace_rows(fit, rows[keep], last, np.flatnonzero(keep))
         for k in np.flatnonzero(keep):
             report(k, last, int(rows[k]))
-    return Growth(fit, np.array(growth_ids, dtype=np.int64), status, front, predicted, events, psf_field)
+    return Growth(fit, np.array(growth_ids, dtype=np.int64), status, np.array(front, dtype=np.int64),
+                  np.stack(predicted), events, psf_field)
+
 
 def judge_front(fit: BlockFit, H0: np.ndarray, settings: GrowSettings, off: np.ndarray,
                 max_loss: float | None = None) -> list[BlockStatus]:

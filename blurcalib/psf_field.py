@@ -57,6 +57,8 @@ PATH_SAMPLES = 48
 """Time samples ``T`` of a path PSF: 0.8 px apart on a 40 px path, below the Gaussian's width."""
 _NUM_THETA = 5
 """Path parameters per block: ``a_x, a_y, b_x, b_y, log sigma``."""
+TERMS = (1, 3, 6)
+"""Monomials of a field of degree 0, 1, 2 (:func:`monomials`)."""
 
 
 def _basis_in_time(T: int, dtype: torch.dtype, device: torch.device) -> torch.Tensor:
@@ -122,7 +124,7 @@ class PathField:
     @property
     def degree(self) -> int:
         """Polynomial degree (0, 1 or 2)."""
-        return {1: 0, 3: 1, 6: 2}[len(self.coeffs)]
+        return TERMS.index(len(self.coeffs))
 
     def basis(self, xy: np.ndarray) -> np.ndarray:
         """``(B, P)`` monomials at image points ``xy (B, 2)`` px."""
@@ -154,7 +156,7 @@ class PathField:
 
     def with_degree(self, degree: int) -> PathField:
         """The same field as a polynomial of ``degree`` (higher terms 0; lower ones dropped)."""
-        P = {0: 1, 1: 3, 2: 6}[degree]
+        P = TERMS[degree]
         coeffs = np.zeros((P, 4))
         n = min(P, len(self.coeffs))
         coeffs[:n] = self.coeffs[:n]
@@ -178,7 +180,7 @@ class PathField:
     @classmethod
     def from_dict(cls, d: dict) -> PathField:
         coeffs = np.asarray(d["coeffs"], dtype=np.float64).reshape(-1, 4)
-        if len(coeffs) not in (1, 3, 6) or not float(d["sigma_px"]) > 0:
+        if len(coeffs) not in TERMS or not float(d["sigma_px"]) > 0:
             raise ValueError(f"not a path field: {len(coeffs)} coefficient rows, sigma {d['sigma_px']}")
         return cls(coeffs, math.log(float(d["sigma_px"])), (int(d["image_size"][0]), int(d["image_size"][1])))
 
@@ -190,7 +192,7 @@ def monomials(xy: np.ndarray, image_size: tuple[int, int], degree: int) -> np.nd
     s = max(w, h) / 2.0
     u, v = (xy[:, 0] - (w - 1) / 2.0) / s, (xy[:, 1] - (h - 1) / 2.0) / s
     terms = [np.ones_like(u), u, v, u * u, u * v, v * v]
-    return np.stack(terms[:{0: 1, 1: 3, 2: 6}[degree]], axis=1)
+    return np.stack(terms[:TERMS[degree]], axis=1)
 
 
 def constant_field(psfs: np.ndarray, image_size: tuple[int, int], degree: int) -> PathField:
@@ -205,7 +207,7 @@ def constant_field(psfs: np.ndarray, image_size: tuple[int, int], degree: int) -
     m = psf_moments(psfs[ok])
     angle = 0.5 * float(np.angle(np.mean(np.exp(2j * np.asarray(m.orientation)))))
     length = math.sqrt(12.0) * float(np.median(m.sigma_major))
-    coeffs = np.zeros(({0: 1, 1: 3, 2: 6}[degree], 4))
+    coeffs = np.zeros((TERMS[degree], 4))
     coeffs[0, :2] = length * math.cos(angle), length * math.sin(angle)
     return PathField(coeffs, math.log(min(max(float(np.median(m.sigma_minor)), 0.5), 1.0)), image_size)
 
