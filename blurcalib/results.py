@@ -66,8 +66,8 @@ as 1)."""
 
 BLUR_PER_SQUARE_LIMIT = 1.25
 """:attr:`BlockTable.blur_per_square` from which fewer blocks are found, and those found are poorer,
-even with the frame's path-PSF field (``scripts/bench_yield.py``: 86 % returned at 0.046 px from
-0.8, 77 % at 0.064 px from 1, 58 % at 0.078 px from 1.25, 21 % at 0.10 px from 1.5; with free
+even with the frame's path-PSF field (``scripts/bench_yield.py``: 85 % returned at 0.048 px from
+0.8, 77 % at 0.067 px from 1, 59 % at 0.059 px from 1.25, 22 % at 0.11 px from 1.5; with free
 PSFs alone it was 50 % from 0.8 and 10 % from 1)."""
 
 CORNER_COLUMNS: tuple[str, ...] = ("frame", "cx2", "cy2", "X", "Y", "x", "y", "blocks")
