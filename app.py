@@ -3,11 +3,11 @@ inspect blocks, see the error field and the frames' poses, and learn the transla
 
     python app.py [FOLDER] [--pattern P.yaml] [--port N]
 
-With no folder it opens a small simulated dataset, rendered on first use into
-``out/app_default/``. The app serves on 127.0.0.1 (port 8080 by default, the next free one if
-taken) and prints its URL; only pages of that origin can drive it, and it is never shared
-(``views/security.py``). All browser tabs share one state (``state/``); each panel is a module of
-``views/``.
+With no folder it opens a small simulated dataset, rendered on first use into the user's cache
+folder (``~/.cache/blurcalib/app_default``, or under ``$XDG_CACHE_HOME``). The app serves on
+127.0.0.1 (port 8080 by default, the next free one if taken) and prints its URL; only pages of
+that origin can drive it, and it is never shared (``views/security.py``). All browser tabs share
+one state (``state/``); each panel is a module of ``views/``.
 """
 
 from __future__ import annotations
@@ -18,15 +18,15 @@ import signal
 import sys
 from collections.abc import Sequence
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Protocol
 
 import viser
 
-from blurcalib.runtime import configure_threads
+from blurcalib.runtime import capped_count, configure_threads
 from state import AppState, RunSettings, default_dataset
 from state.alignment import AlignmentCache
 from state.calibration import CalibrationRunner, CalibrationSettings
+from state.folder import builtin_dataset_folder
 from views.ambiguity import AmbiguityPanel
 from views.calibration import CalibrationPanel
 from views.errors import ErrorsPanel
@@ -34,10 +34,9 @@ from views.frame_view import FrameViewPanel
 from views.frames import FramesPanel
 from views.inspect import InspectPanel
 from views.psf_field import PsfFieldPanel
-from views.security import secure_viser_server
+from views.security import ServeError, secure_viser_server
 from views.tuning import TuningPanel
 
-DEFAULT_FOLDER = Path(__file__).resolve().parent / "out" / "app_default"
 VIEWS_WIDTH = 760
 """Width (px) of the docked panel holding the frame, PSF, block, error and demo views."""
 
@@ -77,6 +76,7 @@ def serve(folder: str | os.PathLike | None = None, pattern: str | os.PathLike | 
     ``server.get_port()``) and open ``folder`` (default: the built-in simulated dataset).
 
     A folder that cannot be opened leaves the app running with an error in its status line.
+    The address is tried before anything else is done.
 
     Args:
         folder: dataset folder (frames, or sub-folders of frames, and ``pattern.yaml``).
@@ -87,13 +87,21 @@ def serve(folder: str | os.PathLike | None = None, pattern: str | os.PathLike | 
         calibration: the calibration's settings.
     Returns:
         The viser server and the app; stop with ``app.close()`` then ``server.stop()``.
+    Raises:
+        ServeError: the app cannot listen on ``host:port``.
     """
-    if folder is None:
-        if not (DEFAULT_FOLDER / "ground_truth.json").is_file():
-            print(f"rendering the built-in dataset into {DEFAULT_FOLDER} (first use only)", flush=True)
-        folder = default_dataset(DEFAULT_FOLDER, progress=_progress)
-    state = AppState(settings)
     server = secure_viser_server(host, port, "blurcalib")
+    if folder is None:
+        builtin = builtin_dataset_folder()
+        first = not (builtin / "ground_truth.json").is_file()
+        print(f"{'rendering' if first else 'opening'} the built-in dataset in {builtin}"
+              + (" (first use only)" if first else ""), flush=True)
+        try:
+            folder = default_dataset(builtin, progress=_progress)
+        except BaseException:
+            server.stop()
+            raise
+    state = AppState(settings)
     server.gui.configure_theme(control_width="large", show_share_button=False, dark_mode=False,
                                brand_color=(40, 110, 200))
     server.gui.main_panel.dock_right()
@@ -120,16 +128,41 @@ def serve(folder: str | os.PathLike | None = None, pattern: str | os.PathLike | 
     return server, app
 
 
+def _port(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"must be a TCP port number (0 to 65535), got {text!r}") from None
+    if not 0 <= value <= 65535:
+        raise argparse.ArgumentTypeError(f"must be a TCP port number (0 to 65535), got {value}")
+    return value
+
+
+def _threads(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"must be a whole number >= 1, got {text!r}") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be >= 1, got {value}")
+    return value
+
+
+def _stop(signum: int, frame: object) -> None:
+    """SIGTERM ends the app as Ctrl+C does: its clean-up runs (uploads deleted, runs cancelled)."""
+    raise KeyboardInterrupt
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The command line of ``python app.py``."""
     p = argparse.ArgumentParser(prog="app.py", description=__doc__.split("\n\n")[0])
     p.add_argument("folder", nargs="?", help="dataset folder (default: a built-in simulated dataset)")
     p.add_argument("--pattern", help="pattern YAML (default: pattern.yaml in the folder or its parent)")
-    p.add_argument("--port", type=int, default=8080,
+    p.add_argument("--port", type=_port, default=8080,
                    help="TCP port (%(default)s; the next free one if taken)")
     p.add_argument("--host", default="127.0.0.1",
                    help="interface to listen on (%(default)s; 0.0.0.0 exposes the app to the network)")
-    p.add_argument("--threads", type=int, default=1,
+    p.add_argument("--threads", type=_threads, default=1,
                    help="compute threads of the extraction and calibration (%(default)s, the engine's "
                         "policy: more only helps on an otherwise idle machine)")
     return p
@@ -138,8 +171,16 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the app until interrupted."""
     args = build_parser().parse_args(argv)
-    configure_threads(args.threads)
-    server, app = serve(args.folder, args.pattern, args.port, host=args.host)
+    threads, note = capped_count(args.threads, "--threads")
+    if note is not None:
+        print(f"app.py: note: {note}", file=sys.stderr)
+    configure_threads(threads)
+    try:
+        server, app = serve(args.folder, args.pattern, args.port, host=args.host)
+    except ServeError as exc:
+        print(f"app.py: error: {exc}", file=sys.stderr)
+        return 2
+    signal.signal(signal.SIGTERM, _stop)
     for notice in app.state.notices:
         if notice.level == "error":
             print(f"{notice.title}: {notice.text}", file=sys.stderr)

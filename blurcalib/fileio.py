@@ -8,14 +8,20 @@ leaves at most a hidden temporary file, which :func:`remove_temporaries` clears 
 An output folder belongs to a run: :func:`claim_output_dir` refuses a non-empty folder that
 does not hold a blurcalib output of the same kind (the run manifest ``blurcalib-run.json``,
 written at the start of a run, names the command and its settings) unless asked to overwrite.
+:func:`output_lock` keeps a second run from writing into a folder while a first one does.
+
+A write that fails for want of space, quota or permission raises :class:`OutputError` naming the
+file (``No space left on device``); the destination keeps its earlier content.
 """
 
 from __future__ import annotations
 
 import contextlib
 import csv
+import errno
 import io
 import json
+import math
 import os
 import re
 import stat
@@ -30,8 +36,89 @@ _TEMPORARY = re.compile(r"\..*\.[a-z0-9_]{8}\.tmp(\.[^.]*)?")
 """Names of :func:`atomic_path`'s temporary files: ``.<stem>.<8 random chars>.tmp<suffix>``."""
 
 
+_STORAGE_ERRORS = frozenset({errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EACCES, errno.EPERM,
+                             errno.EFBIG, errno.EIO})
+"""``errno`` values of a write that fails for want of space, quota or permission: reported as
+:class:`OutputError` (one line naming the file), not as a traceback."""
+
 class OutputError(OSError):
     """An output file or folder cannot be written; the message names the path."""
+
+
+def storage_error(exc: OSError) -> OutputError | None:
+    """``exc`` as a one-line :class:`OutputError` naming its file when it is a write that failed
+    for want of space, quota or permission (``No space left on device``); None otherwise."""
+    if isinstance(exc, OutputError):
+        return exc
+    if exc.errno not in _STORAGE_ERRORS:
+        return None
+    where = f"{os.fsdecode(exc.filename)}: " if exc.filename is not None else ""
+    return OutputError(f"{where}cannot write ({exc.strerror or exc})")
+
+
+@contextlib.contextmanager
+def output_lock(path: str | os.PathLike) -> Iterator[Path]:
+    """Hold the output folder ``path`` for one run: a second run that asks for it while this one
+    holds it is refused with :class:`OutputError`.
+
+    The lock is an advisory ``flock`` on the folder itself (no file is added to it), released
+    when the block ends or the process dies. The folder is created if missing and removed again
+    when the run leaves it empty (a run refused before it wrote anything). Where ``fcntl`` is
+    missing (Windows) no lock is taken.
+
+    Raises:
+        OutputError: another run holds the folder, or it cannot be created.
+    """
+    folder = Path(path)
+    created = not folder.exists()
+    if folder.exists() and not folder.is_dir():
+        yield folder  # the claim names the problem
+        return
+    ensure_writable_dir(folder)
+    try:
+        import fcntl
+    except ImportError:  # no advisory locks: run unlocked
+        yield folder
+        return
+    fd = os.open(folder, os.O_RDONLY)
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError as exc:
+            if exc.errno not in (errno.EWOULDBLOCK, errno.EAGAIN, errno.EACCES):
+                raise
+            raise OutputError(f"{folder}: another blurcalib run is writing into this folder; wait for "
+                              f"it to end or choose another output folder") from None
+        try:
+            yield folder
+        finally:
+            if created:
+                with contextlib.suppress(OSError):
+                    folder.rmdir()  # only when empty
+    finally:
+        os.close(fd)
+
+
+def _strict(value: object) -> object:
+    """``value`` with every non-finite float replaced by None (JSON ``null``)."""
+    if isinstance(value, float):
+        return value if math.isfinite(value) else None
+    if isinstance(value, dict):
+        return {k: _strict(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_strict(v) for v in value]
+    return value
+
+
+def strict_json(doc: object, **kwargs: object) -> str:
+    """``doc`` as strict JSON (RFC 8259): NaN and infinities become ``null``; ``kwargs`` go to
+    ``json.dumps`` (``indent``, ``default``, ``sort_keys``)."""
+    return json.dumps(_strict(doc), allow_nan=False, **kwargs)
+
+
+def atomic_write_json(path: str | os.PathLike, doc: object, **kwargs: object) -> Path:
+    """Write ``doc`` as strict JSON (:func:`strict_json`, a trailing newline) atomically."""
+    return atomic_write_text(path, strict_json(doc, **kwargs) + "\n")
 
 
 def ensure_writable_dir(path: str | os.PathLike) -> Path:
@@ -83,9 +170,11 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
             os.fsync(handle.fileno())
         os.chmod(tmp, mode)
         os.replace(tmp, dest)
-    except BaseException:
+    except BaseException as exc:
         with contextlib.suppress(OSError):
             tmp.unlink()
+        if isinstance(exc, OSError) and not isinstance(exc, OutputError) and exc.errno in _STORAGE_ERRORS:
+            raise OutputError(f"{dest}: cannot write ({exc.strerror or exc})") from exc
         raise
 
 
@@ -125,7 +214,8 @@ def claim_output_dir(path: str | os.PathLike, command: str, settings: dict,
     resume), or one that holds nothing but ``extract`` outputs in the subfolders named by
     ``extractions`` (``calibrate``'s ``sharp`` and ``blurry``, made by earlier ``blurcalib
     extract`` runs) is taken; any other non-empty folder is refused unless ``overwrite``, so
-    that files that are not ours are never replaced. The folder's stray temporary files are
+    that files that are not ours are never replaced. A folder with a sub-folder that cannot be
+    written is refused before the manifest is touched. The folder's stray temporary files are
     removed.
 
     Args:
@@ -149,11 +239,22 @@ def claim_output_dir(path: str | os.PathLike, command: str, settings: dict,
                               f"{manifest.get('command')!r} output, not {command!r}; use "
                               f"--overwrite to write into it")
     ensure_writable_dir(folder)
+    _check_writable_tree(folder)
     remove_temporaries(folder)
     atomic_write_text(folder / RUN_MANIFEST, json.dumps(
         {"tool": "blurcalib", "command": command, "settings": settings}, indent=2,
         sort_keys=True) + "\n")
     return folder
+
+
+def _check_writable_tree(folder: Path) -> None:
+    """Refuse an output folder with a sub-folder the run could not write into, before the run
+    manifest is rewritten (so the manifest never names settings its tables were not made with)."""
+    for root, dirs, _ in os.walk(folder):
+        for name in dirs:
+            sub = Path(root) / name
+            if not os.access(sub, os.W_OK | os.X_OK):
+                raise OutputError(f"{sub}: output folder is not writable")
 
 
 def atomic_write_text(path: str | os.PathLike, text: str) -> Path:

@@ -9,10 +9,16 @@ Pixel ``[i, j]`` is the pixel centred at ``(x, y) = (j, i)`` (OpenCV's pixel-cen
 
 from __future__ import annotations
 
+import contextlib
+import io
 import os
 import re
-from collections.abc import Sequence
+import sys
+import tempfile
+import threading
+from collections.abc import Iterator, Sequence
 from pathlib import Path
+from typing import BinaryIO
 
 import cv2
 import numpy as np
@@ -30,13 +36,24 @@ refused as unreadable."""
 
 MAX_FRAME_PIXELS = 50_000_000
 """Largest frame (width x height) processed; larger frames are refused (as unreadable, from the
-file header where possible, before decoding). Extraction's memory grows with the frame: an
+file header, before decoding). Extraction's memory grows with the frame: an
 8000 x 6000 colour JPEG peaked at 1.8 GB resident in one process (0.3 GB of it the interpreter
 and torch; loading 0.4 GB, tag detection 0.4 GB, block growth the rest), so a frame at the
 limit stays under 2 GB per worker."""
 
-_HEADER_BYTES = 1 << 18
-"""Bytes read to find a PNG's or JPEG's size (a JPEG's EXIF block may precede its frame header)."""
+_TIFF_SIGNATURES = (b"II*\x00", b"MM\x00*", b"II+\x00", b"MM\x00+")
+"""The first four bytes of a TIFF or BigTIFF, little- or big-endian."""
+
+_MAX_JPEG_MARKERS = 100_000
+"""Marker segments (and fill bytes) walked to find a JPEG's frame header before giving up."""
+
+_JPEG_DAMAGE = re.compile(r"Corrupt JPEG data|Premature end of JPEG|Bogus|Invalid|Huffman|Inconsistent")
+"""libjpeg's warnings about damaged data (what else the process writes meanwhile is passed on)."""
+
+_HARMLESS_JPEG_WARNINGS = re.compile(r"Corrupt JPEG data: \d+ extraneous bytes before marker 0xd9")
+"""Decoder warnings that leave the image intact: padding before the end-of-image marker, which
+some cameras write. Any other warning (bad Huffman code, premature end of a data segment, ...)
+marks the frame unreadable: its pixels are partly invented by the decoder."""
 
 _CONVERT_ROWS = 256
 """Rows converted to grey at a time, so that no full-size float copy of a colour image exists."""
@@ -71,7 +88,9 @@ def list_frames(inputs: Sequence[str | os.PathLike]) -> list[Path]:
     A file input is taken as it is (it must have an image extension). A folder contributes its
     image files (not recursively; hidden files starting with ``.`` are skipped), in natural
     order, so ``2.png`` comes before ``10.png``. Inputs keep their order; a file reached twice
-    is listed once, at its first place.
+    is listed once, at its first place. A symbolic link with an image extension is listed even
+    when it is broken or part of a loop, so that its frame gets a status (unreadable, naming the
+    link) instead of vanishing.
 
     Args:
         inputs: files and folders.
@@ -90,11 +109,12 @@ def list_frames(inputs: Sequence[str | os.PathLike]) -> list[Path]:
         path = Path(item)
         if path.is_dir():
             found = sorted((p for p in path.iterdir()
-                            if p.is_file() and _is_image_name(p) and not p.name.startswith(".")),
+                            if (p.is_file() or p.is_symlink()) and _is_image_name(p)
+                            and not p.name.startswith(".")),
                            key=_natural_key)
             if not found:
                 raise FrameError(f"{path}: folder contains no image files ({wanted})")
-        elif path.is_file():
+        elif path.is_file() or path.is_symlink():
             if not _is_image_name(path):
                 raise FrameError(f"{path}: not an image file (expected extension {wanted})")
             found = [path]
@@ -103,7 +123,7 @@ def list_frames(inputs: Sequence[str | os.PathLike]) -> list[Path]:
         else:
             raise FrameError(f"{path}: no such file or folder")
         for p in found:
-            key = p.resolve()
+            key = Path(os.path.realpath(p) if p.exists() else os.path.abspath(p))
             if key not in seen:
                 seen.add(key)
                 out.append(p)
@@ -121,18 +141,34 @@ def _truncation(data: bytes) -> str | None:
     return None
 
 
-def _header_size(data: bytes) -> tuple[int, int] | None:
-    """``(width, height)`` from a PNG's IHDR chunk or a JPEG's start-of-frame marker, read
-    without decoding; None for other formats or a header that cannot be parsed."""
-    if data.startswith(_PNG_SIGNATURE) and data[12:16] == b"IHDR" and len(data) >= 24:
-        return int.from_bytes(data[16:20], "big"), int.from_bytes(data[20:24], "big")
-    if not data.startswith(_JPEG_SOI):
-        return None
+def _image_format(head: bytes) -> str | None:
+    """The format of an image file from its first bytes: ``png``, ``jpeg``, ``tiff``, ``bmp`` or
+    None (a format blurcalib does not read)."""
+    if head.startswith(_PNG_SIGNATURE):
+        return "png"
+    if head.startswith(_JPEG_SOI):
+        return "jpeg"
+    if head[:4] in _TIFF_SIGNATURES:
+        return "tiff"
+    if head.startswith(b"BM"):
+        return "bmp"
+    return None
+
+
+def _read_at(handle: BinaryIO, offset: int, size: int) -> bytes:
+    handle.seek(offset)
+    return handle.read(size)
+
+
+def _jpeg_size(handle: BinaryIO) -> tuple[int, int] | None:
+    """``(width, height)`` from a JPEG's start-of-frame marker, found by walking the marker
+    segments (an EXIF block of any length may precede it)."""
     i = 2
-    while i + 9 <= len(data):
-        if data[i] != 0xFF:
+    for _ in range(_MAX_JPEG_MARKERS):
+        head = _read_at(handle, i, 9)
+        if len(head) < 4 or head[0] != 0xFF:
             return None
-        marker = data[i + 1]
+        marker = head[1]
         if marker == 0xFF:  # fill byte
             i += 1
             continue
@@ -140,32 +176,70 @@ def _header_size(data: bytes) -> tuple[int, int] | None:
             i += 2
             continue
         if 0xC0 <= marker <= 0xCF and marker not in (0xC4, 0xC8, 0xCC):  # start of frame
-            height = int.from_bytes(data[i + 5:i + 7], "big")
-            width = int.from_bytes(data[i + 7:i + 9], "big")
-            return width, height
-        i += 2 + int.from_bytes(data[i + 2:i + 4], "big")
+            if len(head) < 9:
+                return None
+            return int.from_bytes(head[7:9], "big"), int.from_bytes(head[5:7], "big")
+        i += 2 + int.from_bytes(head[2:4], "big")
     return None
 
 
-def frame_size(path: str | os.PathLike) -> tuple[int, int] | None:
-    """``(width, height)`` of an image file in pixels, or None when it cannot be read.
+def _tiff_size(handle: BinaryIO) -> tuple[int, int] | None:
+    """``(width, height)`` from the first image file directory of a TIFF or BigTIFF
+    (``ImageWidth`` 256, ``ImageLength`` 257), read without decoding."""
+    head = _read_at(handle, 0, 16)
+    order = "little" if head[:2] == b"II" else "big"
+    big = int.from_bytes(head[2:4], order) == 43
+    offset = int.from_bytes(head[8:16] if big else head[4:8], order)
+    count_size, entry_size, value_at = (8, 20, 12) if big else (2, 12, 8)
+    count = int.from_bytes(_read_at(handle, offset, count_size), order)
+    entries = _read_at(handle, offset + count_size, entry_size * min(count, 4096))
+    found: dict[int, int] = {}
+    for k in range(len(entries) // entry_size):
+        entry = entries[k * entry_size:(k + 1) * entry_size]
+        tag, kind = int.from_bytes(entry[0:2], order), int.from_bytes(entry[2:4], order)
+        if tag in (256, 257):
+            width = {3: 2, 4: 4, 16: 8}.get(kind)  # SHORT, LONG, LONG8
+            if width is None:
+                return None
+            found[tag] = int.from_bytes(entry[value_at:value_at + width], order)
+    return (found[256], found[257]) if len(found) == 2 else None
 
-    PNG and JPEG sizes come from the file header; other formats are decoded.
-    """
+
+def _bmp_size(handle: BinaryIO) -> tuple[int, int] | None:
+    """``(width, height)`` from a BMP's info header (a negative height: rows stored top-down)."""
+    head = _read_at(handle, 14, 12)
+    if len(head) < 8:
+        return None
+    if int.from_bytes(head[0:4], "little") == 12:  # OS/2 core header: 16-bit sides
+        return int.from_bytes(head[4:6], "little"), int.from_bytes(head[6:8], "little")
+    if len(head) < 12:
+        return None
+    return (abs(int.from_bytes(head[4:8], "little", signed=True)),
+            abs(int.from_bytes(head[8:12], "little", signed=True)))
+
+
+def _header_size(handle: BinaryIO) -> tuple[int, int] | None:
+    """``(width, height)`` of a PNG, JPEG, TIFF or BMP read from its header without decoding
+    (a few small reads, wherever the header lies in the file); None for another format or a
+    header that cannot be parsed."""
+    head = _read_at(handle, 0, 24)
+    kind = _image_format(head)
+    if kind == "png":
+        if head[12:16] != b"IHDR" or len(head) < 24:
+            return None
+        return int.from_bytes(head[16:20], "big"), int.from_bytes(head[20:24], "big")
+    readers = {"jpeg": _jpeg_size, "tiff": _tiff_size, "bmp": _bmp_size}
+    return readers[kind](handle) if kind in readers else None
+
+
+def frame_size(path: str | os.PathLike) -> tuple[int, int] | None:
+    """``(width, height)`` of an image file in pixels, from its header (nothing is decoded), or
+    None when it cannot be read or is not a PNG, JPEG, TIFF or BMP file."""
     try:
         with open(path, "rb") as handle:
-            size = _header_size(handle.read(_HEADER_BYTES))
-            if size is not None:
-                return size
-            handle.seek(0)
-            data = handle.read()
+            return _header_size(handle)
     except OSError:
         return None
-    try:
-        image = cv2.imdecode(np.frombuffer(data, dtype=np.uint8), cv2.IMREAD_UNCHANGED)
-    except cv2.error:
-        return None
-    return None if image is None or image.size == 0 else (int(image.shape[1]), int(image.shape[0]))
 
 
 def frame_size_problem(width: int, height: int) -> str | None:
@@ -181,6 +255,57 @@ def frame_size_problem(width: int, height: int) -> str | None:
     return None
 
 
+def _missing(path: Path) -> str:
+    """Why an existing-looking path has no file: a broken symbolic link, or none at all."""
+    if path.is_symlink():
+        return f"broken symbolic link (to {os.readlink(path)}, which does not exist)"
+    return "no such file"
+
+
+_STDERR_LOCK = threading.Lock()
+"""Serialises the decodes that capture the C library's standard error."""
+
+
+@contextlib.contextmanager
+def _captured_stderr() -> Iterator[list[str]]:
+    """Capture what C code writes to file descriptor 2 while the block runs (libjpeg's warnings);
+    yields a list that receives its lines when the block ends."""
+    lines: list[str] = []
+    with _STDERR_LOCK, tempfile.TemporaryFile() as sink:
+        sys.stderr.flush()
+        saved = os.dup(2)
+        os.dup2(sink.fileno(), 2)
+        try:
+            yield lines
+        finally:
+            os.dup2(saved, 2)
+            os.close(saved)
+            sink.seek(0)
+            lines += [line.strip() for line in sink.read().decode("utf-8", "replace").splitlines()
+                      if line.strip()]
+
+
+def _decode(data: bytes) -> tuple[np.ndarray | None, list[str]]:
+    """Decode image bytes with ``cv2.imdecode`` (stored depth and channels); for a JPEG also
+    return the decoder's warnings that mean damaged data (not :data:`_HARMLESS_JPEG_WARNINGS`)."""
+    buffer = np.frombuffer(data, dtype=np.uint8)
+    if not data.startswith(_JPEG_SOI):
+        try:
+            return cv2.imdecode(buffer, cv2.IMREAD_UNCHANGED), []
+        except cv2.error:
+            return None, []
+    with _captured_stderr() as lines:
+        try:
+            image = cv2.imdecode(buffer, cv2.IMREAD_UNCHANGED)
+        except cv2.error:
+            image = None
+    damage = [line for line in lines if _JPEG_DAMAGE.search(line)]
+    other = [line for line in lines if not _JPEG_DAMAGE.search(line)]
+    if other:  # another thread's output, caught while the decoder's was: pass it on
+        print("\n".join(other), file=sys.stderr, flush=True)
+    return image, [line for line in damage if not _HARMLESS_JPEG_WARNINGS.fullmatch(line)]
+
+
 def load_frame(path: str | os.PathLike, expected_size: tuple[int, int] | None = None) -> np.ndarray:
     """Read one frame as grey levels.
 
@@ -193,36 +318,42 @@ def load_frame(path: str | os.PathLike, expected_size: tuple[int, int] | None = 
     Returns:
         ``(H, W)`` float32 grey levels, 0..255.
     Raises:
-        FrameError: the file is missing, unreadable, empty, truncated, not an image, of an
-            unsupported pixel type, smaller or larger than :func:`frame_size_problem` allows
-            (the size is checked from the header before decoding where the format allows).
+        FrameError: the file is missing (or a broken symbolic link), unreadable, empty, truncated,
+            not a PNG, JPEG, TIFF or BMP file, a JPEG whose decoder reports damaged data, of an
+            unsupported pixel type, or smaller or larger than :func:`frame_size_problem` allows
+            (the size is checked from the file header, before decoding).
         FrameSizeError: a readable frame not of ``expected_size``.
     """
     path = Path(path)
     try:
         data = path.read_bytes()
     except FileNotFoundError:
-        raise FrameError(f"{path}: no such file") from None
+        raise FrameError(f"{path}: {_missing(path)}") from None
     except IsADirectoryError:
         raise FrameError(f"{path}: is a folder, not an image file") from None
     except OSError as exc:
         raise FrameError(f"{path}: cannot read ({exc.strerror or exc})") from None
     if not data:
         raise FrameError(f"{path}: empty file")
-    header = _header_size(data)
-    problem = None if header is None else frame_size_problem(*header)
+    if _image_format(data[:24]) is None:
+        raise FrameError(f"{path}: cannot decode image (not a PNG, JPEG, TIFF or BMP file)")
+    header = _header_size(io.BytesIO(data))
+    if header is None:  # nothing is decoded whose size is unknown
+        problem = _truncation(data) or "cannot decode image (no image size in its header)"
+        raise FrameError(f"{path}: {problem}")
+    problem = frame_size_problem(*header)
     if problem is not None:
         raise FrameError(f"{path}: {problem}")
-    try:
-        image = cv2.imdecode(np.frombuffer(data, dtype=np.uint8), cv2.IMREAD_UNCHANGED)
-    except cv2.error:
-        image = None
+    image, warnings = _decode(data)
     problem = _truncation(data)
     if problem is not None and (image is None or data.startswith(_JPEG_SOI)):
         # Some decoder builds return a partly grey image for a cut-short JPEG: refuse it too.
         raise FrameError(f"{path}: {problem}")
     if image is None or image.size == 0:
         raise FrameError(f"{path}: cannot decode image (not an image, or corrupt or truncated)")
+    if warnings:
+        raise FrameError(f"{path}: corrupt image data (the decoder says: {warnings[0]}"
+                         + (f"; {len(warnings) - 1} more warning(s))" if len(warnings) > 1 else ")"))
     problem = frame_size_problem(int(image.shape[1]), int(image.shape[0]))
     if problem is not None:
         raise FrameError(f"{path}: {problem}")

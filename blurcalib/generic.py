@@ -46,6 +46,7 @@ __all__ = [
     "accumulate_blocks",
     "apply_update",
     "calibrated_area",
+    "check_grid_size",
     "fit_to_rays",
     "grid_size_for",
     "param_columns",
@@ -67,11 +68,40 @@ _AREA_EDGE = 0.999
 """Projections are clamped to ``[min, max + 0.999]`` (pixel-corner), as the reference does."""
 
 
+MAX_GRID_NODES = 5000
+"""Most nodes of a generic grid fitted by the bundle adjustment. Its reduced normal equations on
+the ``2 GW GH`` grid parameters are dense (:mod:`blurcalib.bundle`): three such float64 matrices,
+``96 GW^2 GH^2`` bytes, about 2.4 GB at 5000 nodes (a 1920 x 1080 camera at 25 px cells has
+3555). Larger grids are refused before anything is allocated, naming the cell length that fits."""
+
+
 def grid_size_for(length_px: float, cell_px: float = DEFAULT_CELL_PX) -> int:
     """Nodes along one axis for a calibrated length: ``int(length / cell + 0.5) + 2``, at least 4."""
-    if not cell_px > 0:
-        raise ValueError(f"cell length must be positive, got {cell_px}")
+    if not (math.isfinite(cell_px) and cell_px > 0):
+        raise ValueError(f"cell length must be a finite positive number of px, got {cell_px}")
     return max(4, int(length_px / cell_px + 0.5) + 2)
+
+
+def check_grid_size(width_px: float, height_px: float, cell_px: float = DEFAULT_CELL_PX) -> tuple[int, int]:
+    """The grid ``(GH, GW)`` for a calibrated area of ``width_px x height_px`` at cells of
+    ``cell_px``, checked against :data:`MAX_GRID_NODES`.
+
+    Raises:
+        ValueError: a cell length that is not a finite positive number, or a grid of more than
+            :data:`MAX_GRID_NODES` nodes (the message gives the memory it would need and the
+            smallest cell length that fits).
+    """
+    gh, gw = grid_size_for(height_px, cell_px), grid_size_for(width_px, cell_px)
+    if gh * gw <= MAX_GRID_NODES:
+        return gh, gw
+    fits = max(1.0, math.floor(cell_px))
+    while grid_size_for(height_px, fits) * grid_size_for(width_px, fits) > MAX_GRID_NODES:
+        fits += 1.0
+    need_gb = 96.0 * (gh * gw) ** 2 / 1e9
+    raise ValueError(f"cells of {cell_px:g} px make a {gw} x {gh} grid ({gh * gw} nodes) over "
+                     f"{width_px:g} x {height_px:g} px, whose bundle adjustment would need about "
+                     f"{need_gb:,.1f} GB; the limit is {MAX_GRID_NODES} nodes: use cells of {fits:g} px "
+                     f"or more")
 
 
 def calibrated_area(px: ArrayLike, width: int, height: int) -> tuple[int, int, int, int]:

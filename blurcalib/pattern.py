@@ -43,6 +43,21 @@ MAX_SQUARES = 1000
 """Most squares along one side of a target (a 2 m poster of 2 mm squares); larger counts are
 refused before anything is allocated from them."""
 
+MAX_STAR_SEGMENTS = 128
+"""Most segments in a star: at 128 a 12 mm square's sectors are 0.3 mm wide at its border, at
+the edge of what prints and what a camera resolves; larger counts are refused before anything
+is computed from them."""
+
+MAX_PATTERN_BYTES = 1 << 20
+"""Largest pattern YAML read (bytes); the reference tool's files are under 1 kB."""
+
+MAX_YAML_DEPTH = 16
+"""Deepest nesting of mappings and lists in a pattern YAML (a pattern file nests 3 deep); checked
+on the parser's event stream before any object is built from it."""
+
+_SHOWN_CHARS = 60
+"""Longest part of a field's value quoted in an error message."""
+
 PAGE_TOLERANCE_MM = 0.01
 """How far (mm) the pattern area may reach past the page edge (rounding in written YAMLs)."""
 
@@ -100,8 +115,9 @@ class StarPattern:
         """Check the geometry before anything is allocated from it; messages name the YAML
         field."""
         n = self.num_star_segments
-        if n < 4 or n % 4 != 0:
-            raise ValueError(f"num_star_segments must be a multiple of 4 and >= 4, got {n}")
+        if n < 4 or n % 4 != 0 or n > MAX_STAR_SEGMENTS:
+            raise ValueError(f"num_star_segments must be a multiple of 4 from 4 to {MAX_STAR_SEGMENTS}, "
+                             f"got {n}")
         for name in ("squares_x", "squares_y"):
             count = getattr(self, name)
             if not 3 <= count <= MAX_SQUARES:
@@ -281,18 +297,20 @@ class StarPattern:
             size_px = (round(self.page.width_mm / mm_per_px), round(self.page.height_mm / mm_per_px))
         w, h = size_px
         offs = (np.arange(supersample) + 0.5) / supersample
-        acc = np.zeros((h, w), dtype=np.float64)
+        out = np.empty((h, w), dtype=np.uint8)
         xs = np.arange(w, dtype=np.float64)
         rows_per_chunk = max(1, 2_000_000 // max(w, 1))
-        for oy in offs:
-            for ox in offs:
-                for r0 in range(0, h, rows_per_chunk):
-                    r1 = min(h, r0 + rows_per_chunk)
-                    ys = np.arange(r0, r1, dtype=np.float64)
+        for r0 in range(0, h, rows_per_chunk):  # memory: a few chunks of 2 M samples, and the image
+            r1 = min(h, r0 + rows_per_chunk)
+            ys = np.arange(r0, r1, dtype=np.float64)
+            acc = np.zeros((r1 - r0, w), dtype=np.float64)
+            for oy in offs:
+                for ox in offs:
                     mm = np.stack(np.broadcast_arrays((xs[None, :] + ox) * mm_per_px,
                                                       (ys[:, None] + oy) * mm_per_px), axis=-1)
-                    acc[r0:r1] += self.intensity(self.page_mm_to_feature(mm))
-        return np.clip(np.round(acc / supersample**2 * 255.0), 0, 255).astype(np.uint8)
+                    acc += self.intensity(self.page_mm_to_feature(mm))
+            out[r0:r1] = np.clip(np.round(acc / supersample**2 * 255.0), 0, 255)
+        return out
 
     # ------------------------------------------------------------------------------- YAML
     def to_yaml_text(self) -> str:
@@ -322,6 +340,34 @@ class StarPattern:
         return atomic_write_text(path, self.to_yaml_text())
 
 
+def _shown(value: object) -> str:
+    """A field's value for an error message, at most :data:`_SHOWN_CHARS` characters: a mapping
+    or a list is named by its type and length (never expanded: YAML aliases can make a 1 kB
+    file a structure of 10^9 leaves), other values by their ``repr``, shortened."""
+    if isinstance(value, dict):
+        return f"a mapping of {len(value)} key(s)"
+    if isinstance(value, (list, tuple)):
+        return f"a list of {len(value)} item(s)"
+    plain = isinstance(value, (str, int, float, bool)) or value is None
+    text = repr(value) if plain else type(value).__name__
+    return text if len(text) <= _SHOWN_CHARS else text[:_SHOWN_CHARS - 3] + "..."
+
+
+def _check_depth(text: str, path: str) -> None:
+    """Refuse YAML nested deeper than :data:`MAX_YAML_DEPTH`, from the parser's event stream
+    (the parser is iterative; the composer that builds objects is recursive and would run out
+    of stack on a file nested 20,000 deep)."""
+    depth = 0
+    for event in yaml.parse(text, Loader=yaml.SafeLoader):
+        if isinstance(event, (yaml.MappingStartEvent, yaml.SequenceStartEvent)):
+            depth += 1
+            if depth > MAX_YAML_DEPTH:
+                raise PatternFileError(f"{path}: YAML nested more than {MAX_YAML_DEPTH} levels deep at "
+                                       f"line {event.start_mark.line + 1} (a pattern file nests 3)")
+        elif isinstance(event, (yaml.MappingEndEvent, yaml.SequenceEndEvent)):
+            depth -= 1
+
+
 def _field(node: dict, key: str, kind: type, path: str, where: str = ""):
     name = f"{where}{key}"
     if not isinstance(node, dict) or key not in node:
@@ -335,7 +381,7 @@ def _field(node: dict, key: str, kind: type, path: str, where: str = ""):
         return kind(value)
     except (TypeError, ValueError, OverflowError):
         raise PatternFileError(
-            f"{path}: field '{name}' must be {kind.__name__}, got {value!r}") from None
+            f"{path}: field '{name}' must be {kind.__name__}, got {_shown(value)}") from None
 
 
 def load_pattern(path: str | os.PathLike) -> StarPattern:
@@ -347,21 +393,34 @@ def load_pattern(path: str | os.PathLike) -> StarPattern:
     """
     path_s = str(path)
     try:
-        text = Path(path).read_text(encoding="utf-8")
+        with open(path, "rb") as handle:
+            data = handle.read(MAX_PATTERN_BYTES + 1)
     except FileNotFoundError:
         raise PatternFileError(f"{path_s}: pattern file not found") from None
-    except (OSError, UnicodeDecodeError) as exc:
+    except OSError as exc:
+        raise PatternFileError(f"{path_s}: cannot read pattern file ({exc})") from None
+    if len(data) > MAX_PATTERN_BYTES:
+        raise PatternFileError(f"{path_s}: more than {MAX_PATTERN_BYTES} bytes, the largest pattern file "
+                               f"read (a pattern YAML is under 1 kB)")
+    try:
+        text = data.decode("utf-8")
+    except UnicodeDecodeError as exc:
         raise PatternFileError(f"{path_s}: cannot read pattern file ({exc})") from None
     try:
+        _check_depth(text, path_s)
         doc = yaml.safe_load(text)
     except yaml.YAMLError as exc:
         raise PatternFileError(f"{path_s}: not valid YAML ({exc})".replace("\n", " ")) from None
+    except PatternFileError:
+        raise
+    except ValueError as exc:  # a value the YAML constructors refuse (an integer of 5,000 digits)
+        raise PatternFileError(f"{path_s}: unreadable value in the YAML ({exc})") from None
     if not isinstance(doc, dict):
         raise PatternFileError(f"{path_s}: not a pattern YAML (expected a mapping at top level)")
     segments = _field(doc, "num_star_segments", int, path_s)
-    if segments < 4 or segments % 4:
-        raise PatternFileError(
-            f"{path_s}: field 'num_star_segments' must be a multiple of 4 (>= 4), got {segments}")
+    if segments < 4 or segments % 4 or segments > MAX_STAR_SEGMENTS:
+        raise PatternFileError(f"{path_s}: field 'num_star_segments' must be a multiple of 4 from 4 to "
+                               f"{MAX_STAR_SEGMENTS}, got {segments}")
     squares_x = _field(doc, "squares_x", int, path_s)
     squares_y = _field(doc, "squares_y", int, path_s)
     square_length = _field(doc, "square_length_in_meters", float, path_s)
@@ -533,8 +592,9 @@ def layout_pattern(page_size_mm: tuple[float, float] = PAGE_SIZES_MM["A4"],
         ValueError: unsupported segment count, a page too small for 3 x 3 squares plus the tag,
             or a tag id outside tag36h11.
     """
-    if num_star_segments < 4 or num_star_segments % 4:
-        raise ValueError(f"num_star_segments must be a multiple of 4 (>= 4), got {num_star_segments}")
+    if num_star_segments < 4 or num_star_segments % 4 or num_star_segments > MAX_STAR_SEGMENTS:
+        raise ValueError(f"num_star_segments must be a multiple of 4 from 4 to {MAX_STAR_SEGMENTS}, "
+                         f"got {num_star_segments}")
     if not 0 <= tag_index < 587:
         raise ValueError(f"tag index must be a tag36h11 id in [0, 586], got {tag_index}")
     # Computed in PDF points exactly as the reference generator does, so that the YAML it

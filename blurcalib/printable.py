@@ -23,11 +23,16 @@ from matplotlib.patches import PathPatch
 from matplotlib.path import Path as MplPath
 from matplotlib.transforms import Affine2D
 
-from blurcalib.fileio import atomic_path, atomic_write_bytes, ensure_writable_dir
+from blurcalib.fileio import OutputError, atomic_path, atomic_write_bytes, ensure_writable_dir
 from blurcalib.pattern import TAG_CELLS, StarPattern
 
 PRINTABLE_FORMATS = ("pdf", "png", "yaml")
 MM_PER_INCH = 25.4
+
+MAX_PNG_PIXELS = 150_000_000
+"""Largest PNG render (width x height px): an A4 page at 1200 dpi is 139 MP, an A0 poster at
+300 dpi 139 MP. The render holds the 8-bit image and row chunks of 2 M samples, so 150 MP stays
+near 0.2 GB; larger renders are refused before any file is written."""
 
 
 def sector_polygons(num_segments: int) -> list[np.ndarray]:
@@ -126,8 +131,15 @@ def png_with_dpi(image: np.ndarray, dpi: float) -> bytes:
     return data[:ihdr_end] + chunk + data[ihdr_end:]
 
 
+def png_size(pattern: StarPattern, dpi: float) -> tuple[int, int]:
+    """``(width, height)`` px of the page rendered at ``dpi`` (:meth:`StarPattern.render_page`)."""
+    mm_per_px = MM_PER_INCH / dpi
+    return round(pattern.page.width_mm / mm_per_px), round(pattern.page.height_mm / mm_per_px)
+
+
 def write_printable(pattern: StarPattern, out_base: str | os.PathLike, dpi: float = 300,
-                    formats: Sequence[str] = PRINTABLE_FORMATS) -> dict[str, Path]:
+                    formats: Sequence[str] = PRINTABLE_FORMATS, overwrite: bool = False
+                    ) -> dict[str, Path]:
     """Write the printable target: ``<out_base>.pdf``, ``<out_base>.png``, ``<out_base>.yaml``.
 
     Args:
@@ -137,30 +149,47 @@ def write_printable(pattern: StarPattern, out_base: str | os.PathLike, dpi: floa
         formats: any of ``"pdf"`` (vector page at its physical size, see :func:`page_figure`),
             ``"png"`` (``pattern.render_page(dpi)``, 8-bit grey, resolution recorded) and
             ``"yaml"`` (the pattern YAML).
+        overwrite: replace files that exist; without it an existing file is refused before
+            anything is written.
     Returns:
         ``{format: path}`` of the files written. Each file is written atomically.
     Raises:
-        ValueError: an unknown format or a non-positive dpi.
-        OutputError: the output folder cannot be created or written (the message names it).
+        ValueError: no format, an unknown format, a dpi that is not a positive number, or a PNG
+            over :data:`MAX_PNG_PIXELS` (all checked before any file is written).
+        OutputError: a file exists (without ``overwrite``), or the output folder cannot be
+            created or written (the message names it).
     """
     unknown = sorted(set(formats) - set(PRINTABLE_FORMATS))
     if unknown:
         raise ValueError(f"unknown printable format(s) {unknown}; choose from {list(PRINTABLE_FORMATS)}")
-    if not dpi > 0:
-        raise ValueError(f"dpi must be positive, got {dpi}")
+    if not formats:
+        raise ValueError(f"no format to write; choose from {', '.join(PRINTABLE_FORMATS)}")
+    if not (math.isfinite(dpi) and dpi > 0):
+        raise ValueError(f"dpi must be a positive number, got {dpi}")
+    if "png" in formats:
+        w, h = png_size(pattern, dpi)
+        if w * h > MAX_PNG_PIXELS:
+            raise ValueError(f"dpi {dpi:g}: the PNG of the {pattern.page.width_mm:g} x "
+                             f"{pattern.page.height_mm:g} mm page would be {w} x {h} px "
+                             f"({w * h / 1e6:.0f} MP), more than the {MAX_PNG_PIXELS / 1e6:.0f} MP limit; "
+                             f"lower the dpi or leave png out of the formats")
     base = Path(out_base)
+    targets = {kind: base.with_name(f"{base.name}.{kind}") for kind in PRINTABLE_FORMATS if kind in formats}
+    existing = [str(path) for path in targets.values() if path.exists()]
+    if existing and not overwrite:
+        raise OutputError(f"{', '.join(existing)}: already exists; use --overwrite to replace")
     ensure_writable_dir(base.parent)
     paths: dict[str, Path] = {}
     if "pdf" in formats:
-        paths["pdf"] = base.with_name(base.name + ".pdf")
+        paths["pdf"] = targets["pdf"]
         fig = page_figure(pattern)
         with atomic_path(paths["pdf"]) as tmp:
             fig.savefig(tmp, format="pdf", facecolor="white",
                         metadata={"Creator": "blurcalib", "Title": base.name})
     if "png" in formats:
-        paths["png"] = atomic_write_bytes(base.with_name(base.name + ".png"),
+        paths["png"] = atomic_write_bytes(targets["png"],
                                           png_with_dpi(pattern.render_page(dpi), dpi))
     if "yaml" in formats:
-        paths["yaml"] = pattern.save_yaml(base.with_name(base.name + ".yaml"))
+        paths["yaml"] = pattern.save_yaml(targets["yaml"])
     return paths
 

@@ -9,7 +9,13 @@ thread by default and parallelism comes from worker processes, one per core.
 
 from __future__ import annotations
 
+import multiprocessing
 import os
+import threading
+import time
+
+PARENT_POLL_S = 1.0
+"""How often a worker process checks that the process that started it is still alive (s)."""
 
 
 def available_cores() -> int:
@@ -43,6 +49,38 @@ def configure_threads(threads: int | None = None) -> int:
     torch.set_num_threads(n)
     cv2.setNumThreads(n)
     return n
+
+
+def capped_count(value: int, what: str) -> tuple[int, str | None]:
+    """``value`` threads or processes capped at :func:`available_cores`, and the one-line note
+    to print when it was capped (None otherwise): more than one per core only competes for the
+    cores (``--threads 1000`` started 3,002 threads and made one frame 90 times slower)."""
+    cores = available_cores()
+    if value <= cores:
+        return value, None
+    return cores, f"{what} {value} is more than the {cores} cores available: using {cores}"
+
+
+def exit_with_parent(poll_s: float = PARENT_POLL_S) -> None:
+    """Make this worker process exit when the process that started it dies (a ``kill -9`` of
+    the parent would otherwise leave it blocked forever, holding its memory).
+
+    A daemon thread checks the parent every ``poll_s`` seconds and ends the process with
+    ``os._exit`` once the parent is gone (the worker was re-parented). Call it from a worker
+    pool's initialiser; in a process that no ``multiprocessing`` parent started it does nothing.
+    """
+    parent = multiprocessing.parent_process()
+    if parent is None:
+        return
+    pid = parent.pid
+
+    def watch() -> None:
+        while True:
+            if os.getppid() != pid:
+                os._exit(1)
+            time.sleep(poll_s)
+
+    threading.Thread(target=watch, name="exit-with-parent", daemon=True).start()
 
 
 class DeviceError(ValueError):

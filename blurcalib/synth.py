@@ -40,6 +40,7 @@ from blurcalib.camera import BrownConrady, Pose, homography_centre, translation
 from blurcalib.fileio import atomic_path, atomic_write_text, ensure_writable_dir
 from blurcalib.pattern import StarPattern, layout_pattern, star_sector_white
 from blurcalib.psf import psf_centroid
+from blurcalib.runtime import exit_with_parent
 
 GROUND_TRUTH_FILE = "ground_truth.json"
 GROUND_TRUTH_VERSION = 1
@@ -624,7 +625,10 @@ class SynthConfig:
     def __post_init__(self) -> None:
         if self.sharp < 0 or self.blurry < 0:
             raise ValueError(f"frame counts must be >= 0, got {self.sharp} sharp, {self.blurry} blurry")
-        if not 0 <= self.blur_min_px <= self.blur_max_px:
+        if not (math.isfinite(self.noise_sigma) and self.noise_sigma >= 0):
+            raise ValueError(f"noise (noise_sigma) must be a finite number >= 0 grey levels, got "
+                             f"{self.noise_sigma}")
+        if not 0 <= self.blur_min_px <= self.blur_max_px < math.inf:
             raise ValueError(f"need 0 <= blur_min_px <= blur_max_px, got {self.blur_min_px}, "
                              f"{self.blur_max_px}")
         if not 0 <= self.max_tilt_deg < 85:
@@ -830,6 +834,7 @@ _WORKER_SIM: Simulator | None = None
 
 def _init_worker(config: SynthConfig, pattern: StarPattern, camera: TrueCamera) -> None:
     global _WORKER_SIM  # each worker process builds its simulator (lens maps, textures) once
+    exit_with_parent()
     cv2.setNumThreads(1)
     _WORKER_SIM = Simulator(config, pattern, camera)
 

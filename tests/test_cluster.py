@@ -17,6 +17,8 @@ from blurcalib.results import read_features
 from blurcalib.runtime import configure_threads
 from blurcalib.synth import Simulator, SynthConfig, TrueCamera
 
+pytestmark = pytest.mark.slow
+
 distributed = pytest.importorskip(
     "distributed", reason="Dask is not installed: pip install 'blurcalib[cluster]'")
 

@@ -107,6 +107,7 @@ def sharp_sim(small_camera: TrueCamera) -> Simulator:
     return Simulator(cfg, camera=small_camera)
 
 
+@pytest.mark.slow
 def test_star_centres_on_sharp_renders_match_projected_truth(sharp_sim: Simulator) -> None:
     for index in range(2):
         frame = sharp_sim.frame(index)
@@ -159,6 +160,7 @@ def test_sharp_psf_is_centred_defocus(sharp_sim: Simulator) -> None:
     assert var == pytest.approx(truth.defocus_sigma**2, rel=0.05)
 
 
+@pytest.mark.slow
 def test_write_dataset_round_trip(tmp_path, small_camera: TrueCamera) -> None:
     cfg = SynthConfig(sharp=1, blurry=1, square_px=(18.0, 26.0), blur_min_px=3, blur_max_px=5)
     calls = []

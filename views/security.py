@@ -19,6 +19,14 @@ cosmetic):
 * **No share URL.** viser's ``ShareUrlRequest`` handler is removed and replaced by one that
   refuses and logs; no tunnel is ever created, whatever a client sends.
 
+Two more guards keep a page's input from exhausting the app: an upload larger than
+:data:`MAX_UPLOAD_BYTES` is refused when it starts (before any part is buffered), as is a part
+that goes beyond the size its upload declared; and :func:`safe_upload_name` turns any uploaded
+file name into one that can be stored (no folders, no NUL or control characters, at most
+:data:`MAX_UPLOAD_NAME` characters). :func:`check_listen` tries the address before the server
+starts, so that a port or host that cannot be used is a one-line error, not a server thread that
+dies while the app waits for it.
+
 viser builds its websockets server inside ``ViserServer.__init__`` with no hook for either, so
 :func:`secure_viser_server` wraps ``websockets.asyncio.server.serve`` only while the server is
 being built (viser calls it from its server thread before ``__init__`` returns; a lock keeps two
@@ -27,9 +35,12 @@ builds from overlapping) and puts the origin check in front of viser's own ``pro
 
 from __future__ import annotations
 
+import errno
 import http
 import ipaddress
 import logging
+import re
+import socket
 import threading
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
@@ -48,6 +59,58 @@ _BUILD_LOCK = threading.Lock()
 """Serialises the builds that temporarily wrap ``websockets.asyncio.server.serve``."""
 
 ProcessRequest = Callable[[ServerConnection, Request], Response | None]
+
+MAX_UPLOAD_BYTES = 100_000_000
+"""Largest upload (bytes): a 24-megapixel 16-bit grey TIFF is 48 MB. viser buffers an upload's
+parts and then joins them, so an upload holds about twice its size while it arrives; larger
+frames are opened from their folder instead."""
+
+MAX_UPLOAD_NAME = 100
+"""Longest stored upload name (characters, suffix kept); longer names are shortened."""
+
+_UNSAFE = re.compile(r"[\x00-\x1f\x7f/\\]")
+"""Characters never kept in a stored upload name: NUL and other control characters, separators."""
+
+
+class ServeError(RuntimeError):
+    """The app cannot listen on the host and port asked for (a one-line message)."""
+
+
+def check_listen(host: str, port: int) -> None:
+    """Check that a server can listen on ``host:port`` before one is started.
+
+    A port in use is accepted (viser then takes the next free one); any other failure is not.
+
+    Raises:
+        ServeError: a port outside 0 to 65535, a host that does not resolve, or an address that
+            cannot be bound (not this machine's, or a privileged port), naming it.
+    """
+    if not 0 <= port <= 65535:
+        raise ServeError(f"--port {port}: not a TCP port (0 to 65535)")
+    try:
+        family, kind, proto, _, address = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM)[0]
+    except (socket.gaierror, UnicodeError) as exc:
+        raise ServeError(f"--host {host!r}: not a host name or address of this machine ({exc})") from None
+    with socket.socket(family, kind, proto) as probe:
+        probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        try:
+            probe.bind(address)
+        except OSError as exc:
+            if exc.errno != errno.EADDRINUSE:
+                raise ServeError(f"cannot listen on {host}:{port} ({exc.strerror or exc})") from None
+
+
+def safe_upload_name(name: str) -> str:
+    """An uploaded file's name as it is stored: its last path part, without NUL, control
+    characters or separators, shortened to :data:`MAX_UPLOAD_NAME` characters (its suffix kept);
+    ``upload`` when nothing is left."""
+    base = _UNSAFE.sub("_", re.split(r"[/\\]", name)[-1]).strip(" .") or "upload"
+    if len(base) <= MAX_UPLOAD_NAME:
+        return base
+    stem, dot, suffix = base.rpartition(".")
+    if not dot or len(suffix) > 10:
+        return base[:MAX_UPLOAD_NAME]
+    return stem[:MAX_UPLOAD_NAME - len(suffix) - 1] + "." + suffix
 
 
 def _host_port(netloc: str) -> tuple[str, int | None] | None:
@@ -135,8 +198,48 @@ def _refuse_share(client_id: int, _message: _messages.ShareUrlRequest) -> None:
     log.warning("refused a share-URL request from client %d: this app is never shared", client_id)
 
 
+def _notify(server: viser.ViserServer, client_id: int, title: str, text: str) -> None:
+    client = server.get_clients().get(client_id)
+    if client is not None:
+        client.add_notification(title, text, auto_close_seconds=8.0, color="red")
+
+
+def _guard_uploads(server: viser.ViserServer) -> None:
+    """Refuse uploads over :data:`MAX_UPLOAD_BYTES` when they start, and drop an upload whose
+    parts go beyond its declared size, in front of viser's own handlers."""
+    gui = server.gui
+    websock = server._websock_server
+    start_upload = gui._handle_file_transfer_start
+    add_part = gui._handle_file_transfer_part
+    transfers = gui._current_file_upload_states
+
+    def start(client_id: int, message: _messages.FileTransferStartUpload) -> None:
+        if message.size_bytes > MAX_UPLOAD_BYTES or message.size_bytes < 0:
+            name = safe_upload_name(message.filename)
+            log.warning("refused an upload of %d bytes (%s)", message.size_bytes, name)
+            _notify(server, client_id, "Upload refused",
+                    f"{name}: {message.size_bytes / 1e6:.1f} MB, more than the "
+                    f"{MAX_UPLOAD_BYTES / 1e6:.0f} MB an upload may have; open its folder instead")
+            return
+        start_upload(client_id, message)
+
+    def part(client_id: int, message: _messages.FileTransferPart) -> None:
+        state = transfers.get(message.transfer_uuid)
+        if state is not None and state["transferred_bytes"] + len(message.content) > state["total_bytes"]:
+            transfers.pop(message.transfer_uuid, None)
+            log.warning("dropped an upload whose parts exceed its declared %d bytes", state["total_bytes"])
+            return
+        add_part(client_id, message)
+
+    websock.unregister_handler(_messages.FileTransferStartUpload)
+    websock.register_handler(_messages.FileTransferStartUpload, start)
+    websock.unregister_handler(_messages.FileTransferPart)
+    websock.register_handler(_messages.FileTransferPart, part)
+
+
 def secure_viser_server(host: str, port: int, label: str) -> viser.ViserServer:
-    """A ``viser.ViserServer`` on ``host:port`` with the origin check and no share URL.
+    """A ``viser.ViserServer`` on ``host:port`` with the origin check, no share URL and the
+    upload guards.
 
     Args:
         host: interface to listen on.
@@ -145,9 +248,11 @@ def secure_viser_server(host: str, port: int, label: str) -> viser.ViserServer:
     Returns:
         The running server; stop it with ``server.stop()``.
     Raises:
+        ServeError: the server cannot listen on ``host:port`` (:func:`check_listen`).
         RuntimeError: viser built its server without ``websockets.asyncio.server.serve`` (another
             viser version), so the origin check is not in place; the server is stopped.
     """
+    check_listen(host, port)
     with _origin_guarded_serve() as guarded:
         server = viser.ViserServer(host=host, port=port, label=label, verbose=False)
     if not guarded:
@@ -157,4 +262,5 @@ def secure_viser_server(host: str, port: int, label: str) -> viser.ViserServer:
     websock = server._websock_server  # viser exposes no public hook for its message handlers
     websock.unregister_handler(_messages.ShareUrlRequest)
     websock.register_handler(_messages.ShareUrlRequest, _refuse_share)
+    _guard_uploads(server)
     return server
