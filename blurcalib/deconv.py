@@ -291,6 +291,18 @@ class BlockFit:
     def __len__(self) -> int:
         return int(self.H.shape[0])
 
+    def converged_within(self, tol_px: float) -> np.ndarray:
+        """``(B,)`` bool: the rule of :attr:`converged` with the tolerance ``tol_px`` (px) in place
+        of :attr:`DeconvSettings.converge_tol_px`: fitted, finite, with contrast, and the last LM
+        step moved the star centre by less than ``tol_px``."""
+        fitted = (np.array([st in (BlockStatus.ACCEPTED, BlockStatus.NOT_CONVERGED) for st in self.status],
+                           dtype=bool)
+                  & np.isfinite(self.loss) & np.all(np.isfinite(self.H), axis=(1, 2))
+                  & np.all(np.isfinite(self.psf_fit), axis=(1, 2))
+                  & (self.coeffs[:, 2] > self.settings.min_contrast) & (self.num_pixels > 0))
+        with np.errstate(invalid="ignore"):
+            return fitted & (self.centre_step < tol_px)
+
     @property
     def H_fit(self) -> np.ndarray:
         """``(B, 3, 3)``: the fitted homographies before re-centring, ``T(-centroid) H``."""

@@ -63,10 +63,11 @@ import numpy as np
 
 from blurcalib.camera import apply_homography, homography_centre, homography_scale
 from blurcalib.deconv import BlockFit, DeconvSettings, fit_blocks
+from blurcalib.noise import NoiseModel
 from blurcalib.pattern import StarPattern
-from blurcalib.psf import blur_extent, blur_per_square
+from blurcalib.psf import blur_extent, blur_per_square, psf_moments
 from blurcalib.psf_field import FieldSettings, PathField, constant_field, fit_path_field
-from blurcalib.quality import connected_blocks
+from blurcalib.quality import connected_blocks, noise_scale
 from blurcalib.results import BlockStatus
 from blurcalib.seed import Seed, block_homography, tag_ring_features
 
@@ -79,7 +80,9 @@ class GrowSettings:
     """Acceptance rules of region growing (the stricter quality filter comes later).
 
     Attributes:
-        max_loss: reject blocks whose mean squared residual exceeds this (grey levels^2).
+        max_loss: reject blocks whose mean squared residual exceeds this (grey levels^2; given
+            the frame's noise, :func:`grow` raises it in proportion to the noise variance above
+            :data:`blurcalib.quality.REFERENCE_NOISE_VAR`, :func:`blurcalib.quality.noise_scale`).
         max_boundary_energy: reject blocks whose PSF has more than this share of its energy in
             the outer two-pixel ring of the kernel window (the blur does not fit: truncated).
         max_jump: reject blocks whose star centre moved further than this from its prediction
@@ -106,6 +109,13 @@ class GrowSettings:
         psf_hints: blocks after the tag ring start from the mean PSF of the accepted neighbours
             that predicted them (:func:`blurcalib.deconv.fit_blocks`'s ``psf_hint``: no coarse
             kernel, fewer solver stages).
+        retry_below_blur_per_square: a block that its hinted fit leaves not converged, whose hint
+            shows a blur per square (:func:`blurcalib.psf.blur_per_square`) below this, is
+            accepted after a last LM step of less than ``hinted_converge_px``, else fitted again
+            with the full schedule (:func:`fit_hinted`); 0: such blocks are fitted again only
+            when their front accepts no block.
+        hinted_converge_px: the convergence tolerance of those blocks (px; the solver's own is
+            :attr:`blurcalib.deconv.DeconvSettings.converge_tol_px`).
         final_extent: loss area of the final fit (:func:`final_fit`), the square grown about
             its star centre by this factor (:attr:`DeconvSettings.loss_extent`); 1 skips it.
         final_fit_frames: which frames get the final fit: ``"adaptive"`` (those whose window
@@ -137,6 +147,8 @@ class GrowSettings:
     consistency_neighbours: int = 12
     heavy_above_extent_px: float = 18.0
     psf_hints: bool = True
+    retry_below_blur_per_square: float = 0.5
+    hinted_converge_px: float = 0.15
     final_extent: float = 1.5
     final_fit_frames: FinalFitFrames = "adaptive"
     final_max_shift_px: float = 0.5
@@ -450,7 +462,7 @@ def fit_front(image: np.ndarray, H0: np.ndarray, num_segments: int, deconv: Deco
     larger windows are not hinted)."""
     fit = first if first is not None else fit_hinted(
         image, H0, num_segments, replace(deconv, kernel_size=kernel_size),
-        pixel_mask(tag, kernel_size, footprint), psf_hint)
+        pixel_mask(tag, kernel_size, footprint), psf_hint, settings)
     block_size = np.full(len(H0), kernel_size)
     stuck = np.zeros(len(H0), dtype=bool)
     size = kernel_size
@@ -485,16 +497,41 @@ def _replace_rows(fit: BlockFit, rows: np.ndarray, other: BlockFit, other_rows: 
 
 
 def fit_hinted(image: np.ndarray, H0: np.ndarray, num_segments: int, deconv: DeconvSettings,
-               mask: np.ndarray | None, psf_hint: np.ndarray | None) -> BlockFit:
-    """:func:`blurcalib.deconv.fit_blocks` with ``psf_hint``; when it accepts no block of the
-    front, the blocks it left not converged are fitted again with the full schedule (no hint)
-    and a re-fit is kept where it is accepted: hints from poor neighbours must not end a growth
-    that creeps through single blocks. (Re-fitting every block a hinted fit leaves not
-    converged re-admits bad ones: 14 features > 0.5 px off against 0 on ``bench_speed.py``.)"""
+               mask: np.ndarray | None, psf_hint: np.ndarray | None,
+               settings: GrowSettings | None = None) -> BlockFit:
+    """:func:`blurcalib.deconv.fit_blocks` with ``psf_hint``, then a second look at the blocks it
+    leaves not converged:
+
+    * when the front accepts none, all of them are fitted again with the full schedule (no hint)
+      and a re-fit is kept where it is accepted: hints from poor neighbours must not end a growth
+      that creeps through single blocks;
+    * otherwise those whose hint shows a blur short for their square
+      (:func:`blurcalib.psf.blur_per_square` of the hint at ``H0`` below
+      :attr:`GrowSettings.retry_below_blur_per_square`) are accepted when their last LM step moved
+      the star centre less than :attr:`GrowSettings.hinted_converge_px`, and fitted again with
+      the full schedule when it moved more. There the one hinted stage is slow, not wrong: on real
+      frames under 5-12 px of blur (``scripts/bench_real_texture.py``, blur per square 0.14-0.40)
+      it still moves 0.05-0.15 px at its last step, within 0.15 px of the full schedule's fit.
+      Where the blur reaches half the square a block still moving is often px off, and the full
+      schedule settles px off too (``scripts/bench_speed.py``: 21 of 47 blocks > 0.5 px off at
+      0.56-0.99): those stay not converged.
+    """
+    s = settings or GrowSettings()
     fit = fit_blocks(image, H0, num_segments, deconv, mask, psf_hint)
-    status = fit.status
-    redo = np.flatnonzero([st is BlockStatus.NOT_CONVERGED for st in status])
-    if psf_hint is None or redo.size == 0 or BlockStatus.ACCEPTED in status:
+    failed = np.array([st is BlockStatus.NOT_CONVERGED for st in fit.status], dtype=bool)
+    if psf_hint is None or not failed.any():
+        return fit
+    if BlockStatus.ACCEPTED in fit.status:
+        with np.errstate(invalid="ignore", divide="ignore"):
+            failed &= blur_per_square(psf_moments(psf_hint).sigma_major, H0) < s.retry_below_blur_per_square
+        settled = failed & fit.converged_within(s.hinted_converge_px)
+        if settled.any():
+            fit = replace(fit, converged=fit.converged | settled,
+                          status=tuple(BlockStatus.ACCEPTED if ok else st
+                                       for ok, st in zip(settled, fit.status, strict=True)))
+        failed &= ~settled
+    redo = np.flatnonzero(failed)
+    if redo.size == 0:
         return fit
     refit = fit_blocks(image, H0[redo], num_segments, deconv, mask)
     better = np.flatnonzero([st is BlockStatus.ACCEPTED for st in refit.status])
@@ -597,7 +634,7 @@ def refine_ring(image: np.ndarray, pattern: StarPattern, ids: list[int], fit: Bl
 def grow(image: np.ndarray, pattern: StarPattern, seed: Seed,
          deconv: DeconvSettings | None = None, settings: GrowSettings | None = None,
          on_event: Callable[[GrowthEvent], None] | None = None,
-         should_stop: Callable[[], bool] | None = None) -> Growth | None:
+         should_stop: Callable[[], bool] | None = None, noise: NoiseModel | None = None) -> Growth | None:
     """Grow from ``seed`` over the frame ``image`` ``(H, W)`` (grey levels).
 
     Args:
@@ -609,11 +646,17 @@ def grow(image: np.ndarray, pattern: StarPattern, seed: Seed,
         on_event: called once per attempted block, in order, as fronts finish, and once more
             for a block that the final consistency check of an adaptive frame rejects.
         should_stop: polled between fronts; growth ends early when it returns True.
+        noise: the frame's noise (:func:`blurcalib.noise.estimate_noise`): the loss limit
+            :attr:`GrowSettings.max_loss` grows with its variance at the frame's level above the
+            reference (:func:`blurcalib.quality.noise_scale`); None keeps it as given.
     Returns:
         The growth, or None when not a single block could be attempted.
     """
     deconv = deconv or DeconvSettings()
     settings = settings or GrowSettings()
+    if noise is not None:
+        scale = float(noise_scale(noise.variance(noise.level)))
+        settings = replace(settings, max_loss=settings.max_loss * scale)
     h, w = image.shape
     N = pattern.num_star_segments
     attempted: dict[int, int] = {}  # feature id -> row in the concatenated results
@@ -674,7 +717,7 @@ def grow(image: np.ndarray, pattern: StarPattern, seed: Seed,
                             psf_hint=_psf_hint(accepted_psf, front_src, kernel_size, settings))
         else:
             fit = fit_hinted(image, H0, N, deconv, pixel_mask(tag, deconv.kernel_size),
-                             _psf_hint(accepted_psf, front_src, deconv.kernel_size, settings))
+                             _psf_hint(accepted_psf, front_src, deconv.kernel_size, settings), settings)
             if _front_blur(fit)[1] > settings.refit_boundary_energy:  # the blur outgrew the window
                 adaptive = True
                 fit = fit_front(image, H0, N, deconv, settings, kernel_size, tag, first=fit)

@@ -7,9 +7,27 @@ reliable PSF (median ``sigma_major`` of the blocks in the centre region at least
 default); then, within a frame,
 
 1. blocks whose boundary energy ``BE > tau_BE`` are removed (their PSF is truncated),
-2. blocks whose loss ``> tau_L`` are removed,
+2. blocks whose loss is above the loss threshold are removed (:meth:`QualitySettings.loss_limit`),
 3. only the blocks connected (4-neighbours, breadth-first) to a seed are kept: the seed is the
    lowest-loss surviving block among those nearest the frame's centre.
+
+The loss threshold follows the frame's own noise by default (``loss_mode = "relative"``). A
+block's loss, its mean squared residual, is the mean noise variance over its pixels, ``a + b mu``
+at its mean level ``mu`` (:mod:`blurcalib.noise`), plus what the model does not explain (the
+print, a display's pixel grid, the blur model): shot noise makes the first grow with the
+brightness, so one threshold in grey levels^2 drops the well-fitted blocks of bright, noisy
+frames. The block is kept when::
+
+    loss <= tau_L * max(noise_var, REFERENCE_NOISE_VAR) / REFERENCE_NOISE_VAR
+
+``noise_var`` the frame's noise variance at the block's level (:attr:`BlockTable.noise_var`),
+``REFERENCE_NOISE_VAR`` = 4 grey levels^2 (noise of 2 grey levels): the paper's ``tau_L = 30``
+grey levels^2 on frames with up to 2 grey levels of noise (30 is then at least 7.5 noise
+variances), 7.5 noise variances on noisier ones. The threshold does not fall below ``tau_L`` on
+quieter frames: the model's own errors do not shrink with the noise (real frames of a display
+recorded through video compression read about 0 grey levels of noise at a median loss of 6).
+With ``loss_mode = "absolute"`` the paper's rule ``loss <= tau_L`` (grey levels^2) applies; it
+also applies to blocks whose noise is not known (NaN ``noise_var``, results written without it).
 
 All of it runs on arrays in milliseconds per frame, so a GUI can move the thresholds live.
 """
@@ -19,10 +37,25 @@ from __future__ import annotations
 from collections import deque
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Literal, get_args
 
 import numpy as np
 
 from blurcalib.results import BlockStatus, BlockTable
+
+LossMode = Literal["relative", "absolute"]
+"""How :attr:`QualitySettings.tau_loss` is read: in the frame's noise units or in grey levels^2."""
+
+REFERENCE_NOISE_VAR = 4.0
+"""Noise variance (grey levels^2) up to which a relative ``tau_L`` equals the absolute one: noise
+of 2 grey levels, that of the simulated demo frames."""
+
+
+def noise_scale(noise_var: np.ndarray | float) -> np.ndarray:
+    """``max(noise_var, REFERENCE_NOISE_VAR) / REFERENCE_NOISE_VAR`` (1 where ``noise_var`` is
+    NaN): the factor by which the noise-relative loss limits exceed their absolute values."""
+    v = np.asarray(noise_var, dtype=np.float64)
+    return np.where(np.isfinite(v), np.maximum(v / REFERENCE_NOISE_VAR, 1.0), 1.0)
 
 
 @dataclass(frozen=True)
@@ -31,7 +64,10 @@ class QualitySettings:
 
     Attributes:
         tau_be: largest boundary energy ratio kept (0.12).
-        tau_loss: largest loss kept, grey levels^2 (30).
+        tau_loss: ``tau_L``, largest loss kept (30 grey levels^2), in ``"relative"`` mode for
+            blocks with at most the reference noise (:data:`REFERENCE_NOISE_VAR`).
+        loss_mode: ``"relative"`` (the default: the threshold grows with each block's noise
+            variance above the reference) or ``"absolute"`` (the paper's rule).
         min_sigma_major: frames whose centre-region median sigma_major is below this (px) are
             dropped: too little blur for a reliable PSF. 0 (the default) keeps every frame; the
             paper uses 3.8.
@@ -43,6 +79,19 @@ class QualitySettings:
     tau_loss: float = 30.0
     min_sigma_major: float = 0.0
     centre_fraction: float = 0.5
+    loss_mode: LossMode = "relative"
+
+    def __post_init__(self) -> None:
+        if self.loss_mode not in get_args(LossMode):
+            raise ValueError(f"loss_mode must be one of {get_args(LossMode)}, got {self.loss_mode!r}")
+
+    def loss_limit(self, noise_var: np.ndarray) -> np.ndarray:
+        """``(B,)`` the largest loss kept per block (grey levels^2), from the blocks' noise
+        variances ``noise_var (B,)`` (grey levels^2; NaN: unknown, judged by ``tau_loss`` as is)."""
+        noise_var = np.asarray(noise_var, dtype=np.float64)
+        if self.loss_mode == "absolute":
+            return np.full(noise_var.shape, self.tau_loss)
+        return self.tau_loss * noise_scale(noise_var)
 
 
 @dataclass(frozen=True)
@@ -99,7 +148,7 @@ def filter_frame(blocks: BlockTable, image_size: tuple[int, int], settings: Qual
     out = blocks.status.astype(object)
     high_be = grown & ~(blocks.boundary_energy <= s.tau_be)
     out[high_be] = BlockStatus.FILTERED_BOUNDARY_ENERGY.value
-    high_loss = grown & ~high_be & ~(loss <= s.tau_loss)
+    high_loss = grown & ~high_be & ~(loss <= s.loss_limit(blocks.noise_var))
     out[high_loss] = BlockStatus.FILTERED_LOSS.value
     survivors = grown & ~high_be & ~high_loss
     seed = _bfs_seed(centre, loss, survivors, image_size)

@@ -37,6 +37,7 @@ from blurcalib.camera import homography_centre
 from blurcalib.fileio import (
     atomic_path,
     atomic_write_csv,
+    atomic_write_json,
     atomic_write_text,
     ensure_writable_dir,
     read_csv_columns,
@@ -60,15 +61,15 @@ COEFF_COLUMNS: tuple[str, ...] = ("a1", "a2", "a3", "b1", "b2", "b3")
 BLOCK_COLUMNS: tuple[str, ...] = (
     "frame", "feature_id", "fx", "fy", "status", "loss", "boundary_energy", "sigma_major",
     "sigma_minor", "eccentricity", "orientation", "centroid_x", "centroid_y",
-    *H_COLUMNS, *COEFF_COLUMNS, "loss_extent")
-"""Columns of ``blocks.csv``, in order (a file without the last, ``loss_extent``, added later, reads
-as 1)."""
+    *H_COLUMNS, *COEFF_COLUMNS, "loss_extent", "noise_var")
+"""Columns of ``blocks.csv``, in order (a file without the last two reads ``loss_extent`` as 1 and
+``noise_var`` as NaN)."""
 
 BLUR_PER_SQUARE_LIMIT = 1.25
 """:attr:`BlockTable.blur_per_square` from which fewer blocks are found, and those found are poorer,
 even with the frame's path-PSF field (``scripts/bench_yield.py``: 85 % returned at 0.048 px from
 0.8, 77 % at 0.067 px from 1, 59 % at 0.059 px from 1.25, 22 % at 0.11 px from 1.5; with free
-PSFs alone it was 50 % from 0.8 and 10 % from 1)."""
+PSFs alone it is 50 % from 0.8 and 10 % from 1)."""
 
 CORNER_COLUMNS: tuple[str, ...] = ("frame", "cx2", "cy2", "X", "Y", "x", "y", "blocks")
 """Columns of ``corners.csv``: the corner's feature coordinates doubled (``cx2 = 2 fx + 1`` for
@@ -232,6 +233,9 @@ class BlockTable:
             ``(j - c, i - c)`` px, ``c = (K - 1) / 2``.
         loss_extent: ``(B,)`` the area the block was fitted over, ``|q|_inf <= loss_extent``
             (1: its square; :attr:`blurcalib.deconv.DeconvSettings.loss_extent`); 1 when not given.
+        noise_var: ``(B,)`` the frame's noise variance at the block's brightness (grey levels^2,
+            :meth:`blurcalib.noise.NoiseModel.block_variance`): the unit of the noise-relative
+            loss threshold; NaN when not known.
     """
 
     frame: np.ndarray
@@ -250,10 +254,11 @@ class BlockTable:
     coeffs: np.ndarray
     psf: np.ndarray
     loss_extent: np.ndarray | None = None
+    noise_var: np.ndarray | None = None
 
     _SCALARS = ("loss", "boundary_energy", "sigma_major", "sigma_minor", "eccentricity", "orientation")
     _FIELDS = ("frame", "feature_id", "fx", "fy", "status", *_SCALARS, "centroid", "H", "coeffs", "psf",
-               "loss_extent")
+               "loss_extent", "noise_var")
 
     def __post_init__(self) -> None:
         n = len(self.frame)
@@ -269,6 +274,8 @@ class BlockTable:
         self.coeffs = np.asarray(self.coeffs, dtype=np.float64).reshape(n, 6)
         self.loss_extent = _column(np.ones(n) if self.loss_extent is None else self.loss_extent,
                                    np.float64, n)
+        self.noise_var = _column(np.full(n, np.nan) if self.noise_var is None else self.noise_var,
+                                 np.float64, n)
         self.psf = np.asarray(self.psf, dtype=np.float32)
         if self.psf.ndim != 3 or self.psf.shape[0] != n or self.psf.shape[1] != self.psf.shape[2]:
             raise ValueError(f"psf must be ({n}, K, K), got {self.psf.shape}")
@@ -378,7 +385,8 @@ def write_blocks(csv_path: str | os.PathLike, npz_path: str | os.PathLike,
             _str_strings(t.status), *(_float_strings(getattr(t, n)) for n in BlockTable._SCALARS),
             *(_float_strings(t.centroid[:, i]) for i in range(2)),
             *(_float_strings(t.H[:, r, c]) for r in range(3) for c in range(3)),
-            *(_float_strings(t.coeffs[:, i]) for i in range(6)), _float_strings(t.loss_extent)]
+            *(_float_strings(t.coeffs[:, i]) for i in range(6)), _float_strings(t.loss_extent),
+            _float_strings(t.noise_var)]
     atomic_write_text(csv_path, _csv_text(BLOCK_COLUMNS, cols))
     with atomic_path(npz_path) as tmp, open(tmp, "wb") as handle:
         np.savez(handle, frame=t.frame, feature_id=t.feature_id, psf=t.psf, H=t.H)
@@ -490,8 +498,8 @@ def read_block_table(folder: str | os.PathLike) -> BlockTable:
 
 
 def _read_block_table(csv_path: Path, npz_path: Path) -> BlockTable:
-    cols, n = read_csv_columns(csv_path, BLOCK_COLUMNS[:-1], ResultsFileError, "results file",
-                               optional=BLOCK_COLUMNS[-1:])
+    cols, n = read_csv_columns(csv_path, BLOCK_COLUMNS[:-2], ResultsFileError, "results file",
+                               optional=BLOCK_COLUMNS[-2:])
     frame = np.array(cols["frame"], dtype=np.str_)
     feature_id = _ints(csv_path, cols, "feature_id")
     H = np.stack([_floats(csv_path, cols, c) for c in H_COLUMNS], axis=1).reshape(n, 3, 3)
@@ -509,7 +517,7 @@ def _read_block_table(csv_path: Path, npz_path: Path) -> BlockTable:
         _status(csv_path, cols["status"]), *(_floats(csv_path, cols, c) for c in BlockTable._SCALARS),
         np.stack([_floats(csv_path, cols, c) for c in ("centroid_x", "centroid_y")], axis=1), H,
         np.stack([_floats(csv_path, cols, c) for c in COEFF_COLUMNS], axis=1), arrays["psf"],
-        _floats(csv_path, cols, "loss_extent") if "loss_extent" in cols else None)
+        *(_floats(csv_path, cols, c) if c in cols else None for c in BLOCK_COLUMNS[-2:]))
 
 
 # ------------------------------------------------------------------------------ per-frame files
@@ -597,7 +605,7 @@ def write_frame_results(folder: str | os.PathLike, frame_name: str,
     write_features(paths.features, ft)
     write_blocks(paths.blocks, paths.psfs, blocks)
     atomic_write_csv(paths.corners, CORNER_COLUMNS, corners)
-    atomic_write_text(paths.status, json.dumps(status))
+    atomic_write_json(paths.status, status)
     atomic_write_text(paths.done, frame_name + "\n")
     return paths
 

@@ -12,6 +12,12 @@ searched until the detector finds a tag of the pattern (its decoded id is the ch
 that follows verifies the homography block by block). A caller can instead pass a homography it
 already has (the previous frame of a sequence, or four corners clicked in the GUI).
 
+In a sequence (a video, a folder of numbered frames) a frame whose tag is not found is seeded
+from the star centres of its nearest extracted neighbour (:func:`homography_from_features`), and
+the labelling its growth ends with is verified against the frame's own pixels
+(:func:`check_labelling`): the star field is periodic, so a seed a square off would fit every
+block and mislabel every feature; only the tag and the target's border can rule that out.
+
 The seed is a homography ``H_f`` from *feature coordinates* (see ``docs/conventions.md``) to
 image pixels (OpenCV convention); a block's homography is ``H_f B(fx, fy)`` with
 ``B = [[1/2, 0, fx], [0, 1/2, fy], [0, 0, 1]]`` mapping block coordinates to feature coordinates.
@@ -250,3 +256,154 @@ def tag_ring_features(pattern: StarPattern) -> np.ndarray:
                         bool(pattern.is_valid_feature(fx, fy)):
                     ring.append((fx, fy))
     return np.array(ring, dtype=np.int64).reshape(-1, 2)
+
+
+# ------------------------------------------------------------------------ sequence seeding
+LABEL_SHIFTS: tuple[tuple[int, int], ...] = ((1, 0), (-1, 0), (0, 1), (0, -1), (1, 1), (1, -1), (-1, 1),
+                                             (-1, -1))
+"""Whole-square shifts of the labelling that :func:`check_labelling` rules out (feature units)."""
+
+MAX_LABEL_RATIO = 0.5
+"""A labelling is accepted when, on the pixels that tell it from every shift in
+:data:`LABEL_SHIFTS`, its squared residual is below this share of the shifted one's."""
+
+MIN_TELLING_PIXELS = 100
+"""Fewest pixels (at the check's working scale) that must tell a labelling from each shift."""
+
+_CHECK_PIXELS = 120_000
+"""The frame is checked at the scale that leaves at most this many pixels."""
+
+
+@dataclass(frozen=True)
+class LabelCheck:
+    """Outcome of :func:`check_labelling`.
+
+    Attributes:
+        accepted: the labelling is the best of the shifts by the margin :data:`MAX_LABEL_RATIO`.
+        ratio: the largest ratio of the labelling's squared residual to a shifted one's, on the
+            pixels that tell them apart (NaN when some shift cannot be told apart).
+        pixels: fewest telling pixels over the shifts (at the working scale).
+        reason: why it was refused (empty when accepted).
+    """
+
+    accepted: bool
+    ratio: float
+    pixels: int
+    reason: str
+
+
+def homography_from_features(fx: np.ndarray, fy: np.ndarray, x: np.ndarray, y: np.ndarray,
+                             threshold_px: float = 2.0) -> np.ndarray | None:
+    """``(3, 3)`` homography from feature coordinates ``(fx, fy)`` to star centres ``(x, y)`` px
+    (RANSAC, ``threshold_px``), normalised to ``H[2, 2] = 1``; None from fewer than 8 points or
+    when no homography fits them."""
+    src = np.column_stack([fx, fy]).astype(np.float64)
+    dst = np.column_stack([x, y]).astype(np.float64)
+    ok = np.all(np.isfinite(dst), axis=1)
+    if ok.sum() < 8:
+        return None
+    H, _ = cv2.findHomography(src[ok], dst[ok], cv2.RANSAC, threshold_px)
+    if H is None or not np.all(np.isfinite(H)) or abs(H[2, 2]) < 1e-12:
+        return None
+    return H / H[2, 2]
+
+
+def render_target(pattern: StarPattern, H_feature: np.ndarray, shape: tuple[int, int],
+                  scale: float = 1.0, supersample: int = 2) -> tuple[np.ndarray, np.ndarray]:
+    """The target as the frame would show it without blur: ``(image, on_page)``, both ``(h, w)``
+    at ``scale`` (``shape`` is the full-resolution ``(H, W)``).
+
+    ``image`` is :meth:`StarPattern.intensity` (1 white, 0 black) averaged over ``supersample^2``
+    points per pixel, each full-resolution point ``u`` mapped to feature coordinates by
+    ``H_feature^-1 u``; ``on_page`` says which pixels fall on the page (elsewhere the
+    background is unknown).
+    """
+    h, w = (max(1, round(n * scale)) for n in shape)
+    Hinv = np.linalg.inv(np.asarray(H_feature, dtype=np.float64))
+    x0, y0, x1, y1 = pattern.page_mm_to_feature(np.array([[0.0, 0.0], [pattern.page.width_mm,
+                                                                      pattern.page.height_mm]])).ravel()
+    image = np.zeros((h, w), dtype=np.float64)
+    on_page = np.ones((h, w), dtype=bool)
+    offsets = (np.arange(supersample) + 0.5) / supersample
+    for oy in offsets:
+        for ox in offsets:
+            u = (np.arange(w) + ox) / scale - 0.5
+            v = (np.arange(h) + oy) / scale - 0.5
+            uu, vv = np.meshgrid(u, v)
+            q = np.stack([uu, vv, np.ones_like(uu)], axis=-1) @ Hinv.T
+            with np.errstate(divide="ignore", invalid="ignore"):
+                p = q[..., :2] / q[..., 2:3]
+            inside = (q[..., 2] > 0) & (p[..., 0] >= x0) & (p[..., 0] <= x1) & (p[..., 1] >= y0) \
+                & (p[..., 1] <= y1)
+            on_page &= inside
+            image += np.where(inside, pattern.intensity(np.where(inside[..., None], p, 0.0)), 1.0)
+    return (image / supersample**2).astype(np.float32), on_page
+
+
+def check_labelling(image: np.ndarray, pattern: StarPattern, H_feature: np.ndarray,
+                    psf: np.ndarray | None = None, shifts: tuple[tuple[int, int], ...] = LABEL_SHIFTS,
+                    max_ratio: float = MAX_LABEL_RATIO, min_pixels: int = MIN_TELLING_PIXELS
+                    ) -> LabelCheck:
+    """Whether ``H_feature`` (feature coordinates -> px) labels the frame's stars correctly,
+    rather than a whole number of squares off.
+
+    The star field is periodic, so a labelling shifted by a square fits every block as well;
+    only the tag and the pattern's border tell them apart. The target is rendered under the
+    labelling ``H`` and under each shifted one ``H T(dx, dy)`` (:func:`render_target`), blurred
+    by ``psf`` (the frame's PSF, a true convolution), and mapped to grey levels by
+    ``a + b r`` fitted to the frame on the page under ``H``. On the pixels where the two renders
+    differ by more than a quarter of the white-black contrast, the labelling must leave a
+    squared residual below ``max_ratio`` times the shifted one's, for every shift, each told on
+    at least ``min_pixels`` pixels.
+
+    Args:
+        image: ``(H, W)`` grey levels.
+        pattern: the target.
+        H_feature: ``(3, 3)`` the labelling to check.
+        psf: ``(K, K)`` PSF (full-resolution px, sum 1), or None for no blur.
+        shifts: the shifts ruled out (feature units, squares).
+        max_ratio, min_pixels: the acceptance margin and the telling pixels required.
+    """
+    img = np.asarray(image, dtype=np.float32)
+    scale = min(1.0, float(np.sqrt(_CHECK_PIXELS / img.size)))
+    small = img if scale == 1.0 else cv2.resize(img, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA)
+    kernel = None
+    if psf is not None:
+        k = np.clip(np.asarray(psf, dtype=np.float32), 0, None)
+        size = max(1, round(k.shape[0] * scale)) | 1
+        k = cv2.resize(k, (size, size), interpolation=cv2.INTER_AREA) if size != k.shape[0] else k
+        kernel = k[::-1, ::-1] / k.sum() if k.sum() > 0 else None
+
+    def render(H: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        r, page = render_target(pattern, H, img.shape, scale)
+        if kernel is not None:
+            r = cv2.filter2D(r, -1, kernel, borderType=cv2.BORDER_REPLICATE)
+        return r, page
+
+    H0 = np.asarray(H_feature, dtype=np.float64)
+    r0, page0 = render(H0)
+    A = np.column_stack([np.ones(int(page0.sum())), r0[page0]])
+    if A.shape[0] < 3 or np.ptp(r0[page0]) == 0:
+        return LabelCheck(False, float("nan"), 0, "the target is not in view")
+    (a, b), *_ = np.linalg.lstsq(A, small[page0], rcond=None)
+    if not b > 0:
+        return LabelCheck(False, float("nan"), 0, "the frame does not show the target's contrast")
+    worst, fewest = 0.0, None
+    for dx, dy in shifts:
+        T = np.array([[1.0, 0.0, dx], [0.0, 1.0, dy], [0.0, 0.0, 1.0]])
+        rs, pages = render(H0 @ T)
+        telling = page0 & pages & (np.abs(rs - r0) > 0.25)
+        n = int(telling.sum())
+        fewest = n if fewest is None else min(fewest, n)
+        if n < min_pixels:
+            return LabelCheck(False, float("nan"), n, f"a shift of ({dx}, {dy}) squares cannot be told "
+                                                      f"apart ({n} telling pixels): neither the tag nor "
+                                                      f"the target's border is in view")
+        res0 = float(np.sum((small[telling] - a - b * r0[telling]) ** 2))
+        ress = float(np.sum((small[telling] - a - b * rs[telling]) ** 2))
+        worst = max(worst, res0 / max(ress, 1e-12))
+    if worst >= max_ratio:
+        fits = "better than" if worst > 1 else "nearly as well as"
+        return LabelCheck(False, worst, int(fewest or 0), f"a labelling a square off fits the frame {fits} "
+                                                          f"this one (residual ratio {worst:.2f})")
+    return LabelCheck(True, worst, int(fewest or 0), "")

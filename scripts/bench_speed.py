@@ -1,4 +1,4 @@
-"""Speed benchmark of feature extraction on close-up blurry frames (issue 11).
+"""Speed benchmark of feature extraction on close-up blurry frames.
 
     python scripts/bench_speed.py [--frames 4] [--threads 1] [--pair] [--device cpu]
 

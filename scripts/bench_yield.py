@@ -17,8 +17,17 @@
    their median error.
 2. Simulated frames with 4 to 15 px of blur (the set of ``scripts/bench_extract.py``, seed 7):
    the same figures with the fixed 17 px window (``GrowSettings(max_kernel_size=17)``, which
-   also turns the path-PSF field off: the behaviour before issue 10) and with the defaults.
+   also turns the path-PSF field off) and with the defaults.
    Target: accuracy and time per frame no worse.
+3. Photometry (``--photometry N``): simulated frames with 4 to 15 px of blur (seed 23) whose paper
+   is at 150, 183, 217 or 250 grey levels and whose sensor has 5, 10 or 20 electrons per grey
+   level (the 12 combinations in turn; read noise 0.7 grey levels; :func:`photometric_frame`),
+   then ``--demo N`` frames of the demo set (``SynthConfig()``): per frame the true and the
+   estimated noise at the frame's level (:mod:`blurcalib.noise`), and the blocks the pipeline's
+   block filter keeps with the loss threshold in the frame's noise units (the default) and with
+   the paper's absolute one (``QualitySettings(loss_mode="absolute")``); a frame is used when at least
+   :data:`blurcalib.global_alignment.MIN_BLOCKS` are kept. Target: >= 95% of the photometry
+   frames used; the demo frames keep their blocks.
 
 Times are wall and process CPU seconds per frame, torch single-threaded. ``--cache`` keeps the
 simulated frames (pickled) so that a re-run skips the simulation; ``--part I/N`` runs every N-th
@@ -28,6 +37,7 @@ frame from the I-th (to spread a run over processes; the figures are then per pa
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import pickle
 import time
 from pathlib import Path
@@ -36,10 +46,12 @@ import cv2
 import numpy as np
 import torch
 
+from blurcalib import synth
 from blurcalib.camera import apply_homography
 from blurcalib.extract import ExtractSettings, extract_frame
+from blurcalib.global_alignment import MIN_BLOCKS
 from blurcalib.grow import GrowSettings
-from blurcalib.quality import filter_frame
+from blurcalib.quality import QualitySettings, filter_frame
 from blurcalib.synth import SimulatedFrame, Simulator, SynthConfig
 
 
@@ -173,10 +185,64 @@ def run(title: str, sim: Simulator, simulated: list[SimulatedFrame], settings: E
     print(f"time: {np.mean(walls):.1f} s wall, {np.mean(cpus):.1f} s CPU per frame")
 
 
+def photometric_frame(sim: Simulator, index: int, white: float, electrons_per_level: float,
+                      read_sigma: float = 0.7) -> SimulatedFrame:
+    """Blurry frame ``index`` of ``sim`` (same pose and motion as :meth:`Simulator.frame`) with the
+    paper at ``white`` grey levels (the ink scaled alike) and Poisson-Gaussian noise of
+    ``electrons_per_level`` electrons per grey level and ``read_sigma`` grey levels."""
+    name, kind = sim.frame_names()[index]
+    cfg = sim.config
+    rng = np.random.default_rng([cfg.seed, index])
+    pose = synth.sample_pose(sim.pattern, sim.camera, rng, cfg.max_tilt_deg, cfg.square_px)
+    motion = synth.sample_motion(sim.renderer, pose, sim.pattern, rng,
+                                 rng.uniform(cfg.blur_min_px, cfg.blur_max_px),
+                                 curved=bool(rng.uniform() < cfg.curved_fraction))
+    truth = synth.frame_truth(name, kind, sim.pattern, sim.camera, pose, motion,
+                              float(rng.uniform(*cfg.defocus_px)), rng, cfg.noise_sigma)
+    black = truth.levels[0] * white / truth.levels[1]
+    truth = dataclasses.replace(truth, levels=(black, white), noise=(1.0 / electrons_per_level, read_sigma))
+    levels = [sim.texture(synth.MIP_TEXELS_PER_SQUARE[k])
+              for k in synth.mip_levels_for(sim.camera, pose, sim.pattern, cfg.supersample)]
+    irradiance = sim.renderer.irradiance(levels, pose, motion)
+    return SimulatedFrame(synth.sensor_image(irradiance, truth, rng), truth)
+
+
+def photometry(title: str, frames: list[SimulatedFrame], pattern) -> None:
+    """Noise estimate and blocks kept with the relative and the absolute loss threshold."""
+    print(f"== {title} ==")
+    modes = {"relative": QualitySettings(), "absolute": QualitySettings(loss_mode="absolute")}
+    used = dict.fromkeys(modes, 0)
+    for fr in frames:
+        t = fr.truth
+        gain, read = t.noise
+        r = extract_frame(fr.image.astype(np.float32), pattern, t.name)
+        if r.status.value != "ok" or r.noise is None:
+            print(f"{t.name}: {r.status.value} {r.message}")
+            continue
+        level = r.noise.level
+        true_sigma = float(np.sqrt(read**2 + 1 / 12 + gain * level))
+        size = fr.image.shape[::-1]
+        kept = {m: int(filter_frame(r.blocks, size, q).kept.sum()) for m, q in modes.items()}
+        for m in modes:
+            used[m] += kept[m] >= MIN_BLOCKS
+        acc = r.blocks.accepted
+        ratio = np.median(r.blocks.loss[acc] / r.blocks.noise_var[acc])
+        print(f"{t.name}: white {t.levels[1]:5.1f}, {1 / gain:4.1f} e/level, noise at {level:5.1f}: true "
+              f"{true_sigma:.2f}, estimated {r.noise.sigma:.2f} grey levels; median loss "
+              f"{np.median(r.blocks.loss[acc]):5.1f} (x{ratio:.2f} the noise variance)"
+              f"; kept {kept['relative']:3d} (relative) / {kept['absolute']:3d} (absolute) "
+              f"of {int(acc.sum()):3d}", flush=True)
+    n = len(frames)
+    print("frames used: " + ", ".join(f"{m} {used[m]}/{n} ({100 * used[m] / max(n, 1):.0f}%)" for m in modes))
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--heavy", type=int, default=12, help="frames with 12-25 px blur")
     parser.add_argument("--light", type=int, default=6, help="frames with 4-15 px blur")
+    parser.add_argument("--photometry", type=int, default=12,
+                        help="frames with 150-250 grey levels of white and 5-20 electrons per level")
+    parser.add_argument("--demo", type=int, default=4, help="frames of the demo set for the loss threshold")
     parser.add_argument("--cache", type=Path, default=None, help="folder for simulated frames")
     parser.add_argument("--part", default="0/1", help="I/N: every N-th frame from the I-th")
     args = parser.parse_args()
@@ -192,6 +258,17 @@ def main() -> None:
         run("4-15 px blur, fixed 17 px window (before)", sim, light,
             ExtractSettings(grow=GrowSettings(max_kernel_size=17)))
         run("4-15 px blur, adaptive window (default)", sim, light, ExtractSettings())
+    if args.photometry:
+        sim = Simulator(SynthConfig(sharp=0, blurry=args.photometry, blur_min_px=4.0, blur_max_px=15.0,
+                                    seed=23))
+        grid = [(w, e) for w in (150.0, 183.0, 217.0, 250.0) for e in (5.0, 10.0, 20.0)]
+        looks = [grid[i % len(grid)] for i in range(args.photometry)]
+        shot = [photometric_frame(sim, i, w, e) for i, (w, e) in enumerate(looks)][first::step]
+        photometry("white 150-250 grey levels, 5-20 electrons per level, 4-15 px blur", shot, sim.pattern)
+    if args.demo:
+        sim = Simulator(SynthConfig())
+        demo = [sim.frame(sim.config.sharp + i) for i in range(args.demo)][first::step]
+        photometry("demo frames (SynthConfig())", demo, sim.pattern)
 
 
 if __name__ == "__main__":

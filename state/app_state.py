@@ -24,12 +24,13 @@ import numpy as np
 
 from blurcalib.camera import homography_centre
 from blurcalib.extract import ExtractSettings, FrameResult, FrameStatus, extract_frame
-from blurcalib.frames import FrameError, load_frame
+from blurcalib.frames import FrameError
 from blurcalib.grow import GrowthEvent
 from blurcalib.pattern import PatternFileError, StarPattern, load_pattern
 from blurcalib.quality import FrameFilter, QualitySettings, filter_frame
 from blurcalib.results import BlockStatus
 from blurcalib.seed import block_homography
+from blurcalib.sources import FrameInput
 from blurcalib.synth import FrameTruth
 from state.events import Events, Notice, Topic
 from state.folder import Dataset, DatasetError, FrameFile, discover
@@ -46,14 +47,15 @@ class FrameEntry:
     """One frame in the list.
 
     Attributes:
-        name: path relative to the dataset folder.
-        path: the file.
+        name: path relative to the dataset folder (``VIDEO#000123`` for a video's frame).
+        path: the file (the video for a video's frame).
         kind: ``blurry`` or ``sharp`` (chooses the extraction settings).
         status: ``pending``, ``queued``, ``running``, ``cancelled`` or a
             :class:`blurcalib.extract.FrameStatus` value.
         message: why, when the status is not ``ok``.
         blocks, accepted: attempted and accepted blocks of the last run.
         seconds: time of the last run.
+        index: the frame's index in the video ``path`` (None for an image file).
     """
 
     name: str
@@ -64,6 +66,7 @@ class FrameEntry:
     blocks: int = 0
     accepted: int = 0
     seconds: float = 0.0
+    index: int | None = None
 
 
 @dataclass(frozen=True)
@@ -250,7 +253,7 @@ class AppState:
             return False
         with self._lock:
             self.dataset = dataset
-            self.frames = [FrameEntry(f.name, f.path, f.kind) for f in dataset.frames]
+            self.frames = [FrameEntry(f.name, f.path, f.kind, index=f.index) for f in dataset.frames]
             self.current = -1
             self.selected = None
             self._images.clear()
@@ -298,7 +301,7 @@ class AppState:
                                   truth=old.truth if pattern == old.pattern else None)
             dropped_truth = old is not None and old.truth is not None and dataset.truth is None
             self.dataset = dataset
-            self.frames = [FrameEntry(f.name, f.path, f.kind) for f in self.frames]
+            self.frames = [FrameEntry(f.name, f.path, f.kind, index=f.index) for f in self.frames]
             self.selected = None
             self._results.clear()
             self._filters.clear()
@@ -351,8 +354,8 @@ class AppState:
             if cached is not None:
                 self._images.move_to_end(name)
                 return cached
-            path = self._entry(name).path
-        image = load_frame(path)
+            entry = self._entry(name)
+        image = FrameInput(name, entry.path, entry.index).load()
         with self._lock:
             self._images[name] = image
             self._sizes[name] = (image.shape[1], image.shape[0])

@@ -3,7 +3,8 @@
 A folder holds frames directly (``images/*.png``) or in sub-folders (a simulated dataset's
 ``sharp/`` and ``blurry/``). The pattern is ``--pattern`` when given, else ``pattern.yaml`` in the
 folder or its parent. Frame names are paths relative to the folder (``blurry/0003.png``), the
-names the ground truth uses.
+names the ground truth uses. A video file opens as a dataset of its frames, named
+``VIDEO#000123`` (:mod:`blurcalib.sources`), with the pattern beside it.
 """
 
 from __future__ import annotations
@@ -15,6 +16,7 @@ from pathlib import Path
 
 from blurcalib.frames import FrameError, list_frames
 from blurcalib.pattern import PatternFileError, StarPattern, load_pattern
+from blurcalib.sources import frame_inputs, is_video
 from blurcalib.synth import (
     GROUND_TRUTH_FILE,
     DatasetTruth,
@@ -32,6 +34,9 @@ DEFAULT_CONFIG = SynthConfig(sharp=2, blurry=4, blur_min_px=3.0, blur_max_px=8.0
 """The built-in dataset: 2 sharp and 4 blurry 640 x 360 frames (a D435I-like camera at half size)."""
 
 
+BUILTIN_DIR = Path("blurcalib") / "app_default"
+"""The built-in dataset's folder inside the user's cache folder (:func:`builtin_dataset_folder`)."""
+
 EXPORT_DIR = "calibration_app"
 """Folder, inside the dataset folder, that the app exports its calibration into (its images are not
 frames)."""
@@ -43,11 +48,13 @@ class DatasetError(ValueError):
 
 @dataclass(frozen=True)
 class FrameFile:
-    """One frame file: its name (relative to the dataset folder), path and kind."""
+    """One frame: its name (relative to the dataset folder), file, kind and, for a video's
+    frame, its index in the video (None for an image file)."""
 
     name: str
     path: Path
     kind: str
+    index: int | None = None
 
 
 @dataclass(frozen=True)
@@ -61,6 +68,7 @@ class Dataset:
         frames: the frame files, in order.
         truth: the ground truth of a simulated dataset (None for real data).
         warnings: problems that did not stop the load (an unreadable ground truth).
+        source: the video file opened (its folder is ``folder``); None when a folder was opened.
     """
 
     folder: Path
@@ -69,6 +77,7 @@ class Dataset:
     frames: tuple[FrameFile, ...]
     truth: DatasetTruth | None
     warnings: tuple[str, ...] = ()
+    source: Path | None = None
 
 
 def find_pattern(folder: Path, pattern: str | os.PathLike | None) -> Path:
@@ -109,21 +118,35 @@ def _kind(name: str, truth: DatasetTruth | None) -> str:
     return "sharp" if "sharp" in (part.lower() for part in Path(name).parts[:-1]) else "blurry"
 
 
-def discover(folder: str | os.PathLike, pattern: str | os.PathLike | None = None) -> Dataset:
-    """Open ``folder`` as a dataset.
-
-    Raises:
-        DatasetError: the folder is missing, holds no images, or the pattern is missing or
-            malformed (the message names the path).
-    """
-    root = Path(folder).expanduser()
-    if not root.is_dir():
-        raise DatasetError(f"{root}: no such folder" if not root.exists() else f"{root}: not a folder")
-    pattern_path = find_pattern(root, pattern)
+def _load_pattern(path: Path) -> StarPattern:
     try:
-        star = load_pattern(pattern_path)
+        return load_pattern(path)
     except PatternFileError as exc:
         raise DatasetError(str(exc)) from None
+
+
+def discover(folder: str | os.PathLike, pattern: str | os.PathLike | None = None) -> Dataset:
+    """Open ``folder`` (a folder of frames, or a video file) as a dataset.
+
+    Raises:
+        DatasetError: the folder or video is missing, holds no frames, or the pattern is missing
+            or malformed (the message names the path).
+    """
+    root = Path(folder).expanduser()
+    if root.is_file() and is_video(root):
+        pattern_path = find_pattern(root.parent, pattern)
+        star = _load_pattern(pattern_path)
+        try:
+            frames = frame_inputs([root])
+        except FrameError as exc:
+            raise DatasetError(str(exc)) from None
+        return Dataset(root.parent, pattern_path, star,
+                       tuple(FrameFile(f.name, f.path, "blurry", f.index) for f in frames), None, source=root)
+    if not root.is_dir():
+        raise DatasetError(f"{root}: no such folder or video" if not root.exists()
+                           else f"{root}: neither a folder nor a video file (mp4, avi, mkv, mov)")
+    pattern_path = find_pattern(root, pattern)
+    star = _load_pattern(pattern_path)
     paths = frame_files(root)
     warnings: list[str] = []
     truth = None
@@ -149,13 +172,21 @@ def default_camera() -> TrueCamera:
     return TrueCamera(full.model.scaled(0.5), waves)
 
 
+def builtin_dataset_folder() -> Path:
+    """Where the app keeps its built-in dataset: ``blurcalib/app_default`` in the user's cache
+    folder, ``$XDG_CACHE_HOME`` or else ``~/.cache`` (never inside the installed package)."""
+    cache = os.environ.get("XDG_CACHE_HOME", "").strip()
+    root = Path(cache) if cache and Path(cache).is_absolute() else Path.home() / ".cache"
+    return root / BUILTIN_DIR
+
+
 def default_dataset(root: str | os.PathLike, config: SynthConfig = DEFAULT_CONFIG,
                     camera: TrueCamera | None = None,
                     progress: Callable[[int, int, str], None] | None = None) -> Path:
     """The simulated dataset in ``root``, rendered on first use (a complete one is reused).
 
     Args:
-        root: its folder (``out/app_default`` for the app).
+        root: its folder (:func:`builtin_dataset_folder` for the app).
         config: what to simulate.
         camera: the camera (default :func:`default_camera`).
         progress: called after each rendered frame with ``(done, total, name)``.

@@ -12,19 +12,36 @@ import blurcalib.extract as extract_module
 from blurcalib.camera import BrownConrady, apply_homography, homography_centre, translation
 from blurcalib.deconv import DeconvSettings
 from blurcalib.extract import (
+    SHARP_BELOW_PX,
     ExtractSettings,
     FrameResult,
     FrameStatus,
+    NeighbourSeed,
     extract_frame,
     extract_to_folder,
+    seed_from_neighbour,
 )
 from blurcalib.fileio import RUN_MANIFEST, OutputError
 from blurcalib.frames import load_frame
 from blurcalib.local_alignment import align_locally, shared_corners
 from blurcalib.pattern import layout_pattern, load_pattern
 from blurcalib.refformat import read_ref_dataset
-from blurcalib.results import FeatureObservation, FeatureTable, frame_result_paths, read_features
-from blurcalib.seed import SeedError, block_homography, detect_tags, seed_frame
+from blurcalib.results import (
+    FeatureFlags,
+    FeatureObservation,
+    FeatureTable,
+    frame_result_paths,
+    read_feature_table,
+    read_features,
+)
+from blurcalib.seed import (
+    SeedError,
+    block_homography,
+    check_labelling,
+    detect_tags,
+    homography_from_features,
+    seed_frame,
+)
 from blurcalib.synth import Simulator, SynthConfig, TrueCamera
 from tests.conftest import FIXTURE_YAML, REAL
 
@@ -162,6 +179,7 @@ def test_folder_run_records_bad_frames_and_resumes(tmp_path, sim: Simulator, sha
         assert after[name] == before[name], name
 
 
+@pytest.mark.slow
 def test_real_frame_agrees_with_reference_detector(shared_fixtures) -> None:
     pattern = load_pattern(REAL / "pattern.yaml")
     reference = read_ref_dataset(REAL / "features_10px.bin").image("2.png")
@@ -342,3 +360,125 @@ def test_output_folder_is_never_taken_over(tmp_path, engine) -> None:
         "frame", "0.png", "1.png"]
     assert {line.split(",")[0] for line in (out / "corners.csv").read_text().splitlines()} == {
         "frame", "0.png", "1.png"}
+
+
+@pytest.fixture(scope="module")
+def blurry_frame(sim: Simulator):
+    return sim.frame(2)
+
+
+@pytest.mark.slow
+def test_auto_kind_classifies_each_frame_by_its_blur(sim: Simulator, sharp_frame, blurry_frame) -> None:
+    auto = ExtractSettings.auto()
+    sharp = extract_frame(sharp_frame.image, sim.pattern, "s.png", auto)
+    blurry = extract_frame(blurry_frame.image, sim.pattern, "b.png", auto)
+    assert sharp.kind == "sharp" and sharp.blur_px < SHARP_BELOW_PX
+    assert blurry.kind == "blurry" and blurry.blur_px > SHARP_BELOW_PX
+    assert sharp.summary()["kind"] == "sharp" and sharp.summary()["blur_px"] == round(sharp.blur_px, 3)
+    # a frame found sharp ends as the sharp settings extract it, with the sharp-frame flag
+    explicit = extract_frame(sharp_frame.image, sim.pattern, "s.png", ExtractSettings.sharp())
+    assert np.array_equal(sharp.features.x, explicit.features.x)
+    assert np.all(sharp.features.flags & int(FeatureFlags.SHARP_FRAME))
+    assert np.all(blurry.features.flags & int(FeatureFlags.BLURRY_FRAME))
+    assert sharp.growth.fit.settings.kernel_size == 7 and blurry.growth.fit.settings.kernel_size >= 17
+
+
+def _shifted(image: np.ndarray, dx: float, dy: float) -> np.ndarray:
+    M = np.float32([[1, 0, dx], [0, 1, dy]])
+    return cv2.warpAffine(image.astype(np.float32), M, image.shape[::-1], borderMode=cv2.BORDER_REPLICATE)
+
+
+@pytest.mark.slow
+def test_labelling_check_tells_a_square_off(sim: Simulator, sharp_frame) -> None:
+    result = extract_frame(sharp_frame.image, sim.pattern, "0.png", ExtractSettings.sharp())
+    f = result.features
+    H = homography_from_features(f.fx, f.fy, f.x, f.y)
+    right = check_labelling(sharp_frame.image, sim.pattern, H)
+    assert right.accepted and right.ratio < 0.1 and right.pixels >= 100
+    for dx, dy in ((1, 0), (0, -1), (-1, 1)):
+        T = np.array([[1.0, 0.0, dx], [0.0, 1.0, dy], [0.0, 0.0, 1.0]])
+        off = check_labelling(sharp_frame.image, sim.pattern, H @ T)
+        assert not off.accepted and off.ratio > 2.0 and "a square off fits the frame better" in off.reason
+    # a frame showing neither the tag nor the border cannot be verified
+    T = np.array([[1.0, 0.0, -60.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])
+    away = check_labelling(sharp_frame.image, sim.pattern, H @ T)
+    assert not away.accepted and ("not in view" in away.reason or "cannot be told apart" in away.reason)
+
+
+@pytest.mark.slow
+def test_neighbour_seed_is_verified_and_a_square_off_refused(sim: Simulator, sharp_frame) -> None:
+    first = extract_frame(sharp_frame.image, sim.pattern, "0.png", ExtractSettings.auto())
+    f = first.features
+    H = homography_from_features(f.fx, f.fy, f.x, f.y)
+    moved = _shifted(sharp_frame.image, 6.0, -4.0)  # the next frame: the camera moved by (6, -4) px
+    hint = NeighbourSeed("0.png", H, "no AprilTag")
+    result = seed_from_neighbour(moved, sim.pattern, "1.png", hint, ExtractSettings.auto())
+    assert result.status is FrameStatus.OK and result.summary()["seeded_by"] == "neighbour"
+    assert "0.png" in result.message and result.kind == "sharp"
+    common, i, j = np.intersect1d(f.feature_id, result.features.feature_id, return_indices=True)
+    assert len(common) > 100
+    error = np.hypot(result.features.x[j] - f.x[i] - 6.0, result.features.y[j] - f.y[i] + 4.0)
+    assert np.median(error) < 0.02
+    # a seed one square off grows just as well but mislabels every star: refused
+    off = H @ np.array([[1.0, 0.0, 1.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])
+    wrong = seed_from_neighbour(moved, sim.pattern, "1.png", NeighbourSeed("0.png", off, "no AprilTag"),
+                                ExtractSettings.auto())
+    assert wrong.status is FrameStatus.NOT_SEEDED and len(wrong.features) == 0
+    assert wrong.message.startswith("no AprilTag; the seed from neighbour 0.png was refused: a labelling")
+
+
+@pytest.mark.slow
+def test_folder_run_seeds_a_frame_from_its_neighbour(tmp_path, sim: Simulator, sharp_frame,
+                                                      monkeypatch) -> None:
+    frames = tmp_path / "seq"
+    frames.mkdir()
+    moved = np.clip(np.round(_shifted(sharp_frame.image, -5.0, 3.0)), 0, 255).astype(np.uint8)
+    cv2.imwrite(str(frames / "0.png"), sharp_frame.image)
+    cv2.imwrite(str(frames / "1.png"), moved)
+
+    def no_tag_in_moved(image, pattern, H_feature=None, *args, **kwargs):
+        if H_feature is None and np.array_equal(image, moved.astype(np.float32)):
+            raise SeedError("no AprilTag of the pattern found (test)")
+        return seed_frame(image, pattern, H_feature, *args, **kwargs)
+
+    monkeypatch.setattr(extract_module, "seed_frame", no_tag_in_moved)
+    out = tmp_path / "out"
+    summary = extract_to_folder([frames / "0.png", frames / "1.png"], sim.pattern, out,
+                                ExtractSettings.auto())
+    rows = {r["frame"]: r for r in summary.frames}
+    assert rows["0.png"]["seeded_by"] == "tag" and rows["1.png"]["seeded_by"] == "neighbour"
+    assert rows["1.png"]["status"] == "ok" and "neighbour 0.png" in rows["1.png"]["message"]
+    assert rows["1.png"]["kind"] == "sharp" and rows["1.png"]["neighbours_tried"] == ["0.png"]
+    table = read_feature_table(out / "features.csv")
+    a, b = (table.select(table.frame == n) for n in ("0.png", "1.png"))
+    common, i, j = np.intersect1d(a.feature_id, b.feature_id, return_indices=True)
+    assert len(common) > 100 and np.median(np.abs(b.x[j] - a.x[i] + 5.0)) < 0.05
+    assert (out / "frames.csv").read_text().splitlines()[0].split(",")[5:7] == ["kind", "blur_px"]
+
+
+@pytest.mark.slow
+def test_video_extract_from_the_command_line(tmp_path, sim: Simulator, sharp_frame, blurry_frame) -> None:
+    from blurcalib.cli import main
+
+    video = tmp_path / "walk.mp4"
+    writer = cv2.VideoWriter(str(video), cv2.VideoWriter_fourcc(*"mp4v"), 10, (480, 360), isColor=False)
+    for image in (sharp_frame.image, np.full((360, 480), 128, np.uint8), blurry_frame.image):
+        writer.write(image)
+    writer.release()
+    yaml = tmp_path / "pattern.yaml"
+    sim.pattern.save_yaml(yaml)
+    out = tmp_path / "out"
+    code = main(["extract", str(video), "--every", "2", "--pattern", str(yaml), "--out", str(out),
+                 "--workers", "1"])
+    assert code == 0
+    lines = (out / "frames.csv").read_text().splitlines()
+    rows = {line.split(",")[0]: line.split(",") for line in lines[1:]}
+    assert set(rows) == {"walk#000000", "walk#000002"}
+    assert [rows[n][1] for n in sorted(rows)] == ["ok", "ok"]
+    assert [rows[n][5] for n in sorted(rows)] == ["sharp", "blurry"]
+    assert set(read_feature_table(out / "features.csv").frame) == {"walk#000000", "walk#000002"}
+    # resuming skips both; --max-frames 1 keeps the first alone
+    assert main(["extract", str(video), "--max-frames", "1", "--pattern", str(yaml), "--out", str(out),
+                 "--workers", "1"]) == 0
+    names = [line.split(",")[0] for line in (out / "frames.csv").read_text().splitlines()[1:]]
+    assert names == ["walk#000000"]

@@ -18,6 +18,7 @@ from blurcalib.grow import (
     pixel_mask,
 )
 from blurcalib.pattern import layout_pattern
+from blurcalib.psf import blur_per_square, psf_moments
 from blurcalib.results import BlockStatus
 from blurcalib.seed import line_kernel
 from blurcalib.synth import simulate_blocks
@@ -111,6 +112,7 @@ def test_tag_mask_follows_the_blur() -> None:
     assert not along[tag == 1].any() and along.sum() > disk.sum()
 
 
+@pytest.mark.slow
 def test_window_adapts_where_the_blur_outgrows_it_away_from_the_tag() -> None:
     """Frame 11 of ``scripts/bench_yield.py``'s heavy set: its tag ring reads 14 px of blur
     extent with little boundary energy (0.06), so the ring keeps the configured window; the blur
@@ -161,6 +163,36 @@ def test_a_front_whose_hints_fail_is_fitted_again_without_them() -> None:
     assert np.max(np.linalg.norm(fit.centre - sim.centre_true, axis=1)) < 0.05
 
 
+@pytest.mark.slow
+def test_a_block_whose_hint_fails_is_fitted_again_while_its_front_succeeds() -> None:
+    """In a front whose other blocks are accepted with good hints, a block given a wrong hint
+    (a corner of the window) is left not converged, px off; its blur is short for its square, so
+    it is fitted again with the full schedule and lands on the truth. Re-fitting only fronts
+    that accept nothing (``retry_below_blur_per_square=0``) loses it."""
+    pattern = layout_pattern()
+    sim = simulate_blocks(pattern, 4, np.random.default_rng(21), blur_px=(5.0, 9.0), supersample=4,
+                          tile_px=80, init_shift_px=0.4, truth_kernel_size=13)
+    image = sim.image.astype(np.float32)
+    deconv = DeconvSettings(kernel_size=13)
+    hints = sim.psf_true.copy()
+    hints[3] = 0.0
+    hints[3, :3, :3] = 1.0
+    hinted = fit_blocks(image, sim.H0, pattern.num_star_segments, deconv, psf_hint=hints)
+    assert [s is BlockStatus.ACCEPTED for s in hinted.status] == [True, True, True, False]
+    assert np.linalg.norm(hinted.centre[3] - sim.centre_true[3]) > 0.5
+    assert np.array_equal(hinted.converged_within(deconv.converge_tol_px), hinted.converged)
+    assert not hinted.converged_within(1.0)[3]  # no contrast: not fitted, however little it moved
+    assert blur_per_square(psf_moments(hints[3:]).sigma_major, sim.H0[3:])[0] < 0.5
+    front_only = fit_hinted(image, sim.H0, pattern.num_star_segments, deconv, None, hints,
+                            GrowSettings(retry_below_blur_per_square=0.0))
+    assert front_only.status[3] is BlockStatus.NOT_CONVERGED
+    fit = fit_hinted(image, sim.H0, pattern.num_star_segments, deconv, None, hints)
+    assert all(s is BlockStatus.ACCEPTED for s in fit.status)
+    assert np.max(np.linalg.norm(fit.centre - sim.centre_true, axis=1)) < 0.05
+    assert np.array_equal(fit.H[:3], hinted.H[:3])  # the accepted blocks keep their hinted fit
+
+
+@pytest.mark.slow
 def test_final_fit_over_a_larger_area_moves_inner_blocks_closer_to_the_truth() -> None:
     """The final fit (loss over 1.5 x the square, from the growth's fit) brings the inner blocks
     closer to the truth (measured over these 112 blocks of 14-18 px blur: median 0.0245 ->
@@ -201,6 +233,7 @@ def test_final_fit_over_a_larger_area_moves_inner_blocks_closer_to_the_truth() -
         GrowSettings(final_extent=0.5)
 
 
+@pytest.mark.slow
 def test_the_path_field_locates_stars_whose_blur_is_as_long_as_their_squares() -> None:
     """Frame 3 of ``scripts/bench_yield.py``'s heavy set: 22 px of blur on 20-24 px squares (three
     quarters of its visible features have blur longer than their square). Free PSFs settle px

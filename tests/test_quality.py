@@ -5,10 +5,15 @@ from __future__ import annotations
 from dataclasses import replace
 
 import numpy as np
+import pytest
 
 from blurcalib.camera import translation
-from blurcalib.quality import QualitySettings, connected_blocks, filter_frame
+from blurcalib.deconv import DeconvSettings, fit_blocks
+from blurcalib.noise import NoiseModel
+from blurcalib.pattern import layout_pattern
+from blurcalib.quality import REFERENCE_NOISE_VAR, QualitySettings, connected_blocks, filter_frame
 from blurcalib.results import BlockStatus, BlockTable
+from blurcalib.synth import simulate_blocks
 
 
 def _grid(n: int = 7) -> BlockTable:
@@ -81,3 +86,54 @@ def test_connected_blocks_from_several_seeds() -> None:
     np.testing.assert_array_equal(connected_blocks(fx, fy, allowed, [0]), [1, 1, 0, 0, 0, 0])
     np.testing.assert_array_equal(connected_blocks(fx, fy, allowed, [5]), [0, 0, 0, 1, 1, 1])
     np.testing.assert_array_equal(connected_blocks(fx, fy, allowed, [0, 4]), [1, 1, 0, 1, 1, 1])
+
+
+def _poisson_frame(paper: float, ink: float, electrons: float, seed: int
+                   ) -> tuple[BlockTable, tuple[int, int]]:
+    """Nine blurred star blocks (4-8 px of blur) between ``ink`` and ``paper`` grey levels with
+    shot noise of ``electrons`` per grey level and 0.5 grey levels of read noise, fitted, with
+    the noise variances of that sensor (:class:`NoiseModel`); feature coordinates on a 3 x 3
+    grid (the filter's connectivity)."""
+    pattern = layout_pattern()
+    rng = np.random.default_rng(seed)
+    sim = simulate_blocks(pattern, 9, rng, blur_px=(4.0, 8.0), noise_sigma=0.0, supersample=4, tile_px=80,
+                          init_shift_px=0.4, ink=ink, paper=paper, truth_kernel_size=13)
+    clean = sim.image.astype(np.float64)
+    noisy = rng.poisson(clean * electrons) / electrons + rng.normal(0.0, 0.5, clean.shape)
+    image = np.clip(np.round(noisy), 0, 255).astype(np.float32)
+    fit = fit_blocks(image, sim.H0, pattern.num_star_segments, DeconvSettings(kernel_size=17))
+    noise = NoiseModel(a=0.5**2 + 1.0 / 12.0, b=1.0 / electrons, level=(ink + paper) / 2)
+    b = len(fit)
+    fy, fx = np.divmod(np.arange(b), 3)
+    table = BlockTable(["f"] * b, np.arange(b), fx, fy, [s.value for s in fit.status], fit.loss,
+                       fit.boundary_energy, fit.sigma_major, fit.sigma_minor, fit.eccentricity,
+                       fit.orientation, fit.centroid, fit.H, fit.coeffs, fit.psf, fit.loss_extent,
+                       noise.block_variance(fit.coeffs))
+    return table, (image.shape[1], image.shape[0])
+
+
+def test_the_noise_relative_loss_threshold_keeps_bright_and_dark_frames_alike() -> None:
+    """Blocks that fit (loss about the noise variance) are kept on a dark frame with little shot
+    noise and on a bright one with much: the relative threshold keeps all of both, the paper's
+    absolute 30 grey levels^2 drops the bright frame's (shot noise about 35 grey levels^2)."""
+    dark, dark_size = _poisson_frame(paper=120.0, ink=15.0, electrons=20.0, seed=4)
+    bright, bright_size = _poisson_frame(paper=250.0, ink=30.0, electrons=4.0, seed=4)
+    assert dark.accepted.all() and bright.accepted.all()
+    for t in (dark, bright):  # the losses are the noise's, plus little model error
+        assert np.all((t.loss / t.noise_var > 0.8) & (t.loss / t.noise_var < 2.0))
+    relative, absolute = QualitySettings(), QualitySettings(loss_mode="absolute")
+    assert filter_frame(dark, dark_size, relative).kept.all()
+    assert filter_frame(bright, bright_size, relative).kept.all()
+    assert filter_frame(dark, dark_size, absolute).kept.all()
+    assert filter_frame(bright, bright_size, absolute).kept.sum() <= 2
+
+
+def test_loss_limit_grows_with_the_noise_above_the_reference() -> None:
+    """``tau_L`` up to the reference noise (and where the noise is unknown), in proportion to the
+    noise variance above it."""
+    s = QualitySettings(tau_loss=30.0)
+    limit = s.loss_limit(np.array([0.0, 1.0, REFERENCE_NOISE_VAR, 2 * REFERENCE_NOISE_VAR, np.nan]))
+    assert np.allclose(limit, [30.0, 30.0, 30.0, 60.0, 30.0])
+    assert np.allclose(QualitySettings(loss_mode="absolute").loss_limit(np.array([1.0, 40.0])), 30.0)
+    with pytest.raises(ValueError, match="loss_mode"):
+        QualitySettings(loss_mode="noise")  # type: ignore[arg-type]

@@ -80,6 +80,7 @@ def test_empty_round_trip(tmp_path: Path) -> None:
     assert len(read_block_table(tmp_path)) == 0
 
 
+@pytest.mark.slow
 def test_large_tables_round_trip(tmp_path: Path) -> None:
     n = 100_000
     rng = np.random.default_rng(3)
@@ -266,17 +267,20 @@ def test_blur_per_square_is_the_blur_extent_over_the_square_side() -> None:
     assert np.isnan(table.blur_per_square[2])
 
 
-def test_loss_extent_round_trips_and_reads_as_one_from_older_files(tmp_path: Path) -> None:
-    """``blocks.csv`` carries each block's loss extent (the growth's final fit uses 1.5); a file
-    written before the column existed reads with 1 everywhere."""
+def test_loss_extent_and_noise_round_trip_and_read_as_defaults_from_older_files(tmp_path: Path) -> None:
+    """``blocks.csv`` carries each block's loss extent (the growth's final fit uses 1.5) and noise
+    variance; a file written before the columns existed reads with 1 and NaN everywhere."""
     blocks = _blocks("a.png", 6, 4)
     blocks.loss_extent = np.array([1.0, 1.5, 1.5, 1.0, 1.25, 1.0])
+    blocks.noise_var = np.array([4.0, 4.5, np.nan, 12.25, 3.0, 3.5])
     write_results(tmp_path / "new", [], blocks)
     _assert_blocks_equal(read_block_table(tmp_path / "new"), blocks)
-    assert read_block_table(tmp_path / "new").select(np.array([1, 4])).loss_extent.tolist() == [1.5, 1.25]
+    picked = read_block_table(tmp_path / "new").select(np.array([1, 4]))
+    assert picked.loss_extent.tolist() == [1.5, 1.25] and picked.noise_var.tolist() == [4.5, 3.0]
     old = tmp_path / "old"
     write_results(old, [], blocks)
     lines = (old / "blocks.csv").read_text().splitlines()
-    assert lines[0].endswith(",loss_extent")
-    (old / "blocks.csv").write_text("\n".join(line.rsplit(",", 1)[0] for line in lines) + "\n")
+    assert lines[0].endswith(",loss_extent,noise_var")
+    (old / "blocks.csv").write_text("\n".join(line.rsplit(",", 2)[0] for line in lines) + "\n")
     assert read_block_table(old).loss_extent.tolist() == [1.0] * 6
+    assert np.isnan(read_block_table(old).noise_var).all()

@@ -9,11 +9,13 @@ from pathlib import Path
 import viser
 
 from blurcalib.frames import IMAGE_EXTENSIONS
+from blurcalib.text import count
 from state import AppState, FrameView, Notice, RunProgress, Topic
 from state.app_state import FRAME_KINDS
 from state.calibration import CalibrationRunner
 from state.folder import DatasetError
 from views.common import Coalescer, md
+from views.security import safe_upload_name
 
 NOTICE_COLOURS = {"info": "blue", "warning": "yellow", "error": "red"}
 NO_FRAMES = "(no frames)"
@@ -30,9 +32,10 @@ class FramesPanel:
         self._uploads = tempfile.TemporaryDirectory(prefix="blurcalib-uploads-")
         self._last_notice: Notice | None = None
         gui = server.gui
-        folder = state.dataset.folder if state.dataset is not None else ""
+        folder = (state.dataset.source or state.dataset.folder) if state.dataset is not None else ""
         with gui.add_folder("Data"):
-            self.path = gui.add_text("Folder", initial_value=str(folder))
+            self.path = gui.add_text("Folder", initial_value=str(folder),
+                                     hint="a folder of frames, or a video file (mp4, avi, mkv, mov)")
             self.pattern = gui.add_text("Pattern", initial_value="",
                                         hint="pattern YAML; empty: pattern.yaml in the folder or its parent")
             self.open = gui.add_button("Open folder", icon=viser.Icon.FOLDER_OPEN)
@@ -89,14 +92,19 @@ class FramesPanel:
 
     def _store(self, uploaded: viser.UploadedFile, suffixes: tuple[str, ...], title: str, kind: str
                ) -> Path | None:
-        """Save an upload in its own temporary folder; None (and an error notice) for a file of
-        another type."""
-        name = Path(uploaded.name).name
+        """Save an upload in its own temporary folder under a name that can be stored
+        (:func:`views.security.safe_upload_name`); None (and an error notice) for a file of another
+        type or one that cannot be written."""
+        name = safe_upload_name(uploaded.name)
         if Path(name).suffix.lower() not in suffixes:
             self.state.notify("error", title, f"{name}: not {kind} (expected {', '.join(suffixes)})")
             return None
         path = Path(tempfile.mkdtemp(dir=self._uploads.name)) / name
-        path.write_bytes(uploaded.content)
+        try:
+            path.write_bytes(uploaded.content)
+        except OSError as exc:
+            self.state.notify("error", title, f"{name}: cannot store the upload ({exc.strerror or exc})")
+            return None
         return path
 
     def _on_upload(self, event: viser.GuiEvent) -> None:
@@ -127,7 +135,7 @@ class FramesPanel:
         frames = [(f.name, f.kind, f.status, f.accepted, f.blocks) for f in state.entries()]
         use = self.calibration.statuses() if self.calibration is not None else {}
         dataset = state.dataset
-        folder = dataset.folder if dataset is not None else None
+        folder = (dataset.source or dataset.folder) if dataset is not None else None
         names = tuple(f[0] for f in frames) or (NO_FRAMES,)
         with self.server.atomic():
             if folder is not None and self.path.value != str(folder):
@@ -158,14 +166,15 @@ class FramesPanel:
         if view is not None:
             e = view.entry
             if e.status == "ok":
-                lines.append(f"**done**: {e.accepted} blocks accepted of {e.blocks} "
+                lines.append(f"**done**: {e.accepted} of {count(e.blocks, 'block')} accepted "
                              f"({md(e.name)}, {e.seconds:.1f} s)")
                 growth = view.result.growth if view.result is not None else None
                 if growth is not None and growth.psf_field is not None:
                     lines.append("PSFs from the frame's **motion-path field** (its blur is long for "
                                  "its squares; docs/deconvolution.md)")
             elif e.status == "cancelled":
-                lines.append(f"**cancelled**: {e.accepted} blocks accepted of {e.blocks} ({md(e.name)})")
+                lines.append(f"**cancelled**: {e.accepted} of {count(e.blocks, 'block')} accepted "
+                             f"({md(e.name)})")
             elif e.status in ("pending", "queued", "running"):
                 if not progress.running:
                     lines.append(f"{md(e.name)} ({e.kind}): not extracted yet, press **Run frame**")
