@@ -1,3 +1,8 @@
 """blurcalib: sub-pixel features and spatially varying PSFs from motion-blurred calibration frames."""
 
-__version__ = "0.1.0"
+from importlib.metadata import PackageNotFoundError, version
+
+try:
+    __version__ = version("blurcalib")  # pyproject.toml's version, from the installed package
+except PackageNotFoundError:  # a source tree that was never installed
+    __version__ = "unknown"

@@ -102,9 +102,9 @@ of the target normal are flagged as ill-conditioned."""
 
 DEFAULT_HUBER_PX = 0.035
 """Default Huber threshold ``delta`` (px): 1.345 times the features' rms noise (about 0.026 px
-for star centres, sharp or blurry), the standard 95%-efficiency tuning. The earlier 0.1 px never
-touched a simulated residual, so "Huber" was least squares; ``blurcalib experiment alignment``
-(Table 1, ``docs/experiments.md``) measured the difference."""
+for star centres, sharp or blurry), the standard 95%-efficiency tuning. A threshold of 0.1 px
+touches no simulated residual, which makes "Huber" least squares; ``blurcalib experiment
+alignment`` (Table 1, ``docs/experiments.md``) measures the difference."""
 
 MIN_BLOCKS = 12
 """Fewest kept blocks a frame is aligned with by :func:`align_blocks`: the pose (6 DoF) and

@@ -1,4 +1,4 @@
-"""Benchmark of the generic camera (issue 9): bundle-adjustment speed and memory, real frames,
+"""Benchmark of the generic camera: bundle-adjustment speed and memory, real frames,
 and the simulated comparison, printed.
 
     python scripts/bench_generic.py [--frames 80 200] [--skip-real] [--skip-experiment]

@@ -32,6 +32,8 @@ from blurcalib.grow import GrowSettings
 from state import RunSettings
 from tests.test_app_state import SMALL_CONFIG, make_dataset
 
+pytestmark = pytest.mark.browser
+
 CHROMIUM = Path("/usr/bin/chromium")
 if not CHROMIUM.exists():
     pytest.skip(f"{CHROMIUM} not found: apt-get install chromium", allow_module_level=True)
@@ -95,7 +97,8 @@ def test_run_tune_and_inspect_in_chromium(tmp_path: Path) -> None:
 
             run = page.get_by_role("button", name="Run frame")
             run.click()
-            expect(page.get_by_text(re.compile(r"done: \d+ blocks accepted"))).to_be_visible(timeout=120_000)
+            done = re.compile(r"done: \d+ of \d+ blocks accepted")
+            expect(page.get_by_text(done)).to_be_visible(timeout=120_000)
             expect(run).to_be_enabled()
             expect(page.get_by_role("button", name="Cancel")).to_be_disabled()
             assert frame_image.first.get_attribute("src") != before
@@ -181,7 +184,7 @@ def test_run_tune_and_inspect_in_chromium(tmp_path: Path) -> None:
             other = browser.new_page(viewport={"width": 1280, "height": 800})
             other.goto(f"http://127.0.0.1:{server.get_port()}/")
             expect(other.get_by_text(f"kept: {kept} blocks")).to_be_visible(timeout=30_000)
-            expect(other.get_by_text(re.compile(r"done: \d+ blocks accepted"))).to_be_visible()
+            expect(other.get_by_text(re.compile(r"done: \d+ of \d+ blocks accepted"))).to_be_visible()
             other.close()
 
             assert not errors, errors

@@ -181,6 +181,7 @@ def test_table_and_json(results: list[PatternResult]) -> None:
     assert json.loads(text)["settings"]["lam"] == PatternSettings().lam
 
 
+@pytest.mark.slow
 def test_main_writes_figure_and_json(tmp_path, capsys) -> None:
     out = tmp_path / "exp"
     assert main(["--out", str(out), "--seed", "3"]) == 0

@@ -61,12 +61,14 @@ def sweep(sim: Simulator, frames: list[ExtractedFrame], calibration: Calibration
 
 
 # ------------------------------------------------------------------------------ PSF quality
+@pytest.mark.slow
 def test_frames_are_extracted(frames: list[ExtractedFrame]) -> None:
     assert len(frames) == BLURRY and all(f.ok for f in frames)
     assert all(f.result.growth.accepted.sum() >= 12 for f in frames)
     assert "blocks accepted" in frames[0].summary()
 
 
+@pytest.mark.slow
 def test_recentring_moves_star_centres_to_the_time_averaged_positions(quality) -> None:
     rc = quality.statistics["recentring"]
     # The fitted PSFs sit off the window centre by a fraction of a pixel; re-centring on their
@@ -78,6 +80,7 @@ def test_recentring_moves_star_centres_to_the_time_averaged_positions(quality) -
     assert np.allclose(blocks.centre - blocks.centre_fit, blocks.centroid, atol=1e-6)
 
 
+@pytest.mark.slow
 def test_statistics_and_figures(quality, tmp_path) -> None:
     stats = quality.statistics
     assert stats["blocks"] == len(quality.blocks) > 0 and stats["frames"] == BLURRY
@@ -99,6 +102,7 @@ def test_statistics_and_figures(quality, tmp_path) -> None:
     assert "median loss BE <= 0.15" in psf_quality.format_table(quality)
 
 
+@pytest.mark.slow
 def test_psf_mosaic_draws_each_accepted_block_at_its_place(frames: list[ExtractedFrame]) -> None:
     frame = frames[0]
     fit = frame.result.growth.fit
@@ -121,6 +125,7 @@ def test_sharp_features_from_truth_use_the_simulators_poses(sim: Simulator) -> N
     assert np.abs(xy - truth.mid[ids]).max() < 1e-9
 
 
+@pytest.mark.slow
 def test_kept_blocks_grow_with_the_loss_threshold(sweep: SweepExperiment) -> None:
     taus = sweep.settings.tau_losses
     for config in CONFIGS:
@@ -130,6 +135,7 @@ def test_kept_blocks_grow_with_the_loss_threshold(sweep: SweepExperiment) -> Non
     assert sweep.kept_blocks("raw", math.inf) >= sweep.kept_blocks("be_filtered", math.inf)
 
 
+@pytest.mark.slow
 def test_un_recentred_centres_are_worse_than_recentred_ones(sweep: SweepExperiment) -> None:
     for bias in BIASES:
         raw = sweep.summary("raw", 30.0, bias)
@@ -140,6 +146,7 @@ def test_un_recentred_centres_are_worse_than_recentred_ones(sweep: SweepExperime
         assert recentred["true_px_median"] < 0.1
 
 
+@pytest.mark.slow
 def test_sweep_outputs(sweep: SweepExperiment, tmp_path) -> None:
     paths = threshold_sweep.write_outputs(sweep, tmp_path, seed=3)
     image = cv2.imread(str(tmp_path / "fig_exp_real3.png"))
@@ -181,6 +188,7 @@ def test_unwritable_output_returns_2(main, tmp_path, capsys) -> None:
     assert "blurcalib: error:" in capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_commands_write_their_outputs(tmp_path, capsys) -> None:
     small = ["--scale", "0.375", "--kernel", "9", "--max-blocks", "12", "--blur-min", "2", "--blur-max", "3",
              "--out", str(tmp_path)]

@@ -8,6 +8,7 @@ from __future__ import annotations
 import dataclasses
 
 import numpy as np
+import pytest
 
 from blurcalib.camera import BrownConrady, translation
 from blurcalib.extract import ExtractSettings, extract_frame
@@ -56,6 +57,7 @@ def test_bias_grows_with_the_square_of_the_fitted_area() -> None:
     np.testing.assert_allclose(centre_bias(lens, H, 1.5)[:2], wide[:2], rtol=0, atol=0)
 
 
+@pytest.mark.slow
 def test_correction_removes_the_radial_trend_on_simulated_frames() -> None:
     lens = d435i_like_camera(0).model
     sim = Simulator(SynthConfig(sharp=2, blurry=0, seed=3), camera=TrueCamera(lens))

@@ -158,6 +158,7 @@ def test_tied_fit_brings_blocks_started_px_off_onto_their_stars() -> None:
         fit_path_field(image, H0[:3], SEGMENTS, start, features=f[:3])
 
 
+@pytest.mark.slow
 def test_extract_records_the_field_and_the_option_turns_it_off(tmp_path) -> None:
     """A frame with 22 px of straight blur on 28 px squares is fitted with its path-PSF field by
     default (``frames.csv``'s ``psf`` column says ``field``, its status record holds the field,

@@ -1,4 +1,5 @@
-"""Reprojection-error fields of the current frame and of all used frames, and the frames' poses in 3D.
+"""Reprojection-error fields of the current frame and of all frames passing the pre-filter, and the
+frames' poses in 3D.
 
 The error of a block is, by default, its residual after global alignment (``eq:global_align``):
 its star centre minus the frame's translation ``x_G`` minus the projection of its target point
@@ -30,6 +31,7 @@ import viser.transforms as vtf
 
 from blurcalib import report
 from blurcalib.pattern import StarPattern
+from blurcalib.text import count
 from state import AppState, Topic
 from state.alignment import AlignmentCache, AlignmentError, FrameAlignment
 from state.calibration import CalibrationRunner
@@ -54,7 +56,7 @@ ARROW_PX = 40
 FRUSTUM_COLOURS = {"sharp": (40, 160, 40), "blurry": (60, 90, 220)}
 PAGE_DPI = 40.0
 SOURCES = ("auto", *ERROR_SOURCES)
-SCOPES = ("current frame", "all used frames")
+SCOPES = ("current frame", "all frames passing the pre-filter")
 STYLES = ("direction colours", "quiver")
 DESCRIPTIONS = {
     "global alignment": "star centre minus x_G minus the projection of its target point at the fitted pose",
@@ -237,7 +239,7 @@ class ErrorsPanel:
             self.image.image = draw_quiver(view.image, (w, h), field.centre, field.error, full)
         length = np.hypot(field.error[:, 0], field.error[:, 1])
         lines = [f"**{field.source}**{self._reference_note(field.source)}: {DESCRIPTIONS[field.source]}. "
-                 f"{len(length)} blocks, RMS {field.rms:.3f} px, median {np.median(length):.3f} px, "
+                 f"{count(len(length), 'block')}, RMS {field.rms:.3f} px, median {np.median(length):.3f} px, "
                  f"max {length.max():.3f} px."]
         if field.source == "global alignment":
             lines.append(f"x_G = ({alignment.translation[0]:+.3f}, {alignment.translation[1]:+.3f}) px"
@@ -264,7 +266,7 @@ class ErrorsPanel:
         xy, error = fields.stacked()
         note = f" Left out: {md(fields.note)}." if fields.note else ""
         if not fields.fields:
-            self.image.image = placeholder("no used frame has an error field yet")
+            self.image.image = placeholder("no frame passing the pre-filter has an error field yet")
             self.text.content = f"**{fields.source}**{self._reference_note(fields.source)}: no frame.{note}"
             return
         full = self._scale(error)
@@ -277,8 +279,9 @@ class ErrorsPanel:
             self.image.image = draw_quiver(None, fields.image_size, corner + cell / 2 - 0.5, mean, full)
         length = np.hypot(error[:, 0], error[:, 1])
         self.text.content = (
-            f"**{fields.source}**{self._reference_note(fields.source)} over {len(fields.fields)} used "
-            f"frames: {DESCRIPTIONS[fields.source]}. {len(length)} blocks, RMS "
+            f"**{fields.source}**{self._reference_note(fields.source)} over "
+            f"{count(len(fields.fields), 'frame')} passing the pre-filter: {DESCRIPTIONS[fields.source]}. "
+            f"{count(len(length), 'block')}, RMS "
             f"{float(np.sqrt(np.mean(length**2))):.3f} px, median {np.median(length):.3f} px, max "
             f"{length.max():.3f} px. Each {cell} px cell shows the mean of its blocks.{note}")
 
@@ -348,6 +351,6 @@ class ErrorsPanel:
                 thickness=3.0 if name == current else 1.5, thickness_units="screen")
             frustum.on_click(partial(self._open_frame, name))
             self._frustums.append(frustum)
-        self.poses_text.content = (f"3D view: {len(poses.poses)} frame poses from the **{poses.source}** "
-                                   "(orange: current frame, green: sharp, blue: blurry), target page in its "
-                                   "plane Z = 0. Click a frustum to open its frame.")
+        self.poses_text.content = (f"3D view: {count(len(poses.poses), 'frame pose')} from the "
+                                   f"**{poses.source}** (orange: current frame, green: sharp, blue: blurry), "
+                                   "target page in its plane Z = 0. Click a frustum to open its frame.")

@@ -5,7 +5,8 @@ outlined, the fitted model (:func:`blurcalib.deconv.render_model`, no re-fit), t
 the PSF, with its figures. The plots are loss vs blur size (sigma_major) coloured by
 eccentricity and loss vs boundary energy coloured by sigma_major, with the thresholds; kept
 blocks are dots, removed ones crosses, the selected one ringed. viser cannot report clicks inside
-an image, so a block is chosen by its number or by a "jump to" choice (the extreme points).
+an image, so a block is chosen by its number or by a "jump to" choice (the extreme points); a
+finished frame with no block selected opens on its first block, block 0.
 """
 
 from __future__ import annotations
@@ -123,7 +124,8 @@ class InspectPanel:
         self.images = gui.add_image(placeholder("no block", (4 * PANEL_PX, PANEL_PX)),
                                     label="observed · model · residual · PSF", format="png")
         self.figures = gui.add_markdown("")
-        self.plots = gui.add_image(placeholder("no result", (880, 330)), label="fig:exp_real2", format="png")
+        self.plots = gui.add_image(placeholder("no result", (880, 330)),
+                                   label="Loss against blur size and boundary energy", format="png")
         self.block.on_update(self._on_block)
         self.jump.on_update(self._on_jump)
         self._redraw_block = Coalescer(self._draw_block, 0.1, "inspect-block")
@@ -160,12 +162,12 @@ class InspectPanel:
             self.images.image = placeholder("run the frame, then choose a block", (4 * PANEL_PX, PANEL_PX))
             self.figures.content = ""
             return
-        n = len(view.result.blocks)
-        self.block.max = n - 1
+        self.block.max = len(view.result.blocks) - 1
         if view.selected is None:
-            self.images.image = placeholder("choose a block: its number or Jump to", (4 * PANEL_PX, PANEL_PX))
-            self.figures.content = f"{n} blocks in this frame (0 to {n - 1})"
-            return
+            self.state.select_block(0)
+            view = self.state.view()
+            if view is None or view.result is None or view.selected is None:
+                return
         i = view.selected
         self.block.value = i
         b = view.result.blocks

@@ -6,7 +6,7 @@ Moving a slider re-filters every finished frame from its stored figures
 result (kept blocks are the ones breadth-first connected to the seed block). The kept blocks are
 then aligned globally to the reference camera (:mod:`state.alignment`, a few milliseconds per
 frame, cached), and the panel reports the residual error after alignment (px) for the current
-frame and over every used frame.
+frame and over every aligned frame (finished, passing the pre-filter and the orientation filter).
 """
 
 from __future__ import annotations
@@ -16,6 +16,7 @@ import math
 import viser
 
 from blurcalib.quality import QualitySettings
+from blurcalib.text import count
 from state import AppState, Topic
 from state.alignment import AlignmentCache, AlignmentError
 from state.app_state import filter_counts
@@ -23,7 +24,7 @@ from views.common import Coalescer, md
 
 
 def alignment_lines(alignments: AlignmentCache, frame: str | None) -> list[str]:
-    """Markdown lines: the alignment error of ``frame`` (None: no frame) and over the used frames."""
+    """Markdown lines: the alignment error of ``frame`` (None: no frame) and over the aligned frames."""
     choice = alignments.reference()
     if choice.reference is None:
         return [f"**alignment error**: – {md(choice.reason)}"]
@@ -37,7 +38,8 @@ def alignment_lines(alignments: AlignmentCache, frame: str | None) -> list[str]:
         else:
             angle = math.degrees(a.angle_to_normal)
             lines.append(f"**alignment error** after global alignment: median {a.median_error:.3f} px, "
-                         f"RMS {a.rms_error:.3f} px over {a.num_blocks} blocks (reference: {source}) · "
+                         f"RMS {a.rms_error:.3f} px over {count(a.num_blocks, 'block')} "
+                         f"(reference: {source}) · "
                          f"x_G ({a.translation[0]:+.3f}, {a.translation[1]:+.3f}) px, optical axis "
                          f"{angle:.1f}° from the target normal"
                          + ("" if a.orientation_ok else ": **ill-conditioned** (orientation filter)"))
@@ -53,11 +55,11 @@ def alignment_lines(alignments: AlignmentCache, frame: str | None) -> list[str]:
         left_out.append(f"{overview.dropped} dropped by the pre-filter")
     rest = f" ({', '.join(left_out)})" if left_out else ""
     if overview.aligned:
-        lines.append(f"all {len(overview.aligned)} used frames: alignment median "
+        lines.append(f"{count(len(overview.aligned), 'aligned frame')}: alignment median "
                      f"{overview.median_error:.3f} px, RMS {overview.rms_error:.3f} px over "
-                     f"{overview.num_blocks} blocks{rest}")
+                     f"{count(overview.num_blocks, 'block')}{rest}")
     else:
-        lines.append(f"all frames: no used frame aligned{rest}")
+        lines.append(f"all frames: none aligned{rest}")
     return lines
 
 
@@ -128,15 +130,16 @@ class TuningPanel:
                 lines.append(f"frame pre-filter: median σ_major in the centre {sigma:.2f} px; a sharp "
                              "frame is not pre-filtered (blurry frames only)")
             else:
-                verdict = "used" if view.filter.frame_ok else "**dropped** (too little blur)"
+                verdict = "passes" if view.filter.frame_ok else "**dropped** (too little blur)"
                 lines.append(f"frame pre-filter: median σ_major in the centre {sigma:.2f} px "
                              f"vs {q.min_sigma_major:g} px: frame {verdict}")
         totals = [(flt, name) for name, (_, flt, _) in self.state.results().items() if flt is not None]
         if totals:
             kept = sum(int(f.kept.sum()) for f, _ in totals)
             used = [f for f, _ in totals if f.frame_ok]
-            lines.append(f"all {len(totals)} finished frames: {kept} blocks kept; {len(used)} frames pass "
-                         f"the pre-filter ({sum(int(f.kept.sum()) for f in used)} blocks)")
+            passing = count(len(used), "frame") + (" passes" if len(used) == 1 else " pass")
+            lines.append(f"{count(len(totals), 'finished frame')}: {count(kept, 'block')} kept; {passing} "
+                         f"the pre-filter ({count(sum(int(f.kept.sum()) for f in used), 'block')})")
         self.counts.content = "\n\n".join(lines)
         frame = view.entry.name if view is not None and view.result is not None else None
         self.alignment.content = "\n\n".join(alignment_lines(self.alignments, frame))

@@ -1,4 +1,4 @@
-"""Generic calibration from sharp and blurry frames against ground truth (issue 9).
+"""Generic calibration from sharp and blurry frames against ground truth.
 
 Design (features are simulated, not rendered, to keep the experiment fast):
 
@@ -397,7 +397,7 @@ def _run(args: argparse.Namespace) -> list[Path]:
     print(text)
     for name, lines in exp.warnings.items():
         for line in lines:
-            print(f"warning {name}: {line}")
+            print(f"warning: {name}: {line}")
     print(f"total {time.perf_counter() - t0:.1f} s")
     paths = [atomic_write_text(out / "table.txt", text + "\n"),
              atomic_write_text(out / "generic.json", json.dumps(
