@@ -33,6 +33,10 @@ so that the image centre looks along +z and the centre of the right edge lies in
 Outliers: once, after ``outlier_iteration`` iterations (or at convergence if that comes first),
 observations with an error above ``Q3 + 6 (Q3 - Q1)`` (quartiles of the error norms) are removed,
 as the reference tool does.
+
+The result keeps its observations (:class:`BundleData`); :func:`normal_equations` rebuilds the
+Gauss-Newton blocks at the solution, data and priors apart, for the projection uncertainty
+(:mod:`blurcalib.uncertainty`).
 """
 
 from __future__ import annotations
@@ -57,8 +61,17 @@ from blurcalib.generic import (
     projection_jacobians,
     tangent_basis,
 )
+from blurcalib.text import count
 
-__all__ = ["BundleResult", "BundleSettings", "bundle_adjust", "coverage_warnings"]
+__all__ = [
+    "BundleData",
+    "BundleResult",
+    "BundleSettings",
+    "NormalEquations",
+    "bundle_adjust",
+    "coverage_warnings",
+    "normal_equations",
+]
 
 log = logging.getLogger(__name__)
 
@@ -90,6 +103,30 @@ class BundleSettings:
 
 
 @dataclass(eq=False)
+class BundleData:
+    """The observations of a bundle adjustment, as its final iteration used them.
+
+    Attributes:
+        frame: ``(N,)`` frame index of each observation.
+        points: ``(N, 3)`` target points (m).
+        observed: ``(N, 2)`` observed positions (px, OpenCV convention).
+        weights: ``(N,)`` observation weights, 0 for the removed outliers.
+        shift_free: ``(F,)`` bool, frames with a free image shift.
+        settings: the solver options (priors, Huber threshold, device).
+        angular_pitch: radians per pixel of the grid, as the smoothness prior converted
+            ``smoothness_px`` with it.
+    """
+
+    frame: np.ndarray = field(repr=False)
+    points: np.ndarray = field(repr=False)
+    observed: np.ndarray = field(repr=False)
+    weights: np.ndarray = field(repr=False)
+    shift_free: np.ndarray
+    settings: BundleSettings
+    angular_pitch: float
+
+
+@dataclass(eq=False)
 class BundleResult:
     """The adjusted generic camera, poses and per-frame shifts.
 
@@ -104,6 +141,7 @@ class BundleResult:
         seconds, cpu_seconds: wall-clock and process CPU time.
         warnings: one line per image region with unobserved grid cells.
         coverage: ``(GH - 3, GW - 3)`` observation count per grid cell of the calibrated area.
+        data: the observations and options (what :func:`normal_equations` needs).
     """
 
     model: CentralGeneric
@@ -119,6 +157,39 @@ class BundleResult:
     cpu_seconds: float
     warnings: list[str]
     coverage: np.ndarray = field(repr=False)
+    data: BundleData = field(repr=False)
+
+
+@dataclass(eq=False)
+class NormalEquations:
+    """Gauss-Newton blocks of :func:`bundle_adjust`'s objective at its solution, data and priors apart.
+
+    With the per-observation IRLS weights ``W`` (observation weight times Huber weight) and the
+    Jacobians of the residuals in the grid parameters ``J_g`` and in the per-frame blocks ``J_f``
+    (rotation increment, translation, shift: 8 columns)::
+
+        hgg_data = J_g^T W J_g,  hgf_data = J_g^T W J_f,  hff_data = J_f^T W J_f
+
+    and the priors' Hessians (costs in px^2, as the objective's): ``hgg_prior`` the smoothness
+    prior, ``hff_prior`` the shift prior. A frame whose shift is not free has its shift rows and
+    columns zero in the data blocks and an identity in ``hff_prior`` (it is decoupled). Tensors
+    are torch float64 on the bundle adjustment's device.
+
+    Attributes:
+        hgg_data, hgg_prior: ``(G, G)`` with ``G = 2 GW GH``.
+        hgf_data: ``(G, F, 8)``.
+        hff_data, hff_prior: ``(F, 8, 8)``.
+        weighted_sq: ``sum_i W_i |r_i|^2`` over the inliers (px^2).
+        observations: number of inliers ``N`` (each gives 2 residuals).
+    """
+
+    hgg_data: torch.Tensor
+    hgg_prior: torch.Tensor
+    hgf_data: torch.Tensor
+    hff_data: torch.Tensor
+    hff_prior: torch.Tensor
+    weighted_sq: float
+    observations: int
 
 
 def _skew(v: torch.Tensor) -> torch.Tensor:
@@ -161,8 +232,8 @@ def coverage_warnings(model: CentralGeneric, coverage: np.ndarray) -> list[str]:
             xb = x0 + (cols[sel].max() + 1) * cell_w
             ya = y0 + rows[sel].min() * cell_h
             yb = y0 + (rows[sel].max() + 1) * cell_h
-            out.append(f"{int(sel.sum())} grid cells without observations in the {name} of the image "
-                       f"(x {max(xa, 0):.0f}-{xb:.0f} px, y {max(ya, 0):.0f}-{yb:.0f} px): the model "
+            out.append(f"{count(int(sel.sum()), 'grid cell')} without observations in the {name} of the "
+                       f"image (x {max(xa, 0):.0f}-{xb:.0f} px, y {max(ya, 0):.0f}-{yb:.0f} px): the model "
                        "there follows the "
                        "initial camera (smoothness prior)")
     return out
@@ -195,8 +266,8 @@ class _Problem:
         gh, gw = spline.shape
         self.gh, self.gw = gh, gw
         self.num_frames = len(shift_free)
-        pitch = _angular_pitch(spline)
-        self.smooth_w = 1.0 / (settings.smoothness_px * pitch) ** 2
+        self.pitch = _angular_pitch(spline)
+        self.smooth_w = 1.0 / (settings.smoothness_px * self.pitch) ** 2
         self.shift_w = 1.0 / settings.shift_sigma_px ** 2
         self.triples = _second_difference_triples(gh, gw, spline.grid.device)
 
@@ -259,6 +330,15 @@ def _normal_equations(pb: _Problem, st: _State, w: torch.Tensor, r: torch.Tensor
 
     Per-frame block columns: ``omega (3), dt (3), s (2)``. Also returns the grid's node tangents.
     """
+    Hgg, Hgp, Hpp, bg, bp, tang = _data_equations(pb, st, w, r)
+    _add_priors(pb, st, tang, Hgg, bg, Hpp, bp)
+    return Hgg, Hgp, Hpp, bg, bp, tang
+
+
+def _data_equations(pb: _Problem, st: _State, w: torch.Tensor, r: torch.Tensor
+                    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor,
+                               torch.Tensor]:
+    """The observations' part of :func:`_normal_equations` (no priors)."""
     sel = torch.nonzero(w > 0).squeeze(1)
     fr = pb.frame[sel]
     X = torch.einsum("nij,nj->ni", st.R[fr], pb.points[sel]) + st.t[fr]
@@ -297,7 +377,6 @@ def _normal_equations(pb: _Problem, st: _State, w: torch.Tensor, r: torch.Tensor
     bg = torch.zeros(G, dtype=dt, device=dev).index_add_(
         0, param_columns(nodes).reshape(-1), (J_g.transpose(1, 2) @ (ws * rs)).reshape(-1))
     tang = tangent_basis(st.grid.reshape(-1, 3))
-    _add_priors(pb, st, tang, Hgg, bg, Hpp, bp)
     return Hgg, Hgp, Hpp, bg, bp, tang
 
 
@@ -373,7 +452,7 @@ def _gauge_rotation(spline: GridSpline, grid: torch.Tensor) -> torch.Tensor:
 def bundle_adjust(model: CentralGeneric, poses: Sequence[Pose], frame: ArrayLike, points: ArrayLike,
                   observed: ArrayLike, weights: ArrayLike | None = None,
                   shift_free: ArrayLike | None = None, settings: BundleSettings | None = None,
-                  progress: bool = False) -> BundleResult:
+                  progress: bool = False, prior: CentralGeneric | None = None) -> BundleResult:
     """Fit the generic camera's grid, every frame's pose and the free per-frame shifts.
 
     Args:
@@ -387,6 +466,10 @@ def bundle_adjust(model: CentralGeneric, poses: Sequence[Pose], frame: ArrayLike
         shift_free: ``(F,)`` bool, frames with a free image shift ``s_f`` (blurry frames).
         settings: solver options.
         progress: log one line per iteration.
+        prior: the camera whose shape the smoothness prior keeps (its grid's second
+            differences; same grid as ``model``, each in its own gauge). Default ``model``: a
+            warm start from another fit's camera passes the initial camera of a cold start here,
+            so that cells without observations follow it and not the warm start.
 
     Raises:
         ValueError: inconsistent shapes or a frame without observations.
@@ -420,11 +503,18 @@ def bundle_adjust(model: CentralGeneric, poses: Sequence[Pose], frame: ArrayLike
                   torch.as_tensor(free_np, device=dev), settings)
     Q = _gauge_rotation(spline, spline.grid)
     grid = spline.grid @ Q.T
+    grid0 = grid.clone()
+    if prior is not None:
+        if (prior.grid_height, prior.grid_width) != spline.shape:
+            raise ValueError(f"prior grid {prior.grid_height}x{prior.grid_width} differs from the model's "
+                             f"{spline.shape[0]}x{spline.shape[1]}")
+        prior_grid = prior.spline(dev).grid
+        grid0 = prior_grid @ _gauge_rotation(spline, prior_grid).T
     R = Q @ torch.as_tensor(np.stack([q.R for q in poses]), **kw)
     t = torch.as_tensor(np.stack([q.t for q in poses]), **kw) @ Q.T
     s = torch.zeros(F, 2, **kw)
     u, inside, r = pb.project(grid, R, t, s, None)
-    st = _State(grid, grid.clone(), R, t, s, u, inside)
+    st = _State(grid, grid0, R, t, s, u, inside)
     use = pb.weights * inside.to(torch.float64)
     cost = pb.cost(st, torch.where(inside[:, None], r, 0.0), use)
     lam = 1e-6
@@ -484,7 +574,7 @@ def bundle_adjust(model: CentralGeneric, poses: Sequence[Pose], frame: ArrayLike
     coverage = _coverage(out_model, st.u[inlier].cpu().numpy())
     warnings = coverage_warnings(out_model, coverage)
     for line in warnings:
-        log.warning(line)
+        log.info(line)
     Rn, tn = st.R.cpu().numpy(), st.t.cpu().numpy()
     return BundleResult(
         model=out_model,
@@ -493,7 +583,42 @@ def bundle_adjust(model: CentralGeneric, poses: Sequence[Pose], frame: ArrayLike
         median_error=float(torch.median(e)) if len(e) else math.nan,
         rms_error=float(torch.sqrt(torch.mean(e * e))) if len(e) else math.nan,
         iterations=it, cost=cost, seconds=time.perf_counter() - t_wall,
-        cpu_seconds=time.process_time() - t_cpu, warnings=warnings, coverage=coverage)
+        cpu_seconds=time.process_time() - t_cpu, warnings=warnings, coverage=coverage,
+        data=BundleData(fr_np, P, p, pb.weights.cpu().numpy(), free_np, settings, pb.pitch))
+
+
+def normal_equations(result: BundleResult) -> NormalEquations:
+    """The Gauss-Newton blocks of ``result``'s objective at its solution (:class:`NormalEquations`).
+
+    Built with the final inlier set and the Huber IRLS weights of the final residuals; no
+    Levenberg-Marquardt damping.
+    """
+    data = result.data
+    settings = data.settings
+    dev = torch.device(settings.device)
+    kw = {"dtype": torch.float64, "device": dev}
+    spline = result.model.spline(dev)
+    pb = _Problem(spline, torch.as_tensor(data.frame, device=dev), torch.as_tensor(data.points, **kw),
+                  torch.as_tensor(data.observed, **kw), torch.as_tensor(data.weights, **kw),
+                  torch.as_tensor(data.shift_free, device=dev), settings)
+    pb.smooth_w = 1.0 / (settings.smoothness_px * data.angular_pitch) ** 2
+    inlier = torch.as_tensor(result.inlier, device=dev)
+    r = torch.where(inlier[:, None], torch.as_tensor(np.nan_to_num(result.residuals), **kw), 0.0)
+    s = torch.as_tensor(result.shifts, **kw)
+    u = torch.where(inlier[:, None], pb.observed - r - s[pb.frame], 0.0)
+    R = torch.as_tensor(np.stack([q.R for q in result.poses]), **kw)
+    t = torch.as_tensor(np.stack([q.t for q in result.poses]), **kw)
+    st = _State(spline.grid, spline.grid, R, t, s, u, inlier)
+    w = pb.weights * inlier.to(torch.float64) * _robust_weights(r, settings.huber_px)
+    Hgg, Hgf, Hff, bg, bf, tang = _data_equations(pb, st, w, r)
+    fixed = ~pb.shift_free
+    Hff[fixed, 6:, :] = 0.0
+    Hff[fixed, :, 6:] = 0.0
+    Hgg_p = torch.zeros_like(Hgg)
+    Hff_p = torch.zeros_like(Hff)
+    _add_priors(pb, st, tang, Hgg_p, torch.zeros_like(bg), Hff_p, torch.zeros_like(bf))
+    return NormalEquations(Hgg, Hgg_p, Hgf, Hff, Hff_p, float((w * (r * r).sum(-1)).sum()),
+                           int(inlier.sum()))
 
 
 def _orthonormal(R: np.ndarray) -> np.ndarray:

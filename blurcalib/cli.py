@@ -8,21 +8,27 @@ half-written output behind.
 from __future__ import annotations
 
 import argparse
+import math
 import os
 import sys
 import time
 from collections.abc import Callable, Sequence
+from contextlib import nullcontext
 from dataclasses import replace
 from pathlib import Path
 from typing import get_args
 
 from tqdm import tqdm
 
-from blurcalib.cluster import ClusterError
-from blurcalib.fileio import OutputError
+from blurcalib import __version__
+from blurcalib.cluster import ClusterError, check_address
+from blurcalib.fileio import OutputError, output_lock, storage_error
 from blurcalib.grow import FinalFitFrames, GrowSettings
 from blurcalib.pattern import PAGE_SIZES_MM, PatternFileError, StarPattern, layout_pattern, load_pattern
-from blurcalib.runtime import DeviceError, available_cores, check_device, configure_threads
+from blurcalib.quality import LossMode
+from blurcalib.runtime import DeviceError, available_cores, capped_count, check_device, configure_threads
+from blurcalib.text import count
+from blurcalib.validation import ValidationMethod, ValidationSettings
 
 DEFAULT_DEMO_DIR = Path("out") / "demo"
 
@@ -71,7 +77,8 @@ def cmd_pattern(args: argparse.Namespace) -> int:
         raise CliError(str(exc)) from None
     formats = tuple(f.strip() for f in args.formats.split(",") if f.strip())
     try:
-        paths = write_printable(pattern, Path(args.out), dpi=args.dpi, formats=formats)
+        paths = write_printable(pattern, Path(args.out), dpi=args.dpi, formats=formats,
+                                overwrite=args.overwrite)
     except OutputError:
         raise
     except ValueError as exc:
@@ -107,7 +114,7 @@ def _simulate(out: Path, args: argparse.Namespace, pattern: StarPattern | None) 
         truth = write_dataset(out, config, pattern=pattern, progress=update, workers=args.workers)
     elapsed = time.perf_counter() - start
     blurry = [f for f in truth.frames if f.kind == "blurry"]
-    print(f"simulated {len(truth.frames)} frames ({config.sharp} sharp, {len(blurry)} blurry) "
+    print(f"simulated {count(len(truth.frames), 'frame')} ({config.sharp} sharp, {len(blurry)} blurry) "
           f"in {elapsed:.1f} s into {out}")
     if blurry:
         import numpy as np
@@ -127,24 +134,30 @@ def cmd_synth(args: argparse.Namespace) -> int:
 
 
 def _pipeline_settings(args: argparse.Namespace):
+    from blurcalib.extract import SHARP_BELOW_PX
     from blurcalib.pipeline import PipelineSettings
     from blurcalib.quality import QualitySettings
+    from blurcalib.trust import TrustSettings
 
     try:
         return PipelineSettings(
             quality=QualitySettings(tau_be=args.tau_be, tau_loss=args.tau_loss,
-                                    min_sigma_major=args.min_sigma_major),
+                                    min_sigma_major=args.min_sigma_major, loss_mode=args.loss_threshold),
             loss=args.loss, bias=args.bias, workers=args.workers, cluster=args.cluster,
             local_alignment=args.local_alignment, model=args.model, route=args.route, cell_px=args.cell_px,
             lens_correction=not args.no_lens_correction, final_fit=args.final_fit,
-            psf_field=not args.no_psf_field)
+            psf_field=not args.no_psf_field, sharp_below_px=getattr(args, "sharp_below", SHARP_BELOW_PX),
+            trust=TrustSettings(validation=ValidationSettings(method=args.validation, folds=args.folds)))
     except ValueError as exc:
         raise CliError(str(exc)) from None
 
 
 def _run_pipeline(sharp: list[Path], blurry: list[Path], pattern: StarPattern, out: Path,
-                  args: argparse.Namespace):
-    from blurcalib.pipeline import PipelineError, run_pipeline
+                  args: argparse.Namespace, features: Path | None = None, mixed: Sequence = ()):
+    """Run the pipeline on frames (``sharp`` and ``blurry``, or ``mixed`` frames classified by
+    their own blur), or on a feature file (``features``), and print its figures."""
+    from blurcalib.pipeline import PipelineError, run_from_features, run_pipeline
+    from blurcalib.trust import summary_lines
 
     bars: dict[str, tqdm] = {}
 
@@ -156,23 +169,33 @@ def _run_pipeline(sharp: list[Path], blurry: list[Path], pattern: StarPattern, o
         bars[stage].set_postfix_str(f"{row['frame']}: {row['status']}", refresh=True)
 
     try:
-        report = run_pipeline(sharp, blurry, pattern, out, _pipeline_settings(args), update,
-                              overwrite=args.overwrite)
+        if features is not None:
+            report = run_from_features(features, pattern, out, _pipeline_settings(args), args.image_size,
+                                       overwrite=args.overwrite)
+        else:
+            report = run_pipeline(sharp, blurry, pattern, out, _pipeline_settings(args), update,
+                                  overwrite=args.overwrite, mixed=mixed)
     except PipelineError as exc:
         raise CliError(str(exc)) from None
     finally:
         for bar in bars.values():
             bar.close()
     cal = report.calibration
-    print(f"sharp-set calibration: {cal['num_frames']} frames, median {cal['median_error_px']:.4f} px, "
-          f"RMS {cal['rms_error_px']:.4f} px")
+    print(f"sharp-set calibration: {count(cal['num_frames'], 'frame')}, "
+          f"median {cal['median_error_px']:.4f} px, RMS {cal['rms_error_px']:.4f} px")
     if report.generic is not None:
         g = report.generic
         print(f"generic calibration ({g['route']} route): {g['grid_width']}x{g['grid_height']} grid, "
-              f"{g['frames']} frames ({g['blurry_frames']} blurry), median {g['median_error_px']:.4f} px, "
-              f"RMS {g['rms_error_px']:.4f} px")
+              f"{count(g['frames'], 'frame')} ({g['blurry_frames']} blurry), "
+              f"median {g['median_error_px']:.4f} px, RMS {g['rms_error_px']:.4f} px")
+        fit = "generic, sharp + blurry frames" if g["blurry_frames"] else "generic, sharp frames"
         for warning in g["warnings"]:
-            print(f"warning: {warning}")
+            print(f"warning: {fit}: {warning}")
+    if report.generic_sharp is not None:
+        for warning in report.generic_sharp["warnings"]:
+            print(f"warning: generic, sharp frames: {warning}")
+    for line in summary_lines(report.to_dict()):
+        print(line)
     for kind in ("sharp", "blurry"):
         print(f"{kind} frames: " + ", ".join(f"{v} {k}" for k, v in sorted(report.counts[kind].items())))
     for kind, path in report.outputs.items():
@@ -181,17 +204,50 @@ def _run_pipeline(sharp: list[Path], blurry: list[Path], pattern: StarPattern, o
 
 
 def cmd_calibrate(args: argparse.Namespace) -> int:
-    """``blurcalib calibrate``: extract, calibrate the sharp set, filter, align the blurry set."""
+    """``blurcalib calibrate``: extract, calibrate the sharp set, filter, align the blurry set,
+    fit the generic camera and assess it (held-out error, uncertainty)."""
     from blurcalib.frames import FrameError, list_frames
 
     pattern = load_pattern(args.pattern)
+    given = [name for name, v in (("INPUT", args.frames), ("--sharp", args.sharp),
+                                  ("--features", args.features)) if v]
+    if len(given) != 1:
+        raise CliError("give the frames (INPUT... or --sharp DIR [--blurry DIR]) or a feature file "
+                       f"(--features FILE), one of them (got {', '.join(given) or 'none'})")
+    if args.blurry and not args.sharp:
+        raise CliError("--blurry DIR goes with --sharp DIR (or give every folder as INPUT)")
+    if args.features is not None:
+        _run_pipeline([], [], pattern, Path(args.out), args, features=Path(args.features))
+        return 0
+    if args.frames:
+        mixed = _frame_inputs(args)
+        if args.model == "generic":
+            _check_grid([f.path for f in mixed if f.index is None][:1] or [], args.cell_px)
+        _run_pipeline([], [], pattern, Path(args.out), args, mixed=mixed)
+        return 0
     try:
         sharp = list_frames([args.sharp])
         blurry = list_frames([args.blurry]) if args.blurry else []
     except FrameError as exc:
         raise CliError(str(exc)) from None
+    if args.model == "generic":
+        _check_grid(sharp, args.cell_px)
     _run_pipeline(sharp, blurry, pattern, Path(args.out), args)
     return 0
+
+
+def _check_grid(frames: Sequence[Path], cell_px: float) -> None:
+    """Refuse ``--cell-px`` whose generic grid over the whole frame could not be fitted
+    (:func:`blurcalib.generic.check_grid_size`), before any frame is extracted."""
+    from blurcalib.frames import frame_size
+    from blurcalib.generic import check_grid_size
+
+    size = next((s for s in map(frame_size, frames) if s is not None), None)
+    if size is not None:
+        try:
+            check_grid_size(*size, cell_px)
+        except ValueError as exc:
+            raise CliError(f"--cell-px {cell_px:g}: {exc}") from None
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
@@ -219,61 +275,73 @@ def cmd_demo(args: argparse.Namespace) -> int:
 
         med = float(np.median([a.median for a in acc]))
         print(f"accuracy of the aligned blurry features against the true camera (pose refitted): "
-              f"median over {len(acc)} frames {med:.4f} px "
+              f"median over {count(len(acc), 'frame')} {med:.4f} px "
               f"(per frame {min(a.median for a in acc):.4f} to {max(a.median for a in acc):.4f} px)")
-    _print_camera_accuracy(out / "calibration", pattern, truth, args)
+    _print_camera_accuracy(out / "calibration", truth)
     return 0
 
 
-def _print_camera_accuracy(out: Path, pattern: StarPattern, truth, args: argparse.Namespace) -> None:
+def _print_camera_accuracy(out: Path, truth) -> None:
     """The demo's answer to "is the camera better because of the blurry frames": each camera's
     projection error against the true camera over the image (after the best-fit rotation), for
     the parametric camera, the generic camera of the sharp frames alone, and the generic camera
-    of sharp and blurry frames together."""
-    from blurcalib.calibrate import load_calibration
-    from blurcalib.evaluate import camera_accuracy
-    from blurcalib.joint import JointSettings, calibrate_generic
-    from blurcalib.refcamera import read_generic_yaml
-    from blurcalib.results import FeatureFlags, read_feature_table
+    of sharp and blurry frames together; and whether each generic camera's predicted uncertainty
+    matches its true error (RMS true error over RMS predicted sigma on the uncertainty lattice,
+    calibrated when near 1)."""
+    import numpy as np
 
-    calibration = load_calibration(out / "calibration")
-    cameras = [("parametric, sharp frames", calibration.camera)]
-    intrinsics = out / "calibration" / "intrinsics0.yaml"
-    if intrinsics.is_file():
-        table = read_feature_table(out / "features.csv")  # the calibration's own: lens-corrected
-        sharp = table.select((table.flags & int(FeatureFlags.SHARP_FRAME)) > 0)
-        size = (calibration.camera.width, calibration.camera.height)
-        alone = calibrate_generic(sharp, None, calibration, pattern, size,
-                                  JointSettings(cell_px=args.cell_px, route=args.route))
-        cameras += [("generic, sharp frames", alone.model),
-                     ("generic, sharp + blurry frames", read_generic_yaml(intrinsics))]
+    from blurcalib.calibrate import load_calibration
+    from blurcalib.evaluate import camera_accuracy, projection_errors
+    from blurcalib.pipeline import SHARP_ONLY_DIR
+    from blurcalib.refcamera import read_generic_yaml
+    from blurcalib.trust import UNCERTAINTY_NPZ
+
+    folder = out / "calibration"
+    calibration = load_calibration(folder)
+    cameras = [("parametric, sharp frames", calibration.camera, None)]
+    unc = np.load(folder / UNCERTAINTY_NPZ) if (folder / UNCERTAINTY_NPZ).is_file() else None
+    sharp_only = folder / SHARP_ONLY_DIR / "intrinsics0.yaml"
+    if sharp_only.is_file():
+        cameras.append(("generic, sharp frames", read_generic_yaml(sharp_only), "sigma_px_sharp"))
+    if (folder / "intrinsics0.yaml").is_file():
+        label = "generic, sharp + blurry frames" if len(cameras) > 1 else "generic, sharp frames"
+        cameras.append((label, read_generic_yaml(folder / "intrinsics0.yaml"), "sigma_px"))
     print("camera against the true camera over the image (px, after the best-fit rotation; shape: after "
           "the best-fit focal lengths and principal point too, docs/generic.md):")
-    for label, camera in cameras:
+    for label, camera, key in cameras:
         a = camera_accuracy(truth.camera, camera)
-        print(f"  {label:<32} median {a.median:.4f}, p95 {a.p95:.4f}, max {a.max:.4f} "
-              f"({100 * a.defined:.0f}% of the image calibrated); shape median {a.shape_median:.4f}, "
-              f"focal scale {a.scale_px:+.4f} at the corners")
+        line = (f"  {label:<32} median {a.median:.4f}, p95 {a.p95:.4f}, max {a.max:.4f} "
+                f"({100 * a.defined:.0f}% of the image calibrated); shape median {a.shape_median:.4f}, "
+                f"focal scale {a.scale_px:+.4f} at the corners")
+        if unc is not None and key in unc:
+            sigma = unc[key].reshape(-1)
+            px = np.column_stack([unc["x"].reshape(-1), unc["y"].reshape(-1)])
+            ok = np.isfinite(sigma) & camera.in_area(px)
+            err = projection_errors(truth.camera, camera, px[ok])
+            fine = np.isfinite(err)
+            ratio = np.sqrt(np.mean(err[fine] ** 2)) / np.sqrt(np.mean(sigma[ok][fine] ** 2))
+            line += f"; true error / predicted uncertainty (RMS) {ratio:.2f}"
+        print(line)
 
 
 def cmd_extract(args: argparse.Namespace) -> int:
     """``blurcalib extract``: star features, PSFs and per-block figures from frames."""
     from blurcalib.deconv import DeconvSettings
-    from blurcalib.extract import ExtractSettings, extract_to_folder
-    from blurcalib.frames import FrameError, list_frames
+    from blurcalib.extract import SHARP_KERNEL_SIZE, ExtractSettings, extract_to_folder
 
     pattern = load_pattern(args.pattern)
-    try:
-        paths = list_frames(args.frames)
-    except FrameError as exc:
-        raise CliError(str(exc)) from None
-    kernel = args.psf_size or (7 if args.sharp else 17)
+    paths = _frame_inputs(args)
+    if args.sharp and args.kind not in ("auto", "sharp"):
+        raise CliError(f"--sharp contradicts --kind {args.kind}")
+    kind = "sharp" if args.sharp else args.kind
+    kernel = args.psf_size or (SHARP_KERNEL_SIZE if kind == "sharp" else 17)
     try:
         deconv = DeconvSettings(kernel_size=kernel, device=check_device(args.device))
+        # --kind sharp: calibrate's sharp settings (ExtractSettings.sharp), so that its runs reuse these
+        base = ExtractSettings.sharp() if kind == "sharp" else ExtractSettings(kind=kind,
+                                                                               sharp_below_px=args.sharp_below)
     except ValueError as exc:
         raise CliError(str(exc)) from None
-    # --sharp: calibrate's sharp settings (ExtractSettings.sharp), so that its runs reuse these
-    base = ExtractSettings.sharp() if args.sharp else ExtractSettings()
     grow = replace(base.grow, final_fit_frames=args.final_fit,
                    psf_field=base.grow.psf_field and not args.no_psf_field)
     settings = replace(base, deconv=deconv, grow=grow, local_alignment=args.local_alignment)
@@ -295,11 +363,23 @@ def cmd_extract(args: argparse.Namespace) -> int:
                                     overwrite=args.overwrite, cluster=args.cluster)
     total_features = sum(int(r.get("features", 0)) for r in summary.frames)
     ok = sum(r["status"] == "ok" for r in summary.frames)
-    print(f"{ok}/{len(summary.frames)} frames ok, {total_features} features"
-          + (f" ({len(summary.skipped)} frames already done, skipped)" if summary.skipped else ""))
+    print(f"{ok}/{count(len(summary.frames), 'frame')} ok, {count(total_features, 'feature')}"
+          + (f" ({count(len(summary.skipped), 'frame')} already done, skipped)" if summary.skipped else ""))
     for kind, path in summary.outputs.items():
         print(f"  {kind}: {path}")
     return 0 if ok else 1
+
+
+def _frame_inputs(args: argparse.Namespace) -> list:
+    """The frames of the positional inputs (folders, images, videos) with ``--every`` and
+    ``--max-frames`` (:func:`blurcalib.sources.frame_inputs`)."""
+    from blurcalib.frames import FrameError
+    from blurcalib.sources import frame_inputs
+
+    try:
+        return frame_inputs(args.frames, every=args.every, max_frames=args.max_frames)
+    except FrameError as exc:
+        raise CliError(str(exc)) from None
 
 
 def cmd_experiment(args: argparse.Namespace) -> int:
@@ -325,6 +405,11 @@ def cmd_view(args: argparse.Namespace) -> int:
 
 
 # --------------------------------------------------------------------------------- parser
+def _plain(doc: str | None) -> str:
+    """A docstring as help text: without reST's double backticks."""
+    return (doc or "").replace("``", "")
+
+
 def _add_synth_options(p: argparse.ArgumentParser, sharp: int, blurry: int) -> None:
     p.add_argument("--sharp", type=int, default=sharp, help="number of sharp frames (%(default)s)")
     p.add_argument("--blurry", type=int, default=blurry,
@@ -344,11 +429,41 @@ def _add_synth_options(p: argparse.ArgumentParser, sharp: int, blurry: int) -> N
                    help="write into a non-empty output folder")
 
 
+def _image_size(text: str) -> tuple[int, int]:
+    try:
+        w, h = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected WxH in px (e.g. 1280x720), got {text!r}") from None
+    if w < 1 or h < 1:
+        raise argparse.ArgumentTypeError(f"width and height must be >= 1 px, got {text!r}")
+    return w, h
+
+
 def _positive(text: str) -> int:
-    value = int(text)
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"must be a whole number >= 1, got {text!r}") from None
     if value < 1:
         raise argparse.ArgumentTypeError(f"must be >= 1, got {value}")
     return value
+
+
+def _positive_number(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"must be a number > 0, got {text!r}") from None
+    if not (math.isfinite(value) and value > 0):
+        raise argparse.ArgumentTypeError(f"must be a finite number > 0, got {text!r}")
+    return value
+
+
+def _cluster_address(text: str) -> str:
+    try:
+        return check_address(text)
+    except ClusterError as exc:
+        raise argparse.ArgumentTypeError(str(exc).split(": ", 1)[1]) from None
 
 
 def _add_run_options(p: argparse.ArgumentParser, workers: bool = True) -> None:
@@ -358,7 +473,7 @@ def _add_run_options(p: argparse.ArgumentParser, workers: bool = True) -> None:
     p.add_argument("--threads", type=_positive, default=1,
                    help="compute threads of this process, for frames it runs itself (--workers 1); "
                         "worker processes use one (%(default)s; more only helps on an idle machine)")
-    p.add_argument("--cluster", metavar="ADDRESS",
+    p.add_argument("--cluster", metavar="ADDRESS", type=_cluster_address,
                    help="run frames as tasks on this Dask scheduler (tcp://host:8786; docs/cluster.md)")
 
 
@@ -378,7 +493,11 @@ def _add_pipeline_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--tau-be", type=float, default=0.12,
                    help="largest PSF boundary energy kept (%(default)s)")
     p.add_argument("--tau-loss", type=float, default=30.0,
-                   help="largest block loss kept, grey levels^2 (%(default)s)")
+                   help="largest block loss kept, grey levels^2: at a noise of 2 grey levels, scaled with "
+                        "each block's noise variance (relative), or as given (absolute) (%(default)s)")
+    p.add_argument("--loss-threshold", choices=list(get_args(LossMode)), default="relative",
+                   help="--tau-loss in the frame's own noise units, estimated from the image, or the "
+                        "paper's absolute grey levels^2 (%(default)s; docs/pipeline.md)")
     p.add_argument("--min-sigma-major", type=float, default=0.0,
                    help="drop blurry frames whose centre median sigma_major is below this, px "
                         "(%(default)s: keep every frame; the paper's choice for its camera is 3.8)")
@@ -395,11 +514,35 @@ def _add_pipeline_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--route", choices=["joint", "aligned"], default="joint",
                    help="blurry frames in the generic fit: star centres with a free per-frame shift "
                         "(joint), or aligned to the parametric camera first, the paper's route (%(default)s)")
-    p.add_argument("--cell-px", type=float, default=25.0,
+    p.add_argument("--cell-px", type=_positive_number, default=25.0,
                    help="cell length of the generic model's grid, px (%(default)s)")
     p.add_argument("--no-lens-correction", action="store_true",
                    help="keep star centres as extracted instead of removing the bias of block homographies "
                         "under the sharp-set camera's distortion (docs/generic.md)")
+    p.add_argument("--validation", choices=list(get_args(ValidationMethod)),
+                   default=ValidationSettings.method,
+                   help="held-out validation of the cameras: k-fold over frames, each held-out frame "
+                        "scored by cameras fitted without it, or none (%(default)s; docs/validation.md)")
+    p.add_argument("--folds", type=_positive, default=ValidationSettings.folds,
+                   help="number of folds of the validation (%(default)s; needs at least "
+                        f"{ValidationSettings.min_frames} frames)")
+
+
+def _add_source_options(p: argparse.ArgumentParser, nargs: str = "+") -> None:
+    """The frame inputs (positional ``INPUT...``, ``nargs``), ``--every``, ``--max-frames`` and
+    ``--sharp-below``, read by :func:`_frame_inputs`."""
+    from blurcalib.extract import SHARP_BELOW_PX
+
+    p.add_argument("frames", nargs=nargs, metavar="INPUT",
+                   help="folders of frames, image files (png, jpg, tiff, bmp) or videos (mp4, avi, mkv, "
+                        "mov); a video's frames are named VIDEO#000123")
+    p.add_argument("--every", type=_positive, default=1,
+                   help="keep every N-th frame of each folder and video (%(default)s)")
+    p.add_argument("--max-frames", type=_positive, default=None,
+                   help="keep at most N frames of each folder and video (default: all)")
+    p.add_argument("--sharp-below", type=float, default=SHARP_BELOW_PX,
+                   help="frames whose measured blur (median blur extent of the tag ring's PSFs) is "
+                        "below this are sharp, px (%(default)s; docs/pipeline.md)")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -407,10 +550,11 @@ def build_parser() -> argparse.ArgumentParser:
         prog="blurcalib",
         description="Sub-pixel star features and spatially varying PSFs from motion-blurred "
                     "calibration frames.")
+    parser.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
     p = sub.add_parser("demo", help="simulate the default dataset and run the pipeline on it",
-                       description=cmd_demo.__doc__)
+                       description=_plain(cmd_demo.__doc__))
     p.add_argument("--out", default=str(DEFAULT_DEMO_DIR),
                    help="output folder (%(default)s); its data/ is reused when complete")
     _add_synth_options(p, sharp=20, blurry=60)
@@ -419,9 +563,16 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_demo)
 
     p = sub.add_parser("calibrate", help="the whole pipeline on folders of sharp and blurry frames",
-                       description=cmd_calibrate.__doc__)
-    p.add_argument("--sharp", required=True, help="folder of sharp frames")
-    p.add_argument("--blurry", help="folder of blurry frames (optional: a sharp-only calibration)")
+                       description=_plain(cmd_calibrate.__doc__))
+    _add_source_options(p, nargs="*")
+    p.add_argument("--sharp", help="folder of sharp frames (instead of INPUT: the kinds given, not measured)")
+    p.add_argument("--blurry",
+                   help="folder of blurry frames, with --sharp (optional: a sharp-only calibration)")
+    p.add_argument("--features", metavar="FILE",
+                   help="calibrate from a feature file instead of frames: the reference tool's dataset "
+                        "(.bin) or a blurcalib features.csv (rows flagged BLURRY_FRAME get a free shift)")
+    p.add_argument("--image-size", type=_image_size, metavar="WxH",
+                   help="image size of a features.csv, px (a .bin holds its own)")
     p.add_argument("--pattern", required=True, help="pattern YAML of the target")
     p.add_argument("--out", required=True, help="output folder (resumable)")
     p.add_argument("--overwrite", action="store_true",
@@ -431,7 +582,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_calibrate)
 
     p = sub.add_parser("pattern", help="write a printable star target (PDF, PNG, YAML)",
-                       description=cmd_pattern.__doc__)
+                       description=_plain(cmd_pattern.__doc__))
     p.add_argument("--out", required=True,
                    help="output path without extension, e.g. targets/star_a4")
     p.add_argument("--page", type=_page_size, default=PAGE_SIZES_MM["A4"],
@@ -442,19 +593,24 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--segments", type=int, default=16,
                    help="star segments, a multiple of 4 (%(default)s)")
     p.add_argument("--margin-mm", type=float, default=4.0, help="page margin, mm (%(default)s)")
-    p.add_argument("--dpi", type=float, default=300.0, help="PNG resolution (%(default)s)")
+    p.add_argument("--dpi", type=_positive_number, default=300.0,
+                   help="PNG resolution (%(default)s; the PNG may have at most 150 megapixels)")
     p.add_argument("--formats", default="pdf,png,yaml", help="comma list (%(default)s)")
+    p.add_argument("--overwrite", action="store_true", help="replace existing files")
     p.set_defaults(func=cmd_pattern)
 
     p = sub.add_parser("extract", help="extract star features and PSFs from frames",
-                       description=cmd_extract.__doc__)
-    p.add_argument("frames", nargs="+", help="image files or folders (png, jpg, tiff)")
+                       description=_plain(cmd_extract.__doc__))
+    _add_source_options(p)
     p.add_argument("--pattern", required=True, help="pattern YAML of the target")
     p.add_argument("--out", required=True, help="output folder (resumable: done frames are skipped)")
-    p.add_argument("--sharp", action="store_true",
-                   help="frames are sharp: small PSF window (7 px) and sharp-frame flags")
+    p.add_argument("--kind", choices=["auto", "sharp", "blurry"], default="auto",
+                   help="auto: each frame is sharp or blurry by its own measured blur (--sharp-below); "
+                        "sharp: small PSF window (7 px) and sharp-frame flags; blurry: a window that "
+                        "fits the blur (%(default)s)")
+    p.add_argument("--sharp", action="store_true", help="the same as --kind sharp")
     p.add_argument("--psf-size", type=int, default=0,
-                   help="PSF window side, odd px (17 for blurry, 7 with --sharp)")
+                   help="PSF window side, odd px (17 for blurry frames, 7 for sharp ones)")
     p.add_argument("--local-alignment", action="store_true",
                    help="move star centres by the local-alignment translations")
     _add_fit_options(p, "")
@@ -465,30 +621,38 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_extract)
 
     p = sub.add_parser("experiment", help="reproduce one of the paper's experiments",
-                       description=cmd_experiment.__doc__)
+                       description=_plain(cmd_experiment.__doc__))
     p.add_argument("name", choices=["patterns", "alignment", "psf-quality", "threshold-sweep", "generic"],
                    help="patterns: star vs checkerboard PSF recovery (fig:exp2_test); "
                         "alignment: global alignment verification (tab:exp4, fig:exp41, fig:exp42); "
                         "psf-quality: PSF field and quality scatter plots (fig:exp_real1, "
                         "fig:exp_real2); threshold-sweep: error against tau_L (fig:exp_real3); "
-                        "generic: generic camera from sharp and blurry frames vs the truth (issue 9)")
+                        "generic: generic camera from sharp and blurry frames vs the truth")
     p.add_argument("rest", nargs=argparse.REMAINDER,
                    help="options of the experiment (see blurcalib experiment NAME --help)")
     p.set_defaults(func=cmd_experiment)
 
-    p = sub.add_parser("view", help="start the browser app (viser)", description=cmd_view.__doc__,
+    p = sub.add_parser("view", help="start the browser app (viser)", description=_plain(cmd_view.__doc__),
                        add_help=False)
     p.add_argument("rest", nargs=argparse.REMAINDER,
                    help="[FOLDER] [--pattern P.yaml] [--port N] (see python app.py --help)")
     p.set_defaults(func=cmd_view)
 
     p = sub.add_parser("synth", help="simulate sharp and blurry frames with ground truth",
-                       description=cmd_synth.__doc__)
+                       description=_plain(cmd_synth.__doc__))
     p.add_argument("--out", required=True, help="output folder")
     p.add_argument("--pattern", help="pattern YAML (default: the reference A4 17x24 target)")
     _add_synth_options(p, sharp=20, blurry=60)
     p.set_defaults(func=cmd_synth)
     return parser
+
+
+def _output_lock(args: argparse.Namespace):
+    """The lock on the output folder of a command that writes one (:func:`blurcalib.fileio.output_lock`):
+    a second run into the same folder is refused while this one runs."""
+    if args.func in (cmd_calibrate, cmd_extract, cmd_synth, cmd_demo):
+        return output_lock(args.out)
+    return nullcontext()
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -499,11 +663,24 @@ def main(argv: Sequence[str] | None = None) -> int:
         args = argparse.Namespace(func=cmd_view, rest=argv[1:])
     else:
         args = parser.parse_args(argv)
+    for option in ("threads", "workers"):
+        if getattr(args, option, None) is not None:
+            value, note = capped_count(getattr(args, option), f"--{option}")
+            setattr(args, option, value)
+            if note is not None:
+                print(f"blurcalib: note: {note}", file=sys.stderr)
     try:
         configure_threads(getattr(args, "threads", None))
-        return int(args.func(args))
+        with _output_lock(args):
+            return int(args.func(args))
     except (CliError, PatternFileError, OutputError, ClusterError, DeviceError) as exc:
         print(f"blurcalib: error: {exc}", file=sys.stderr)
+        return 2
+    except OSError as exc:  # a full disk, a quota or a read-only file system: one line, not a traceback
+        error = storage_error(exc)
+        if error is None:
+            raise
+        print(f"blurcalib: error: {error}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print("blurcalib: interrupted; finished files are kept", file=sys.stderr)

@@ -1,4 +1,4 @@
-"""Generic calibration of a feature set: sharp frames plus, optionally, blurry frames (issue 9).
+"""Generic calibration of a feature set: sharp frames plus, optionally, blurry frames.
 
 :func:`calibrate_generic` turns the pipeline's features and its parametric (Brown-Conrady)
 calibration into a generic camera (:mod:`blurcalib.generic`) fitted by
@@ -45,6 +45,7 @@ from blurcalib.generic import (
     CentralGeneric,
     best_fit_rotation,
     calibrated_area,
+    check_grid_size,
     fit_to_rays,
     undistortion_map,
 )
@@ -108,8 +109,10 @@ class GenericCalibration:
         parametric: the Brown-Conrady camera it started from.
         poses: frame -> pose (target -> camera) in the generic model's frame.
         shifts: frame -> ``(2,)`` px estimated image shift (blurry frames, joint route).
+        frames: names of the frames used, in the bundle adjustment's order.
         blurry_frames: names of the blurry frames used.
         frame, feature_id: ``(N,)`` the used observations.
+        points: ``(N, 3)`` m, the target points they were fitted with; weight ``(N,)`` theirs.
         observed, residuals: ``(N, 2)`` px (residual = observed - projection - shift).
         inlier: ``(N,)`` bool.
         median_error, rms_error: px over inliers; ``sharp_median_error``, ``blurry_median_error``
@@ -123,9 +126,12 @@ class GenericCalibration:
     parametric: BrownConrady
     poses: dict[str, Pose]
     shifts: dict[str, np.ndarray]
+    frames: list[str]
     blurry_frames: list[str]
     frame: np.ndarray = field(repr=False)
     feature_id: np.ndarray = field(repr=False)
+    points: np.ndarray = field(repr=False)
+    weight: np.ndarray = field(repr=False)
     observed: np.ndarray = field(repr=False)
     residuals: np.ndarray = field(repr=False)
     inlier: np.ndarray = field(repr=False)
@@ -200,6 +206,7 @@ def calibrate_generic(sharp_features: FeatureTable, blurry_features: FeatureTabl
         raise ValueError(f"no frame has {settings.min_features} or more usable features")
     index, ids, pts, obs, weight = (np.concatenate(c) for c in zip(*rows, strict=True))
     area = calibrated_area(obs, width, height)
+    check_grid_size(area[2] + 1 - area[0], area[3] + 1 - area[1], settings.cell_px)
     initial = fit_to_rays(camera.pixel_to_ray, width, height, area=area, cell_px=settings.cell_px)
     shift_free = np.array([k == "blurry" and settings.route == "joint" for k in kinds])
     res = bundle_adjust(initial, poses, index, pts, obs, weights=weight, shift_free=shift_free,
@@ -214,8 +221,9 @@ def calibrate_generic(sharp_features: FeatureTable, blurry_features: FeatureTabl
     return GenericCalibration(
         model=res.model, parametric=camera, poses=dict(zip(frames, res.poses, strict=True)),
         shifts={f: res.shifts[i] for i, f in enumerate(frames) if shift_free[i]},
-        blurry_frames=[f for f, k in zip(frames, kinds, strict=True) if k == "blurry"],
-        frame=np.array(frames)[index], feature_id=ids, observed=obs, residuals=res.residuals,
+        frames=frames, blurry_frames=[f for f, k in zip(frames, kinds, strict=True) if k == "blurry"],
+        frame=np.array(frames)[index], feature_id=ids, points=pts, weight=weight, observed=obs,
+        residuals=res.residuals,
         inlier=res.inlier, median_error=res.median_error, rms_error=res.rms_error,
         sharp_median_error=median(~blurry_row), blurry_median_error=median(blurry_row),
         skipped_frames=skipped, route=settings.route, bundle=res)

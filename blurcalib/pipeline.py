@@ -33,20 +33,22 @@ Frame statuses (``frames.csv``, one row per input frame, sharp and blurry): ``us
 frame whose features enter the final calibration (a sharp frame: the sharp-set and generic
 calibrations; a blurry frame: the generic fit, or with ``model="parametric"`` the global
 alignment and ``features.bin``). Every other status comes with its reason: the extraction's own
-(``not_seeded``, ``no_blocks``, ``unreadable``, ``wrong_size``, ``failed``), ``too_few_features``
-(left out of a calibration), ``low_blur`` (the optional pre-filter), ``too_few_blocks`` (after
-the block filter), and, where the parametric alignment decides (``model="parametric"`` or
-``route="aligned"``), ``ill_conditioned`` (seen nearly frontally: its global translation is
-ill-conditioned, its features are flagged ``filtered_out``) or ``alignment_failed``. The
-``alignment`` column keeps the parametric alignment's verdict on every route.
+(``not_seeded``, ``no_blocks``, ``unreadable``, ``wrong_size``, ``failed``), ``duplicate`` (the same
+view as an earlier frame, which is kept: :mod:`blurcalib.duplicates`; the minimum of usable sharp
+frames counts distinct views), ``too_few_features`` (left out of a calibration), ``low_blur``
+(the optional pre-filter), ``too_few_blocks`` (after the block filter), and, where the
+parametric alignment decides (``model="parametric"`` or ``route="aligned"``), ``ill_conditioned``
+(seen nearly frontally: its global translation is ill-conditioned, its features are flagged
+``filtered_out``) or ``alignment_failed``. The ``alignment`` column keeps the parametric
+alignment's verdict on every route.
 """
 
 from __future__ import annotations
 
-import json
 import math
 import os
 import shutil
+import time
 from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
@@ -56,11 +58,12 @@ import cv2
 import numpy as np
 
 from blurcalib.calibrate import Calibration, calibrate_sharp, save_calibration
-from blurcalib.extract import ExtractSettings, extract_to_folder
+from blurcalib.duplicates import mark_duplicates
+from blurcalib.extract import SHARP_BELOW_PX, ExtractSettings, extract_to_folder
 from blurcalib.fileio import (
     atomic_path,
     atomic_write_csv,
-    atomic_write_text,
+    atomic_write_json,
     claim_output_dir,
     ensure_writable_dir,
 )
@@ -69,6 +72,7 @@ from blurcalib.generic import DEFAULT_CELL_PX
 from blurcalib.global_alignment import MIN_BLOCKS, AlignmentError, AlignmentSettings, align_blocks
 from blurcalib.grow import FinalFitFrames, GrowSettings
 from blurcalib.joint import (
+    INTRINSICS_FILE,
     GenericCalibration,
     JointSettings,
     calibrate_generic,
@@ -78,6 +82,7 @@ from blurcalib.joint import (
 from blurcalib.lens_bias import correct_blocks, correct_features
 from blurcalib.pattern import StarPattern
 from blurcalib.quality import QualitySettings, filter_frame
+from blurcalib.refcamera import write_generic_yaml
 from blurcalib.refformat import to_ref_dataset, write_ref_dataset
 from blurcalib.report import error_direction_image, save_frame_error_plot
 from blurcalib.results import (
@@ -90,16 +95,23 @@ from blurcalib.results import (
     read_feature_table,
     write_features,
 )
+from blurcalib.sources import FrameInput
+from blurcalib.text import count
+from blurcalib.trust import Trust, TrustSettings, assess_calibration, save_trust
 
 Table = TypeVar("Table", FeatureTable, BlockTable)
 KINDS: tuple[str, ...] = ("sharp", "blurry")
 """The run's extractions, each an ``extract`` output folder ``OUT/<kind>/`` of its own."""
+MIXED = "frames"
+"""``OUT/frames/``: the extraction of frames whose kind each frame's measured blur decides."""
 MODELS: tuple[str, ...] = ("generic", "parametric")
 """Camera models :func:`run_pipeline` delivers."""
 
 REPORT_FILE = "report.json"
 CALIBRATION_DIR = "calibration"
 STAGING_DIR = ".staging"
+SHARP_ONLY_DIR = "sharp_only"
+"""``OUT/calibration/sharp_only/intrinsics0.yaml``: the generic camera of the sharp frames alone."""
 """Where the top-level outputs are written before :func:`_publish` moves them into place."""
 PUBLISHED: tuple[str, ...] = ("features.csv", "features.bin", "frames.csv",
                               "error_directions_blurry.png", "error_directions_sharp.png",
@@ -149,6 +161,10 @@ class PipelineSettings:
             under the sharp-set parametric camera's distortion (:mod:`blurcalib.lens_bias`),
             then calibrate the parametric camera again from the corrected sharp features.
         cluster: a Dask scheduler address; frames are extracted as tasks there (``docs/cluster.md``).
+        sharp_below_px: mixed frames (``run_pipeline(mixed=...)``) whose measured blur is below
+            this are sharp (:attr:`blurcalib.extract.ExtractSettings.sharp_below_px`).
+        trust: the held-out validation, uncertainty and guidance of the generic camera
+            (:mod:`blurcalib.trust`).
     """
 
     quality: QualitySettings = field(default_factory=QualitySettings)
@@ -165,6 +181,8 @@ class PipelineSettings:
     cell_px: float = DEFAULT_CELL_PX
     lens_correction: bool = True
     cluster: str | None = None
+    sharp_below_px: float = SHARP_BELOW_PX
+    trust: TrustSettings = field(default_factory=TrustSettings)
 
     def __post_init__(self) -> None:
         if self.model not in MODELS:
@@ -179,7 +197,9 @@ class PipelineReport:
     parametric (sharp-set) camera and its errors, ``frames`` one row per input frame (see the
     module docstring), ``counts`` frames per status of each kind (``{"sharp": {...}, "blurry":
     {...}}``), ``generic`` the generic fit (:func:`blurcalib.joint.generic_report`: grid, median
-    and RMS reprojection error in px, frames, coverage warnings; None for ``model="parametric"``)."""
+    and RMS reprojection error in px, frames, coverage warnings; None for ``model="parametric"``),
+    ``generic_sharp`` the same for the sharp frames alone, ``trust`` the assessment
+    (:meth:`blurcalib.trust.Trust.to_dict`)."""
 
     calibration: dict
     frames: list[dict]
@@ -187,23 +207,33 @@ class PipelineReport:
     counts: dict[str, dict[str, int]]
     settings: dict
     generic: dict | None = None
+    generic_sharp: dict | None = None
+    trust: dict | None = None
+    seconds: dict[str, float] = field(default_factory=dict)
 
     def to_dict(self) -> dict:
-        return asdict(self)
+        """The ``report.json`` document: the fields, with ``trust``'s sections (``validation``,
+        ``uncertainty``, ``cross_validation``, ``guidance``, ``blurry_frames_gain``) at the top."""
+        out = asdict(self)
+        out.update(out.pop("trust") or {})
+        return out
 
 
-def _usable_size(path: Path) -> tuple[int, int] | None:
+def _usable_size(frame: Path | FrameInput) -> tuple[int, int] | None:
     """A frame's size, or None when it cannot be processed (extraction records it as
     unreadable)."""
-    size = frame_size(path)
+    size = frame.size() if isinstance(frame, FrameInput) else frame_size(frame)
     return None if size is None or frame_size_problem(*size) else size
 
 
-def _check_sizes(sharp: Sequence[Path], blurry: Sequence[Path]) -> tuple[int, int]:
+def _check_sizes(sharp: Sequence[Path | FrameInput], blurry: Sequence[Path | FrameInput],
+                 what: str = "sharp frames") -> tuple[int, int]:
+    """The run's image size: the most common among ``sharp`` (``what`` names them); frames of
+    another size are refused."""
     sizes = [_usable_size(p) for p in sharp]
     known = [s for s in sizes if s is not None]
     if not known:
-        raise PipelineError("none of the sharp frames can be read")
+        raise PipelineError(f"none of the {what} can be read")
     size = max(set(known), key=known.count)
     other = [(p, s) for p, s in zip(list(sharp) + list(blurry),
                                     sizes + [_usable_size(p) for p in blurry], strict=True)
@@ -211,7 +241,7 @@ def _check_sizes(sharp: Sequence[Path], blurry: Sequence[Path]) -> tuple[int, in
     if other:
         listed = ", ".join(f"{p} ({s[0]}x{s[1]})" for p, s in other[:5])
         more = f" and {len(other) - 5} more" if len(other) > 5 else ""
-        raise PipelineError(f"frames of another resolution than the sharp set's {size[0]}x{size[1]}: "
+        raise PipelineError(f"frames of another resolution than the run's {size[0]}x{size[1]}: "
                             f"{listed}{more}")
     return size
 
@@ -219,7 +249,7 @@ def _check_sizes(sharp: Sequence[Path], blurry: Sequence[Path]) -> tuple[int, in
 def run_pipeline(sharp: Sequence[Path], blurry: Sequence[Path], pattern: StarPattern,
                  out_dir: str | os.PathLike, settings: PipelineSettings | None = None,
                  progress: Callable[[str, int, int, dict], None] | None = None,
-                 overwrite: bool = False) -> PipelineReport:
+                 overwrite: bool = False, mixed: Sequence[FrameInput] = ()) -> PipelineReport:
     """Run the whole pipeline (see the module docstring); partial results are kept on error.
 
     The top-level outputs (:data:`PUBLISHED`) are written into a staging folder and moved into
@@ -229,6 +259,10 @@ def run_pipeline(sharp: Sequence[Path], blurry: Sequence[Path], pattern: StarPat
     Args:
         sharp, blurry: frame files.
         pattern: the target.
+        mixed: frames (folders, images, video frames: :func:`blurcalib.sources.frame_inputs`)
+            each classified sharp or blurry by its own measured blur
+            (:attr:`blurcalib.extract.ExtractSettings.sharp_below_px`), extracted into
+            ``OUT/frames/``; given instead of ``sharp`` and ``blurry``.
         out_dir: output folder (re-running resumes the extraction).
         settings: pipeline settings.
         progress: ``progress(stage, done, total, row)`` during extraction.
@@ -243,9 +277,12 @@ def run_pipeline(sharp: Sequence[Path], blurry: Sequence[Path], pattern: StarPat
     from blurcalib.calibrate import CalibrationError
     from blurcalib.deconv import DeconvSettings
 
+    t_start = time.perf_counter()
     s = settings or PipelineSettings()
-    size = _check_sizes(sharp, blurry)
-    out = claim_output_dir(out_dir, "calibrate", asdict(s), overwrite, extractions=KINDS)
+    if mixed and (sharp or blurry):
+        raise ValueError("give either mixed frames or sharp and blurry frames")
+    size = _check_sizes(mixed, [], "frames") if mixed else _check_sizes(sharp, blurry)
+    out = claim_output_dir(out_dir, "calibrate", asdict(s), overwrite, extractions=(*KINDS, MIXED))
     staging = out / STAGING_DIR
     shutil.rmtree(staging, ignore_errors=True)  # left by a run killed while writing
 
@@ -257,22 +294,41 @@ def run_pipeline(sharp: Sequence[Path], blurry: Sequence[Path], pattern: StarPat
     blurry_settings = ExtractSettings(deconv=DeconvSettings(kernel_size=s.blurry_kernel),
                                       grow=GrowSettings(final_fit_frames=s.final_fit, psf_field=s.psf_field),
                                       local_alignment=s.local_alignment)
-    runs = {kind: extract_to_folder(paths, pattern, out / kind, settings, workers=s.workers,
-                                    progress=stage(kind), expected_size=size, overwrite=overwrite,
-                                    cluster=s.cluster)
-            for kind, paths, settings in (("sharp", sharp, ExtractSettings.sharp()),
-                                          ("blurry", blurry, blurry_settings))}
-    extracted = {kind: [{**r, "frame": f"{kind}/{r['frame']}"} for r in run.frames]
-                 for kind, run in runs.items()}
+    if mixed:
+        auto = replace(blurry_settings, kind="auto", sharp_below_px=s.sharp_below_px)
+        run = extract_to_folder(mixed, pattern, out / MIXED, auto, workers=s.workers,
+                                progress=stage("frames"), expected_size=size, overwrite=overwrite,
+                                cluster=s.cluster)
+        rows = [{**r, "frame": f"{MIXED}/{r['frame']}"} for r in run.frames]
+        extracted = {"sharp": [r for r in rows if r.get("kind") == "sharp"],
+                     "blurry": [r for r in rows if r.get("kind") != "sharp"]}
+        features = _with_kind(read_feature_table(out / MIXED / FEATURES_FILE), MIXED)
+        all_blocks = _with_kind(read_block_table(out / MIXED), MIXED)
+        is_sharp = np.isin(all_blocks.frame, [r["frame"] for r in extracted["sharp"]])
+        sharp_blocks, blocks = all_blocks.select(is_sharp), all_blocks.select(~is_sharp)
+    else:
+        runs = {kind: extract_to_folder(paths, pattern, out / kind, settings, workers=s.workers,
+                                        progress=stage(kind), expected_size=size, overwrite=overwrite,
+                                        cluster=s.cluster)
+                for kind, paths, settings in (("sharp", sharp, ExtractSettings.sharp()),
+                                              ("blurry", blurry, blurry_settings))}
+        extracted = {kind: [{**r, "frame": f"{kind}/{r['frame']}"} for r in run.frames]
+                     for kind, run in runs.items()}
+        features = FeatureTable.concat([_with_kind(read_feature_table(out / kind / FEATURES_FILE), kind)
+                                        for kind in KINDS])
+        sharp_blocks = _with_kind(read_block_table(out / "sharp"), "sharp")
+        blocks = _with_kind(read_block_table(out / "blurry"), "blurry")
+    t_extracted = time.perf_counter()
     seeded = [r for r in extracted["sharp"] + extracted["blurry"] if r["status"] != "not_seeded"]
     if not any(r["status"] == "ok" for r in seeded):
         raise PipelineError("no AprilTag of the pattern was found in any frame: does the pattern "
                             "YAML match the target in the frames?")
-    sharp_features = _with_kind(read_feature_table(out / "sharp" / FEATURES_FILE), "sharp")
+    duplicates = mark_duplicates(extracted["sharp"] + extracted["blurry"], features)
+    sharp_features = features.select(((features.flags & int(FeatureFlags.SHARP_FRAME)) != 0)
+                                     & ~np.isin(features.frame, sorted(duplicates)))
     try:
         calibration = calibrate_sharp(sharp_features, pattern, size)
         if s.lens_correction:
-            sharp_blocks = _with_kind(read_block_table(out / "sharp"), "sharp")
             sharp_features = correct_features(sharp_features, sharp_blocks, calibration.camera)
             calibration = calibrate_sharp(sharp_features, pattern, size)
     except CalibrationError as exc:
@@ -284,22 +340,189 @@ def run_pipeline(sharp: Sequence[Path], blurry: Sequence[Path], pattern: StarPat
     left_out = np.isin(sharp_features.frame, [r["frame"] for r in sharp_rows
                                               if r["status"] != "used"])
     sharp_features.flags[left_out] |= int(FeatureFlags.FILTERED_OUT)
-    blocks = _with_kind(read_block_table(out / "blurry"), "blurry")
     if s.lens_correction:
         blocks = correct_blocks(blocks, calibration.camera)
     blurry_frames = [_align_frame(r, blocks, pattern, calibration, size, s) for r in extracted["blurry"]]
-    generic = None
-    if s.model == "generic":
-        generic = _fit_generic(sharp_features, blurry_frames, calibration, pattern, size, s)
-        _generic_statuses(sharp_rows, blurry_frames, generic, s.route)
-    rows = sharp_rows + [f.row for f in blurry_frames]
+    t_aligned = time.perf_counter()
+    run = _calibrate_cameras(sharp_features, blurry_frames, sharp_rows, calibration, pattern, size, s)
+    run.seconds.update(extraction=t_extracted - t_start,
+                       calibration=t_aligned - t_extracted + run.seconds.pop("generic", 0.0))
+    report = _publish_run(out, pattern, size, s, sharp_features, blurry_frames, sharp_rows, run)
     usable = [f for f in blurry_frames if f.row["status"] == "used"]
+    if extracted["blurry"] and not usable:
+        raise PipelineError(f"no blurry frame survived the filters ({report.counts['blurry']}); the "
+                            f"sharp-set calibration and all features are kept in {out}")
+    return report
+
+
+
+def read_feature_input(path: str | os.PathLike, pattern: StarPattern,
+                       image_size: tuple[int, int] | None = None) -> tuple[FeatureTable, tuple[int, int]]:
+    """Features to calibrate from, and the image size: the reference tool's dataset ``.bin``
+    (pixel-corner convention on disk; every frame sharp) or blurcalib's ``features.csv`` (rows
+    flagged ``BLURRY_FRAME`` are blurry frames, those flagged ``FILTERED_OUT`` are left out; the
+    size must be given, the file does not hold it).
+
+    Raises:
+        PipelineError: an unknown suffix, an unreadable or malformed file, or a ``features.csv``
+            without ``image_size``.
+    """
+    from blurcalib.refformat import RefFormatError, read_ref_dataset, ref_feature_table
+    from blurcalib.results import ResultsFileError
+
+    p = Path(path)
+    try:
+        if p.suffix.lower() == ".bin":
+            dataset = read_ref_dataset(p)
+            table = ref_feature_table(dataset, pattern)
+            return table, image_size or dataset.image_size
+        if p.suffix.lower() == ".csv":
+            if image_size is None:
+                raise PipelineError(f"{p}: a features.csv does not hold the image size: give "
+                                    f"--image-size WxH")
+            table = read_feature_table(p)
+            table = table.select((table.flags & int(FeatureFlags.FILTERED_OUT)) == 0)
+            if len(table) and int(table.feature_id.max()) >= pattern.num_features:
+                raise PipelineError(f"{p}: feature id {int(table.feature_id.max())} is not one of the "
+                                    f"pattern's {pattern.num_features} features")
+            return table, image_size
+    except (OSError, RefFormatError, ResultsFileError, ValueError) as exc:
+        raise PipelineError(f"{p}: {exc}") from None
+    raise PipelineError(f"{p}: features must be a reference dataset (.bin) or a blurcalib features.csv")
+
+
+def run_from_features(path: str | os.PathLike, pattern: StarPattern, out_dir: str | os.PathLike,
+                      settings: PipelineSettings | None = None, image_size: tuple[int, int] | None = None,
+                      overwrite: bool = False) -> PipelineReport:
+    """Calibrate from an existing feature file instead of images (:func:`read_feature_input`):
+    the parametric camera on the sharp frames, then the generic cameras, their assessment and
+    the same outputs as :func:`run_pipeline`. Blurry frames enter the generic fit on the joint
+    route (a free shift each); without blocks there is no lens-bias correction (a blurcalib
+    ``features.csv`` is already corrected) and no parametric alignment.
+
+    Raises:
+        PipelineError: unusable input (see :func:`read_feature_input`, too few sharp frames, or
+            ``route="aligned"``, which needs the blocks).
+        OutputError: as :func:`run_pipeline`.
+    """
+    from blurcalib.calibrate import CalibrationError
+
+    s = settings or PipelineSettings()
+    if s.route != "joint":
+        raise PipelineError("calibrating from features needs the joint route (the aligned route aligns "
+                            "blocks to the parametric camera): use --route joint")
+    table, size = read_feature_input(path, pattern, image_size)
+    out = claim_output_dir(out_dir, "calibrate", {**asdict(s), "features": str(Path(path).resolve())},
+                           overwrite)
+    shutil.rmtree(out / STAGING_DIR, ignore_errors=True)
+    blurry_rows = (table.flags & int(FeatureFlags.BLURRY_FRAME)) != 0
+    sharp_features = table.select(~blurry_rows)
+    blurry_table = table.select(blurry_rows)
+    t0 = time.perf_counter()
+    try:
+        calibration = calibrate_sharp(sharp_features, pattern, size)
+    except CalibrationError as exc:
+        raise PipelineError(f"sharp-set calibration from {path}: {exc}") from None
+    t_parametric = time.perf_counter() - t0
+
+    def counts(t: FeatureTable) -> dict[str, int]:
+        names, n = np.unique(t.frame, return_counts=True)
+        return dict(zip(names.tolist(), n.tolist(), strict=True))
+
+    sharp_rows = [_sharp_row({"frame": f, "status": "ok", "features": n}, calibration)
+                  for f, n in counts(sharp_features).items()]
+    left_out = np.isin(sharp_features.frame, [r["frame"] for r in sharp_rows if r["status"] != "used"])
+    sharp_features.flags[left_out] |= int(FeatureFlags.FILTERED_OUT)
+    blurry_frames = []
+    for f, n in counts(blurry_table).items():
+        row = {"frame": f, "kind": "blurry", "extraction": "ok", "features": n}
+        if s.model == "parametric":
+            row.update(status="no_blocks", reason="a feature file holds no blocks to align to the "
+                                                  "parametric camera (the generic model uses it)")
+            blurry_frames.append(_BlurryFrame(row))
+        else:
+            blurry_frames.append(_BlurryFrame(row, raw=blurry_table.select(blurry_table.frame == f)))
+    run = _calibrate_cameras(sharp_features, blurry_frames, sharp_rows, calibration, pattern, size, s)
+    run.seconds["calibration"] = t_parametric + run.seconds.pop("generic", 0.0)
+    return _publish_run(out, pattern, size, s, sharp_features, blurry_frames, sharp_rows, run)
+
+@dataclass(eq=False)
+class CalibrationRun:
+    """The calibration stage's cameras and their assessment.
+
+    Attributes:
+        calibration: the parametric (sharp-set) calibration.
+        generic: the generic camera of sharp and blurry frames (None for ``model="parametric"``).
+        generic_sharp: the generic camera of the sharp frames alone, when blurry frames entered
+            ``generic``.
+        trust: held-out error, uncertainty, cross-validation diff and guidance
+            (:mod:`blurcalib.trust`), with ``generic``.
+        seconds: wall time (s) of the stages: ``extraction``, ``calibration`` (parametric
+            camera, alignment, generic cameras) and ``assessment`` (``trust``).
+    """
+
+    calibration: Calibration
+    generic: GenericCalibration | None = None
+    generic_sharp: GenericCalibration | None = None
+    trust: Trust | None = None
+    seconds: dict[str, float] = field(default_factory=dict)
+
+
+def _calibrate_cameras(sharp_features: FeatureTable, blurry_frames: Sequence[_BlurryFrame],
+                       sharp_rows: list[dict], calibration: Calibration, pattern: StarPattern,
+                       size: tuple[int, int], s: PipelineSettings) -> CalibrationRun:
+    """The generic cameras (sharp + blurry, and sharp alone when blurry frames entered) and their
+    assessment; sets the frames' generic-fit statuses."""
+    run = CalibrationRun(calibration)
+    if s.model != "generic":
+        return run
+    t0 = time.perf_counter()
+    run.generic = _fit_generic(sharp_features, blurry_frames, calibration, pattern, size, s)
+    _generic_statuses(sharp_rows, blurry_frames, run.generic, s.route)
+    if run.generic.blurry_frames:
+        run.generic_sharp = _fit_generic(sharp_features, [], calibration, pattern, size, s)
+    t1 = time.perf_counter()
+    run.trust = assess_calibration(run.generic, run.generic_sharp, calibration, sharp_features, pattern,
+                                   size, s.trust, JointSettings().bundle)
+    run.seconds.update(generic=t1 - t0, assessment=time.perf_counter() - t1)
+    return run
+
+
+def _publish_run(out: Path, pattern: StarPattern, size: tuple[int, int], s: PipelineSettings,
+                 sharp_features: FeatureTable, blurry_frames: Sequence[_BlurryFrame],
+                 sharp_rows: list[dict], run: CalibrationRun) -> PipelineReport:
+    """Write the run's output set into ``OUT/.staging`` and publish it (:func:`_publish`); a
+    failed write (a full disk) removes the staging folder and leaves the earlier outputs as they
+    were."""
+    staging = out / STAGING_DIR
+    try:
+        report = _stage_run(out, staging, pattern, size, s, sharp_features, blurry_frames, sharp_rows, run)
+    except OSError:  # OutputError too
+        shutil.rmtree(staging, ignore_errors=True)
+        raise
+    _publish(staging, out)
+    return report
+
+
+def _stage_run(out: Path, staging: Path, pattern: StarPattern, size: tuple[int, int], s: PipelineSettings,
+               sharp_features: FeatureTable, blurry_frames: Sequence[_BlurryFrame],
+               sharp_rows: list[dict], run: CalibrationRun) -> PipelineReport:
+    """Write the run's output set into ``staging``; ``report.json`` last."""
+    calibration, generic = run.calibration, run.generic
+    rows = sharp_rows + [f.row for f in blurry_frames]
     ensure_writable_dir(staging)
     save_calibration(staging / CALIBRATION_DIR, calibration)
+    trust_files: dict[str, Path] = {}
     if generic is not None:
         save_generic_calibration(staging / CALIBRATION_DIR, generic)
+    if run.generic_sharp is not None:
+        write_generic_yaml(ensure_writable_dir(staging / CALIBRATION_DIR / SHARP_ONLY_DIR) / INTRINSICS_FILE,
+                           run.generic_sharp.model)
+    if run.trust is not None:
+        trust_files = save_trust(staging / CALIBRATION_DIR, run.trust, size)
     staged = _write_outputs(staging, pattern, size, sharp_features, blurry_frames, rows, calibration,
                             generic)
+    staged.update(trust_files)
     outputs = {k: out / p.relative_to(staging) for k, p in staged.items()}
     counts: dict[str, dict[str, int]] = {"sharp": {}, "blurry": {}}
     for r in rows:
@@ -309,31 +532,27 @@ def run_pipeline(sharp: Sequence[Path], blurry: Sequence[Path], pattern: StarPat
                                                   "num_frames", "num_observations")},
                             frames=rows, outputs={k: str(v) for k, v in outputs.items()},
                             counts=counts,
-                            settings={"quality": asdict(s.quality), "loss": s.loss, "bias": s.bias,
-                                      "angle_threshold": s.angle_threshold,
-                                      "blurry_kernel": s.blurry_kernel, "final_fit": s.final_fit,
-                                      "psf_field": s.psf_field,
-                                      "local_alignment": s.local_alignment, "model": s.model,
-                                      "route": s.route, "cell_px": s.cell_px,
-                                      "lens_correction": s.lens_correction},
-                            generic=None if generic is None else generic_report(generic))
-    atomic_write_text(staging / REPORT_FILE, json.dumps(report.to_dict(), indent=2, default=str))
-    _publish(staging, out)
-    if blurry and not usable:
-        raise PipelineError(f"no blurry frame survived the filters ({counts['blurry']}); the sharp-set "
-                            f"calibration and all features are kept in {out}")
+                            settings={k: v for k, v in asdict(s).items() if k not in ("workers", "cluster")},
+                            generic=None if generic is None else generic_report(generic),
+                            generic_sharp=None if run.generic_sharp is None
+                            else generic_report(run.generic_sharp),
+                            trust=None if run.trust is None else run.trust.to_dict(),
+                            seconds={k: round(v, 2) for k, v in run.seconds.items()})
+    atomic_write_json(staging / REPORT_FILE, report.to_dict(), indent=2, default=str)
     return report
 
 
-def _with_kind(table: Table, kind: str) -> Table:
-    """A table of ``OUT/<kind>/`` with its frames named as in the run's outputs, ``<kind>/<frame>``."""
-    return replace(table, frame=np.char.add(f"{kind}/", table.frame))
+def _with_kind(table: Table, folder: str) -> Table:
+    """A table of ``OUT/<folder>/`` with its frames named as in the run's outputs,
+    ``<folder>/<frame>``."""
+    return replace(table, frame=np.char.add(f"{folder}/", table.frame))
 
 
 def _extraction_row(extracted: dict, kind: str) -> dict:
     """The start of a frame's row from its extraction summary; not-ok extractions keep their
     status and message as the row's status and reason."""
-    row = {"frame": extracted["frame"], "kind": kind, "extraction": extracted.get("status", ""),
+    row = {"frame": extracted["frame"], "kind": kind, "blur_px": extracted.get("blur_px", ""),
+           "extraction": extracted.get("status", ""),
            "seeded_by": extracted.get("seeded_by", ""), "psf": extracted.get("psf", ""),
            "features": extracted.get("features", 0)}
     if row["extraction"] != "ok":
@@ -350,7 +569,7 @@ def _sharp_row(extracted: dict, calibration: Calibration) -> dict:
     errors = calibration.frame_errors().get(row["frame"])
     if errors is None:
         row.update(status="too_few_features",
-                   reason=f"{row['features']} features: too few for the sharp-set calibration "
+                   reason=f"{count(row['features'], 'feature')}: too few for the sharp-set calibration "
                            f"(its features are flagged filtered_out)")
     else:
         row.update(status="used", reason="",
@@ -407,7 +626,7 @@ def _align_frame(extracted: dict, blocks: BlockTable, pattern: StarPattern, cali
         return _BlurryFrame(row)
     if filt.kept.sum() < MIN_BLOCKS:
         row["status"] = "too_few_blocks"
-        row["reason"] = (f"{int(filt.kept.sum())} blocks survive the BE/loss/connectivity filter, "
+        row["reason"] = (f"{count(int(filt.kept.sum()), 'block')} survive the BE/loss/connectivity filter, "
                           f"{MIN_BLOCKS} needed{_blur_note(b)}")
         return _BlurryFrame(row)
     kept = b.select(filt.kept)
@@ -458,7 +677,7 @@ def _generic_statuses(sharp_rows: list[dict], frames: Sequence[_BlurryFrame], ge
                       route: str) -> None:
     """The frame statuses of the generic calibration: ``used`` when a frame's features entered
     the fit. On the joint route the parametric alignment's verdict (``ill_conditioned``,
-    ``alignment_failed``) no longer leaves a frame out (the bundle adjustment estimates its
+    ``alignment_failed``) does not leave a frame out (the bundle adjustment estimates its
     shift); it stays in the ``alignment`` column. The blurry features written to the outputs are
     the raw ones corrected by the estimated shift."""
     for row in sharp_rows:
@@ -522,7 +741,8 @@ def _write_outputs(out: Path, pattern: StarPattern, size: tuple[int, int],
                          features.feature_id[usable], features.x[usable], features.y[usable],
                          pattern)
     outputs["reference_features"] = write_ref_dataset(out / "features.bin", ref)
-    cols = ["frame", "kind", "status", "reason", "extraction", "seeded_by", "psf", "features", "blocks",
+    cols = ["frame", "kind", "blur_px", "status", "reason", "extraction", "seeded_by", "psf", "features",
+            "blocks",
             "kept", "centre_sigma_major", "alignment", "median_error", "mean_error", "angle_deg"]
     outputs["frames"] = atomic_write_csv(out / "frames.csv", cols,
                                          [[r.get(c, "") for c in cols] for r in rows])

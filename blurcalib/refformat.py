@@ -27,6 +27,7 @@ import numpy as np
 
 from blurcalib.fileio import atomic_write_bytes
 from blurcalib.pattern import StarPattern
+from blurcalib.results import FeatureFlags, FeatureTable
 
 MAGIC = b"calib_data"
 """The file's first 10 bytes."""
@@ -301,3 +302,37 @@ def to_ref_dataset(image_size: tuple[int, int], frames: Sequence[str], frame_of_
                            fx=feats[:, 0].copy(), fy=feats[:, 1].copy())
     return RefDataset(image_size=(int(image_size[0]), int(image_size[1])), images=images,
                       geometries=[geometry])
+
+
+def ref_feature_table(dataset: RefDataset, pattern: StarPattern) -> FeatureTable:
+    """The dataset's features as a :class:`blurcalib.results.FeatureTable` of ``pattern``'s
+    feature ids (matched by feature coordinates ``(fx, fy)``), every frame a sharp frame, named
+    as the dataset names its images; positions stay in the OpenCV convention.
+
+    Raises:
+        RefFormatError: a feature whose coordinates are not one of ``pattern``'s features, or a
+            geometry whose square length differs from the pattern's by more than 1e-6 m.
+    """
+    geo = dataset.geometry
+    if abs(geo.square_length_m - pattern.square_length_m) > 1e-6:
+        raise RefFormatError(f"the dataset's square length {geo.square_length_m:.6g} m differs from "
+                             f"the pattern's {pattern.square_length_m:.6g} m")
+    ids = {(int(fx), int(fy)): i for i, (fx, fy) in enumerate(pattern.features.tolist())}
+    coords = {int(i): (int(fx), int(fy)) for i, fx, fy in zip(geo.ids, geo.fx, geo.fy, strict=True)}
+    frame, fid = [], []
+    for img in dataset.images:
+        for i in img.features.tolist():
+            c = coords.get(int(i))
+            if c not in ids:
+                raise RefFormatError(f"feature {i} of image {img.name!r} (coordinates {c}) is not a "
+                                     f"feature of the pattern")
+            fid.append(ids[c])
+        frame += [img.name] * len(img.features)
+    xy = np.concatenate([img.xy for img in dataset.images]) if dataset.images else np.zeros((0, 2))
+    fid_a = np.asarray(fid, dtype=np.int64)
+    feats = pattern.features[fid_a] if len(fid_a) else np.zeros((0, 2), dtype=np.int64)
+    points = pattern.points_3d()[fid_a] if len(fid_a) else np.zeros((0, 3))
+    flags = int(FeatureFlags.STAR_CENTRE | FeatureFlags.SHARP_FRAME)
+    return FeatureTable(frame=np.asarray(frame, dtype=np.str_), feature_id=fid_a, fx=feats[:, 0],
+                        fy=feats[:, 1], X=points[:, 0], Y=points[:, 1], x=xy[:, 0], y=xy[:, 1],
+                        weight=np.ones(len(fid_a)), flags=np.full(len(fid_a), flags, dtype=np.int64))

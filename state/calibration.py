@@ -8,8 +8,8 @@ Inputs (:func:`collect_inputs`), at the current thresholds:
   pass the σ_major pre-filter, with at least ``min_blurry_blocks`` kept, at their star centres
   ``H(0, 0)`` (px, OpenCV convention), weighted ``1 / (1 + loss)``.
 
-The run (:class:`CalibrationRunner`, one worker thread, cancel between stages; optionally the
-unfinished frames are extracted first, in the state's worker):
+The run (:class:`CalibrationRunner`, one worker thread, cancel between stages; the frames not
+extracted yet are extracted first, in the state's worker):
 
 1. the parametric camera: :func:`blurcalib.calibrate.calibrate_sharp` of the sharp features; with
    fewer than ``min_sharp_frames`` usable sharp frames the blurry frames' kept blocks join this
@@ -18,7 +18,11 @@ unfinished frames are extracted first, in the state's worker):
    under that camera (:mod:`blurcalib.lens_bias`) and the parametric camera fitted again;
 2. the generic camera: :func:`blurcalib.joint.calibrate_generic` (``route="joint"``: a free image
    shift per blurry frame), started from stage 1;
-3. figures: observation coverage per grid cell (sharp and blurry apart), the
+3. the assessment without ground truth, as ``blurcalib calibrate`` makes it: the generic camera
+   of the sharp frames alone when blurry frames entered stage 2, then
+   :func:`blurcalib.trust.assess_calibration` (held-out error, projection uncertainty,
+   cross-validation diff, guidance; ``docs/validation.md``);
+4. figures: observation coverage per grid cell (sharp and blurry apart), the
    generic-minus-parametric difference field (:func:`blurcalib.joint.difference_field`) and, on
    a simulated dataset, both cameras' error against the true camera
    (:func:`blurcalib.experiments.generic.projection_errors`: each lattice pixel's true ray, after
@@ -55,10 +59,14 @@ from blurcalib.joint import (
     save_generic_calibration,
 )
 from blurcalib.lens_bias import correct_features
+from blurcalib.pattern import StarPattern
 from blurcalib.quality import QualitySettings
 from blurcalib.results import BlockTable, FeatureFlags, FeatureTable
 from blurcalib.synth import TrueCamera
-from state.app_state import AppState
+from blurcalib.text import count
+from blurcalib.trust import Trust, TrustSettings, assess_calibration
+from blurcalib.uncertainty import projection_uncertainty
+from state.app_state import DONE_STATUSES, AppState
 from state.events import Topic
 from state.folder import EXPORT_DIR
 
@@ -67,8 +75,10 @@ log = logging.getLogger(__name__)
 OPENCV_CAMERA_FILE = "camera.yaml"
 """The parametric camera as an OpenCV FileStorage file (:func:`blurcalib.camera.save_camera_yaml`)."""
 STAGES = ("extracting frames", "collecting features", "parametric calibration", "generic calibration",
-          "figures")
-"""The run's stages; the first only when the run extracts the unfinished frames first."""
+          "assessment (held-out error, uncertainty)", "figures")
+"""The run's stages; the first only when frames are extracted (or being extracted) first."""
+IN_PROGRESS = frozenset({"queued", "running"})
+"""Frame statuses of an extraction under way."""
 USED = "used"
 BLURRY_FLAGS = int(FeatureFlags.STAR_CENTRE | FeatureFlags.BLURRY_FRAME)
 MIN_FRAMES = 2
@@ -85,6 +95,7 @@ class CalibrationSettings:
         min_sharp_features: a sharp frame needs this many accepted blocks.
         min_blurry_blocks: a blurry frame needs this many kept blocks.
         lattice_px: step (px) of the lattice of the difference field and the error against truth.
+        trust: options of the assessment (:class:`blurcalib.trust.TrustSettings`).
     """
 
     cell_px: float = DEFAULT_CELL_PX
@@ -92,6 +103,7 @@ class CalibrationSettings:
     min_sharp_features: int = 20
     min_blurry_blocks: int = MIN_BLOCKS
     lattice_px: float = 8.0
+    trust: TrustSettings = field(default_factory=TrustSettings)
 
 
 @dataclass(frozen=True)
@@ -245,24 +257,35 @@ class AppCalibration:
     Attributes:
         inputs: the features it used.
         parametric: the Brown-Conrady calibration (stage 1).
-        parametric_with_blurry: stage 1 also used the blurry frames (too few sharp frames).
+        parametric_with_blurry: blurry frames entered stage 1 (too few sharp frames).
         generic: the generic calibration (stage 2).
+        generic_sharp: the generic calibration of the sharp frames alone, when blurry frames
+            entered ``generic`` (stage 3), else None.
+        trust: the assessment (stage 3), or None when it failed (``trust_failure`` says why).
         coverage: the generic fit's observations per grid cell.
         difference: ``(xs, ys, diff (H', W', 2))`` px, generic minus parametric.
         truth: errors against the true camera (simulated data), else None.
         status: frame -> ``used`` or why the calibration did not use it.
         seconds: wall time of the run.
+        trust_failure: why there is no assessment, or "".
+        sharp_failure: why there is no sharp-only generic camera though blurry frames were
+            used, or why it was not assessed with the rest (then ``trust`` is the generic
+            camera's alone, with the sharp-only uncertainty map added), or "".
     """
 
     inputs: CalibrationInputs
     parametric: Calibration
     parametric_with_blurry: bool
     generic: GenericCalibration
+    generic_sharp: GenericCalibration | None
+    trust: Trust | None
     coverage: Coverage
     difference: tuple[np.ndarray, np.ndarray, np.ndarray] = field(repr=False)
     truth: TruthErrors | None
     status: dict[str, str]
     seconds: float
+    trust_failure: str = ""
+    sharp_failure: str = ""
 
     def frame_residuals(self, name: str) -> tuple[np.ndarray, np.ndarray]:
         """``(N, 2)`` px observations of frame ``name`` and their residuals under the generic model."""
@@ -283,6 +306,50 @@ def fit_status(inputs: CalibrationInputs, generic: GenericCalibration) -> dict[s
     return status
 
 
+@dataclass(eq=False)
+class Assessment:
+    """Stage 3 of :func:`fit`: the sharp-only generic camera and the assessment, or why not."""
+
+    generic_sharp: GenericCalibration | None
+    trust: Trust | None
+    sharp_failure: str = ""
+    trust_failure: str = ""
+
+
+def assess(generic: GenericCalibration, parametric: Calibration, sharp: FeatureTable, pattern: StarPattern,
+           size: tuple[int, int], joint: JointSettings, settings: TrustSettings) -> Assessment:
+    """The generic camera of the ``sharp`` features alone when ``generic`` used blurry frames, then
+    :func:`blurcalib.trust.assess_calibration`, as ``blurcalib calibrate`` does. A failure is
+    recorded, not raised: the calibration stands without its assessment, and when only the
+    sharp-only camera's part fails, the generic camera is assessed alone and the sharp-only
+    camera keeps its uncertainty map."""
+    out = Assessment(None, None)
+    if generic.blurry_frames:
+        try:
+            out.generic_sharp = calibrate_generic(sharp, None, parametric, pattern, size, joint)
+        except (CalibrationError, ValueError) as exc:
+            out.sharp_failure = str(exc)
+    for generic_sharp in ([out.generic_sharp, None] if out.generic_sharp is not None else [None]):
+        try:
+            out.trust = assess_calibration(generic, generic_sharp, parametric, sharp, pattern, size,
+                                           settings, joint.bundle)
+            break
+        except (CalibrationError, ValueError, RuntimeError) as exc:  # torch's LinAlgError is a RuntimeError
+            log.warning("assessment failed: %s", exc)
+            failure = f"{type(exc).__name__}: {exc}"
+            if generic_sharp is None:
+                out.trust_failure = failure
+            else:
+                out.sharp_failure = f"its assessment failed ({failure})"
+    if out.trust is not None and out.generic_sharp is not None and out.trust.uncertainty_sharp is None:
+        try:
+            out.trust.uncertainty_sharp = projection_uncertainty(out.generic_sharp.bundle,
+                                                                 step_px=settings.step_px)
+        except (ValueError, RuntimeError) as exc:
+            out.sharp_failure += f"; no uncertainty map ({type(exc).__name__}: {exc})"
+    return out
+
+
 def fit(inputs: CalibrationInputs, state: AppState, settings: CalibrationSettings,
         stage: Callable[[int], bool]) -> AppCalibration | None:
     """Run the stages on ``inputs`` (module docstring); ``stage(i)`` is called before stage ``i``
@@ -296,26 +363,32 @@ def fit(inputs: CalibrationInputs, state: AppState, settings: CalibrationSetting
     if not stage(2):
         return None
     sharp_frames = len(set(inputs.sharp.frame.tolist()))
-    with_blurry = sharp_frames < settings.min_sharp_frames
+    few_sharp = sharp_frames < settings.min_sharp_frames
     sharp, blurry = inputs.sharp, inputs.blurry
-    if len(set(sharp.frame.tolist()) | set(blurry.frame.tolist() if with_blurry else [])) == 0:
-        raise CalibrationError("no usable frame: run the extraction of some frames first")
+    if len(set(sharp.frame.tolist()) | set(blurry.frame.tolist() if few_sharp else [])) == 0:
+        raise CalibrationError("no usable frame: none is extracted with enough features and passes the "
+                               "filters (see the frames' statuses)")
     parametric = None
     for _ in range(2):  # as the pipeline: calibrate, correct the centres' lens bias, calibrate again
         if parametric is not None:
             sharp = correct_features(inputs.sharp, inputs.blocks, parametric.camera)
             blurry = correct_features(inputs.blurry, inputs.blocks, parametric.camera)
-        table = FeatureTable.concat([sharp, blurry]) if with_blurry else sharp
+        table = FeatureTable.concat([sharp, blurry]) if few_sharp else sharp
         parametric = calibrate_sharp(table, dataset.pattern, inputs.image_size,
-                                     min_frames=MIN_FRAMES if with_blurry else settings.min_sharp_frames,
-                                     min_features=settings.min_blurry_blocks if with_blurry
+                                     min_frames=MIN_FRAMES if few_sharp else settings.min_sharp_frames,
+                                     min_features=settings.min_blurry_blocks if few_sharp
                                      else settings.min_sharp_features)
+    with_blurry = few_sharp and not set(parametric.poses).isdisjoint(blurry.frame.tolist())
     if not stage(3):
         return None
+    joint = JointSettings(cell_px=settings.cell_px, route="joint")
     generic = calibrate_generic(sharp, blurry if len(blurry) else None, parametric,
-                                dataset.pattern, inputs.image_size,
-                                JointSettings(cell_px=settings.cell_px, route="joint"))
+                                dataset.pattern, inputs.image_size, joint)
     if not stage(4):
+        return None
+    assessment = assess(generic, parametric, sharp, dataset.pattern, inputs.image_size, joint,
+                        settings.trust)
+    if not stage(5):
         return None
     blurry_rows = np.isin(generic.frame, generic.blurry_frames)
     cov = coverage(generic.observed[~blurry_rows], generic.observed[blurry_rows], inputs.image_size,
@@ -324,8 +397,9 @@ def fit(inputs: CalibrationInputs, state: AppState, settings: CalibrationSetting
     truth = None
     if dataset.truth is not None:
         truth = truth_errors(dataset.truth.camera, generic, parametric, settings.lattice_px)
-    return AppCalibration(inputs, parametric, with_blurry, generic, cov, difference, truth,
-                          fit_status(inputs, generic), time.perf_counter() - t0)
+    return AppCalibration(inputs, parametric, with_blurry, generic, assessment.generic_sharp,
+                          assessment.trust, cov, difference, truth, fit_status(inputs, generic),
+                          time.perf_counter() - t0, assessment.trust_failure, assessment.sharp_failure)
 
 
 @dataclass(frozen=True)
@@ -406,10 +480,11 @@ class CalibrationRunner:
                 status[name] = "usable: not in the last calibration, run it again"
         return status
 
-    def run(self, extract: bool = False) -> bool:
-        """Start a calibration of the finished frames (False when one is running or no folder is
-        open); with ``extract``, the frames not extracted yet are extracted first (a cancel stops
-        that extraction too)."""
+    def run(self, extract: bool = True) -> bool:
+        """Start a calibration (False when one is running or no folder is open). With ``extract``
+        the frames not extracted yet are extracted first, as *Run all* does, and an extraction under
+        way is waited for (a cancel stops that extraction too); without it, only the frames
+        finished now are used."""
         with self._lock:
             if self._worker is not None or self.state.dataset is None:
                 return False
@@ -448,12 +523,17 @@ class CalibrationRunner:
         return not self._cancel.is_set()
 
     def _extract(self) -> bool:
-        """Extract the unfinished frames in the state's worker; False when cancelled."""
+        """Extract the frames not extracted yet in the state's worker and wait for it; False when
+        cancelled."""
+        missing = [e for e in self.state.entries() if e.status not in DONE_STATUSES | IN_PROGRESS]
+        if not missing and not self.state.is_running:
+            return True
         self._stage(0)
-        if self.state.run_all():
-            while not self.state.wait(0.2):
-                if self._cancel.is_set():
-                    self.state.cancel()
+        if missing:
+            self.state.run_all()
+        while not self.state.wait(0.2):
+            if self._cancel.is_set():
+                self.state.cancel()
         return not self._cancel.is_set()
 
     def _work(self, extract: bool) -> None:
@@ -481,7 +561,7 @@ class CalibrationRunner:
             g = outcome.generic
             self.state.notify("info", "Calibration done",
                               f"generic median {g.median_error:.3f} px, RMS {g.rms_error:.3f} px over "
-                              f"{len(g.poses)} frames ({outcome.seconds:.1f} s)")
+                              f"{count(len(g.poses), 'frame')} ({outcome.seconds:.1f} s)")
         elif cancelled:
             self.state.notify("info", "Calibration cancelled", "the previous result is kept")
         self.state.events.emit(Topic.CALIBRATION)

@@ -1,8 +1,10 @@
-"""The app's calibration without a browser: inputs and frame statuses at the thresholds, the run,
-its figures against the engine's, cancel, export and the σ_major pre-filter of sharp frames."""
+"""The app's calibration without a browser: inputs and frame statuses at the thresholds, the run
+(extracting what is missing first), its figures against the engine's, its assessment without ground
+truth, cancel, export and the σ_major pre-filter of sharp frames."""
 
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -17,6 +19,9 @@ from blurcalib.quality import QualitySettings
 from blurcalib.refcamera import read_generic_yaml
 from blurcalib.results import FeatureTable
 from blurcalib.synth import SynthConfig
+from blurcalib.trust import TrustSettings
+from blurcalib.uncertainty import cross_validation_diff
+from blurcalib.validation import ValidationSettings
 from state import AppState, Topic, discover
 from state.calibration import (
     EXPORT_DIR,
@@ -31,7 +36,17 @@ from state.calibration import (
 )
 from state.figures import generic_poses
 from tests.test_app_state import FAST, make_dataset
-from views.calibration import difference_image, draw_coverage, residual_image, summary
+from views.calibration import (
+    cross_validation_image,
+    difference_image,
+    draw_coverage,
+    residual_image,
+    summary,
+    trust_summary,
+    uncertainty_image,
+)
+
+pytestmark = pytest.mark.slow
 
 CONFIG = SynthConfig(sharp=2, blurry=2, square_px=(36.0, 42.0), max_tilt_deg=30.0, blur_min_px=3.0,
                      blur_max_px=4.0, seed=5)
@@ -127,11 +142,14 @@ def test_calibration_run_cancel_and_export(defaults: AppState, tmp_path: Path) -
     runner = CalibrationRunner(state, SETTINGS)
     topics: list[Topic] = []
     state.subscribe(topics.append)
+    notices = len(state.notices)
     assert runner.run() and not runner.run()  # one run at a time
     assert runner.wait(600) and not runner.is_running
     result = runner.result
     assert result is not None and Topic.CALIBRATION in topics
     assert result.parametric_with_blurry  # 2 sharp frames < 5
+    # every frame was extracted: the run went straight to the calibration, without a notice
+    assert [n.title for n in state.notices[notices:]] == ["Calibration done"]
 
     # The figures the app shows are the engine's (two runs of its least squares agree to ~1e-9 px).
     parametric, generic = _engine(state)
@@ -160,16 +178,45 @@ def test_calibration_run_cancel_and_export(defaults: AppState, tmp_path: Path) -
     assert poses.source == "generic bundle adjustment" and set(poses.poses) == set(result.generic.poses)
     observed, residuals = result.frame_residuals("blurry/0000.png")
     assert len(observed) == len(residuals) == (result.generic.frame == "blurry/0000.png").sum() > 0
+    # The assessment: both generic cameras' uncertainty maps; 4 frames are too few to hold any out.
+    trust = result.trust
+    assert trust is not None and result.trust_failure == ""
+    assert result.generic_sharp is not None and set(result.generic_sharp.frames) == {"sharp/0000.png",
+                                                                                     "sharp/0001.png"}
+    for unc in (trust.uncertainty, trust.uncertainty_sharp):
+        ny, nx = unc.shape
+        assert ny > 1 and nx > 1 and unc.x.shape == unc.y.shape == unc.sigma_px.shape == (ny * nx,)
+        assert np.all(np.diff(unc.x.reshape(unc.shape), axis=1) > 0) and np.all(unc.sigma_px[
+            np.isfinite(unc.sigma_px)] > 0) and unc.noise_px > 0
+    # the blurry frames widen the calibrated area and lower the uncertainty where both cameras see
+    assert trust.uncertainty.x.max() - trust.uncertainty.x.min() > \
+        trust.uncertainty_sharp.x.max() - trust.uncertainty_sharp.x.min()
+    assert trust.uncertainty.median() < trust.uncertainty_sharp.median()
+    assert trust.validation is None and isinstance(trust.guidance, list)
+    assert all(isinstance(g, str) and g.startswith("capture ") for g in trust.guidance)
+    assert result.trust.to_dict()["blurry_frames_gain"]["uncertainty_median_px"][1] == pytest.approx(
+        trust.uncertainty.median(), abs=1e-5)
+    text = trust_summary(result, 10, 0.05)
+    assert "**Held-out reprojection error**: not measured: 4 frames in the generic fit, the k-fold " \
+           "validation needs at least 10." in text
+    assert f"| generic, sharp + blurry frames | {trust.uncertainty.median():.4f} |" in text
+    assert f"| generic, sharp frames | {trust.uncertainty_sharp.median():.4f} |" in text
+    assert "**What the blurry frames bought** (sharp only → sharp + blurry)" in text
+    assert all(g.replace("_", "\\_") in text for g in trust.guidance)
     # The view's figures and summary.
     text = summary(result, runner.statuses())
     assert f"generic median error: **{result.generic.median_error:.4f} px**" in text
     assert "At the current thresholds: 4 of 4 frames used." in text
     assert f"{result.truth.generic_median:.4f}" in text
+    maps = uncertainty_image(result)
+    assert maps.shape[1] > 2 * maps.shape[0]  # two maps side by side
+    diff = cross_validation_diff(result.generic_sharp.model, result.generic.model)
     images = [draw_coverage(result.coverage), residual_image(result, None, None),
               residual_image(result, "blurry/0000.png", state.image("blurry/0000.png")),
-              difference_image(result)]
+              difference_image(result), maps, cross_validation_image(diff, result.inputs.image_size)]
     for image in images:
         assert image.dtype == np.uint8 and image.ndim == 3 and image.shape[2] == 3 and image.max() > 0
+        assert image.std() > 10  # not blank
 
     # A threshold change shows in the statuses at once; the result stays until the next run.
     state.refilter(min_sigma_major=3.8)
@@ -178,18 +225,22 @@ def test_calibration_run_cancel_and_export(defaults: AppState, tmp_path: Path) -
     assert status["sharp/0000.png"] == USED
     state.refilter(min_sigma_major=0.0)
 
-    # Cancel during the generic stage: the previous result is kept.
-    def cancel_at_generic(topic: Topic) -> None:
+    # Cancel during the generic stage, then during the assessment: the previous result is kept.
+    cancel_at: list[str] = []
+
+    def cancel(topic: Topic) -> None:
         progress = runner.progress()
-        if topic is Topic.CALIBRATION and progress.running \
-                and STAGES[progress.stage] == "generic calibration":
+        if topic is Topic.CALIBRATION and progress.running and STAGES[progress.stage] in cancel_at:
             runner.cancel()
 
-    state.subscribe(cancel_at_generic)
-    notices = len(state.notices)
-    assert runner.run() and runner.wait(600)
-    assert runner.result is result
-    assert [n.title for n in state.notices[notices:]] == ["Calibration cancelled"]
+    state.subscribe(cancel)
+    for stage in ("generic calibration", "assessment (held-out error, uncertainty)"):
+        cancel_at[:] = [stage]
+        notices = len(state.notices)
+        assert runner.run() and runner.wait(600)
+        assert runner.result is result
+        assert [n.title for n in state.notices[notices:]] == ["Calibration cancelled"]
+    cancel_at.clear()
 
     # Export and read back.
     paths = runner.export(tmp_path / "export")
@@ -214,13 +265,39 @@ def test_calibration_run_cancel_and_export(defaults: AppState, tmp_path: Path) -
     assert runner.result is None
 
 
+def test_sharp_frames_only_label_and_held_out_table(defaults: AppState) -> None:
+    """At the paper's pre-filter no blurry frame is an input: the parametric camera is labelled as
+    the sharp frames' and the generic camera is assessed alone (validation lowered to 2 frames)."""
+    settings = replace(SETTINGS, trust=TrustSettings(validation=ValidationSettings(min_frames=2, folds=2)))
+    runner = CalibrationRunner(defaults, settings)
+    assert runner.run() and runner.wait(600)
+    result = runner.result
+    assert result is not None and not result.parametric_with_blurry
+    assert not result.generic.blurry_frames and result.generic_sharp is None
+    text = summary(result, runner.statuses())
+    assert "| parametric (Brown-Conrady, sharp frames) |" in text and "sharp and blurry" not in text
+    trust = result.trust
+    assert trust is not None and trust.uncertainty_sharp is None and trust.cross_validation is None
+    scores = trust.validation.scores
+    assert set(scores) == {"generic", "parametric"} and trust.validation.folds == 2
+    assert set(trust.validation.fold_of) == {"sharp/0000.png", "sharp/0001.png"}
+    for score in scores.values():
+        assert score.frames == 2 and 0 < score.median_px < 0.1 and score.rms_px >= score.median_px / 2
+    text = trust_summary(result, 2, 0.05)
+    g, p = scores["generic"], scores["parametric"]
+    assert f"| generic | {g.median_px:.4f} | {g.rms_px:.4f} | 2 |" in text
+    assert f"| parametric (Brown-Conrady) | {p.median_px:.4f} | {p.rms_px:.4f} | 2 |" in text
+    assert "no blurry frame entered the generic fit" in text and "not measured (a half" in text
+    assert uncertainty_image(result).shape[1] < 2 * uncertainty_image(result).shape[0]  # one map
+
+
 def test_coverage_fills_in_frame_by_frame_and_a_failed_run_says_why(state: AppState) -> None:
     fresh = AppState(FAST)
     assert fresh.load_folder(state.dataset.folder)
     runner = CalibrationRunner(fresh, SETTINGS)
     assert runner.inputs().image_size == (0, 0)
     assert set(runner.statuses().values()) == {"not extracted"}
-    assert runner.run() and runner.wait(60)
+    assert runner.run(extract=False) and runner.wait(60)
     assert runner.result is None
     assert fresh.notices[-1].title == "Calibration failed" and "no usable frame" in fresh.notices[-1].text
     fresh.refilter(min_sigma_major=0.0)
@@ -234,7 +311,7 @@ def test_coverage_fills_in_frame_by_frame_and_a_failed_run_says_why(state: AppSt
     assert totals[0].blurry.sum() == 0 and totals[1].blurry.sum() == kept > 0
     assert np.array_equal(totals[1].sharp, totals[0].sharp)
     assert runner.statuses()["sharp/0001.png"] == "not extracted"
-    # Extract the rest, then calibrate: every frame is used.
-    assert runner.run(extract=True) and runner.wait(900)
+    # Run calibration extracts the rest first: every frame is used.
+    assert runner.run() and runner.wait(900)
     assert {e.status for e in fresh.entries()} == {"ok"}
     assert runner.result is not None and set(runner.statuses().values()) == {USED}

@@ -49,6 +49,7 @@ def truth() -> CentralGeneric:
     return base.with_grid(bumped)
 
 
+@pytest.mark.slow
 def test_recovers_grid_and_poses(truth: CentralGeneric) -> None:
     poses, index, points, observed = _scene(truth, 10, seed=1)
     start = fit_to_rays(START_CAM.pixel_to_ray, 320, 240, cell_px=40.0)

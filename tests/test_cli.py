@@ -47,6 +47,7 @@ def test_non_empty_output_needs_overwrite(tmp_path, capsys) -> None:
     assert (tmp_path / "ds" / "keep.txt").read_text() == "user data"
 
 
+@pytest.mark.slow
 def test_synth_command_writes_dataset(tmp_path) -> None:
     out = tmp_path / "ds"
     proc = subprocess.run(
@@ -60,6 +61,7 @@ def test_synth_command_writes_dataset(tmp_path) -> None:
     assert "simulated 2 frames" in proc.stdout
 
 
+@pytest.mark.slow
 def test_view_passes_options_to_the_app(capfd) -> None:
     assert main(["view", "--help"]) == 0
     assert "usage: app.py" in capfd.readouterr().out
@@ -88,6 +90,7 @@ def test_unavailable_device_is_one_line(tmp_path, capsys, monkeypatch) -> None:
         assert err.count("\n") == 1 and not (tmp_path / "out").exists()
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("command", ["extract", "calibrate"])
 def test_user_files_are_never_overwritten(tmp_path, capsys, command) -> None:
     pattern = _inputs(tmp_path)
@@ -110,3 +113,12 @@ def test_user_files_are_never_overwritten(tmp_path, capsys, command) -> None:
         assert main([*argv, "--overwrite"]) == 1
         assert "not_seeded" in (out / "frames.csv").read_text()
         assert main(argv) == 1  # now an extract output: re-runs need no --overwrite
+
+
+def test_version_is_the_installed_package_version(capsys) -> None:
+    from importlib.metadata import version
+
+    with pytest.raises(SystemExit) as exc:
+        main(["--version"])
+    assert exc.value.code == 0
+    assert capsys.readouterr().out.strip() == f"blurcalib {version('blurcalib')}"

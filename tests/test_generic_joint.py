@@ -60,6 +60,7 @@ def test_generic_beats_parametric(fitted) -> None:
     assert report["blurry_frames"] == 4 and report["median_error_px"] == result.median_error
 
 
+@pytest.mark.slow
 def test_files(fitted, tmp_path) -> None:
     _, result = fitted
     pinhole = result.parametric.scaled(0.25)

@@ -67,6 +67,7 @@ def _published(out) -> dict[str, bytes]:
     return {str(p.relative_to(out)): p.read_bytes() for p in files if p.is_file()}
 
 
+@pytest.mark.slow
 def test_pipeline_end_to_end(finished, dataset) -> None:
     out, report = finished
     pattern = layout_pattern()
@@ -92,6 +93,7 @@ def test_pipeline_end_to_end(finished, dataset) -> None:
     assert acc and max(a.median for a in acc) < 0.1
 
 
+@pytest.mark.slow
 def test_pipeline_delivers_the_generic_camera(finished, dataset) -> None:
     """The default model: the generic camera of sharp and blurry frames together, in the reference
     tool's format, more accurate against the true camera than the parametric one."""
@@ -122,6 +124,7 @@ def serial_opencv():
     cv2.setNumThreads(threads)
 
 
+@pytest.mark.slow
 def test_rerun_resumes_and_a_killed_write_never_mixes_runs(tmp_path, finished, dataset,
                                                           monkeypatch, serial_opencv) -> None:
     out = tmp_path / "out"
@@ -175,6 +178,7 @@ def test_rerun_resumes_and_a_killed_write_never_mixes_runs(tmp_path, finished, d
     assert _published(out) == reference
 
 
+@pytest.mark.slow
 def test_calibrate_reuses_an_extract_output(tmp_path, finished, dataset) -> None:
     """``blurcalib extract BLURRY --out OUT/blurry`` before ``calibrate --out OUT``: calibrate
     refits none of its frames (only the unreadable one is retried) and collects each once."""
@@ -197,6 +201,7 @@ def test_calibrate_reuses_an_extract_output(tmp_path, finished, dataset) -> None
     assert np.allclose(ours.x, theirs.x, atol=1e-5) and np.allclose(ours.y, theirs.y, atol=1e-5)
 
 
+@pytest.mark.slow
 def test_foreign_output_folder_is_refused(tmp_path, dataset) -> None:
     out = tmp_path / "mine"
     (out / "calibration").mkdir(parents=True)
@@ -210,6 +215,7 @@ def test_foreign_output_folder_is_refused(tmp_path, dataset) -> None:
     assert all((out / name).read_text() == text for name, text in user.items())
 
 
+@pytest.mark.slow
 def test_mixed_resolution_is_refused(tmp_path, dataset) -> None:
     sharp = sorted((dataset / "sharp").glob("*.png"))
     small = tmp_path / "small.png"
@@ -218,6 +224,7 @@ def test_mixed_resolution_is_refused(tmp_path, dataset) -> None:
         run_pipeline(sharp, [small], layout_pattern(), tmp_path / "out", _settings())
 
 
+@pytest.mark.slow
 def test_too_few_sharp_frames_and_wrong_pattern(tmp_path, dataset) -> None:
     sharp = sorted((dataset / "sharp").glob("*.png"))[:3]
     with pytest.raises(PipelineError, match="no AprilTag"):
@@ -238,6 +245,7 @@ def test_error_direction_colours() -> None:
     assert img[4, 20].tolist() == [0, 0, 0]
 
 
+@pytest.mark.slow
 def test_default_calibrate_uses_little_blur_and_gives_reasons(tmp_path, dataset, capsys) -> None:
     out = tmp_path / "out"
     assert main(["calibrate", "--sharp", str(dataset / "sharp"), "--blurry",
@@ -291,6 +299,7 @@ def test_a_frame_with_blur_as_long_as_its_squares_is_told_so() -> None:
     assert pipeline._blur_note(short) == ""
 
 
+@pytest.mark.slow
 def test_final_fit_option_reaches_every_blurry_frame(tmp_path, dataset) -> None:
     """``extract --final-fit all`` fits the inner accepted blocks of a little-blurred frame (its
     window does not grow) over 1.5 x their square, and those blocks' centres move; the default

@@ -1,17 +1,26 @@
-"""Calibration panel: run the parametric and generic calibration of the finished frames, compare
-the models, watch the coverage fill in, see which frames were used, export the camera.
+"""Calibration panel: extract what is missing and run the parametric and generic calibration,
+compare the models, see how far the camera can be trusted without ground truth (held-out error,
+projection uncertainty, cross-validation diff, guidance), watch the coverage fill in, see which
+frames were used, export the camera.
 
-The logic is :mod:`state.calibration`; this module draws its figures with cv2 into RGB images.
+The logic is :mod:`state.calibration`; this module draws its figures with cv2 (and the
+uncertainty maps with matplotlib, as ``blurcalib calibrate`` writes them) into RGB images.
 """
 
 from __future__ import annotations
 
 import math
+import tempfile
+from pathlib import Path
 
 import cv2
 import numpy as np
 import viser
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.figure import Figure
 
+from blurcalib.text import count
+from blurcalib.uncertainty import CrossValidationDiff, save_uncertainty_png
 from state import AppState, Topic
 from state.calibration import AppCalibration, CalibrationRunner, Coverage, input_coverage
 from views.common import Coalescer, legend_strip, md, placeholder
@@ -21,6 +30,8 @@ from views.frame_view import DISPLAY_WIDTH
 SHARP_COLOUR = (60, 205, 60)
 BLURRY_COLOUR = (255, 150, 0)
 SCOPES = ("all frames", "current frame")
+GENERIC, GENERIC_BOTH, GENERIC_SHARP = "generic", "generic, sharp + blurry frames", "generic, sharp frames"
+"""Names of the generic cameras in the assessment (as ``blurcalib calibrate`` prints them)."""
 
 
 def draw_coverage(cov: Coverage, width: int = DISPLAY_WIDTH) -> np.ndarray:
@@ -76,18 +87,131 @@ def difference_image(result: AppCalibration) -> np.ndarray:
     return draw_cells(result.inputs.image_size, xy, diff[ok], full, step)
 
 
+def uncertainty_image(result: AppCalibration) -> np.ndarray | None:
+    """The projection uncertainty maps, sharp-only and sharp + blurry side by side on one
+    logarithmic px scale (:func:`blurcalib.uncertainty.save_uncertainty_png`, as
+    ``calibration/uncertainty.png``); None without an assessment."""
+    trust = result.trust
+    if trust is None:
+        return None
+    maps = [(GENERIC_BOTH if trust.uncertainty_sharp is not None else GENERIC, trust.uncertainty)]
+    if trust.uncertainty_sharp is not None:
+        maps.insert(0, (GENERIC_SHARP, trust.uncertainty_sharp))
+    width, height = result.inputs.image_size
+    with tempfile.TemporaryDirectory(prefix="blurcalib-uncertainty-") as folder:
+        path = save_uncertainty_png(Path(folder) / "uncertainty.png", maps, width, height)
+        image = cv2.imread(str(path), cv2.IMREAD_COLOR)
+    return None if image is None else cv2.cvtColor(image, cv2.COLOR_BGR2RGB)
+
+
+def cross_validation_image(diff: CrossValidationDiff, size: tuple[int, int]) -> np.ndarray:
+    """The cross-validation diff over the ``(width, height)`` image (px colour scale; grey outside
+    the common calibrated area), as an RGB image."""
+    width, height = size
+    fig = Figure(figsize=(5.6, 5.6 * height / width + 0.9), dpi=100, layout="constrained")
+    canvas = FigureCanvasAgg(fig)
+    ax = fig.subplots()
+    ny, nx = diff.shape
+    xs, ys = diff.x.reshape(diff.shape)[0], diff.y.reshape(diff.shape)[:, 0]
+    hx, hy = (xs[-1] - xs[0]) / max(nx - 1, 1) / 2, (ys[-1] - ys[0]) / max(ny - 1, 1) / 2
+    im = ax.imshow(diff.diff_px.reshape(diff.shape), cmap="magma", interpolation="nearest",
+                   extent=(xs[0] - hx, xs[-1] + hx, ys[-1] + hy, ys[0] - hy))
+    ax.set_xlim(-0.5, width - 0.5)
+    ax.set_ylim(height - 0.5, -0.5)
+    ax.set_facecolor("0.75")
+    ax.set_title(f"two halves of the frames: median {diff.median_px:.3g} px", fontsize=10)
+    ax.set_xlabel("x (px)")
+    ax.set_ylabel("y (px)")
+    fig.colorbar(im, ax=ax, label="difference after the best-fit rotation (px)", fraction=0.04, pad=0.02)
+    canvas.draw()
+    return np.ascontiguousarray(np.asarray(canvas.buffer_rgba())[:, :, :3])
+
+
+def _px(value: float | None) -> str:
+    return "n/a" if value is None else f"{value:.4f}"
+
+
+def trust_summary(result: AppCalibration, min_frames: int, guidance_px: float) -> str:
+    """The markdown of the assessment: held-out error per camera (or why it was not measured),
+    projection uncertainty, cross-validation diff, what the blurry frames bought and the guidance.
+
+    Args:
+        result: the calibration.
+        min_frames: fewest frames the held-out validation needs.
+        guidance_px: the guidance's uncertainty threshold (px).
+    """
+    if result.trust is None:
+        return f"**Trust without ground truth**: not assessed ({md(result.trust_failure)})."
+    doc = result.trust.to_dict()
+    both = result.trust.uncertainty_sharp is not None
+    labels = {"generic": GENERIC_BOTH if both else GENERIC, "generic_sharp": GENERIC_SHARP,
+              "parametric": "parametric (Brown-Conrady)"}
+    parts = ["**Trust without ground truth** (the figures of `blurcalib calibrate`'s report)"]
+    v = doc["validation"]
+    if v is None:
+        frames = len(result.generic.poses)
+        parts.append(f"**Held-out reprojection error**: not measured: {count(frames, 'frame')} in the "
+                     f"generic fit, the k-fold validation needs at least {min_frames}.")
+    else:
+        rows = [f"**Held-out reprojection error** ({v['folds']}-fold over frames: each frame scored by "
+                "cameras fitted without it, its pose, and a blurry frame's shift, fitted alone)", "",
+                "| camera | held-out median (px) | RMS (px) | frames |", "|---|---|---|---|"]
+        rows += [f"| {labels[k]} | {_px(v[k]['median_px'])} | {_px(v[k]['rms_px'])} | {v[k]['frames']} |"
+                 for k in ("generic", "generic_sharp", "parametric") if v.get(k)]
+        parts.append("\n".join(rows))
+    if result.sharp_failure and result.generic_sharp is not None:
+        parts.append(f"Generic camera of the sharp frames alone: {md(result.sharp_failure)}.")
+    unc = doc["uncertainty"]
+    rows = [f"**Projection uncertainty** (1 sigma, global rotation removed; noise "
+            f"{_px(unc['generic']['noise_px'])} px)", "",
+            "| camera | median (px) | border band (px) | max (px) |", "|---|---|---|---|"]
+    rows += [f"| {labels[k]} | {_px(unc[k]['median_px'])} | {_px(unc[k]['border_px'])} | "
+             f"{_px(unc[k]['max_px'])} |" for k in ("generic_sharp", "generic") if unc.get(k)]
+    parts.append("\n".join(rows))
+    cv = doc["cross_validation"]
+    parts.append("**Cross-validation diff** of the generic cameras of two halves of the frames: "
+                 + (f"median {_px(cv['median_px'])} px, 95th percentile {_px(cv['p95_px'])} px; the "
+                    "camera is not known better than the halves agree." if cv else
+                    "not measured (a half has too few sharp frames for its own parametric camera)."))
+    gain = doc.get("blurry_frames_gain")
+    if gain:
+        items = []
+        if "held_out_median_px" in gain:
+            a, b = gain["held_out_median_px"]
+            items.append(f"held-out median {_px(a)} → {_px(b)} px")
+        for key, what in (("uncertainty_median_px", "median uncertainty"),
+                          ("uncertainty_border_px", "border-band uncertainty")):
+            a, b = gain[key]
+            items.append(f"{what} {_px(a)} → {_px(b)} px")
+        parts.append("**What the blurry frames bought** (sharp only → sharp + blurry): " + ", ".join(items)
+                     + ".")
+    elif result.generic.blurry_frames:
+        parts.append("**What the blurry frames bought**: not measured (no generic camera of the sharp "
+                     f"frames alone: {md(result.sharp_failure)}).")
+    else:
+        parts.append("**What the blurry frames bought**: no blurry frame entered the generic fit.")
+    if doc["guidance"]:
+        parts.append("**Guidance**\n\n" + "\n".join(f"- {md(g)}" for g in doc["guidance"]))
+    else:
+        parts.append(f"**Guidance**: the uncertainty is below {guidance_px:g} px over every region of the "
+                     "image.")
+    return "\n\n".join(parts)
+
+
 def summary(result: AppCalibration | None, statuses: dict[str, str]) -> str:
     """The markdown summary: errors of both models (and against the truth), frames and why."""
     lines = []
     if result is None:
-        lines.append("No calibration yet: extract frames, then press **Run calibration**.")
+        lines.append("No calibration yet: press **Run calibration** (it extracts the frames not "
+                     "extracted yet first).")
     else:
         p, g, t = result.parametric, result.generic, result.truth
         blurry = len(g.blurry_frames)
-        lines.append(f"**Calibration** of {len(g.poses)} frames ({len(g.poses) - blurry} sharp, {blurry} "
-                     f"blurry) in {result.seconds:.1f} s; generic grid {g.model.grid_width} x "
+        lines.append(f"**Calibration** of {count(len(g.poses), 'frame')} ({len(g.poses) - blurry} sharp, "
+                     f"{blurry} blurry) in {result.seconds:.1f} s; generic grid {g.model.grid_width} x "
                      f"{g.model.grid_height}.")
-        rows = ["| model | median (px) | RMS (px) |" + (" vs truth median | vs truth RMS |" if t else ""),
+        rows = ["| model | median (px) | RMS (px) |"
+                + (" vs truth median (px) | vs truth RMS (px) |" if t else ""),
                 "|---|---|---|" + ("---|---|" if t else "")]
         what = "sharp and blurry frames" if result.parametric_with_blurry else "sharp frames"
         rows.append(f"| parametric (Brown-Conrady, {what}) | {p.median_error:.4f} | {p.rms_error:.4f} |"
@@ -95,8 +219,8 @@ def summary(result: AppCalibration | None, statuses: dict[str, str]) -> str:
         rows.append(f"| generic (all frames) | {g.median_error:.4f} | {g.rms_error:.4f} |"
                     + (f" {t.generic_median:.4f} | {t.generic_rms:.4f} |" if t else ""))
         lines.append("\n".join(rows))
-        lines.append(f"generic median error: **{g.median_error:.4f} px** (sharp {g.sharp_median_error:.4f}, "
-                     f"blurry {g.blurry_median_error:.4f} px)")
+        lines.append(f"generic median error: **{g.median_error:.4f} px** (sharp {g.sharp_median_error:.4f}"
+                     + (f", blurry {g.blurry_median_error:.4f} px)" if blurry else " px)"))
         if t is not None:
             lines.append(f"Against the true camera: over {t.pixels} lattice pixels of the calibrated area, "
                          "after the best-fit rotation.")
@@ -105,7 +229,7 @@ def summary(result: AppCalibration | None, statuses: dict[str, str]) -> str:
                          "kept blocks (without their shifts).")
     used = sorted(n for n, s in statuses.items() if s == "used")
     other = sorted((n, s) for n, s in statuses.items() if s != "used")
-    lines.append(f"At the current thresholds: {len(used)} of {len(statuses)} frames used.")
+    lines.append(f"At the current thresholds: {len(used)} of {count(len(statuses), 'frame')} used.")
     if other:
         lines.append("\n".join(f"- {md(n)}: {md(s)}" for n, s in other))
     if any(s.startswith("dropped by the pre-filter") for _, s in other):
@@ -115,7 +239,8 @@ def summary(result: AppCalibration | None, statuses: dict[str, str]) -> str:
 
 
 class CalibrationPanel:
-    """Run and cancel buttons, progress, summary, coverage, residual and difference images, export."""
+    """Run and cancel buttons, progress, summary, the assessment (text, uncertainty and
+    cross-validation maps), coverage, residual and difference images, export."""
 
     def __init__(self, state: AppState, server: viser.ViserServer, runner: CalibrationRunner) -> None:
         self.state = state
@@ -123,14 +248,18 @@ class CalibrationPanel:
         self.runner = runner
         gui = server.gui
         self.run = gui.add_button("Run calibration", icon=viser.Icon.PLAYER_PLAY,
-                                  hint="parametric then generic calibration of the finished frames")
-        self.run_all = gui.add_button("Extract all and calibrate", icon=viser.Icon.PLAYER_TRACK_NEXT,
-                                      hint="extract the frames not extracted yet, then calibrate")
+                                  hint="extract the frames not extracted yet, then the parametric and "
+                                       "generic calibration and their assessment")
         self.cancel = gui.add_button("Cancel calibration", icon=viser.Icon.PLAYER_STOP, color="red",
                                      disabled=True)
         self.progress = gui.add_progress_bar(0.0, animated=False)
         self.status = gui.add_markdown("")
         self.summary = gui.add_markdown("")
+        self.trust = gui.add_markdown("")
+        self.uncertainty = gui.add_image(placeholder("run the calibration"),
+                                         label="Projection uncertainty (px)", format="png", visible=False)
+        self.cross_validation = gui.add_image(placeholder("run the calibration"),
+                                              label="Cross-validation diff (px)", format="png", visible=False)
         self.coverage = gui.add_image(placeholder("no observations yet"), label="Coverage (inputs now)",
                                       format="png")
         self.scope = gui.add_dropdown("Residuals of", options=SCOPES)
@@ -144,9 +273,9 @@ class CalibrationPanel:
                                           "<folder>/calibration_app")
         self.export_text = gui.add_markdown("")
         self.run.on_click(lambda _: self.runner.run())
-        self.run_all.on_click(lambda _: self.runner.run(extract=True))
         self.cancel.on_click(lambda _: self.runner.cancel())
         self.export.on_click(self._on_export)
+        self._assessed: tuple[AppCalibration | None, str, np.ndarray | None, np.ndarray | None] | None = None
         self._redraw = Coalescer(self._draw, 0.2, "calibration")
         self.scope.on_update(self._redraw.request)
         state.subscribe(self._on_change)
@@ -170,6 +299,22 @@ class CalibrationPanel:
         self.export_text.content = f"Exported to {md(str(paths[0].parent))}: " + ", ".join(
             md(p.name) for p in paths)
 
+    def _assessment(self, result: AppCalibration | None) -> tuple[str, np.ndarray | None, np.ndarray | None]:
+        """The assessment's markdown and its two images (None where there is nothing to show),
+        drawn once per calibration."""
+        if self._assessed is not None and self._assessed[0] is result:
+            return self._assessed[1:]
+        text, unc, cv = "", None, None
+        if result is not None:
+            trust = self.runner.settings.trust
+            text = trust_summary(result, trust.validation.min_frames, trust.guidance_px)
+            unc = uncertainty_image(result)
+            diff = result.trust.cross_validation if result.trust is not None else None
+            if diff is not None:
+                cv = cross_validation_image(diff, result.inputs.image_size)
+        self._assessed = (result, text, unc, cv)
+        return text, unc, cv
+
     def _draw(self) -> None:
         progress = self.runner.progress()
         result = self.runner.result
@@ -189,16 +334,24 @@ class CalibrationPanel:
             mag = np.linalg.norm(result.difference[2], axis=2)
             diff_text = (f"generic minus parametric: median {np.nanmedian(mag):.3f} px, max "
                          f"{np.nanmax(mag):.3f} px over the calibrated area")
+        fresh = self._assessed is None or self._assessed[0] is not result
+        trust_text, uncertainty, cross_validation = self._assessment(result)
         busy = progress.running
         with self.server.atomic():
             self.run.disabled = busy
-            self.run_all.disabled = busy
             self.cancel.disabled = not busy or progress.cancelling
             self.export.disabled = busy or result is None
             self.progress.value = 100.0 * progress.fraction
             self.progress.animated = busy
             self.status.content = f"**calibrating**: {progress.label}" if busy else ""
             self.summary.content = summary(result, statuses)
+            self.trust.content = trust_text
+            if fresh:  # the maps change only with the calibration; hidden when not measured
+                for handle, image in ((self.uncertainty, uncertainty),
+                                      (self.cross_validation, cross_validation)):
+                    if image is not None:
+                        handle.image = image
+                    handle.visible = image is not None
             self.coverage.image = coverage
             none = placeholder("run the calibration")
             self.residuals.image = residuals if residuals is not None else none

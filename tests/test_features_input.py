@@ -1,0 +1,92 @@
+"""Calibrating from a feature file (``calibrate --features``): the reference tool's dataset and
+blurcalib's own features.csv, with the held-out validation and the uncertainty outputs."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from blurcalib.cli import main
+from blurcalib.pattern import layout_pattern, load_pattern
+from blurcalib.pipeline import PipelineError, PipelineSettings, read_feature_input, run_from_features
+from blurcalib.results import FeatureFlags, FeatureTable, write_features
+from blurcalib.trust import TrustSettings
+from blurcalib.validation import ValidationSettings
+from tests.conftest import FIXTURE_YAML
+from tests.test_generic_joint import _table
+
+SHARP = int(FeatureFlags.STAR_CENTRE | FeatureFlags.SHARP_FRAME)
+BLURRY = int(FeatureFlags.STAR_CENTRE | FeatureFlags.BLURRY_FRAME)
+
+
+@pytest.fixture(scope="module")
+def features_csv(tmp_path_factory):
+    """A features.csv of 8 sharp and 4 blurry simulated frames (blurry ones shifted by up to 2 px),
+    with 0.03 px noise."""
+    sharp = _table(8, 1, SHARP, "sharp/s")
+    blurry = _table(4, 2, BLURRY, "blurry/b", shift=2.0)
+    table = FeatureTable.concat([sharp, blurry])
+    rng = np.random.default_rng(0)
+    table.x += rng.normal(0, 0.03, len(table))
+    table.y += rng.normal(0, 0.03, len(table))
+    path = tmp_path_factory.mktemp("features") / "features.csv"
+    write_features(path, table)
+    return path
+
+
+@pytest.mark.slow
+def test_features_csv_calibrates_with_shifts_and_trust(features_csv, tmp_path, capsys) -> None:
+    out = tmp_path / "out"
+    code = main(["calibrate", "--features", str(features_csv), "--image-size", "1280x720",
+                 "--pattern", str(FIXTURE_YAML), "--out", str(out), "--cell-px", "80"])
+    assert code == 0
+    report = json.loads((out / "report.json").read_text())
+    assert report["counts"]["blurry"] == {"used": 4} and report["counts"]["sharp"] == {"used": 8}
+    assert report["generic"]["blurry_frames"] == 4 and report["generic"]["median_error_px"] < 0.06
+    shifts = [r["shift"] for r in report["frames"] if r["kind"] == "blurry"]
+    assert all(np.hypot(*s) < 2.9 for s in shifts)
+    v = report["validation"]
+    assert v["method"] == "kfold" and v["folds"] == 5
+    assert v["generic"]["frames"] == 12 and 0.02 < v["generic"]["median_px"] < 0.08
+    assert set(v) >= {"generic", "generic_sharp", "parametric"}
+    unc = np.load(out / "calibration" / "uncertainty.npz")
+    assert unc["sigma_px"].shape == unc["x"].shape == unc["sigma_px_sharp"].shape
+    assert 0.01 < float(unc["noise_px"]) < 0.05  # 0.03 px per axis simulated
+    assert (out / "calibration" / "uncertainty.png").is_file()
+    assert (out / "calibration" / "sharp_only" / "intrinsics0.yaml").is_file()
+    gain = report["blurry_frames_gain"]
+    assert gain["uncertainty_median_px"][1] < gain["uncertainty_median_px"][0]
+    printed = capsys.readouterr().out
+    assert "held-out reprojection error (5-fold" in printed and "what the blurry frames bought" in printed
+
+
+def test_features_csv_needs_the_image_size(features_csv) -> None:
+    with pytest.raises(PipelineError, match="--image-size"):
+        read_feature_input(features_csv, layout_pattern())
+    table, size = read_feature_input(features_csv, layout_pattern(), (1280, 720))
+    assert size == (1280, 720) and int(((table.flags & BLURRY) == BLURRY).sum()) > 0
+
+
+def test_unknown_feature_file(tmp_path) -> None:
+    path = tmp_path / "f.txt"
+    path.write_text("x")
+    with pytest.raises(PipelineError, match="reference dataset"):
+        read_feature_input(path, layout_pattern())
+
+
+@pytest.mark.slow
+def test_reference_dataset_through_features(shared_fixtures, tmp_path, capsys) -> None:
+    """The reference tool's own features of the real camera: generic median reprojection and
+    held-out error printed, the generic camera below the parametric one held out too."""
+    real = shared_fixtures / "real_star16"
+    settings = PipelineSettings(trust=TrustSettings(validation=ValidationSettings(folds=3),
+                                                    cross_validation=False))
+    report = run_from_features(real / "features_10px.bin", load_pattern(real / "pattern.yaml"),
+                               tmp_path / "out", settings)
+    assert report.counts["sharp"].get("used", 0) >= 20
+    assert report.generic["median_error_px"] < 0.06
+    v = report.to_dict()["validation"]
+    assert v["generic"]["median_px"] < v["parametric"]["median_px"]
+    assert v["generic"]["median_px"] < 0.08
