@@ -215,7 +215,9 @@ class PipelineReport:
         """The ``report.json`` document: the fields, with ``trust``'s sections (``validation``,
         ``uncertainty``, ``cross_validation``, ``guidance``, ``blurry_frames_gain``) at the top."""
         out = asdict(self)
-        out.update(out.pop("trust") or {})
+        trust = out.pop("trust") or {}
+        out["seconds"] = {**out["seconds"], **trust.pop("seconds", {})}
+        out.update(trust)
         return out
 
 

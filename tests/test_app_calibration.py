@@ -279,14 +279,15 @@ def test_sharp_frames_only_label_and_held_out_table(defaults: AppState) -> None:
     trust = result.trust
     assert trust is not None and trust.uncertainty_sharp is None and trust.cross_validation is None
     scores = trust.validation.scores
-    assert set(scores) == {"generic", "parametric"} and trust.validation.folds == 2
+    # one sharp frame per fold is too few for a parametric camera: it is not scored (never by a
+    # camera that saw the frame)
+    assert set(scores) == {"generic"} and trust.validation.folds == 2
     assert set(trust.validation.fold_of) == {"sharp/0000.png", "sharp/0001.png"}
-    for score in scores.values():
-        assert score.frames == 2 and 0 < score.median_px < 0.1 and score.rms_px >= score.median_px / 2
+    g = scores["generic"]
+    assert g.frames == 2 and 0 < g.median_px < 0.1 and g.rms_px >= g.median_px / 2
     text = trust_summary(result, 2, 0.05)
-    g, p = scores["generic"], scores["parametric"]
     assert f"| generic | {g.median_px:.4f} | {g.rms_px:.4f} | 2 |" in text
-    assert f"| parametric (Brown-Conrady) | {p.median_px:.4f} | {p.rms_px:.4f} | 2 |" in text
+    assert "| parametric (Brown-Conrady) |" not in text
     assert "no blurry frame entered the generic fit" in text and "not measured (a half" in text
     assert uncertainty_image(result).shape[1] < 2 * uncertainty_image(result).shape[0]  # one map
 

@@ -180,11 +180,11 @@ def test_rerun_resumes_and_a_killed_write_never_mixes_runs(tmp_path, finished, d
 
 @pytest.mark.slow
 def test_calibrate_reuses_an_extract_output(tmp_path, finished, dataset) -> None:
-    """``blurcalib extract BLURRY --out OUT/blurry`` before ``calibrate --out OUT``: calibrate
+    """``blurcalib extract BLURRY --kind blurry --out OUT/blurry`` before ``calibrate --out OUT``: calibrate
     refits none of its frames (only the unreadable one is retried) and collects each once."""
     out = tmp_path / "out"
     pattern = dataset / "pattern.yaml"
-    assert main(["extract", str(dataset / "blurry"), "--pattern", str(pattern), "--out",
+    assert main(["extract", str(dataset / "blurry"), "--kind", "blurry", "--pattern", str(pattern), "--out",
                  str(out / "blurry")]) == 0
     extracted = (out / "blurry" / "features.csv").read_bytes()
     seen: list[tuple[str, str]] = []
@@ -310,8 +310,8 @@ def test_final_fit_option_reaches_every_blurry_frame(tmp_path, dataset) -> None:
     pattern = str(dataset / "pattern.yaml")
     tables = {}
     for choice in ("adaptive", "all"):
-        assert main(["extract", frame, "--pattern", pattern, "--out", str(tmp_path / choice),
-                     "--final-fit", choice, "--workers", "1"]) == 0
+        assert main(["extract", frame, "--kind", "blurry", "--pattern", pattern, "--out",
+                     str(tmp_path / choice), "--final-fit", choice, "--workers", "1"]) == 0
         tables[choice] = read_block_table(tmp_path / choice)
     default, every = tables["adaptive"], tables["all"]
     assert np.all(default.loss_extent == 1.0)
