@@ -25,21 +25,21 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-from matplotlib.backends.backend_agg import FigureCanvasAgg
-from matplotlib.figure import Figure
 
 from blurcalib.bundle import BundleSettings
 from blurcalib.calibrate import Calibration, CalibrationError, calibrate_sharp
-from blurcalib.fileio import atomic_path
 from blurcalib.joint import GenericCalibration
 from blurcalib.pattern import StarPattern
 from blurcalib.results import FeatureTable
+from blurcalib.text import count
 from blurcalib.uncertainty import (
     CrossValidationDiff,
     ProjectionUncertainty,
     cross_validation_diff,
+    cross_validation_figure,
     guidance,
     projection_uncertainty,
+    save_figure_png,
     save_uncertainty_npz,
     save_uncertainty_png,
 )
@@ -157,10 +157,6 @@ def _round(v: float) -> float | None:
     return round(float(v), 5) if math.isfinite(v) else None
 
 
-def _count(n: int, noun: str) -> str:
-    return f"{n} {noun}" if n == 1 else f"{n} {noun}s"
-
-
 def _halves(generic: GenericCalibration, sharp_features: FeatureTable, pattern: StarPattern,
             size: tuple[int, int], bundle: BundleSettings, iterations: int) -> CrossValidationDiff | None:
     """The generic cameras of two interleaved halves of the frames, compared; None when a half
@@ -225,31 +221,9 @@ def save_trust(folder: Path, trust: Trust, size: tuple[int, int]) -> dict[str, P
         maps.insert(0, ("generic, sharp frames", trust.uncertainty_sharp))
     out["uncertainty_map"] = save_uncertainty_png(folder / UNCERTAINTY_PNG, maps, width, height)
     if trust.cross_validation is not None:
-        out["cross_validation"] = _save_diff_png(folder / CROSS_VALIDATION_PNG, trust.cross_validation,
-                                                 width, height)
+        out["cross_validation"] = save_figure_png(folder / CROSS_VALIDATION_PNG, cross_validation_figure(
+            trust.cross_validation, width, height))
     return out
-
-
-def _save_diff_png(path: Path, diff: CrossValidationDiff, width: int, height: int) -> Path:
-    """The cross-validation diff over the whole image (px colour scale), atomically."""
-    fig = Figure(figsize=(6.5, 6.5 * height / width + 1.0), layout="constrained")
-    FigureCanvasAgg(fig)
-    ax = fig.subplots()
-    ny, nx = diff.shape
-    xs, ys = diff.x.reshape(diff.shape)[0], diff.y.reshape(diff.shape)[:, 0]
-    hx, hy = (xs[-1] - xs[0]) / max(nx - 1, 1) / 2, (ys[-1] - ys[0]) / max(ny - 1, 1) / 2
-    im = ax.imshow(diff.diff_px.reshape(diff.shape), cmap="magma", interpolation="nearest",
-                   extent=(xs[0] - hx, xs[-1] + hx, ys[-1] + hy, ys[0] - hy))
-    ax.set_xlim(-0.5, width - 0.5)
-    ax.set_ylim(height - 0.5, -0.5)
-    ax.set_facecolor("0.75")
-    ax.set_title(f"generic cameras of two halves of the frames: median {diff.median_px:.3g} px", fontsize=10)
-    ax.set_xlabel("x (px)")
-    ax.set_ylabel("y (px)")
-    fig.colorbar(im, ax=ax, label="difference after the best-fit rotation (px)", fraction=0.03, pad=0.02)
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, dpi=100)
-    return path
 
 
 def summary_lines(doc: dict) -> list[str]:
@@ -270,7 +244,7 @@ def summary_lines(doc: dict) -> list[str]:
             if v.get(key):
                 sc = v[key]
                 lines.append(f"  {labels[key]:<32} median {_px(sc['median_px'])}, RMS {_px(sc['rms_px'])} "
-                             f"({_count(sc['frames'], 'frame')})")
+                             f"({count(sc['frames'], 'frame')})")
     unc = doc.get("uncertainty") or {}
     if unc.get("generic"):
         lines.append(f"projection uncertainty (1 sigma, global rotation removed; noise "

@@ -66,8 +66,10 @@ from pathlib import Path
 import numpy as np
 import torch
 from matplotlib import colors
+from matplotlib.axes import Axes
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
+from matplotlib.image import AxesImage
 from scipy.interpolate import RegularGridInterpolator
 
 from blurcalib.bundle import BundleResult, NormalEquations, normal_equations
@@ -421,43 +423,68 @@ def guidance(unc: ProjectionUncertainty, width: int, height: int, threshold_px: 
                       f"{v:.2g} px there)" for v, where in high]
 
 
-def save_uncertainty_png(path: str | os.PathLike, maps: Sequence[tuple[str, ProjectionUncertainty]],
-                         width: int, height: int) -> Path:
-    """Colour maps of ``sigma_px`` side by side (one per ``(title, map)``), one logarithmic px scale.
+def draw_lattice_map(ax: Axes, x: np.ndarray, y: np.ndarray, shape: tuple[int, int], values: np.ndarray,
+                     width: int, height: int, title: str, **imshow: object) -> AxesImage:
+    """``values (K,)`` on the pixel lattice ``x, y (K,)`` (``shape (ny, nx)``, OpenCV px) over the
+    whole ``width x height`` image, grey outside the lattice; returns the image for a colour bar."""
+    ny, nx = shape
+    xs, ys = x.reshape(shape)[0], y.reshape(shape)[:, 0]
+    hx, hy = (xs[-1] - xs[0]) / max(nx - 1, 1) / 2, (ys[-1] - ys[0]) / max(ny - 1, 1) / 2
+    im = ax.imshow(values.reshape(shape), interpolation="nearest",
+                   extent=(xs[0] - hx, xs[-1] + hx, ys[-1] + hy, ys[0] - hy), **imshow)
+    ax.set_xlim(-0.5, width - 0.5)
+    ax.set_ylim(height - 0.5, -0.5)
+    ax.set_facecolor("0.75")
+    ax.set_title(title, fontsize=10)
+    ax.set_xlabel("x (px)")
+    ax.set_ylabel("y (px)")
+    return im
 
-    Each panel shows the whole ``width x height`` image (the calibrated area in colour), its
-    title with the map's median. Written atomically; returns ``path``.
-    """
+
+def uncertainty_figure(maps: Sequence[tuple[str, ProjectionUncertainty]], width: int, height: int) -> Figure:
+    """Colour maps of ``sigma_px`` side by side (one per ``(title, map)``), one logarithmic px
+    scale; each panel the whole image, its title with the map's median."""
     if not maps:
         raise ValueError("no uncertainty map to draw")
     values = np.concatenate([u.sigma_px[np.isfinite(u.sigma_px) & (u.sigma_px > 0)] for _, u in maps])
     lo, hi = (np.percentile(values, [1, 99]) if len(values) else (1e-3, 1.0))
     norm = colors.LogNorm(max(float(lo), 1e-5), max(float(hi), 2 * max(float(lo), 1e-5)))
-    aspect = height / width
-    fig = Figure(figsize=(5.2 * len(maps) + 1.3, 5.2 * aspect + 1.0), layout="constrained")
+    fig = Figure(figsize=(5.2 * len(maps) + 1.3, 5.2 * height / width + 1.0), layout="constrained")
     FigureCanvasAgg(fig)
     axes = fig.subplots(1, len(maps), squeeze=False)[0]
     im = None
     for ax, (title, unc) in zip(axes, maps, strict=True):
-        ny, nx = unc.shape
-        xs = unc.x.reshape(unc.shape)[0]
-        ys = unc.y.reshape(unc.shape)[:, 0]
-        hx = (xs[-1] - xs[0]) / max(nx - 1, 1) / 2
-        hy = (ys[-1] - ys[0]) / max(ny - 1, 1) / 2
-        im = ax.imshow(unc.sigma_px.reshape(unc.shape), cmap="viridis", norm=norm, interpolation="nearest",
-                       extent=(xs[0] - hx, xs[-1] + hx, ys[-1] + hy, ys[0] - hy))
-        ax.set_xlim(-0.5, width - 0.5)
-        ax.set_ylim(height - 0.5, -0.5)
-        ax.set_facecolor("0.75")
-        ax.set_title(f"{title}: median {unc.median():.3g} px", fontsize=10)
-        ax.set_xlabel("x (px)")
-        ax.set_ylabel("y (px)")
+        im = draw_lattice_map(ax, unc.x, unc.y, unc.shape, unc.sigma_px, width, height,
+                              f"{title}: median {unc.median():.3g} px", cmap="viridis", norm=norm)
     fig.colorbar(im, ax=list(axes), label="1-sigma projection uncertainty (px, log scale)", extend="both",
                  fraction=0.03, pad=0.02)
+    return fig
+
+
+def cross_validation_figure(diff: CrossValidationDiff, width: int, height: int) -> Figure:
+    """The cross-validation diff over the whole image, a px colour scale."""
+    fig = Figure(figsize=(6.5, 6.5 * height / width + 1.0), layout="constrained")
+    FigureCanvasAgg(fig)
+    ax = fig.subplots()
+    im = draw_lattice_map(ax, diff.x, diff.y, diff.shape, diff.diff_px, width, height,
+                          f"generic cameras of two halves of the frames: median {diff.median_px:.3g} px",
+                          cmap="magma")
+    fig.colorbar(im, ax=ax, label="difference after the best-fit rotation (px)", fraction=0.03, pad=0.02)
+    return fig
+
+
+def save_figure_png(path: str | os.PathLike, fig: Figure) -> Path:
+    """Write ``fig`` as a PNG (100 dpi) atomically; returns the path."""
     out = Path(path)
     with atomic_path(out) as tmp:
         fig.savefig(tmp, dpi=100)
     return out
+
+
+def save_uncertainty_png(path: str | os.PathLike, maps: Sequence[tuple[str, ProjectionUncertainty]],
+                         width: int, height: int) -> Path:
+    """:func:`uncertainty_figure` written atomically to ``path``."""
+    return save_figure_png(path, uncertainty_figure(maps, width, height))
 
 
 def save_uncertainty_npz(path: str | os.PathLike, unc: ProjectionUncertainty,

@@ -10,17 +10,14 @@ uncertainty maps with matplotlib, as ``blurcalib calibrate`` writes them) into R
 from __future__ import annotations
 
 import math
-import tempfile
-from pathlib import Path
 
 import cv2
 import numpy as np
 import viser
-from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
 from blurcalib.text import count
-from blurcalib.uncertainty import CrossValidationDiff, save_uncertainty_png
+from blurcalib.uncertainty import CrossValidationDiff, cross_validation_figure, uncertainty_figure
 from state import AppState, Topic
 from state.calibration import AppCalibration, CalibrationRunner, Coverage, input_coverage
 from views.common import Coalescer, legend_strip, md, placeholder
@@ -97,34 +94,19 @@ def uncertainty_image(result: AppCalibration) -> np.ndarray | None:
     maps = [(GENERIC_BOTH if trust.uncertainty_sharp is not None else GENERIC, trust.uncertainty)]
     if trust.uncertainty_sharp is not None:
         maps.insert(0, (GENERIC_SHARP, trust.uncertainty_sharp))
-    width, height = result.inputs.image_size
-    with tempfile.TemporaryDirectory(prefix="blurcalib-uncertainty-") as folder:
-        path = save_uncertainty_png(Path(folder) / "uncertainty.png", maps, width, height)
-        image = cv2.imread(str(path), cv2.IMREAD_COLOR)
-    return None if image is None else cv2.cvtColor(image, cv2.COLOR_BGR2RGB)
+    return _rgb(uncertainty_figure(maps, *result.inputs.image_size))
+
+
+def _rgb(fig: Figure) -> np.ndarray:
+    """A matplotlib figure drawn as an RGB image ``(H, W, 3)`` uint8."""
+    fig.canvas.draw()
+    return np.ascontiguousarray(np.asarray(fig.canvas.buffer_rgba())[:, :, :3])
 
 
 def cross_validation_image(diff: CrossValidationDiff, size: tuple[int, int]) -> np.ndarray:
     """The cross-validation diff over the ``(width, height)`` image (px colour scale; grey outside
     the common calibrated area), as an RGB image."""
-    width, height = size
-    fig = Figure(figsize=(5.6, 5.6 * height / width + 0.9), dpi=100, layout="constrained")
-    canvas = FigureCanvasAgg(fig)
-    ax = fig.subplots()
-    ny, nx = diff.shape
-    xs, ys = diff.x.reshape(diff.shape)[0], diff.y.reshape(diff.shape)[:, 0]
-    hx, hy = (xs[-1] - xs[0]) / max(nx - 1, 1) / 2, (ys[-1] - ys[0]) / max(ny - 1, 1) / 2
-    im = ax.imshow(diff.diff_px.reshape(diff.shape), cmap="magma", interpolation="nearest",
-                   extent=(xs[0] - hx, xs[-1] + hx, ys[-1] + hy, ys[0] - hy))
-    ax.set_xlim(-0.5, width - 0.5)
-    ax.set_ylim(height - 0.5, -0.5)
-    ax.set_facecolor("0.75")
-    ax.set_title(f"two halves of the frames: median {diff.median_px:.3g} px", fontsize=10)
-    ax.set_xlabel("x (px)")
-    ax.set_ylabel("y (px)")
-    fig.colorbar(im, ax=ax, label="difference after the best-fit rotation (px)", fraction=0.04, pad=0.02)
-    canvas.draw()
-    return np.ascontiguousarray(np.asarray(canvas.buffer_rgba())[:, :, :3])
+    return _rgb(cross_validation_figure(diff, *size))
 
 
 def _px(value: float | None) -> str:
