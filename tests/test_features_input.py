@@ -90,3 +90,27 @@ def test_reference_dataset_through_features(shared_fixtures, tmp_path, capsys) -
     v = report.to_dict()["validation"]
     assert v["generic"]["median_px"] < v["parametric"]["median_px"]
     assert v["generic"]["median_px"] < 0.08
+
+
+@pytest.mark.slow
+def test_a_full_disk_leaves_the_earlier_outputs_and_no_staging(features_csv, tmp_path, monkeypatch) -> None:
+    """A write that fails while the output set is staged (no space left) removes the staging
+    folder; the earlier run's outputs stay as they were."""
+    import errno
+
+    import blurcalib.pipeline as pipeline
+
+    trust = TrustSettings(validation=ValidationSettings(method="none"), cross_validation=False)
+    settings = PipelineSettings(cell_px=80.0, trust=trust)
+    out = tmp_path / "out"
+    run_from_features(features_csv, layout_pattern(), out, settings, (1280, 720))
+    before = (out / "report.json").read_bytes()
+
+    def full(*args, **kwargs):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(pipeline, "save_trust", full)
+    with pytest.raises(OSError, match="No space left"):
+        run_from_features(features_csv, layout_pattern(), out, settings, (1280, 720))
+    assert not (out / pipeline.STAGING_DIR).exists()
+    assert (out / "report.json").read_bytes() == before
