@@ -4,7 +4,8 @@ generic camera to sharp and blurry frames together.
 ``run_pipeline`` is what ``blurcalib calibrate`` runs:
 
 1. feature extraction of the sharp frames (small PSF window) and the blurry frames (a window
-   that fits the blur), resumable, into ``OUT/sharp/`` and ``OUT/blurry/``
+   that fits the blur), resumable, into ``OUT/sharp/`` and ``OUT/blurry/`` (or, for frames
+   whose kind each frame's measured blur decides, ``mixed=``, into ``OUT/frames/``)
    (:mod:`blurcalib.extract`), each an ``extract`` output with the frames named as ``blurcalib
    extract`` names them, so that earlier ``extract`` runs into these folders are reused; the
    run's own outputs name the frames ``sharp/<name>`` and ``blurry/<name>``;
@@ -24,7 +25,11 @@ generic camera to sharp and blurry frames together.
    frontal frames need no orientation filter (``route="joint"``); or, on the paper's route, to
    the globally aligned features held fixed (``route="aligned"``). Saved as the reference tool's
    ``OUT/calibration/intrinsics0.yaml`` with the poses, an undistortion map and report images;
-6. outputs: ``OUT/features.csv`` (sharp features and aligned blurry features, flagged),
+6. with the generic model, the assessment (:mod:`blurcalib.trust`): the generic camera of the
+   sharp frames alone when blurry frames entered, the k-fold held-out error of every camera,
+   the projection uncertainty, the cross-validation diff of two halves, and guidance
+   (``docs/validation.md``);
+7. outputs: ``OUT/features.csv`` (sharp features and aligned blurry features, flagged),
    ``OUT/features.bin`` (the reference tool's format, pixel-corner convention),
    ``OUT/frames.csv`` (per-frame status), ``OUT/report.json`` and figures (the
    reprojection-error direction images, per-frame errors).
