@@ -559,6 +559,7 @@ def _extraction_row(extracted: dict, kind: str) -> dict:
     """The start of a frame's row from its extraction summary; not-ok extractions keep their
     status and message as the row's status and reason."""
     row = {"frame": extracted["frame"], "kind": kind, "blur_px": extracted.get("blur_px", ""),
+           "noise_dn": extracted.get("noise_dn", ""),
            "extraction": extracted.get("status", ""),
            "seeded_by": extracted.get("seeded_by", ""), "psf": extracted.get("psf", ""),
            "features": extracted.get("features", 0)}
@@ -748,7 +749,7 @@ def _write_outputs(out: Path, pattern: StarPattern, size: tuple[int, int],
                          features.feature_id[usable], features.x[usable], features.y[usable],
                          pattern)
     outputs["reference_features"] = write_ref_dataset(out / "features.bin", ref)
-    cols = ["frame", "kind", "blur_px", "status", "reason", "extraction", "seeded_by", "psf", "features",
+    cols = ["frame", "kind", "blur_px", "noise_dn", "status", "reason", "extraction", "seeded_by", "psf", "features",
             "blocks",
             "kept", "centre_sigma_major", "alignment", "median_error", "mean_error", "angle_deg"]
     outputs["frames"] = atomic_write_csv(out / "frames.csv", cols,
