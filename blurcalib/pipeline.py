@@ -749,9 +749,9 @@ def _write_outputs(out: Path, pattern: StarPattern, size: tuple[int, int],
                          features.feature_id[usable], features.x[usable], features.y[usable],
                          pattern)
     outputs["reference_features"] = write_ref_dataset(out / "features.bin", ref)
-    cols = ["frame", "kind", "blur_px", "noise_dn", "status", "reason", "extraction", "seeded_by", "psf", "features",
-            "blocks",
-            "kept", "centre_sigma_major", "alignment", "median_error", "mean_error", "angle_deg"]
+    cols = ["frame", "kind", "blur_px", "noise_dn", "status", "reason", "extraction", "seeded_by", "psf",
+            "features", "blocks", "kept", "centre_sigma_major", "alignment", "median_error", "mean_error",
+            "angle_deg"]
     outputs["frames"] = atomic_write_csv(out / "frames.csv", cols,
                                          [[r.get(c, "") for c in cols] for r in rows])
 
