@@ -22,6 +22,7 @@ from typing import Protocol
 
 import viser
 
+from blurcalib.cli import positive_int
 from blurcalib.runtime import capped_count, configure_threads
 from state import AppState, RunSettings, default_dataset
 from state.alignment import AlignmentCache
@@ -138,16 +139,6 @@ def _port(text: str) -> int:
     return value
 
 
-def _threads(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"must be a whole number >= 1, got {text!r}") from None
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"must be >= 1, got {value}")
-    return value
-
-
 def _stop(signum: int, frame: object) -> None:
     """SIGTERM ends the app as Ctrl+C does: its clean-up runs (uploads deleted, runs cancelled)."""
     raise KeyboardInterrupt
@@ -162,7 +153,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="TCP port (%(default)s; the next free one if taken)")
     p.add_argument("--host", default="127.0.0.1",
                    help="interface to listen on (%(default)s; 0.0.0.0 exposes the app to the network)")
-    p.add_argument("--threads", type=_threads, default=1,
+    p.add_argument("--threads", type=positive_int, default=1,
                    help="compute threads of the extraction and calibration (%(default)s, the engine's "
                         "policy: more only helps on an otherwise idle machine)")
     return p

@@ -61,6 +61,7 @@ from blurcalib.generic import (
     projection_jacobians,
     tangent_basis,
 )
+from blurcalib.lie import exp_so3, orthonormal, skew
 from blurcalib.text import count
 
 __all__ = [
@@ -70,6 +71,7 @@ __all__ = [
     "NormalEquations",
     "bundle_adjust",
     "coverage_warnings",
+    "frame_jacobian",
     "normal_equations",
 ]
 
@@ -192,20 +194,12 @@ class NormalEquations:
     observations: int
 
 
-def _skew(v: torch.Tensor) -> torch.Tensor:
-    """``[v]_x`` for ``v (N, 3)`` -> ``(N, 3, 3)``."""
-    z = torch.zeros_like(v[:, 0])
-    return torch.stack([torch.stack([z, -v[:, 2], v[:, 1]], -1),
-                        torch.stack([v[:, 2], z, -v[:, 0]], -1),
-                        torch.stack([-v[:, 1], v[:, 0], z], -1)], -2)
-
-
-def _exp_so3(w: torch.Tensor) -> torch.Tensor:
-    """Rotation matrices ``(F, 3, 3)`` of rotation vectors ``(F, 3)`` (Rodrigues)."""
-    theta = w.norm(dim=-1, keepdim=True).clamp_min(1e-300)[..., None]
-    K = _skew(w / theta[..., 0])
-    eye = torch.eye(3, dtype=w.dtype, device=w.device).expand_as(K)
-    return eye + torch.sin(theta) * K + (1 - torch.cos(theta)) * (K @ K)
+def frame_jacobian(J_p: torch.Tensor, RX: torch.Tensor) -> torch.Tensor:
+    """``(N, 2, 8)`` derivatives of the projections in their frames' block, columns ``omega (3),
+    dt (3), s (2)`` (``R <- exp([omega]_x) R``, ``t <- t + dt``, shift ``s``), from ``J_p = du/dX
+    (N, 2, 3)`` and the rotated target points ``RX = R P (N, 3)`` (m)."""
+    eye2 = torch.eye(2, dtype=J_p.dtype, device=J_p.device).expand(len(J_p), 2, 2)
+    return torch.cat([-J_p @ skew(RX), J_p, eye2], dim=2)
 
 
 def coverage_warnings(model: CentralGeneric, coverage: np.ndarray) -> list[str]:
@@ -344,8 +338,7 @@ def _data_equations(pb: _Problem, st: _State, w: torch.Tensor, r: torch.Tensor
     X = torch.einsum("nij,nj->ni", st.R[fr], pb.points[sel]) + st.t[fr]
     J_p, J_g, nodes = projection_jacobians(pb.spline.with_grid(st.grid), st.u[sel], X)
     RX = X - st.t[fr]
-    J_pose = torch.cat([-J_p @ _skew(RX), J_p,
-                        torch.eye(2, dtype=X.dtype, device=X.device).expand(len(sel), 2, 2)], dim=2)
+    J_pose = frame_jacobian(J_p, RX)
     ws = w[sel][:, None, None]
     rs = r[sel][:, :, None]
     G = 2 * pb.gh * pb.gw
@@ -542,7 +535,7 @@ def bundle_adjust(model: CentralGeneric, poses: Sequence[Pose], frame: ArrayLike
                 continue
             dg, dp = step
             grid_n = apply_update(st.grid, dg.reshape(pb.gh, pb.gw, 2))
-            R_n = _exp_so3(dp[:, :3]) @ st.R
+            R_n = exp_so3(dp[:, :3]) @ st.R
             t_n = st.t + dp[:, 3:6]
             s_n = st.s + dp[:, 6:8]
             u_n, in_n, r_n = pb.project(grid_n, R_n, t_n, s_n, st.u)
@@ -578,7 +571,7 @@ def bundle_adjust(model: CentralGeneric, poses: Sequence[Pose], frame: ArrayLike
     Rn, tn = st.R.cpu().numpy(), st.t.cpu().numpy()
     return BundleResult(
         model=out_model,
-        poses=[Pose(_orthonormal(Rn[f]), tn[f]) for f in range(F)],
+        poses=[Pose(orthonormal(Rn[f]), tn[f]) for f in range(F)],
         shifts=st.s.cpu().numpy(), residuals=res.cpu().numpy(), inlier=inlier.cpu().numpy(),
         median_error=float(torch.median(e)) if len(e) else math.nan,
         rms_error=float(torch.sqrt(torch.mean(e * e))) if len(e) else math.nan,
@@ -619,12 +612,6 @@ def normal_equations(result: BundleResult) -> NormalEquations:
     _add_priors(pb, st, tang, Hgg_p, torch.zeros_like(bg), Hff_p, torch.zeros_like(bf))
     return NormalEquations(Hgg, Hgg_p, Hgf, Hff, Hff_p, float((w * (r * r).sum(-1)).sum()),
                            int(inlier.sum()))
-
-
-def _orthonormal(R: np.ndarray) -> np.ndarray:
-    """The nearest rotation (SVD) to a numerically drifted one."""
-    U, _, Vt = np.linalg.svd(R)
-    return U @ Vt
 
 
 def _coverage(model: CentralGeneric, px: np.ndarray) -> np.ndarray:

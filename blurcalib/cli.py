@@ -12,7 +12,7 @@ import math
 import os
 import sys
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from contextlib import nullcontext
 from dataclasses import replace
 from pathlib import Path
@@ -206,7 +206,8 @@ def _run_pipeline(sharp: list[Path], blurry: list[Path], pattern: StarPattern, o
 def cmd_calibrate(args: argparse.Namespace) -> int:
     """``blurcalib calibrate``: extract, calibrate the sharp set, filter, align the blurry set,
     fit the generic camera and assess it (held-out error, uncertainty)."""
-    from blurcalib.frames import FrameError, list_frames
+    from blurcalib.frames import FrameError, frame_size, list_frames
+    from blurcalib.sources import FrameInput
 
     pattern = load_pattern(args.pattern)
     given = [name for name, v in (("INPUT", args.frames), ("--sharp", args.sharp),
@@ -222,7 +223,7 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     if args.frames:
         mixed = _frame_inputs(args)
         if args.model == "generic":
-            _check_grid([f.path for f in mixed if f.index is None][:1] or [], args.cell_px)
+            _check_grid(map(FrameInput.size, mixed), args.cell_px)
         _run_pipeline([], [], pattern, Path(args.out), args, mixed=mixed)
         return 0
     try:
@@ -231,18 +232,18 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     except FrameError as exc:
         raise CliError(str(exc)) from None
     if args.model == "generic":
-        _check_grid(sharp, args.cell_px)
+        _check_grid(map(frame_size, sharp), args.cell_px)
     _run_pipeline(sharp, blurry, pattern, Path(args.out), args)
     return 0
 
 
-def _check_grid(frames: Sequence[Path], cell_px: float) -> None:
+def _check_grid(sizes: Iterable[tuple[int, int] | None], cell_px: float) -> None:
     """Refuse ``--cell-px`` whose generic grid over the whole frame could not be fitted
-    (:func:`blurcalib.generic.check_grid_size`), before any frame is extracted."""
-    from blurcalib.frames import frame_size
+    (:func:`blurcalib.generic.check_grid_size`), before any frame is extracted; the frames'
+    ``sizes`` are read up to the first known one."""
     from blurcalib.generic import check_grid_size
 
-    size = next((s for s in map(frame_size, frames) if s is not None), None)
+    size = next((s for s in sizes if s is not None), None)
     if size is not None:
         try:
             check_grid_size(*size, cell_px)
@@ -439,7 +440,8 @@ def _image_size(text: str) -> tuple[int, int]:
     return w, h
 
 
-def _positive(text: str) -> int:
+def positive_int(text: str) -> int:
+    """An argparse type: a whole number >= 1 (counts of workers, threads, folds, frames)."""
     try:
         value = int(text)
     except ValueError:
@@ -468,9 +470,9 @@ def _cluster_address(text: str) -> str:
 
 def _add_run_options(p: argparse.ArgumentParser, workers: bool = True) -> None:
     if workers:
-        p.add_argument("--workers", type=_positive, default=available_cores(),
+        p.add_argument("--workers", type=positive_int, default=available_cores(),
                        help="frames processed in parallel, one process each (%(default)s: one per core)")
-    p.add_argument("--threads", type=_positive, default=1,
+    p.add_argument("--threads", type=positive_int, default=1,
                    help="compute threads of this process, for frames it runs itself (--workers 1); "
                         "worker processes use one (%(default)s; more only helps on an idle machine)")
     p.add_argument("--cluster", metavar="ADDRESS", type=_cluster_address,
@@ -523,7 +525,7 @@ def _add_pipeline_options(p: argparse.ArgumentParser) -> None:
                    default=ValidationSettings.method,
                    help="held-out validation of the cameras: k-fold over frames, each held-out frame "
                         "scored by cameras fitted without it, or none (%(default)s; docs/validation.md)")
-    p.add_argument("--folds", type=_positive, default=ValidationSettings.folds,
+    p.add_argument("--folds", type=positive_int, default=ValidationSettings.folds,
                    help="number of folds of the validation (%(default)s; needs at least "
                         f"{ValidationSettings.min_frames} frames)")
 
@@ -536,9 +538,9 @@ def _add_source_options(p: argparse.ArgumentParser, nargs: str = "+") -> None:
     p.add_argument("frames", nargs=nargs, metavar="INPUT",
                    help="folders of frames, image files (png, jpg, tiff, bmp) or videos (mp4, avi, mkv, "
                         "mov); a video's frames are named VIDEO#000123")
-    p.add_argument("--every", type=_positive, default=1,
+    p.add_argument("--every", type=positive_int, default=1,
                    help="keep every N-th frame of each folder and video (%(default)s)")
-    p.add_argument("--max-frames", type=_positive, default=None,
+    p.add_argument("--max-frames", type=positive_int, default=None,
                    help="keep at most N frames of each folder and video (default: all)")
     p.add_argument("--sharp-below", type=float, default=SHARP_BELOW_PX,
                    help="frames whose measured blur (median blur extent of the tag ring's PSFs) is "

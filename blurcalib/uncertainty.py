@@ -75,6 +75,7 @@ from scipy.interpolate import RegularGridInterpolator
 from blurcalib.bundle import BundleResult, NormalEquations, normal_equations
 from blurcalib.fileio import atomic_path
 from blurcalib.generic import CentralGeneric, GridSpline, best_fit_rotation, tangent_basis
+from blurcalib.lie import skew
 
 __all__ = [
     "CrossValidationDiff",
@@ -304,7 +305,7 @@ def _pixel_covariance(spline: GridSpline, Sigma: torch.Tensor, u: torch.Tensor, 
     W = torch.einsum("kj,kjcx->kxjc", ev.weights / ev.norm[:, None], tang).reshape(len(u), 3, 32)
     cols = (2 * ev.nodes[:, :, None] + torch.arange(2, device=u.device)).reshape(len(u), 32)
     J = -Dp @ W
-    dx = _skew(ev.d)
+    dx = skew(ev.d)
     R = -Dp @ dx
     eye = torch.eye(3, dtype=u.dtype, device=u.device)
     Nmat = (eye - ev.d[:, :, None] * ev.d[:, None, :]).sum(0)
@@ -327,14 +328,6 @@ def _pixel_covariance(spline: GridSpline, Sigma: torch.Tensor, u: torch.Tensor, 
     w += ((c[:, None, :] @ R).sum(0) @ L).reshape(-1)
     scale_var = float(w @ Sigma @ w)
     return (0.5 * (cov + cov.transpose(1, 2))).cpu().numpy(), scale_var
-
-
-def _skew(v: torch.Tensor) -> torch.Tensor:
-    """``[v]_x (K, 3, 3)`` of ``v (K, 3)``."""
-    z = torch.zeros_like(v[:, 0])
-    return torch.stack([torch.stack([z, -v[:, 2], v[:, 1]], -1),
-                        torch.stack([v[:, 2], z, -v[:, 0]], -1),
-                        torch.stack([-v[:, 1], v[:, 0], z], -1)], -2)
 
 
 @dataclass(eq=False)

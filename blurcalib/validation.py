@@ -38,11 +38,12 @@ from typing import Literal, get_args
 import numpy as np
 import torch
 
-from blurcalib.bundle import BundleSettings, bundle_adjust
+from blurcalib.bundle import BundleSettings, bundle_adjust, frame_jacobian
 from blurcalib.calibrate import Calibration, CalibrationError, calibrate_sharp, solve_pose
 from blurcalib.camera import BrownConrady, Pose
 from blurcalib.generic import CentralGeneric, fit_to_rays, projection_jacobians
 from blurcalib.joint import GenericCalibration
+from blurcalib.lie import exp_so3, orthonormal
 from blurcalib.pattern import StarPattern
 from blurcalib.results import FeatureTable
 
@@ -175,14 +176,6 @@ def assign_folds(frames: Sequence[str], blurry: Sequence[bool], folds: int) -> n
     return out
 
 
-def _skew(w: torch.Tensor) -> torch.Tensor:
-    """``[w]_x (N, 3, 3)`` of ``w (N, 3)``."""
-    z = torch.zeros_like(w[:, 0])
-    return torch.stack([torch.stack([z, -w[:, 2], w[:, 1]], -1),
-                        torch.stack([w[:, 2], z, -w[:, 0]], -1),
-                        torch.stack([-w[:, 1], w[:, 0], z], -1)], 1)
-
-
 def generic_projector(model: CentralGeneric) -> Projector:
     """The generic camera's projection (:meth:`blurcalib.generic.GridSpline.project`) with its
     implicit derivative (:func:`blurcalib.generic.projection_jacobians`)."""
@@ -261,7 +254,7 @@ def fit_frames(projector: Projector, poses: Sequence[Pose], frame: np.ndarray, p
         sel = torch.nonzero(inside).squeeze(1)
         f = fr[sel]
         Jp = J_p[sel]
-        J = torch.cat([-Jp @ _skew(X[sel] - t[f]), Jp, eye2.expand(len(sel), 2, 2)], dim=2)
+        J = frame_jacobian(Jp, X[sel] - t[f])
         e = r[sel].norm(dim=-1)
         w = torch.where(e <= huber_px, torch.ones_like(e), huber_px / e.clamp_min(1e-300))[:, None, None]
         H = torch.zeros(F, 8, 8, **kw).index_add_(0, f, J.transpose(1, 2) @ (w * J))
@@ -278,7 +271,7 @@ def fit_frames(projector: Projector, poses: Sequence[Pose], frame: np.ndarray, p
         step = torch.ones(F, **kw)
         for _half in range(6):
             d = dp * step[:, None]
-            R_n = torch.linalg.matrix_exp(_skew(d[:, :3])) @ R
+            R_n = exp_so3(d[:, :3]) @ R
             trial = evaluate(R_n, t + d[:, 3:6], s + d[:, 6:], u)
             worse = trial[-1] > cost * (1 + 1e-12)
             if not bool(worse.any()):
@@ -293,12 +286,7 @@ def fit_frames(projector: Projector, poses: Sequence[Pose], frame: np.ndarray, p
             break
     res = torch.where(inside[:, None], r, torch.nan).numpy()
     Rn, tn = R.numpy(), t.numpy()
-    return FrameFit([Pose(_orthonormal(Rn[i]), tn[i]) for i in range(F)], s.numpy(), res)
-
-
-def _orthonormal(R: np.ndarray) -> np.ndarray:
-    U, _, Vt = np.linalg.svd(R)
-    return U @ Vt
+    return FrameFit([Pose(orthonormal(Rn[i]), tn[i]) for i in range(F)], s.numpy(), res)
 
 
 def _score(errors: np.ndarray, blurry: np.ndarray, frames: int) -> CameraScore:

@@ -7,7 +7,6 @@ import pytest
 import torch
 
 from blurcalib.bundle import BundleSettings, bundle_adjust, normal_equations
-from blurcalib.camera import BrownConrady, Pose
 from blurcalib.generic import CentralGeneric, apply_update, best_fit_rotation, fit_to_rays
 from blurcalib.uncertainty import (
     ProjectionUncertainty,
@@ -17,33 +16,10 @@ from blurcalib.uncertainty import (
     save_uncertainty_npz,
     save_uncertainty_png,
 )
+from tests.test_bundle import TRUE_CAM, _scene
 
-TRUE_CAM = BrownConrady(fx=300.0, fy=298.0, cx=160.4, cy=119.7, k1=-0.12, k2=0.03, p1=0.0005,
-                        p2=-0.0003, k3=0.0, width=320, height=240)
 NOISE_PX = 0.1
 SETTINGS = BundleSettings(outlier_iteration=0, max_iterations=20, tol=1e-12)
-
-
-def _scene(truth: CentralGeneric, frames: int, seed: int
-           ) -> tuple[list[Pose], np.ndarray, np.ndarray, np.ndarray]:
-    """A 12 x 9 planar target (2 cm) seen from ``frames`` poses; exact generic projections."""
-    rng = np.random.default_rng(seed)
-    gx, gy = np.meshgrid(np.arange(12) * 0.02, np.arange(9) * 0.02)
-    target = np.column_stack([gx.ravel() - 0.11, gy.ravel() - 0.08, np.zeros(gx.size)])
-    poses, index, points, observed = [], [], [], []
-    while len(poses) < frames:
-        rvec = rng.normal(size=3) * [0.35, 0.35, 0.2]
-        centre_px = rng.uniform([40, 30], [280, 210])
-        ray = TRUE_CAM.pixel_to_ray(centre_px[None])[0]
-        pose = Pose.from_rvec_tvec(rvec, ray / ray[2] * rng.uniform(0.35, 0.5))
-        px, inside = truth.project(pose.transform(target))
-        if inside.sum() < 40:
-            continue
-        index.append(np.full(int(inside.sum()), len(poses)))
-        points.append(target[inside])
-        observed.append(px[inside])
-        poses.append(pose)
-    return poses, np.concatenate(index), np.concatenate(points), np.concatenate(observed)
 
 
 def _errors(truth: CentralGeneric, estimate: CentralGeneric, px: np.ndarray) -> np.ndarray:

@@ -17,6 +17,7 @@ import viser
 from matplotlib.figure import Figure
 
 from blurcalib.text import count
+from blurcalib.trust import gain_phrases
 from blurcalib.uncertainty import CrossValidationDiff, cross_validation_figure, uncertainty_figure
 from state import AppState, Topic
 from state.calibration import AppCalibration, CalibrationRunner, Coverage, input_coverage
@@ -157,16 +158,8 @@ def trust_summary(result: AppCalibration, min_frames: int, guidance_px: float) -
                     "not measured (a half has too few sharp frames for its own parametric camera)."))
     gain = doc.get("blurry_frames_gain")
     if gain:
-        items = []
-        if "held_out_median_px" in gain:
-            a, b = gain["held_out_median_px"]
-            items.append(f"held-out median {_px(a)} → {_px(b)} px")
-        for key, what in (("uncertainty_median_px", "median uncertainty"),
-                          ("uncertainty_border_px", "border-band uncertainty")):
-            a, b = gain[key]
-            items.append(f"{what} {_px(a)} → {_px(b)} px")
-        parts.append("**What the blurry frames bought** (sharp only → sharp + blurry): " + ", ".join(items)
-                     + ".")
+        parts.append("**What the blurry frames bought** (sharp only → sharp + blurry): "
+                     + ", ".join(gain_phrases(gain, "→")) + ".")
     elif result.generic.blurry_frames:
         parts.append("**What the blurry frames bought**: not measured (no generic camera of the sharp "
                      f"frames alone: {md(result.sharp_failure)}).")
