@@ -23,7 +23,7 @@ from typing import Protocol
 import viser
 
 from blurcalib.cli import positive_int
-from blurcalib.runtime import capped_count, configure_threads
+from blurcalib.pipeline.runtime import capped_count, configure_threads
 from state import AppState, RunSettings, default_dataset
 from state.alignment import AlignmentCache
 from state.calibration import CalibrationRunner, CalibrationSettings

@@ -21,14 +21,26 @@ from typing import get_args
 from tqdm import tqdm
 
 from blurcalib import __version__
-from blurcalib.cluster import ClusterError, check_address
-from blurcalib.fileio import OutputError, output_lock, storage_error
-from blurcalib.grow import FinalFitFrames, GrowSettings
-from blurcalib.pattern import PAGE_SIZES_MM, PatternFileError, StarPattern, layout_pattern, load_pattern
-from blurcalib.quality import LossMode
-from blurcalib.runtime import DeviceError, available_cores, capped_count, check_device, configure_threads
-from blurcalib.text import count
-from blurcalib.validation import ValidationMethod, ValidationSettings
+from blurcalib.calib.validation import ValidationMethod, ValidationSettings
+from blurcalib.extract.quality import LossMode
+from blurcalib.growth.grow import FinalFitFrames, GrowSettings
+from blurcalib.io.atomic import OutputError, output_lock, storage_error
+from blurcalib.io.text import count
+from blurcalib.pipeline.cluster import ClusterError, check_address
+from blurcalib.pipeline.runtime import (
+    DeviceError,
+    available_cores,
+    capped_count,
+    check_device,
+    configure_threads,
+)
+from blurcalib.target.pattern import (
+    PAGE_SIZES_MM,
+    PatternFileError,
+    StarPattern,
+    layout_pattern,
+    load_pattern,
+)
 
 DEFAULT_DEMO_DIR = Path("out") / "demo"
 
@@ -67,7 +79,7 @@ def _progress(desc: str) -> tuple[tqdm, Callable[[int, int, str], None]]:
 # ----------------------------------------------------------------------------- subcommands
 def cmd_pattern(args: argparse.Namespace) -> int:
     """``blurcalib pattern``: a printable target (vector PDF, PNG, YAML)."""
-    from blurcalib.printable import write_printable
+    from blurcalib.target.printable import write_printable
 
     try:
         pattern = layout_pattern(page_size_mm=args.page, approx_square_length_mm=args.square_mm,
@@ -100,7 +112,7 @@ def _check_empty_output(out: Path, overwrite: bool) -> None:
 
 
 def _simulate(out: Path, args: argparse.Namespace, pattern: StarPattern | None) -> None:
-    from blurcalib.synth import SynthConfig, write_dataset
+    from blurcalib.sim.synth import SynthConfig, write_dataset
 
     try:
         config = SynthConfig(sharp=args.sharp, blurry=args.blurry, blur_min_px=args.blur_min,
@@ -134,10 +146,10 @@ def cmd_synth(args: argparse.Namespace) -> int:
 
 
 def _pipeline_settings(args: argparse.Namespace):
-    from blurcalib.extract import SHARP_BELOW_PX
-    from blurcalib.pipeline import PipelineSettings
-    from blurcalib.quality import QualitySettings
-    from blurcalib.trust import TrustSettings
+    from blurcalib.calib.trust import TrustSettings
+    from blurcalib.extract.frame import SHARP_BELOW_PX
+    from blurcalib.extract.quality import QualitySettings
+    from blurcalib.pipeline.run import PipelineSettings
 
     try:
         return PipelineSettings(
@@ -156,8 +168,8 @@ def _run_pipeline(sharp: list[Path], blurry: list[Path], pattern: StarPattern, o
                   args: argparse.Namespace, features: Path | None = None, mixed: Sequence = ()):
     """Run the pipeline on frames (``sharp`` and ``blurry``, or ``mixed`` frames classified by
     their own blur), or on a feature file (``features``), and print its figures."""
-    from blurcalib.pipeline import PipelineError, run_from_features, run_pipeline
-    from blurcalib.trust import summary_lines
+    from blurcalib.calib.trust import summary_lines
+    from blurcalib.pipeline.run import PipelineError, run_from_features, run_pipeline
 
     bars: dict[str, tqdm] = {}
 
@@ -206,8 +218,8 @@ def _run_pipeline(sharp: list[Path], blurry: list[Path], pattern: StarPattern, o
 def cmd_calibrate(args: argparse.Namespace) -> int:
     """``blurcalib calibrate``: extract, calibrate the sharp set, filter, align the blurry set,
     fit the generic camera and assess it (held-out error, uncertainty)."""
-    from blurcalib.frames import FrameError, frame_size, list_frames
-    from blurcalib.sources import FrameInput
+    from blurcalib.io.frames import FrameError, frame_size, list_frames
+    from blurcalib.io.sources import FrameInput
 
     pattern = load_pattern(args.pattern)
     given = [name for name, v in (("INPUT", args.frames), ("--sharp", args.sharp),
@@ -239,9 +251,9 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
 
 def _check_grid(sizes: Iterable[tuple[int, int] | None], cell_px: float) -> None:
     """Refuse ``--cell-px`` whose generic grid over the whole frame could not be fitted
-    (:func:`blurcalib.generic.check_grid_size`), before any frame is extracted; the frames'
+    (:func:`blurcalib.camera.generic.check_grid_size`), before any frame is extracted; the frames'
     ``sizes`` are read up to the first known one."""
-    from blurcalib.generic import check_grid_size
+    from blurcalib.camera.generic import check_grid_size
 
     size = next((s for s in sizes if s is not None), None)
     if size is not None:
@@ -253,10 +265,10 @@ def _check_grid(sizes: Iterable[tuple[int, int] | None], cell_px: float) -> None
 
 def cmd_demo(args: argparse.Namespace) -> int:
     """``blurcalib demo``: simulate a dataset, run the whole pipeline on it, measure accuracy."""
-    from blurcalib.evaluate import evaluate_features
-    from blurcalib.frames import list_frames
-    from blurcalib.results import read_feature_table
-    from blurcalib.synth import GROUND_TRUTH_FILE, load_ground_truth
+    from blurcalib.io.frames import list_frames
+    from blurcalib.io.results import read_feature_table
+    from blurcalib.sim.evaluate import evaluate_features
+    from blurcalib.sim.synth import GROUND_TRUTH_FILE, load_ground_truth
 
     out = Path(args.out)
     data = out / "data"
@@ -291,11 +303,11 @@ def _print_camera_accuracy(out: Path, truth) -> None:
     calibrated when near 1)."""
     import numpy as np
 
-    from blurcalib.calibrate import load_calibration
-    from blurcalib.evaluate import camera_accuracy, projection_errors
-    from blurcalib.pipeline import SHARP_ONLY_DIR
-    from blurcalib.refcamera import read_generic_yaml
-    from blurcalib.trust import UNCERTAINTY_NPZ
+    from blurcalib.calib.sharp import load_calibration
+    from blurcalib.calib.trust import UNCERTAINTY_NPZ
+    from blurcalib.camera.files import read_generic_yaml
+    from blurcalib.pipeline.run import SHARP_ONLY_DIR
+    from blurcalib.sim.evaluate import camera_accuracy, projection_errors
 
     folder = out / "calibration"
     calibration = load_calibration(folder)
@@ -327,8 +339,8 @@ def _print_camera_accuracy(out: Path, truth) -> None:
 
 def cmd_extract(args: argparse.Namespace) -> int:
     """``blurcalib extract``: star features, PSFs and per-block figures from frames."""
-    from blurcalib.deconv import DeconvSettings
-    from blurcalib.extract import SHARP_KERNEL_SIZE, ExtractSettings, extract_to_folder
+    from blurcalib.deconv.blocks import DeconvSettings
+    from blurcalib.extract.frame import SHARP_KERNEL_SIZE, ExtractSettings, extract_to_folder
 
     pattern = load_pattern(args.pattern)
     paths = _frame_inputs(args)
@@ -373,9 +385,9 @@ def cmd_extract(args: argparse.Namespace) -> int:
 
 def _frame_inputs(args: argparse.Namespace) -> list:
     """The frames of the positional inputs (folders, images, videos) with ``--every`` and
-    ``--max-frames`` (:func:`blurcalib.sources.frame_inputs`)."""
-    from blurcalib.frames import FrameError
-    from blurcalib.sources import frame_inputs
+    ``--max-frames`` (:func:`blurcalib.io.sources.frame_inputs`)."""
+    from blurcalib.io.frames import FrameError
+    from blurcalib.io.sources import frame_inputs
 
     try:
         return frame_inputs(args.frames, every=args.every, max_frames=args.max_frames)
@@ -385,7 +397,7 @@ def _frame_inputs(args: argparse.Namespace) -> list:
 
 def cmd_experiment(args: argparse.Namespace) -> int:
     """``blurcalib experiment NAME``: reproduce one of the paper's experiments."""
-    from blurcalib.experiments import alignment, generic, patterns, psf_quality, threshold_sweep
+    from blurcalib.paper import alignment, generic, patterns, psf_quality, threshold_sweep
 
     runners = {"patterns": patterns.main, "alignment": alignment.main,
                "psf-quality": psf_quality.main, "threshold-sweep": threshold_sweep.main,
@@ -533,7 +545,7 @@ def _add_pipeline_options(p: argparse.ArgumentParser) -> None:
 def _add_source_options(p: argparse.ArgumentParser, nargs: str = "+") -> None:
     """The frame inputs (positional ``INPUT...``, ``nargs``), ``--every``, ``--max-frames`` and
     ``--sharp-below``, read by :func:`_frame_inputs`."""
-    from blurcalib.extract import SHARP_BELOW_PX
+    from blurcalib.extract.frame import SHARP_BELOW_PX
 
     p.add_argument("frames", nargs=nargs, metavar="INPUT",
                    help="folders of frames, image files (png, jpg, tiff, bmp) or videos (mp4, avi, mkv, "
@@ -650,7 +662,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _output_lock(args: argparse.Namespace):
-    """The lock on the output folder of a command that writes one (:func:`blurcalib.fileio.output_lock`):
+    """The lock on the output folder of a command that writes one (:func:`blurcalib.io.atomic.output_lock`):
     a second run into the same folder is refused while this one runs."""
     if args.func in (cmd_calibrate, cmd_extract, cmd_synth, cmd_demo):
         return output_lock(args.out)

@@ -22,15 +22,15 @@ from pathlib import Path
 
 import numpy as np
 
-from blurcalib.calibrate import calibrate_sharp
-from blurcalib.evaluate import evaluate_features
-from blurcalib.extract import ExtractSettings, extract_frame
-from blurcalib.frames import load_frame
-from blurcalib.pattern import load_pattern
-from blurcalib.pipeline import PipelineSettings, run_pipeline
-from blurcalib.quality import QualitySettings
-from blurcalib.results import FeatureTable, read_feature_table
-from blurcalib.synth import SynthConfig, load_ground_truth, write_dataset
+from blurcalib.calib.sharp import calibrate_sharp
+from blurcalib.extract.frame import ExtractSettings, extract_frame
+from blurcalib.extract.quality import QualitySettings
+from blurcalib.io.frames import load_frame
+from blurcalib.io.results import FeatureTable, read_feature_table
+from blurcalib.pipeline.run import PipelineSettings, run_pipeline
+from blurcalib.sim.evaluate import evaluate_features
+from blurcalib.sim.synth import SynthConfig, load_ground_truth, write_dataset
+from blurcalib.target.pattern import load_pattern
 
 FIXTURES = Path(os.environ.get("BLURCALIB_FIXTURES") or Path(__file__).resolve().parents[2] / "shared"
                 / "fixtures")

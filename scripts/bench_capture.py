@@ -26,13 +26,13 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from blurcalib.evaluate import camera_accuracy
-from blurcalib.frames import list_frames, load_frame
-from blurcalib.pattern import load_pattern
-from blurcalib.pipeline import PipelineSettings, run_pipeline
-from blurcalib.refcamera import read_generic_yaml
-from blurcalib.sources import frame_inputs
-from blurcalib.synth import GROUND_TRUTH_FILE, SynthConfig, load_ground_truth, write_dataset
+from blurcalib.camera.files import read_generic_yaml
+from blurcalib.io.frames import list_frames, load_frame
+from blurcalib.io.sources import frame_inputs
+from blurcalib.pipeline.run import PipelineSettings, run_pipeline
+from blurcalib.sim.evaluate import camera_accuracy
+from blurcalib.sim.synth import GROUND_TRUTH_FILE, SynthConfig, load_ground_truth, write_dataset
+from blurcalib.target.pattern import load_pattern
 
 
 def write_video(frames: list[Path], path: Path, fps: float = 25.0) -> Path:

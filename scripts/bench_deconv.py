@@ -1,6 +1,6 @@
-"""Accuracy and speed of the local deconvolution (``blurcalib.deconv``) on simulated blocks.
+"""Accuracy and speed of the local deconvolution (``blurcalib.deconv.blocks``) on simulated blocks.
 
-Simulates blocks with known ground truth (:func:`blurcalib.synth.simulate_blocks`: the exact
+Simulates blocks with known ground truth (:func:`blurcalib.sim.synth.simulate_blocks`: the exact
 pattern box-filtered over 8 x 8 samples per pixel, ~30 px squares under a random perspective, a
 random curved motion path of 4 to 15 px plus a small Gaussian, gain and offset gradients, ink ~30
 and paper ~200 grey levels, Gaussian noise of 2 grey levels, 8-bit quantisation; the initial
@@ -21,10 +21,10 @@ import time
 
 import numpy as np
 
-from blurcalib.camera import translation
-from blurcalib.deconv import BlockFit, DeconvSettings, fit_blocks
-from blurcalib.pattern import layout_pattern
-from blurcalib.synth import SimulatedBlocks, simulate_blocks
+from blurcalib.camera.parametric import translation
+from blurcalib.deconv.blocks import BlockFit, DeconvSettings, fit_blocks
+from blurcalib.sim.synth import SimulatedBlocks, simulate_blocks
+from blurcalib.target.pattern import layout_pattern
 
 VARIANTS: tuple[tuple[str, dict], ...] = (
     ("signed_distance + after_blur (default)", {}),

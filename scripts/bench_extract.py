@@ -24,12 +24,12 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from blurcalib.camera import homography_centre
-from blurcalib.deconv import DeconvSettings
-from blurcalib.extract import ExtractSettings, extract_frame
-from blurcalib.frames import load_frame
-from blurcalib.pattern import load_pattern
-from blurcalib.synth import Simulator, SynthConfig, splat
+from blurcalib.camera.parametric import homography_centre
+from blurcalib.deconv.blocks import DeconvSettings
+from blurcalib.extract.frame import ExtractSettings, extract_frame
+from blurcalib.io.frames import load_frame
+from blurcalib.sim.synth import Simulator, SynthConfig, splat
+from blurcalib.target.pattern import load_pattern
 
 FIXTURES = Path(os.environ.get("BLURCALIB_FIXTURES") or Path(__file__).resolve().parents[2] / "shared"
                 / "fixtures")

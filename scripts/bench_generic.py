@@ -3,7 +3,7 @@ and the simulated comparison, printed.
 
     python scripts/bench_generic.py [--frames 80 200] [--skip-real] [--skip-experiment]
 
-1. **Speed.** Simulated features (``blurcalib.experiments.generic``: 20 sharp frames, the rest
+1. **Speed.** Simulated features (``blurcalib.paper.generic``: 20 sharp frames, the rest
    blurry with free per-frame shifts) on the 1280 x 720 camera, 25 px cells; the joint bundle
    adjustment of N frames, each size in its own process so that its peak memory (max RSS) is
    its own. Targets: 80 frames <= 60 s, 200 frames <= 3 min, peak memory <= 2 GB. Wall time
@@ -30,14 +30,14 @@ import cv2
 import numpy as np
 import torch
 
-from blurcalib.bundle import BundleSettings, bundle_adjust
-from blurcalib.calibrate import solve_pose
-from blurcalib.camera import BrownConrady
-from blurcalib.experiments import generic as experiment
-from blurcalib.generic import calibrated_area, fit_to_rays
-from blurcalib.pattern import layout_pattern
-from blurcalib.refformat import read_ref_dataset
-from blurcalib.synth import d435i_like_camera
+from blurcalib.calib.bundle import BundleSettings, bundle_adjust
+from blurcalib.calib.sharp import solve_pose
+from blurcalib.camera.generic import calibrated_area, fit_to_rays
+from blurcalib.camera.parametric import BrownConrady
+from blurcalib.io.refformat import read_ref_dataset
+from blurcalib.paper import generic as experiment
+from blurcalib.sim.synth import d435i_like_camera
+from blurcalib.target.pattern import layout_pattern
 
 REAL = Path(__file__).resolve().parents[2] / "shared" / "fixtures" / "real_star16"
 

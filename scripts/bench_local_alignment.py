@@ -4,7 +4,7 @@
 
 For each frame (1280x720, blur 4 to 12 px, noise sigma 2 grey levels) the accepted blocks' star
 centres ``H(0, 0)`` (PSF-recentred) are compared with the ground-truth time-averaged positions,
-before and after :func:`blurcalib.local_alignment.align_locally`, after removing each frame's
+before and after :func:`blurcalib.extract.local_alignment.align_locally`, after removing each frame's
 mean offset (median and p90, px). It also splits the shared-corner gaps of neighbouring blocks:
 
 * ``gap``: RMS of all shared-corner gaps ``H_a(c_a) - H_b(c_b)`` (px);
@@ -24,11 +24,11 @@ import argparse
 
 import numpy as np
 
-from blurcalib.camera import homography_centre
-from blurcalib.deconv import DeconvSettings
-from blurcalib.extract import ExtractSettings, extract_frame
-from blurcalib.local_alignment import align_locally, corner_gaps, neighbour_pairs
-from blurcalib.synth import Simulator, SynthConfig
+from blurcalib.camera.parametric import homography_centre
+from blurcalib.deconv.blocks import DeconvSettings
+from blurcalib.extract.frame import ExtractSettings, extract_frame
+from blurcalib.extract.local_alignment import align_locally, corner_gaps, neighbour_pairs
+from blurcalib.sim.synth import Simulator, SynthConfig
 
 
 def _rms(v: np.ndarray) -> float:

@@ -9,7 +9,7 @@ the results blended bilinearly, so the kernel at any point is a blend of centred
 star centres stay where the sharp frame shows them), plus Gaussian noise of 1.5 grey levels. Each
 frame is extracted with the blurry-frame defaults and the star centres are compared with the
 reference detector's features of the sharp frame (``features_10px.bin``, read with
-:mod:`blurcalib.refformat`, pixel-corner convention converted to OpenCV's).
+:mod:`blurcalib.io.refformat`, pixel-corner convention converted to OpenCV's).
 
 Per variant: the yield (share of the reference features found within 1 px), the median distance of
 those to the reference, the block statuses and the process CPU time per frame (torch single-threaded;
@@ -17,7 +17,7 @@ on a shared machine the CPU time is the figure to compare, taken back to back). 
 
 * ``hints``: the defaults (neighbours' PSFs as hints; a hinted block left not converged whose
   blur is short for its square is accepted after a last step under 0.15 px, else re-fitted with
-  the full schedule, :func:`blurcalib.grow.fit_hinted`);
+  the full schedule, :func:`blurcalib.growth.grow.fit_hinted`);
 * ``no-hints``: ``GrowSettings(psf_hints=False)``, every block with the full schedule;
 * ``hints-front-retry``: hints, failed hinted blocks re-fitted only when their front accepts
   none (``GrowSettings(retry_below_blur_per_square=0)``).
@@ -38,12 +38,12 @@ import cv2
 import numpy as np
 import torch
 
-from blurcalib.extract import ExtractSettings, extract_frame
-from blurcalib.frames import load_frame
-from blurcalib.grow import GrowSettings
-from blurcalib.pattern import load_pattern
-from blurcalib.refformat import read_ref_dataset
-from blurcalib.synth import splat
+from blurcalib.extract.frame import ExtractSettings, extract_frame
+from blurcalib.growth.grow import GrowSettings
+from blurcalib.io.frames import load_frame
+from blurcalib.io.refformat import read_ref_dataset
+from blurcalib.sim.synth import splat
+from blurcalib.target.pattern import load_pattern
 
 FIXTURES = Path(os.environ.get("BLURCALIB_FIXTURES") or Path(__file__).resolve().parents[2] / "shared"
                 / "fixtures")

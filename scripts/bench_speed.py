@@ -2,7 +2,7 @@
 
     python scripts/bench_speed.py [--frames 4] [--threads 1] [--pair] [--device cpu]
 
-Simulated 1280x720 frames (blurcalib/synth.py) with star squares of 30 to 47 px and blur of 4 to
+Simulated 1280x720 frames (blurcalib/sim/synth.py) with star squares of 30 to 47 px and blur of 4 to
 15 px, about 250 blocks each. Per frame: process CPU time (the primary figure on a shared
 machine) and wall time, split into seeding, fitting (region growing with the block solver) and
 alignment; the block count and the median star-centre error against the ground-truth
@@ -27,7 +27,7 @@ import numpy as np
 
 
 def _frames(count: int, seed: int) -> list:
-    from blurcalib.synth import Simulator, SynthConfig
+    from blurcalib.sim.synth import Simulator, SynthConfig
 
     sim = Simulator(SynthConfig(sharp=0, blurry=count, blur_min_px=4.0, blur_max_px=15.0,
                                 square_px=(30.0, 47.0), noise_sigma=2.0, seed=seed))
@@ -38,9 +38,9 @@ def run(frames: int, seed: int, threads: int, device: str, quiet: bool) -> dict:
     """Extract ``frames`` simulated frames; per-frame figures and totals."""
     import torch
 
-    torch.set_num_threads(threads)  # (not blurcalib.runtime: the script also times older checkouts)
-    from blurcalib.deconv import DeconvSettings
-    from blurcalib.extract import ExtractSettings, extract_frame
+    torch.set_num_threads(threads)  # (not blurcalib.pipeline.runtime: the script also times older checkouts)
+    from blurcalib.deconv.blocks import DeconvSettings
+    from blurcalib.extract.frame import ExtractSettings, extract_frame
 
     sims, pattern = _frames(frames, seed)
     settings = ExtractSettings(deconv=DeconvSettings(device=device))

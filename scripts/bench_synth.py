@@ -15,7 +15,7 @@ import time
 
 import numpy as np
 
-from blurcalib.synth import Simulator, SynthConfig
+from blurcalib.sim.synth import Simulator, SynthConfig
 
 
 def main() -> None:

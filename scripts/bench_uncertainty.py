@@ -2,17 +2,17 @@
 
     python scripts/bench_uncertainty.py [--sharp 20] [--blurry 60] [--seed 0] [--device cpu]
 
-Simulation: ``blurcalib experiment generic``'s (``blurcalib.experiments.generic``): the 1280 x 720
+Simulation: ``blurcalib experiment generic``'s (``blurcalib.paper.generic``): the 1280 x 720
 camera with its 0.3 px non-parametric deviation, 20 sharp frames thin at the borders (0.02 px
 noise), 60 blurry frames anywhere (0.012 px noise, 10 % at 4x, an unknown shift each), the target
 points nominal. Fits (b) the generic camera of the sharp frames and (c) that of the sharp and
 blurry frames (free shifts), on the experiment's common calibrated area and 25 px grid.
 
 For each fit: the true error after the best-fit rotation
-(:func:`blurcalib.evaluate.projection_error_vectors`) on the uncertainty's lattice, the
-predicted 1-sigma (:func:`blurcalib.uncertainty.projection_uncertainty`), their RMS and the
+(:func:`blurcalib.sim.evaluate.projection_error_vectors`) on the uncertainty's lattice, the
+predicted 1-sigma (:func:`blurcalib.calib.uncertainty.projection_uncertainty`), their RMS and the
 ratio (target 0.5-2), the same split into the border band (64 px from the edge) and the inner
-area, the focal-scale part of the error field (:func:`blurcalib.evaluate.camera_accuracy`'s
+area, the focal-scale part of the error field (:func:`blurcalib.sim.evaluate.camera_accuracy`'s
 ``scale_px``) against its predicted 1-sigma, the time of ``projection_uncertainty``, and the
 RMS sigma and ratio with other ``prior_scale`` values (the pipeline's is
 ``TrustSettings().prior_scale``). Then the border-band sigma of (c) over
@@ -28,14 +28,14 @@ import time
 import numpy as np
 import torch
 
-from blurcalib.bundle import BundleSettings
-from blurcalib.evaluate import camera_accuracy, projection_error_vectors
-from blurcalib.experiments import generic as experiment
-from blurcalib.generic import calibrated_area, fit_to_rays
-from blurcalib.pattern import layout_pattern
-from blurcalib.synth import d435i_like_camera
-from blurcalib.trust import TrustSettings
-from blurcalib.uncertainty import BORDER_PX, projection_uncertainty
+from blurcalib.calib.bundle import BundleSettings
+from blurcalib.calib.trust import TrustSettings
+from blurcalib.calib.uncertainty import BORDER_PX, projection_uncertainty
+from blurcalib.camera.generic import calibrated_area, fit_to_rays
+from blurcalib.paper import generic as experiment
+from blurcalib.sim.evaluate import camera_accuracy, projection_error_vectors
+from blurcalib.sim.synth import d435i_like_camera
+from blurcalib.target.pattern import layout_pattern
 
 PRIOR_SCALES = (1.0, 0.3, 0.1)
 """Other ``prior_scale`` values printed for comparison (``calibrate`` uses ``PRIOR_SCALE``)."""

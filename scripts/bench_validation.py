@@ -5,9 +5,9 @@ cameras beside OpenCV's rational-8 model scored on the same folds.
 
 Data: the reference tool's features of the real 1280 x 720 camera
 (``real_star16/features_10px.bin``, 27 frames, all sharp). blurcalib calibrates from them as
-``blurcalib calibrate --features`` does (:func:`blurcalib.pipeline.run_from_features`) and
+``blurcalib calibrate --features`` does (:func:`blurcalib.pipeline.run.run_from_features`) and
 scores its generic and parametric cameras on frames they have not seen
-(:func:`blurcalib.validation.kfold_validation`). OpenCV's rational model (``CALIB_RATIONAL_MODEL``,
+(:func:`blurcalib.calib.validation.kfold_validation`). OpenCV's rational model (``CALIB_RATIONAL_MODEL``,
 8 distortion coefficients) is fitted on the same training frames of each fold, and each held-out
 frame's pose is fitted alone (``solvePnP`` then ``solvePnPRefineLM``) with the camera held; the
 medians are over all held-out features. Prints time beside the figures.
@@ -24,10 +24,10 @@ import cv2
 import numpy as np
 import torch
 
-from blurcalib.pattern import load_pattern
-from blurcalib.pipeline import PipelineSettings, read_feature_input, run_from_features
-from blurcalib.trust import TrustSettings
-from blurcalib.validation import ValidationSettings, assign_folds
+from blurcalib.calib.trust import TrustSettings
+from blurcalib.calib.validation import ValidationSettings, assign_folds
+from blurcalib.pipeline.run import PipelineSettings, read_feature_input, run_from_features
+from blurcalib.target.pattern import load_pattern
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -4,12 +4,12 @@
 
 1. Simulated frames with 12 to 25 px of blur (1280x720, noise sigma 2, seed 11): per frame how it
    was seeded, whether its blocks were fitted with the frame's path-PSF field (``field``,
-   :func:`blurcalib.grow.field_growth`) or with free PSFs (``free``), the PSF window reached
+   :func:`blurcalib.growth.grow.field_growth`) or with free PSFs (``free``), the PSF window reached
    (the largest of the frame's kernels), the share of visible blocks returned, the error of the star
    centres against the time-averaged truth after removing the frame's mean offset. Targets:
    >= 90% of frames extracted, >= 85% of visible features returned, median <= 0.03 px, none off
    by more than 1 px. The same figures after the pipeline's block filter
-   (:func:`blurcalib.quality.filter_frame`, default thresholds: BE, loss, connectivity), their
+   (:func:`blurcalib.extract.quality.filter_frame`, default thresholds: BE, loss, connectivity), their
    pose-consistent errors (each frame's best-fit homography removed: a pose change, which a
    calibration refits), and the share returned of the visible features whose blur is shorter than
    their star square. Last, per class of blur length over square side (the feature's blur
@@ -23,10 +23,10 @@
    is at 150, 183, 217 or 250 grey levels and whose sensor has 5, 10 or 20 electrons per grey
    level (the 12 combinations in turn; read noise 0.7 grey levels; :func:`photometric_frame`),
    then ``--demo N`` frames of the demo set (``SynthConfig()``): per frame the true and the
-   estimated noise at the frame's level (:mod:`blurcalib.noise`), and the blocks the pipeline's
+   estimated noise at the frame's level (:mod:`blurcalib.extract.noise`), and the blocks the pipeline's
    block filter keeps with the loss threshold in the frame's noise units (the default) and with
    the paper's absolute one (``QualitySettings(loss_mode="absolute")``); a frame is used when at least
-   :data:`blurcalib.global_alignment.MIN_BLOCKS` are kept. Target: >= 95% of the photometry
+   :data:`blurcalib.calib.alignment.MIN_BLOCKS` are kept. Target: >= 95% of the photometry
    frames used; the demo frames keep their blocks.
 
 Times are wall and process CPU seconds per frame, torch single-threaded. ``--cache`` keeps the
@@ -46,13 +46,13 @@ import cv2
 import numpy as np
 import torch
 
-from blurcalib import synth
-from blurcalib.camera import apply_homography
-from blurcalib.extract import ExtractSettings, extract_frame
-from blurcalib.global_alignment import MIN_BLOCKS
-from blurcalib.grow import GrowSettings
-from blurcalib.quality import QualitySettings, filter_frame
-from blurcalib.synth import SimulatedFrame, Simulator, SynthConfig
+from blurcalib.calib.alignment import MIN_BLOCKS
+from blurcalib.camera.parametric import apply_homography
+from blurcalib.extract.frame import ExtractSettings, extract_frame
+from blurcalib.extract.quality import QualitySettings, filter_frame
+from blurcalib.growth.grow import GrowSettings
+from blurcalib.sim import synth
+from blurcalib.sim.synth import SimulatedFrame, Simulator, SynthConfig
 
 
 def frames(blur: tuple[float, float], count: int, seed: int, cache: Path | None

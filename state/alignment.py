@@ -4,13 +4,13 @@ The tuning panel reports the alignment error that the current thresholds give, a
 views draw its residuals. Both need a reference Brown-Conrady camera ``pi_d`` and target points
 ``P``. :func:`find_reference` takes the first of:
 
-1. a calibration saved by ``blurcalib calibrate`` (:func:`blurcalib.calibrate.save_calibration`)
+1. a calibration saved by ``blurcalib calibrate`` (:func:`blurcalib.calib.sharp.save_calibration`)
    beside the frames: ``calibration/`` or ``calibration/calibration/`` (a pipeline's output
    folder named ``calibration``) in the opened folder or in its parent; it also gives the
    refined target points;
 2. on a simulated dataset, the Brown-Conrady part of the true camera
    (``DatasetTruth.camera.model``) with the nominal flat target;
-3. a calibration (:func:`blurcalib.calibrate.calibrate_sharp`) of the app's finished sharp
+3. a calibration (:func:`blurcalib.calib.sharp.calibrate_sharp`) of the app's finished sharp
    frames' star centres, once at least :data:`MIN_SHARP_FRAMES` are finished.
 
 :func:`align_frame` aligns one frame's blocks kept by the quality filter, with the pipeline's
@@ -32,7 +32,8 @@ from pathlib import Path
 
 import numpy as np
 
-from blurcalib.calibrate import (
+from blurcalib.calib.alignment import AlignmentError, AlignmentSettings, align_blocks, orientation_ok
+from blurcalib.calib.sharp import (
     CALIBRATION_FILE,
     CAMERA_JSON_FILE,
     CalibrationError,
@@ -40,12 +41,11 @@ from blurcalib.calibrate import (
     calibrate_sharp,
     load_calibration,
 )
-from blurcalib.camera import BrownConrady, Pose
-from blurcalib.extract import FrameResult, FrameStatus
-from blurcalib.global_alignment import AlignmentError, AlignmentSettings, align_blocks, orientation_ok
-from blurcalib.pattern import StarPattern
-from blurcalib.quality import FrameFilter
-from blurcalib.results import FeatureTable
+from blurcalib.camera.parametric import BrownConrady, Pose
+from blurcalib.extract.frame import FrameResult, FrameStatus
+from blurcalib.extract.quality import FrameFilter
+from blurcalib.io.results import FeatureTable
+from blurcalib.target.pattern import StarPattern
 from state.app_state import AppState
 from state.folder import Dataset
 
@@ -279,7 +279,7 @@ def align_frame(reference: Reference, pattern: StarPattern, result: FrameResult,
                 image_size: tuple[int, int], settings: AlignmentSettings | None = None) -> FrameAlignment:
     """Align a frame's blocks kept by the quality filter to the reference (``eq:global_align``).
 
-    As the pipeline does (:func:`blurcalib.global_alignment.align_blocks`): the kept blocks'
+    As the pipeline does (:func:`blurcalib.calib.alignment.align_blocks`): the kept blocks'
     finite star centres ``H(0, 0)`` (px) against the reference's points, each weighted by its
     deconvolution loss.
 

@@ -22,16 +22,16 @@ from pathlib import Path
 
 import numpy as np
 
-from blurcalib.camera import homography_centre
-from blurcalib.extract import ExtractSettings, FrameResult, FrameStatus, extract_frame
-from blurcalib.frames import FrameError
-from blurcalib.grow import GrowthEvent
-from blurcalib.pattern import PatternFileError, StarPattern, load_pattern
-from blurcalib.quality import FrameFilter, QualitySettings, filter_frame
-from blurcalib.results import BlockStatus
-from blurcalib.seed import block_homography
-from blurcalib.sources import FrameInput
-from blurcalib.synth import FrameTruth
+from blurcalib.camera.parametric import homography_centre
+from blurcalib.extract.frame import ExtractSettings, FrameResult, FrameStatus, extract_frame
+from blurcalib.extract.quality import FrameFilter, QualitySettings, filter_frame
+from blurcalib.growth.grow import GrowthEvent
+from blurcalib.growth.seed import block_homography
+from blurcalib.io.frames import FrameError
+from blurcalib.io.results import BlockStatus
+from blurcalib.io.sources import FrameInput
+from blurcalib.sim.synth import FrameTruth
+from blurcalib.target.pattern import PatternFileError, StarPattern, load_pattern
 from state.events import Events, Notice, Topic
 from state.folder import Dataset, DatasetError, FrameFile, discover
 
@@ -51,7 +51,7 @@ class FrameEntry:
         path: the file (the video for a video's frame).
         kind: ``blurry`` or ``sharp`` (chooses the extraction settings).
         status: ``pending``, ``queued``, ``running``, ``cancelled`` or a
-            :class:`blurcalib.extract.FrameStatus` value.
+            :class:`blurcalib.extract.frame.FrameStatus` value.
         message: why, when the status is not ``ok``.
         blocks, accepted: attempted and accepted blocks of the last run.
         seconds: time of the last run.

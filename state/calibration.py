@@ -11,21 +11,21 @@ Inputs (:func:`collect_inputs`), at the current thresholds:
 The run (:class:`CalibrationRunner`, one worker thread, cancel between stages; the frames not
 extracted yet are extracted first, in the state's worker):
 
-1. the parametric camera: :func:`blurcalib.calibrate.calibrate_sharp` of the sharp features; with
+1. the parametric camera: :func:`blurcalib.calib.sharp.calibrate_sharp` of the sharp features; with
    fewer than ``min_sharp_frames`` usable sharp frames the blurry frames' kept blocks join this
    stage (their per-frame shift is not modelled there; the generic stage models it); then, as
    in the pipeline, every star centre is corrected for the lens bias of its block homography
-   under that camera (:mod:`blurcalib.lens_bias`) and the parametric camera fitted again;
-2. the generic camera: :func:`blurcalib.joint.calibrate_generic` (``route="joint"``: a free image
+   under that camera (:mod:`blurcalib.calib.lens_bias`) and the parametric camera fitted again;
+2. the generic camera: :func:`blurcalib.calib.joint.calibrate_generic` (``route="joint"``: a free image
    shift per blurry frame), started from stage 1;
 3. the assessment without ground truth, as ``blurcalib calibrate`` makes it: the generic camera
    of the sharp frames alone when blurry frames entered stage 2, then
-   :func:`blurcalib.trust.assess_calibration` (held-out error, projection uncertainty,
+   :func:`blurcalib.calib.trust.assess_calibration` (held-out error, projection uncertainty,
    cross-validation diff, guidance; ``docs/validation.md``);
 4. figures: observation coverage per grid cell (sharp and blurry apart), the
-   generic-minus-parametric difference field (:func:`blurcalib.joint.difference_field`) and, on
+   generic-minus-parametric difference field (:func:`blurcalib.calib.joint.difference_field`) and, on
    a simulated dataset, both cameras' error against the true camera
-   (:func:`blurcalib.experiments.generic.projection_errors`: each lattice pixel's true ray, after
+   (:func:`blurcalib.paper.generic.projection_errors`: each lattice pixel's true ray, after
    the best-fit rotation, projected by the estimate, minus the pixel).
 
 A cancelled or failed run keeps the previous result. :meth:`CalibrationRunner.export` writes the
@@ -44,28 +44,28 @@ from pathlib import Path
 
 import numpy as np
 
-from blurcalib.calibrate import Calibration, CalibrationError, calibrate_sharp
-from blurcalib.camera import save_camera_yaml
-from blurcalib.evaluate import projection_errors
-from blurcalib.extract import FrameStatus
-from blurcalib.fileio import ensure_writable_dir
-from blurcalib.generic import DEFAULT_CELL_PX
-from blurcalib.global_alignment import MIN_BLOCKS
-from blurcalib.joint import (
+from blurcalib.calib.alignment import MIN_BLOCKS
+from blurcalib.calib.joint import (
     GenericCalibration,
     JointSettings,
     calibrate_generic,
     difference_field,
     save_generic_calibration,
 )
-from blurcalib.lens_bias import correct_features
-from blurcalib.pattern import StarPattern
-from blurcalib.quality import QualitySettings
-from blurcalib.results import BlockTable, FeatureFlags, FeatureTable
-from blurcalib.synth import TrueCamera
-from blurcalib.text import count
-from blurcalib.trust import Trust, TrustSettings, assess_calibration
-from blurcalib.uncertainty import projection_uncertainty
+from blurcalib.calib.lens_bias import correct_features
+from blurcalib.calib.sharp import Calibration, CalibrationError, calibrate_sharp
+from blurcalib.calib.trust import Trust, TrustSettings, assess_calibration
+from blurcalib.calib.uncertainty import projection_uncertainty
+from blurcalib.camera.generic import DEFAULT_CELL_PX
+from blurcalib.camera.parametric import save_camera_yaml
+from blurcalib.extract.frame import FrameStatus
+from blurcalib.extract.quality import QualitySettings
+from blurcalib.io.atomic import ensure_writable_dir
+from blurcalib.io.results import BlockTable, FeatureFlags, FeatureTable
+from blurcalib.io.text import count
+from blurcalib.sim.evaluate import projection_errors
+from blurcalib.sim.synth import TrueCamera
+from blurcalib.target.pattern import StarPattern
 from state.app_state import DONE_STATUSES, AppState
 from state.events import Topic
 from state.folder import EXPORT_DIR
@@ -73,7 +73,8 @@ from state.folder import EXPORT_DIR
 log = logging.getLogger(__name__)
 
 OPENCV_CAMERA_FILE = "camera.yaml"
-"""The parametric camera as an OpenCV FileStorage file (:func:`blurcalib.camera.save_camera_yaml`)."""
+"""The parametric camera as an OpenCV FileStorage file
+(:func:`blurcalib.camera.parametric.save_camera_yaml`)."""
 STAGES = ("extracting frames", "collecting features", "parametric calibration", "generic calibration",
           "assessment (held-out error, uncertainty)", "figures")
 """The run's stages; the first only when frames are extracted (or being extracted) first."""
@@ -95,7 +96,7 @@ class CalibrationSettings:
         min_sharp_features: a sharp frame needs this many accepted blocks.
         min_blurry_blocks: a blurry frame needs this many kept blocks.
         lattice_px: step (px) of the lattice of the difference field and the error against truth.
-        trust: options of the assessment (:class:`blurcalib.trust.TrustSettings`).
+        trust: options of the assessment (:class:`blurcalib.calib.trust.TrustSettings`).
     """
 
     cell_px: float = DEFAULT_CELL_PX
@@ -113,7 +114,7 @@ class CalibrationInputs:
     Attributes:
         sharp, blurry: the sharp frames' and blurry frames' observations.
         blocks: the blocks they were made from (for the lens-bias correction,
-            :mod:`blurcalib.lens_bias`).
+            :mod:`blurcalib.calib.lens_bias`).
         image_size: ``(width, height)`` px of the frames (the most common size).
         reasons: frame -> why it is not an input (frames absent here are inputs).
         quality: the thresholds the blurry frames were filtered with.
@@ -237,7 +238,7 @@ class TruthErrors:
 
 def truth_errors(truth: TrueCamera, generic: GenericCalibration, parametric: Calibration,
                  lattice_px: float) -> TruthErrors:
-    """Both cameras' :func:`~blurcalib.experiments.generic.projection_errors` against ``truth``
+    """Both cameras' :func:`~blurcalib.paper.generic.projection_errors` against ``truth``
     on a ``lattice_px`` lattice of the generic model's calibrated area."""
     x0, y0, x1, y1 = generic.model.area_opencv
     xx, yy = np.meshgrid(np.arange(np.ceil(x0), x1, lattice_px), np.arange(np.ceil(y0), y1, lattice_px))
@@ -319,7 +320,7 @@ class Assessment:
 def assess(generic: GenericCalibration, parametric: Calibration, sharp: FeatureTable, pattern: StarPattern,
            size: tuple[int, int], joint: JointSettings, settings: TrustSettings) -> Assessment:
     """The generic camera of the ``sharp`` features alone when ``generic`` used blurry frames, then
-    :func:`blurcalib.trust.assess_calibration`, as ``blurcalib calibrate`` does. A failure is
+    :func:`blurcalib.calib.trust.assess_calibration`, as ``blurcalib calibrate`` does. A failure is
     recorded, not raised: the calibration stands without its assessment, and when only the
     sharp-only camera's part fails, the generic camera is assessed alone and the sharp-only
     camera keeps its uncertainty map."""
@@ -568,7 +569,7 @@ class CalibrationRunner:
 
     def export(self, folder: str | Path | None = None) -> list[Path]:
         """Write the last calibration into ``folder`` (default ``<dataset>/calibration_app``): the
-        generic files of :func:`blurcalib.joint.save_generic_calibration` (``intrinsics0.yaml``,
+        generic files of :func:`blurcalib.calib.joint.save_generic_calibration` (``intrinsics0.yaml``,
         poses, ``undistortion_map.npz``, coverage and difference images) and the parametric camera
         as ``camera.yaml``; a notice names the files.
 

@@ -1,7 +1,7 @@
 """The translational ambiguity of deconvolution, as a teaching demo.
 
 A blurred star ``k * L`` is explained equally well by the latent star shifted by ``delta`` and the
-kernel shifted by ``-delta`` (:func:`blurcalib.psf.shift_pair`): ``k' * L' = k * L``. The
+kernel shifted by ``-delta`` (:func:`blurcalib.psf.kernel.shift_pair`): ``k' * L' = k * L``. The
 image cannot tell where the star "really" is; only a convention can (the PSF's centroid at the
 kernel centre) and the target's geometry (neighbouring blocks share corners; one camera model
 explains every frame).
@@ -15,7 +15,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from blurcalib.camera import (
+from blurcalib.calib.alignment import align_global
+from blurcalib.camera.parametric import (
     BrownConrady,
     Pose,
     apply_homography,
@@ -23,12 +24,11 @@ from blurcalib.camera import (
     plane_homography,
     translation,
 )
-from blurcalib.global_alignment import align_global
-from blurcalib.local_alignment import align_locally, corner_gaps, neighbour_pairs
-from blurcalib.pattern import star_sector_white
-from blurcalib.psf import shift_pair
-from blurcalib.seed import block_homography
-from blurcalib.synth import splat
+from blurcalib.extract.local_alignment import align_locally, corner_gaps, neighbour_pairs
+from blurcalib.growth.seed import block_homography
+from blurcalib.psf.kernel import shift_pair
+from blurcalib.sim.synth import splat
+from blurcalib.target.pattern import star_sector_white
 
 TILE_PX = 64
 """Side of the demo's latent tile (px): two squares of 32 px, so the tile is periodic."""
@@ -196,9 +196,9 @@ def alignment_demo(shift: tuple[float, float], scatter_px: float = 1.5, noise_px
     Each block's homography is the truth moved by ``T(shift + e_i)`` (``e_i`` uniform in
     ``[-scatter_px, scatter_px]^2``: the translation each block's deconvolution is free to
     choose) with its corners perturbed by ``noise_px`` (Gaussian per axis: the fit's own
-    error). Local alignment (:func:`blurcalib.local_alignment.align_locally`) then makes the
+    error). Local alignment (:func:`blurcalib.extract.local_alignment.align_locally`) then makes the
     shared corners agree, which removes the ``e_i`` up to their mean; global alignment
-    (:func:`blurcalib.global_alignment.align_global`, one translation ``x_G``) removes what is
+    (:func:`blurcalib.calib.alignment.align_global`, one translation ``x_G``) removes what is
     left against the (here exact) parametric camera.
     """
     rng = np.random.default_rng(seed)

@@ -12,13 +12,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from blurcalib.calibrate import CalibrationError, calibrate_pinhole
-from blurcalib.camera import BrownConrady, Pose, apply_homography
-from blurcalib.extract import FrameResult, FrameStatus
-from blurcalib.joint import GenericCalibration
-from blurcalib.pattern import StarPattern
-from blurcalib.quality import FrameFilter
-from blurcalib.synth import DatasetTruth, FrameTruth
+from blurcalib.calib.joint import GenericCalibration
+from blurcalib.calib.sharp import CalibrationError, calibrate_pinhole
+from blurcalib.camera.parametric import BrownConrady, Pose, apply_homography
+from blurcalib.extract.frame import FrameResult, FrameStatus
+from blurcalib.extract.quality import FrameFilter
+from blurcalib.sim.synth import DatasetTruth, FrameTruth
+from blurcalib.target.pattern import StarPattern
 from state.alignment import AlignmentCache, FrameAlignment
 from state.app_state import AppState
 
@@ -275,7 +275,7 @@ def feature_poses(pattern: StarPattern,
                   min_features: int = 12) -> FramePoses | None:
     """Poses from each finished frame's used star centres, with an approximate camera.
 
-    The camera is :func:`blurcalib.calibrate.calibrate_pinhole` (one focal length, the principal
+    The camera is :func:`blurcalib.calib.sharp.calibrate_pinhole` (one focal length, the principal
     point at the image centre, no distortion), fitted to the frames of the most common image size.
     Returns None when no frame has ``min_features`` used blocks or the fit fails.
     """

@@ -4,7 +4,7 @@ A folder holds frames directly (``images/*.png``) or in sub-folders (a simulated
 ``sharp/`` and ``blurry/``). The pattern is ``--pattern`` when given, else ``pattern.yaml`` in the
 folder or its parent. Frame names are paths relative to the folder (``blurry/0003.png``), the
 names the ground truth uses. A video file opens as a dataset of its frames, named
-``VIDEO#000123`` (:mod:`blurcalib.sources`), with the pattern beside it.
+``VIDEO#000123`` (:mod:`blurcalib.io.sources`), with the pattern beside it.
 """
 
 from __future__ import annotations
@@ -14,10 +14,9 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
-from blurcalib.frames import FrameError, list_frames
-from blurcalib.pattern import PatternFileError, StarPattern, load_pattern
-from blurcalib.sources import frame_inputs, is_video
-from blurcalib.synth import (
+from blurcalib.io.frames import FrameError, list_frames
+from blurcalib.io.sources import frame_inputs, is_video
+from blurcalib.sim.synth import (
     GROUND_TRUTH_FILE,
     DatasetTruth,
     SynthConfig,
@@ -26,6 +25,7 @@ from blurcalib.synth import (
     load_ground_truth,
     write_dataset,
 )
+from blurcalib.target.pattern import PatternFileError, StarPattern, load_pattern
 
 PATTERN_FILE = "pattern.yaml"
 

@@ -7,13 +7,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from blurcalib.calibrate import calibrate_sharp, save_calibration
-from blurcalib.camera import BrownConrady, Pose, project_points
-from blurcalib.extract import FrameResult, FrameStatus
-from blurcalib.pattern import layout_pattern
-from blurcalib.quality import QualitySettings
-from blurcalib.results import BlockStatus, BlockTable, FeatureFlags, FeatureObservation, FeatureTable
-from blurcalib.synth import DatasetTruth, TrueCamera
+from blurcalib.calib.sharp import calibrate_sharp, save_calibration
+from blurcalib.camera.parametric import BrownConrady, Pose, project_points
+from blurcalib.extract.frame import FrameResult, FrameStatus
+from blurcalib.extract.quality import QualitySettings
+from blurcalib.io.results import BlockStatus, BlockTable, FeatureFlags, FeatureObservation, FeatureTable
+from blurcalib.sim.synth import DatasetTruth, TrueCamera
+from blurcalib.target.pattern import layout_pattern
 from state.alignment import (
     AlignmentError,
     Reference,

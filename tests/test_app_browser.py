@@ -27,8 +27,8 @@ from pathlib import Path
 
 import pytest
 
-from blurcalib.extract import ExtractSettings
-from blurcalib.grow import GrowSettings
+from blurcalib.extract.frame import ExtractSettings
+from blurcalib.growth.grow import GrowSettings
 from state import RunSettings
 from tests.test_app_state import SMALL_CONFIG, make_dataset
 

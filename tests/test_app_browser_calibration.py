@@ -17,8 +17,8 @@ from pathlib import Path
 
 import pytest
 
-from blurcalib.trust import TrustSettings
-from blurcalib.validation import ValidationSettings
+from blurcalib.calib.trust import TrustSettings
+from blurcalib.calib.validation import ValidationSettings
 from state.calibration import EXPORT_DIR, OPENCV_CAMERA_FILE
 from tests.test_app_browser import ROOT, _row, app_page, sync_api
 from tests.test_app_calibration import CONFIG, SETTINGS

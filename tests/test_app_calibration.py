@@ -10,18 +10,18 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from blurcalib.calibrate import calibrate_sharp
-from blurcalib.camera import load_camera_yaml
-from blurcalib.experiments.generic import projection_errors
-from blurcalib.joint import JointSettings, calibrate_generic
-from blurcalib.lens_bias import correct_features
-from blurcalib.quality import QualitySettings
-from blurcalib.refcamera import read_generic_yaml
-from blurcalib.results import FeatureTable
-from blurcalib.synth import SynthConfig
-from blurcalib.trust import TrustSettings
-from blurcalib.uncertainty import cross_validation_diff
-from blurcalib.validation import ValidationSettings
+from blurcalib.calib.joint import JointSettings, calibrate_generic
+from blurcalib.calib.lens_bias import correct_features
+from blurcalib.calib.sharp import calibrate_sharp
+from blurcalib.calib.trust import TrustSettings
+from blurcalib.calib.uncertainty import cross_validation_diff
+from blurcalib.calib.validation import ValidationSettings
+from blurcalib.camera.files import read_generic_yaml
+from blurcalib.camera.parametric import load_camera_yaml
+from blurcalib.extract.quality import QualitySettings
+from blurcalib.io.results import FeatureTable
+from blurcalib.paper.generic import projection_errors
+from blurcalib.sim.synth import SynthConfig
 from state import AppState, Topic, discover
 from state.calibration import (
     EXPORT_DIR,

@@ -9,12 +9,12 @@ import cv2
 import numpy as np
 import pytest
 
-from blurcalib.camera import BrownConrady
-from blurcalib.extract import ExtractSettings
-from blurcalib.grow import GrowSettings
-from blurcalib.quality import QualitySettings, noise_scale
-from blurcalib.results import BlockStatus
-from blurcalib.synth import SynthConfig, TrueCamera
+from blurcalib.camera.parametric import BrownConrady
+from blurcalib.extract.frame import ExtractSettings
+from blurcalib.extract.quality import QualitySettings, noise_scale
+from blurcalib.growth.grow import GrowSettings
+from blurcalib.io.results import BlockStatus
+from blurcalib.sim.synth import SynthConfig, TrueCamera
 from state import AppState, DatasetError, RunSettings, Topic, default_dataset, discover
 from state.alignment import AlignmentCache, AlignmentError
 from state.app_state import filter_counts

@@ -7,7 +7,7 @@ import json
 import numpy as np
 import pytest
 
-from blurcalib.calibrate import (
+from blurcalib.calib.sharp import (
     Calibration,
     CalibrationError,
     CalibrationFileError,
@@ -17,10 +17,10 @@ from blurcalib.calibrate import (
     save_calibration,
     solve_pose,
 )
-from blurcalib.camera import BrownConrady, Pose, load_camera_yaml, project_points
-from blurcalib.pattern import StarPattern, layout_pattern
-from blurcalib.results import FeatureFlags, FeatureTable
-from blurcalib.synth import TrueCamera, d435i_like_camera, sample_pose
+from blurcalib.camera.parametric import BrownConrady, Pose, load_camera_yaml, project_points
+from blurcalib.io.results import FeatureFlags, FeatureTable
+from blurcalib.sim.synth import TrueCamera, d435i_like_camera, sample_pose
+from blurcalib.target.pattern import StarPattern, layout_pattern
 
 NOISE_PX = 0.05
 IMAGE_SIZE = (1280, 720)

@@ -1,4 +1,4 @@
-"""Tests for blurcalib.camera: projection with its Jacobian, undistortion, homographies and file I/O."""
+"""Tests for blurcalib.camera.parametric: projection with its Jacobian, undistortion, homographies, files."""
 
 from __future__ import annotations
 
@@ -11,7 +11,7 @@ import cv2
 import numpy as np
 import pytest
 
-from blurcalib.camera import (
+from blurcalib.camera.parametric import (
     BrownConrady,
     CameraFileError,
     Pose,

@@ -12,7 +12,7 @@ import pytest
 import torch
 
 from blurcalib.cli import main
-from blurcalib.pattern import layout_pattern
+from blurcalib.target.pattern import layout_pattern
 from tests.conftest import FIXTURE_YAML
 
 

@@ -9,13 +9,13 @@ import cv2
 import numpy as np
 import pytest
 
-from blurcalib.camera import BrownConrady
+from blurcalib.camera.parametric import BrownConrady
 from blurcalib.cli import main
-from blurcalib.cluster import ClusterError, run_on_cluster
-from blurcalib.extract import ExtractSettings, extract_to_folder
-from blurcalib.results import read_features
-from blurcalib.runtime import configure_threads
-from blurcalib.synth import Simulator, SynthConfig, TrueCamera
+from blurcalib.extract.frame import ExtractSettings, extract_to_folder
+from blurcalib.io.results import read_features
+from blurcalib.pipeline.cluster import ClusterError, run_on_cluster
+from blurcalib.pipeline.runtime import configure_threads
+from blurcalib.sim.synth import Simulator, SynthConfig, TrueCamera
 
 pytestmark = pytest.mark.slow
 

@@ -8,7 +8,7 @@ from pathlib import Path
 import pytest
 
 from blurcalib.data import PATTERNS_DIR, REFERENCE_PATTERNS, reference_pattern_path
-from blurcalib.pattern import load_pattern
+from blurcalib.target.pattern import load_pattern
 from tests.conftest import ROOT
 
 

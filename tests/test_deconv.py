@@ -10,12 +10,12 @@ import pytest
 import torch
 from scipy.ndimage import convolve
 
-from blurcalib.camera import translation
-from blurcalib.deconv import BlockFit, BlockProblem, DeconvSettings, fit_blocks, render_model
-from blurcalib.pattern import layout_pattern, star_signed_distance, star_signed_distance_normal
-from blurcalib.psf import boundary_energy, psf_centroid, psf_moments, recentre, shift_pair
-from blurcalib.results import BlockStatus
-from blurcalib.synth import SimulatedBlocks, simulate_blocks
+from blurcalib.camera.parametric import translation
+from blurcalib.deconv.blocks import BlockFit, BlockProblem, DeconvSettings, fit_blocks, render_model
+from blurcalib.io.results import BlockStatus
+from blurcalib.psf.kernel import boundary_energy, psf_centroid, psf_moments, recentre, shift_pair
+from blurcalib.sim.synth import SimulatedBlocks, simulate_blocks
+from blurcalib.target.pattern import layout_pattern, star_signed_distance, star_signed_distance_normal
 
 SEGMENTS = 16
 SETTINGS = DeconvSettings(kernel_size=13)

@@ -9,7 +9,7 @@ import math
 import numpy as np
 import pytest
 
-from blurcalib.experiments.patterns import (
+from blurcalib.paper.patterns import (
     GLYPHS,
     PATTERNS,
     KernelSolver,

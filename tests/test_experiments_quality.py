@@ -10,13 +10,13 @@ import cv2
 import numpy as np
 import pytest
 
-from blurcalib.calibrate import Calibration
-from blurcalib.camera import BrownConrady
-from blurcalib.experiments import common, psf_quality, threshold_sweep
-from blurcalib.experiments.common import ExtractedFrame
-from blurcalib.experiments.psf_quality import PsfQualitySettings
-from blurcalib.experiments.threshold_sweep import BIASES, CONFIGS, SweepExperiment, SweepSettings
-from blurcalib.synth import Simulator, SynthConfig, TrueCamera
+from blurcalib.calib.sharp import Calibration
+from blurcalib.camera.parametric import BrownConrady
+from blurcalib.paper import common, psf_quality, threshold_sweep
+from blurcalib.paper.common import ExtractedFrame
+from blurcalib.paper.psf_quality import PsfQualitySettings
+from blurcalib.paper.threshold_sweep import BIASES, CONFIGS, SweepExperiment, SweepSettings
+from blurcalib.sim.synth import Simulator, SynthConfig, TrueCamera
 
 SHARP = 6
 BLURRY = 3

@@ -8,10 +8,10 @@ import cv2
 import numpy as np
 import pytest
 
-import blurcalib.extract as extract_module
-from blurcalib.camera import BrownConrady, apply_homography, homography_centre, translation
-from blurcalib.deconv import DeconvSettings
-from blurcalib.extract import (
+import blurcalib.extract.frame as extract_module
+from blurcalib.camera.parametric import BrownConrady, apply_homography, homography_centre, translation
+from blurcalib.deconv.blocks import DeconvSettings
+from blurcalib.extract.frame import (
     SHARP_BELOW_PX,
     ExtractSettings,
     FrameResult,
@@ -21,20 +21,8 @@ from blurcalib.extract import (
     extract_to_folder,
     seed_from_neighbour,
 )
-from blurcalib.fileio import RUN_MANIFEST, OutputError
-from blurcalib.frames import load_frame
-from blurcalib.local_alignment import align_locally, shared_corners
-from blurcalib.pattern import layout_pattern, load_pattern
-from blurcalib.refformat import read_ref_dataset
-from blurcalib.results import (
-    FeatureFlags,
-    FeatureObservation,
-    FeatureTable,
-    frame_result_paths,
-    read_feature_table,
-    read_features,
-)
-from blurcalib.seed import (
+from blurcalib.extract.local_alignment import align_locally, shared_corners
+from blurcalib.growth.seed import (
     SeedError,
     block_homography,
     check_labelling,
@@ -42,7 +30,19 @@ from blurcalib.seed import (
     homography_from_features,
     seed_frame,
 )
-from blurcalib.synth import Simulator, SynthConfig, TrueCamera
+from blurcalib.io.atomic import RUN_MANIFEST, OutputError
+from blurcalib.io.frames import load_frame
+from blurcalib.io.refformat import read_ref_dataset
+from blurcalib.io.results import (
+    FeatureFlags,
+    FeatureObservation,
+    FeatureTable,
+    frame_result_paths,
+    read_feature_table,
+    read_features,
+)
+from blurcalib.sim.synth import Simulator, SynthConfig, TrueCamera
+from blurcalib.target.pattern import layout_pattern, load_pattern
 from tests.conftest import FIXTURE_YAML, REAL
 
 

@@ -8,12 +8,12 @@ import json
 import numpy as np
 import pytest
 
+from blurcalib.calib.trust import TrustSettings
+from blurcalib.calib.validation import ValidationSettings
 from blurcalib.cli import main
-from blurcalib.pattern import layout_pattern, load_pattern
-from blurcalib.pipeline import PipelineError, PipelineSettings, read_feature_input, run_from_features
-from blurcalib.results import FeatureFlags, FeatureTable, write_features
-from blurcalib.trust import TrustSettings
-from blurcalib.validation import ValidationSettings
+from blurcalib.io.results import FeatureFlags, FeatureTable, write_features
+from blurcalib.pipeline.run import PipelineError, PipelineSettings, read_feature_input, run_from_features
+from blurcalib.target.pattern import layout_pattern, load_pattern
 from tests.conftest import FIXTURE_YAML
 from tests.test_generic_joint import _table
 
@@ -98,7 +98,7 @@ def test_a_full_disk_leaves_the_earlier_outputs_and_no_staging(features_csv, tmp
     folder; the earlier run's outputs stay as they were."""
     import errno
 
-    import blurcalib.pipeline as pipeline
+    import blurcalib.pipeline.run as pipeline
 
     trust = TrustSettings(validation=ValidationSettings(method="none"), cross_validation=False)
     settings = PipelineSettings(cell_px=80.0, trust=trust)

@@ -8,7 +8,7 @@ import cv2
 import numpy as np
 import pytest
 
-from blurcalib.frames import (
+from blurcalib.io.frames import (
     MAX_FRAME_PIXELS,
     MIN_FRAME_SIDE,
     FrameError,

@@ -6,8 +6,14 @@ import numpy as np
 import pytest
 import torch
 
-from blurcalib.camera import BrownConrady
-from blurcalib.generic import (
+from blurcalib.camera.files import (
+    RefCameraError,
+    read_generic_yaml,
+    read_opencv_yaml,
+    write_generic_yaml,
+    write_opencv_yaml,
+)
+from blurcalib.camera.generic import (
     CentralGeneric,
     apply_update,
     calibrated_area,
@@ -15,13 +21,7 @@ from blurcalib.generic import (
     projection_jacobians,
     undistortion_map,
 )
-from blurcalib.refcamera import (
-    RefCameraError,
-    read_generic_yaml,
-    read_opencv_yaml,
-    write_generic_yaml,
-    write_opencv_yaml,
-)
+from blurcalib.camera.parametric import BrownConrady
 
 CAM = BrownConrady(fx=260.0, fy=258.0, cx=161.3, cy=119.2, k1=-0.21, k2=0.05, p1=0.001,
                    p2=-0.0007, k3=0.01, width=320, height=240)

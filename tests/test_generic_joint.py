@@ -5,12 +5,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from blurcalib.calibrate import calibrate_sharp
-from blurcalib.joint import JointSettings, calibrate_generic, generic_report, save_generic_calibration
-from blurcalib.pattern import layout_pattern
-from blurcalib.refcamera import read_generic_yaml
-from blurcalib.results import FeatureFlags, FeatureTable
-from blurcalib.synth import d435i_like_camera, sample_pose
+from blurcalib.calib.joint import JointSettings, calibrate_generic, generic_report, save_generic_calibration
+from blurcalib.calib.sharp import calibrate_sharp
+from blurcalib.camera.files import read_generic_yaml
+from blurcalib.io.results import FeatureFlags, FeatureTable
+from blurcalib.sim.synth import d435i_like_camera, sample_pose
+from blurcalib.target.pattern import layout_pattern
 
 
 def _table(count: int, seed: int, flags: int, prefix: str, shift: float = 0.0) -> FeatureTable:

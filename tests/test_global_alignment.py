@@ -11,15 +11,7 @@ import cv2
 import numpy as np
 import pytest
 
-from blurcalib.camera import BrownConrady, Pose, project_points
-from blurcalib.experiments.alignment import (
-    ROWS,
-    AlignmentSettings,
-    format_table,
-    main,
-    run_alignment_experiment,
-)
-from blurcalib.global_alignment import (
+from blurcalib.calib.alignment import (
     LOSSES,
     align_global,
     alignment_covariance,
@@ -29,9 +21,17 @@ from blurcalib.global_alignment import (
     loss_weights,
     orientation_ok,
 )
-from blurcalib.pattern import StarPattern, layout_pattern
-from blurcalib.report import direction_colours
-from blurcalib.synth import d435i_like_camera, sample_pose
+from blurcalib.calib.report import direction_colours
+from blurcalib.camera.parametric import BrownConrady, Pose, project_points
+from blurcalib.paper.alignment import (
+    ROWS,
+    AlignmentSettings,
+    format_table,
+    main,
+    run_alignment_experiment,
+)
+from blurcalib.sim.synth import d435i_like_camera, sample_pose
+from blurcalib.target.pattern import StarPattern, layout_pattern
 
 SHIFT = np.array([3.0, -2.0])
 NOISE = 0.03

@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from blurcalib.camera import apply_homography
-from blurcalib.deconv import DeconvSettings, fit_blocks
-from blurcalib.grow import (
+from blurcalib.camera.parametric import apply_homography
+from blurcalib.deconv.blocks import DeconvSettings, fit_blocks
+from blurcalib.growth.grow import (
     GrowSettings,
     blur_footprint,
     choose_kernel_size,
@@ -17,11 +17,11 @@ from blurcalib.grow import (
     inconsistent,
     pixel_mask,
 )
-from blurcalib.pattern import layout_pattern
-from blurcalib.psf import blur_per_square, psf_moments
-from blurcalib.results import BlockStatus
-from blurcalib.seed import line_kernel
-from blurcalib.synth import simulate_blocks
+from blurcalib.growth.seed import line_kernel
+from blurcalib.io.results import BlockStatus
+from blurcalib.psf.kernel import blur_per_square, psf_moments
+from blurcalib.sim.synth import simulate_blocks
+from blurcalib.target.pattern import layout_pattern
 
 
 def test_kernel_size_grows_with_the_blur() -> None:
@@ -121,8 +121,8 @@ def test_window_adapts_where_the_blur_outgrows_it_away_from_the_tag() -> None:
     with the window held at 17 px (medians 0.013 and 0.012 px)."""
     import torch
 
-    from blurcalib.extract import ExtractSettings, extract_frame
-    from blurcalib.synth import Simulator, SynthConfig
+    from blurcalib.extract.frame import ExtractSettings, extract_frame
+    from blurcalib.sim.synth import Simulator, SynthConfig
 
     torch.set_num_threads(1)
     sim = Simulator(SynthConfig(sharp=0, blurry=12, blur_min_px=12.0, blur_max_px=25.0,
@@ -244,8 +244,8 @@ def test_the_path_field_locates_stars_whose_blur_is_as_long_as_their_squares() -
     import cv2
     import torch
 
-    from blurcalib.extract import ExtractSettings, extract_frame
-    from blurcalib.synth import Simulator, SynthConfig
+    from blurcalib.extract.frame import ExtractSettings, extract_frame
+    from blurcalib.sim.synth import Simulator, SynthConfig
 
     torch.set_num_threads(1)
     sim = Simulator(SynthConfig(sharp=0, blurry=12, blur_min_px=12.0, blur_max_px=25.0,

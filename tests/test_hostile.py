@@ -22,16 +22,22 @@ import numpy as np
 import pytest
 import torch
 
-from blurcalib import fileio
+from blurcalib.camera.generic import MAX_GRID_NODES, check_grid_size
 from blurcalib.cli import main
-from blurcalib.cluster import ClusterError, check_address, run_on_cluster
-from blurcalib.duplicates import DUPLICATE_STATUS, find_duplicates, mark_duplicates
-from blurcalib.fileio import OutputError, atomic_write_json, atomic_write_text, claim_output_dir, output_lock
-from blurcalib.frames import FrameError, frame_size, list_frames, load_frame
-from blurcalib.generic import MAX_GRID_NODES, check_grid_size
-from blurcalib.pattern import MAX_STAR_SEGMENTS, PatternFileError, load_pattern
-from blurcalib.results import BlockTable, FeatureTable, read_frame_status, write_frame_results
-from blurcalib.runtime import available_cores, capped_count
+from blurcalib.extract.duplicates import DUPLICATE_STATUS, find_duplicates, mark_duplicates
+from blurcalib.io import atomic
+from blurcalib.io.atomic import (
+    OutputError,
+    atomic_write_json,
+    atomic_write_text,
+    claim_output_dir,
+    output_lock,
+)
+from blurcalib.io.frames import FrameError, frame_size, list_frames, load_frame
+from blurcalib.io.results import BlockTable, FeatureTable, read_frame_status, write_frame_results
+from blurcalib.pipeline.cluster import ClusterError, check_address, run_on_cluster
+from blurcalib.pipeline.runtime import available_cores, capped_count
+from blurcalib.target.pattern import MAX_STAR_SEGMENTS, PatternFileError, load_pattern
 from tests.conftest import FIXTURE_YAML
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -264,7 +270,7 @@ def test_full_disk_is_one_line_and_keeps_old_files(
     def full(fd: int) -> None:
         raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
 
-    monkeypatch.setattr(fileio.os, "fsync", full)
+    monkeypatch.setattr(atomic.os, "fsync", full)
     with pytest.raises(OutputError, match=r"kept\.txt: cannot write \(No space left on device\)"):
         atomic_write_text(old, "new")
     assert old.read_text() == "old" and [p.name for p in tmp_path.iterdir()] == ["kept.txt"]
@@ -296,12 +302,12 @@ def test_unwritable_subfolder_refused_before_the_manifest_changes(
     tables would then not match it). Simulated through ``os.access``: the tests may run as root."""
     out = claim_output_dir(tmp_path / "o", "extract", {"kernel": 17})
     (out / "frames").mkdir()
-    before = (out / fileio.RUN_MANIFEST).read_text()
+    before = (out / atomic.RUN_MANIFEST).read_text()
     real = os.access
-    monkeypatch.setattr(fileio.os, "access", lambda p, mode: Path(p).name != "frames" and real(p, mode))
+    monkeypatch.setattr(atomic.os, "access", lambda p, mode: Path(p).name != "frames" and real(p, mode))
     with pytest.raises(OutputError, match=r"frames: output folder is not writable"):
         claim_output_dir(out, "extract", {"kernel": 7})
-    assert (out / fileio.RUN_MANIFEST).read_text() == before
+    assert (out / atomic.RUN_MANIFEST).read_text() == before
 
 
 def test_extract_refuses_another_datasets_frames_of_the_same_names(
@@ -552,8 +558,8 @@ def test_copies_of_one_frame_are_duplicates_and_distinct_views_are_not() -> None
 def test_five_copies_of_one_frame_do_not_calibrate(tmp_path: Path) -> None:
     """Five copies of one sharp frame gave a "calibrated" camera (fx 836 against 900): they are
     one view, and a calibration needs 5 distinct ones."""
-    from blurcalib.pipeline import PipelineError, run_pipeline
-    from blurcalib.synth import SynthConfig, TrueCamera, write_dataset
+    from blurcalib.pipeline.run import PipelineError, run_pipeline
+    from blurcalib.sim.synth import SynthConfig, TrueCamera, write_dataset
     from tests.test_app_state import SMALL_CAMERA
 
     data = write_dataset(
@@ -581,7 +587,7 @@ def test_workers_exit_when_their_parent_is_killed(tmp_path: Path) -> None:
     script = textwrap.dedent("""
         import multiprocessing, os, time
         from concurrent.futures import ProcessPoolExecutor
-        from blurcalib.runtime import exit_with_parent
+        from blurcalib.pipeline.runtime import exit_with_parent
 
         if __name__ == "__main__":
             ctx = multiprocessing.get_context("spawn")

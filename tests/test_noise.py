@@ -1,4 +1,4 @@
-"""The frame noise estimate (blurcalib.noise) against the simulator's true Poisson-Gaussian noise."""
+"""The frame noise estimate (blurcalib.extract.noise) against the simulator's true Poisson-Gaussian noise."""
 
 from __future__ import annotations
 
@@ -7,8 +7,8 @@ import dataclasses
 import numpy as np
 import pytest
 
-from blurcalib import synth
-from blurcalib.noise import NoiseModel, estimate_noise, frame_noise, highpass_residual
+from blurcalib.extract.noise import NoiseModel, estimate_noise, frame_noise, highpass_residual
+from blurcalib.sim import synth
 
 
 @pytest.fixture(scope="module")

@@ -10,7 +10,7 @@ import pytest
 import torch
 
 from blurcalib.data import reference_pattern_path
-from blurcalib.pattern import (
+from blurcalib.target.pattern import (
     PatternFileError,
     StarPattern,
     layout_pattern,

@@ -12,19 +12,19 @@ import cv2
 import numpy as np
 import pytest
 
-import blurcalib.pipeline as pipeline
-from blurcalib.calibrate import load_calibration
-from blurcalib.camera import BrownConrady
+import blurcalib.pipeline.run as pipeline
+from blurcalib.calib.report import error_direction_image
+from blurcalib.calib.sharp import load_calibration
+from blurcalib.camera.files import read_generic_yaml
+from blurcalib.camera.parametric import BrownConrady
 from blurcalib.cli import main
-from blurcalib.evaluate import camera_accuracy, evaluate_features
-from blurcalib.fileio import OutputError
-from blurcalib.pattern import layout_pattern
-from blurcalib.pipeline import PUBLISHED, PipelineError, PipelineSettings, run_pipeline
-from blurcalib.quality import QualitySettings
-from blurcalib.refcamera import read_generic_yaml
-from blurcalib.report import error_direction_image
-from blurcalib.results import FeatureFlags, read_feature_table
-from blurcalib.synth import SynthConfig, TrueCamera, load_ground_truth, write_dataset
+from blurcalib.extract.quality import QualitySettings
+from blurcalib.io.atomic import OutputError
+from blurcalib.io.results import FeatureFlags, read_feature_table
+from blurcalib.pipeline.run import PUBLISHED, PipelineError, PipelineSettings, run_pipeline
+from blurcalib.sim.evaluate import camera_accuracy, evaluate_features
+from blurcalib.sim.synth import SynthConfig, TrueCamera, load_ground_truth, write_dataset
+from blurcalib.target.pattern import layout_pattern
 
 
 @pytest.fixture(scope="module")
@@ -277,9 +277,9 @@ def test_a_frame_with_blur_as_long_as_its_squares_is_told_so() -> None:
     """The ``too_few_blocks`` reason names the blur over square side when it is from
     ``BLUR_PER_SQUARE_LIMIT`` (1.25, median of the fitted blocks, unfitted ones ignored); below,
     it adds nothing."""
-    from blurcalib.psf import psf_moments
-    from blurcalib.results import BlockStatus, BlockTable
-    from blurcalib.seed import block_homography, line_kernel
+    from blurcalib.growth.seed import block_homography, line_kernel
+    from blurcalib.io.results import BlockStatus, BlockTable
+    from blurcalib.psf.kernel import psf_moments
 
     def table(blur_px: float) -> BlockTable:
         n = 4
@@ -304,7 +304,7 @@ def test_final_fit_option_reaches_every_blurry_frame(tmp_path, dataset) -> None:
     """``extract --final-fit all`` fits the inner accepted blocks of a little-blurred frame (its
     window does not grow) over 1.5 x their square, and those blocks' centres move; the default
     leaves such a frame as the growth fitted it. The pipeline's settings validate the choice."""
-    from blurcalib.results import read_block_table
+    from blurcalib.io.results import read_block_table
 
     frame = str(dataset / "blurry" / "0000.png")
     pattern = str(dataset / "pattern.yaml")

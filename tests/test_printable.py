@@ -16,9 +16,9 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.path import Path as MplPath
 from scipy.ndimage import maximum_filter, minimum_filter
 
-from blurcalib.fileio import OutputError
-from blurcalib.pattern import StarPattern, layout_pattern, load_pattern
-from blurcalib.printable import black_polygons, page_figure, sector_polygons, write_printable
+from blurcalib.io.atomic import OutputError
+from blurcalib.target.pattern import StarPattern, layout_pattern, load_pattern
+from blurcalib.target.printable import black_polygons, page_figure, sector_polygons, write_printable
 
 DPI = 100
 

@@ -11,14 +11,14 @@ import numpy as np
 import pytest
 import torch
 
-from blurcalib.camera import homography_centre, translation
-from blurcalib.deconv import DeconvSettings, fit_blocks
-from blurcalib.pattern import StarPattern, layout_pattern
-from blurcalib.psf import psf_centroid
-from blurcalib.psf_field import PathField, constant_field, fit_path_field, path_kernels
-from blurcalib.results import BlockStatus
-from blurcalib.seed import block_homography
-from blurcalib.synth import simulate_blocks
+from blurcalib.camera.parametric import homography_centre, translation
+from blurcalib.deconv.blocks import DeconvSettings, fit_blocks
+from blurcalib.growth.seed import block_homography
+from blurcalib.io.results import BlockStatus
+from blurcalib.psf.field import PathField, constant_field, fit_path_field, path_kernels
+from blurcalib.psf.kernel import psf_centroid
+from blurcalib.sim.synth import simulate_blocks
+from blurcalib.target.pattern import StarPattern, layout_pattern
 
 SEGMENTS = 16
 
@@ -166,8 +166,8 @@ def test_extract_records_the_field_and_the_option_turns_it_off(tmp_path) -> None
     import csv
 
     from blurcalib.cli import main
-    from blurcalib.pattern import load_pattern
-    from blurcalib.results import read_frame_status
+    from blurcalib.io.results import read_frame_status
+    from blurcalib.target.pattern import load_pattern
     from tests.conftest import FIXTURE_YAML
     from tests.test_seed import _homography, _render
 

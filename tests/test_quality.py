@@ -7,13 +7,13 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from blurcalib.camera import translation
-from blurcalib.deconv import DeconvSettings, fit_blocks
-from blurcalib.noise import NoiseModel
-from blurcalib.pattern import layout_pattern
-from blurcalib.quality import REFERENCE_NOISE_VAR, QualitySettings, connected_blocks, filter_frame
-from blurcalib.results import BlockStatus, BlockTable
-from blurcalib.synth import simulate_blocks
+from blurcalib.camera.parametric import translation
+from blurcalib.deconv.blocks import DeconvSettings, fit_blocks
+from blurcalib.extract.noise import NoiseModel
+from blurcalib.extract.quality import REFERENCE_NOISE_VAR, QualitySettings, connected_blocks, filter_frame
+from blurcalib.io.results import BlockStatus, BlockTable
+from blurcalib.sim.synth import simulate_blocks
+from blurcalib.target.pattern import layout_pattern
 
 
 def _grid(n: int = 7) -> BlockTable:

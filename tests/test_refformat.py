@@ -8,9 +8,8 @@ import numpy as np
 import pytest
 import scipy.ndimage as ndi
 
-from blurcalib.frames import load_frame
-from blurcalib.pattern import StarPattern, load_pattern
-from blurcalib.refformat import (
+from blurcalib.io.frames import load_frame
+from blurcalib.io.refformat import (
     RefDataset,
     RefFormatError,
     encode_ref_dataset,
@@ -18,6 +17,7 @@ from blurcalib.refformat import (
     to_ref_dataset,
     write_ref_dataset,
 )
+from blurcalib.target.pattern import StarPattern, load_pattern
 from tests.conftest import FIXTURE_YAML, REAL
 
 FEATURES_BIN = REAL / "features_10px.bin"

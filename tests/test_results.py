@@ -8,8 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from blurcalib.psf import boundary_energy, psf_moments
-from blurcalib.results import (
+from blurcalib.io.results import (
     BlockStatus,
     BlockTable,
     FeatureFlags,
@@ -26,6 +25,7 @@ from blurcalib.results import (
     write_frame_results,
     write_results,
 )
+from blurcalib.psf.kernel import boundary_energy, psf_moments
 
 AWKWARD_FLOATS = [0.1, 1 / 3, -0.0, 1e-300, 5e-324, 1.7976931348623157e308, math.pi * 1e7, -2.5e-17]
 
@@ -257,7 +257,7 @@ def test_boundary_energy() -> None:
 
 def test_blur_per_square_is_the_blur_extent_over_the_square_side() -> None:
     """A straight 20 px blur (sigma_major 20 / sqrt(12)) on squares 25 px wide: 0.8."""
-    from blurcalib.seed import block_homography
+    from blurcalib.growth.seed import block_homography
 
     H_feature = np.array([[25.0, 0.0, 100.0], [0.0, 25.0, 80.0], [0.0, 0.0, 1.0]])
     table = _blocks("f", 3, 0)

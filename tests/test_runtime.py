@@ -1,4 +1,4 @@
-"""Thread policy and device checks of blurcalib.runtime, and their CLI errors."""
+"""Thread policy and device checks of blurcalib.pipeline.runtime, and their CLI errors."""
 
 from __future__ import annotations
 
@@ -8,7 +8,13 @@ import pytest
 import torch
 
 from blurcalib.cli import main
-from blurcalib.runtime import DeviceError, available_cores, check_device, configure_threads, default_workers
+from blurcalib.pipeline.runtime import (
+    DeviceError,
+    available_cores,
+    check_device,
+    configure_threads,
+    default_workers,
+)
 from tests.conftest import FIXTURE_YAML
 
 

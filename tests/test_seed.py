@@ -7,8 +7,8 @@ import cv2
 import numpy as np
 import pytest
 
-from blurcalib.pattern import StarPattern, load_pattern
-from blurcalib.seed import blur_direction, detect_tags, line_kernel, seed_frame
+from blurcalib.growth.seed import blur_direction, detect_tags, line_kernel, seed_frame
+from blurcalib.target.pattern import StarPattern, load_pattern
 from tests.conftest import FIXTURE_YAML
 
 

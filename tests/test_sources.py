@@ -8,8 +8,8 @@ import cv2
 import numpy as np
 import pytest
 
-from blurcalib.frames import FrameError, FrameSizeError
-from blurcalib.sources import FrameInput, frame_inputs, read_video_frame, video_frame_count
+from blurcalib.io.frames import FrameError, FrameSizeError
+from blurcalib.io.sources import FrameInput, frame_inputs, read_video_frame, video_frame_count
 
 
 def _write_video(path: Path, frames: list[np.ndarray]) -> Path:
@@ -104,7 +104,7 @@ def test_bad_video_inputs(tmp_path: Path, clip) -> None:
 
 
 def test_app_opens_a_video_as_a_dataset(clip, tmp_path: Path) -> None:
-    from blurcalib.pattern import layout_pattern
+    from blurcalib.target.pattern import layout_pattern
     from state.app_state import AppState
     from state.folder import DatasetError, discover
 

@@ -7,9 +7,9 @@ import json
 import numpy as np
 import pytest
 
-from blurcalib.camera import BrownConrady, Pose
-from blurcalib.fileio import OutputError
-from blurcalib.synth import (
+from blurcalib.camera.parametric import BrownConrady, Pose
+from blurcalib.io.atomic import OutputError
+from blurcalib.sim.synth import (
     GROUND_TRUTH_FILE,
     MIP_TEXELS_PER_SQUARE,
     Motion,

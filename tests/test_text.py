@@ -1,6 +1,6 @@
 """Counts in user-facing text take the noun's number."""
 
-from blurcalib.text import count
+from blurcalib.io.text import count
 
 
 def test_count_takes_the_number_of_its_noun() -> None:

@@ -6,9 +6,8 @@ import numpy as np
 import pytest
 import torch
 
-from blurcalib.bundle import BundleSettings, bundle_adjust, normal_equations
-from blurcalib.generic import CentralGeneric, apply_update, best_fit_rotation, fit_to_rays
-from blurcalib.uncertainty import (
+from blurcalib.calib.bundle import BundleSettings, bundle_adjust, normal_equations
+from blurcalib.calib.uncertainty import (
     ProjectionUncertainty,
     cross_validation_diff,
     guidance,
@@ -16,6 +15,7 @@ from blurcalib.uncertainty import (
     save_uncertainty_npz,
     save_uncertainty_png,
 )
+from blurcalib.camera.generic import CentralGeneric, apply_update, best_fit_rotation, fit_to_rays
 from tests.test_bundle import TRUE_CAM, _scene
 
 NOISE_PX = 0.1

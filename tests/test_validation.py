@@ -5,15 +5,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from blurcalib import validation
-from blurcalib.calibrate import calibrate_sharp
-from blurcalib.camera import Pose
-from blurcalib.generic import fit_to_rays
-from blurcalib.joint import JointSettings, calibrate_generic
-from blurcalib.pattern import layout_pattern
-from blurcalib.results import FeatureFlags
-from blurcalib.synth import d435i_like_camera
-from blurcalib.validation import (
+from blurcalib.calib import validation
+from blurcalib.calib.joint import JointSettings, calibrate_generic
+from blurcalib.calib.sharp import calibrate_sharp
+from blurcalib.calib.validation import (
     ValidationSettings,
     assign_folds,
     fit_frames,
@@ -21,6 +16,11 @@ from blurcalib.validation import (
     kfold_validation,
     parametric_projector,
 )
+from blurcalib.camera.generic import fit_to_rays
+from blurcalib.camera.parametric import Pose
+from blurcalib.io.results import FeatureFlags
+from blurcalib.sim.synth import d435i_like_camera
+from blurcalib.target.pattern import layout_pattern
 from tests.test_generic_joint import _table
 
 SIZE = (1280, 720)

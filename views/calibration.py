@@ -16,9 +16,9 @@ import numpy as np
 import viser
 from matplotlib.figure import Figure
 
-from blurcalib.text import count
-from blurcalib.trust import gain_phrases
-from blurcalib.uncertainty import CrossValidationDiff, cross_validation_figure, uncertainty_figure
+from blurcalib.calib.trust import gain_phrases
+from blurcalib.calib.uncertainty import CrossValidationDiff, cross_validation_figure, uncertainty_figure
+from blurcalib.io.text import count
 from state import AppState, Topic
 from state.calibration import AppCalibration, CalibrationRunner, Coverage, input_coverage
 from views.common import Coalescer, legend_strip, md, placeholder
@@ -87,7 +87,7 @@ def difference_image(result: AppCalibration) -> np.ndarray:
 
 def uncertainty_image(result: AppCalibration) -> np.ndarray | None:
     """The projection uncertainty maps, sharp-only and sharp + blurry side by side on one
-    logarithmic px scale (:func:`blurcalib.uncertainty.save_uncertainty_png`, as
+    logarithmic px scale (:func:`blurcalib.calib.uncertainty.save_uncertainty_png`, as
     ``calibration/uncertainty.png``); None without an assessment."""
     trust = result.trust
     if trust is None:

@@ -15,7 +15,7 @@ import cv2
 import numpy as np
 from matplotlib import colormaps
 
-from blurcalib.results import BlockStatus
+from blurcalib.io.results import BlockStatus
 
 log = logging.getLogger(__name__)
 

@@ -29,9 +29,9 @@ import numpy as np
 import viser
 import viser.transforms as vtf
 
-from blurcalib import report
-from blurcalib.pattern import StarPattern
-from blurcalib.text import count
+from blurcalib.calib import report
+from blurcalib.io.text import count
+from blurcalib.target.pattern import StarPattern
 from state import AppState, Topic
 from state.alignment import AlignmentCache, AlignmentError, FrameAlignment
 from state.calibration import CalibrationRunner

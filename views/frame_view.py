@@ -12,8 +12,8 @@ import cv2
 import numpy as np
 import viser
 
-from blurcalib.camera import homography_centre
-from blurcalib.results import BlockStatus
+from blurcalib.camera.parametric import homography_centre
+from blurcalib.io.results import BlockStatus
 from state import AppState, FrameView, Topic
 from state.figures import block_quads
 from views.common import (

@@ -8,8 +8,8 @@ from pathlib import Path
 
 import viser
 
-from blurcalib.frames import IMAGE_EXTENSIONS
-from blurcalib.text import count
+from blurcalib.io.frames import IMAGE_EXTENSIONS
+from blurcalib.io.text import count
 from state import AppState, FrameView, Notice, RunProgress, Topic
 from state.app_state import FRAME_KINDS
 from state.calibration import CalibrationRunner

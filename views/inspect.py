@@ -1,7 +1,7 @@
 """Block inspector and the scatter plots of the paper's ``fig:exp_real2``.
 
 The inspector shows one block of the current frame: its observed window with the loss's pixels
-outlined, the fitted model (:func:`blurcalib.deconv.render_model`, no re-fit), the residual and
+outlined, the fitted model (:func:`blurcalib.deconv.blocks.render_model`, no re-fit), the residual and
 the PSF, with its figures. The plots are loss vs blur size (sigma_major) coloured by
 eccentricity and loss vs boundary energy coloured by sigma_major, with the thresholds; kept
 blocks are dots, removed ones crosses, the selected one ringed. viser cannot report clicks inside
@@ -18,8 +18,8 @@ from matplotlib import colormaps
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
-from blurcalib.deconv import render_model
-from blurcalib.results import BLUR_PER_SQUARE_LIMIT, BlockTable
+from blurcalib.deconv.blocks import render_model
+from blurcalib.io.results import BLUR_PER_SQUARE_LIMIT, BlockTable
 from state import AppState, FrameView, Topic
 from views.common import Coalescer, grey_rgb, heat, hstack, label, placeholder, upscale
 

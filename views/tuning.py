@@ -2,7 +2,7 @@
 alignment error they give.
 
 Moving a slider re-filters every finished frame from its stored figures
-(:func:`blurcalib.quality.filter_frame`, milliseconds per frame); the frame view shows the
+(:func:`blurcalib.extract.quality.filter_frame`, milliseconds per frame); the frame view shows the
 result (kept blocks are the ones breadth-first connected to the seed block). The kept blocks are
 then aligned globally to the reference camera (:mod:`state.alignment`, a few milliseconds per
 frame, cached), and the panel reports the residual error after alignment (px) for the current
@@ -15,8 +15,8 @@ import math
 
 import viser
 
-from blurcalib.quality import QualitySettings
-from blurcalib.text import count
+from blurcalib.extract.quality import QualitySettings
+from blurcalib.io.text import count
 from state import AppState, Topic
 from state.alignment import AlignmentCache, AlignmentError
 from state.app_state import filter_counts

@@ -1,0 +1,1 @@
+"""Calibration: parametric camera of the sharp set, global alignment, generic bundle adjustment and trust."""

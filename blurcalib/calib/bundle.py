@@ -1,0 +1,623 @@
+"""Bundle adjustment of the central generic camera (:mod:`blurcalib.camera.generic`) over many frames.
+
+Problem. Observation ``i`` of frame ``f`` sees target point ``P_i`` (m, fixed: the parametric
+calibration's refined points) at ``p_i`` px (OpenCV convention). With the pose
+``M_f = [R_f | t_f]``, the generic projection ``pi_G`` and, for blurry frames, a per-frame image
+translation ``s_f`` (the deconvolution's translational ambiguity, paper ``eq:global_align``)::
+
+    r_i = p_i - pi_G(R_f P_i + t_f) - s_f
+
+    min  sum_i w_i rho(|r_i|^2) + |s_f|^2 / sigma_s^2 + sum |D2 v - D2 v0|^2 / sigma_D^2
+
+* ``rho``: Huber on the 2-D residual norm at ``huber_px`` (1 px, as the reference tool), solved
+  by iteratively reweighted Gauss-Newton; ``w_i`` per-observation weights.
+* ``sigma_s`` (``shift_sigma_px``): the shift's weak prior (frames whose shift is free only).
+* ``D2``: second differences of the node directions along grid rows and columns; ``v0`` the
+  initial grid. A weak smoothness prior (``smoothness_px``, converted to radians by the grid's
+  angular pitch) that only matters where no observation pins a node: there the grid follows the
+  initial (parametric) camera's shape instead of drifting. Cells without observations are
+  reported in :attr:`BundleResult.warnings` by image region.
+
+Solver: Levenberg-Marquardt (Marquardt's ``lambda diag(H)`` damping, starting at 1e-6, divided by 5 on
+success, x4 on failure). The per-frame blocks (pose: rotation increment ``omega`` with
+``R <- exp(omega) R`` and ``t <- t + dt``; plus ``s_f``) are eliminated by the Schur complement;
+the reduced system on the ``2 GW GH`` grid parameters is dense and solved by Cholesky in torch
+float64. Projections are warm-started from the previous iteration's pixels; an observation
+whose ray leaves the calibrated area gets weight 0 (a clamped projection carries no gradient).
+
+Gauge. A central model's orientation is free (rotating every direction and every pose together
+changes nothing). As the reference tool does, after every accepted step the grid is re-rotated
+so that the image centre looks along +z and the centre of the right edge lies in the x-z plane
+(x > 0), and the poses are rotated with it.
+
+Outliers: once, after ``outlier_iteration`` iterations (or at convergence if that comes first),
+observations with an error above ``Q3 + 6 (Q3 - Q1)`` (quartiles of the error norms) are removed,
+as the reference tool does.
+
+The result keeps its observations (:class:`BundleData`); :func:`normal_equations` rebuilds the
+Gauss-Newton blocks at the solution, data and priors apart, for the projection uncertainty
+(:mod:`blurcalib.calib.uncertainty`).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+from numpy.typing import ArrayLike
+
+from blurcalib.camera.generic import (
+    CentralGeneric,
+    GridSpline,
+    accumulate_blocks,
+    apply_update,
+    param_columns,
+    projection_jacobians,
+    tangent_basis,
+)
+from blurcalib.camera.parametric import Pose
+from blurcalib.geometry.lie import exp_so3, orthonormal, skew
+from blurcalib.io.text import count
+
+__all__ = [
+    "BundleData",
+    "BundleResult",
+    "BundleSettings",
+    "NormalEquations",
+    "bundle_adjust",
+    "coverage_warnings",
+    "frame_jacobian",
+    "normal_equations",
+]
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class BundleSettings:
+    """Options of :func:`bundle_adjust`.
+
+    Attributes:
+        huber_px: Huber threshold on the residual norm (px).
+        max_iterations: LM iterations at most.
+        tol: stop when an accepted step lowers the cost by less than this fraction.
+        outlier_iteration: iteration after which outliers are removed once (0: never).
+        outlier_iqr: the rule's factor ``k`` in ``Q3 + k (Q3 - Q1)``.
+        shift_sigma_px: prior standard deviation of a free per-frame shift (px).
+        smoothness_px: prior standard deviation of the grid's second differences from the
+            initial grid's, in px (via the grid's angular pitch).
+        device: torch device.
+    """
+
+    huber_px: float = 1.0
+    max_iterations: int = 40
+    tol: float = 1e-7
+    outlier_iteration: int = 3
+    outlier_iqr: float = 6.0
+    shift_sigma_px: float = 20.0
+    smoothness_px: float = 1.0
+    device: str = "cpu"
+
+
+@dataclass(eq=False)
+class BundleData:
+    """The observations of a bundle adjustment, as its final iteration used them.
+
+    Attributes:
+        frame: ``(N,)`` frame index of each observation.
+        points: ``(N, 3)`` target points (m).
+        observed: ``(N, 2)`` observed positions (px, OpenCV convention).
+        weights: ``(N,)`` observation weights, 0 for the removed outliers.
+        shift_free: ``(F,)`` bool, frames with a free image shift.
+        settings: the solver options (priors, Huber threshold, device).
+        angular_pitch: radians per pixel of the grid, as the smoothness prior converted
+            ``smoothness_px`` with it.
+    """
+
+    frame: np.ndarray = field(repr=False)
+    points: np.ndarray = field(repr=False)
+    observed: np.ndarray = field(repr=False)
+    weights: np.ndarray = field(repr=False)
+    shift_free: np.ndarray
+    settings: BundleSettings
+    angular_pitch: float
+
+
+@dataclass(eq=False)
+class BundleResult:
+    """The adjusted generic camera, poses and per-frame shifts.
+
+    Attributes:
+        model: the generic camera (gauge: image centre along +z, right edge in the x-z plane).
+        poses: ``(F,)`` poses (target -> camera) in the model's frame.
+        shifts: ``(F, 2)`` px per-frame image shifts ``s_f`` (0 where not free).
+        residuals: ``(N, 2)`` px ``p_i - pi_G(M_f P_i) - s_f``; NaN where the ray left the area.
+        inlier: ``(N,)`` bool, used in the final fit (not an outlier, inside the area, w > 0).
+        median_error, rms_error: over inliers (px).
+        iterations: LM iterations run; cost: final objective.
+        seconds, cpu_seconds: wall-clock and process CPU time.
+        warnings: one line per image region with unobserved grid cells.
+        coverage: ``(GH - 3, GW - 3)`` observation count per grid cell of the calibrated area.
+        data: the observations and options (what :func:`normal_equations` needs).
+    """
+
+    model: CentralGeneric
+    poses: list[Pose]
+    shifts: np.ndarray
+    residuals: np.ndarray = field(repr=False)
+    inlier: np.ndarray = field(repr=False)
+    median_error: float
+    rms_error: float
+    iterations: int
+    cost: float
+    seconds: float
+    cpu_seconds: float
+    warnings: list[str]
+    coverage: np.ndarray = field(repr=False)
+    data: BundleData = field(repr=False)
+
+
+@dataclass(eq=False)
+class NormalEquations:
+    """Gauss-Newton blocks of :func:`bundle_adjust`'s objective at its solution, data and priors apart.
+
+    With the per-observation IRLS weights ``W`` (observation weight times Huber weight) and the
+    Jacobians of the residuals in the grid parameters ``J_g`` and in the per-frame blocks ``J_f``
+    (rotation increment, translation, shift: 8 columns)::
+
+        hgg_data = J_g^T W J_g,  hgf_data = J_g^T W J_f,  hff_data = J_f^T W J_f
+
+    and the priors' Hessians (costs in px^2, as the objective's): ``hgg_prior`` the smoothness
+    prior, ``hff_prior`` the shift prior. A frame whose shift is not free has its shift rows and
+    columns zero in the data blocks and an identity in ``hff_prior`` (it is decoupled). Tensors
+    are torch float64 on the bundle adjustment's device.
+
+    Attributes:
+        hgg_data, hgg_prior: ``(G, G)`` with ``G = 2 GW GH``.
+        hgf_data: ``(G, F, 8)``.
+        hff_data, hff_prior: ``(F, 8, 8)``.
+        weighted_sq: ``sum_i W_i |r_i|^2`` over the inliers (px^2).
+        observations: number of inliers ``N`` (each gives 2 residuals).
+    """
+
+    hgg_data: torch.Tensor
+    hgg_prior: torch.Tensor
+    hgf_data: torch.Tensor
+    hff_data: torch.Tensor
+    hff_prior: torch.Tensor
+    weighted_sq: float
+    observations: int
+
+
+def frame_jacobian(J_p: torch.Tensor, RX: torch.Tensor) -> torch.Tensor:
+    """``(N, 2, 8)`` derivatives of the projections in their frames' block, columns ``omega (3),
+    dt (3), s (2)`` (``R <- exp([omega]_x) R``, ``t <- t + dt``, shift ``s``), from ``J_p = du/dX
+    (N, 2, 3)`` and the rotated target points ``RX = R P (N, 3)`` (m)."""
+    eye2 = torch.eye(2, dtype=J_p.dtype, device=J_p.device).expand(len(J_p), 2, 2)
+    return torch.cat([-J_p @ skew(RX), J_p, eye2], dim=2)
+
+
+def coverage_warnings(model: CentralGeneric, coverage: np.ndarray) -> list[str]:
+    """One line per image region (3 x 3 split) holding grid cells without observations."""
+    ch, cw = coverage.shape
+    x0, y0, x1, y1 = model.area_opencv
+    cell_w = (x1 - x0) / cw
+    cell_h = (y1 - y0) / ch
+    names_y = ("top", "middle", "bottom")
+    names_x = ("left", "centre", "right")
+    out = []
+    rows, cols = np.nonzero(coverage == 0)
+    if len(rows) == 0:
+        return out
+    ry = np.minimum(rows * 3 // ch, 2)
+    rx = np.minimum(cols * 3 // cw, 2)
+    for by in range(3):
+        for bx in range(3):
+            sel = (ry == by) & (rx == bx)
+            if not sel.any():
+                continue
+            name = "centre" if (by, bx) == (1, 1) else f"{names_y[by]}-{names_x[bx]}"
+            xa = x0 + cols[sel].min() * cell_w
+            xb = x0 + (cols[sel].max() + 1) * cell_w
+            ya = y0 + rows[sel].min() * cell_h
+            yb = y0 + (rows[sel].max() + 1) * cell_h
+            out.append(f"{count(int(sel.sum()), 'grid cell')} without observations in the {name} of the "
+                       f"image (x {max(xa, 0):.0f}-{xb:.0f} px, y {max(ya, 0):.0f}-{yb:.0f} px): the model "
+                       "there follows the "
+                       "initial camera (smoothness prior)")
+    return out
+
+
+@dataclass
+class _State:
+    grid: torch.Tensor  # (GH, GW, 3)
+    grid0: torch.Tensor  # (GH, GW, 3) initial grid, rotated with the gauge
+    R: torch.Tensor  # (F, 3, 3)
+    t: torch.Tensor  # (F, 3)
+    s: torch.Tensor  # (F, 2)
+    u: torch.Tensor  # (N, 2) current projections (warm starts)
+    inside: torch.Tensor  # (N,) bool
+
+
+class _Problem:
+    """Fixed data and the objective of one bundle adjustment."""
+
+    def __init__(self, spline: GridSpline, frame: torch.Tensor, points: torch.Tensor,
+                 observed: torch.Tensor, weights: torch.Tensor, shift_free: torch.Tensor,
+                 settings: BundleSettings) -> None:
+        self.spline = spline
+        self.frame = frame
+        self.points = points
+        self.observed = observed
+        self.weights = weights
+        self.shift_free = shift_free
+        self.settings = settings
+        gh, gw = spline.shape
+        self.gh, self.gw = gh, gw
+        self.num_frames = len(shift_free)
+        self.pitch = _angular_pitch(spline)
+        self.smooth_w = 1.0 / (settings.smoothness_px * self.pitch) ** 2
+        self.shift_w = 1.0 / settings.shift_sigma_px ** 2
+        self.triples = _second_difference_triples(gh, gw, spline.grid.device)
+
+    def camera_points(self, st: _State) -> torch.Tensor:
+        return torch.einsum("nij,nj->ni", st.R[self.frame], self.points) + st.t[self.frame]
+
+    def project(self, grid: torch.Tensor, R: torch.Tensor, t: torch.Tensor,
+                s: torch.Tensor, init: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Projections ``(N, 2)``, inside ``(N,)`` and residuals ``(N, 2)`` for trial values."""
+        X = torch.einsum("nij,nj->ni", R[self.frame], self.points) + t[self.frame]
+        u, inside = self.spline.with_grid(grid).project(X, init)
+        inside = inside & (X[:, 2] > 0)
+        r = self.observed - u - s[self.frame]
+        return u, inside, r
+
+    def data_cost(self, r: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
+        """``sum w rho(|r|^2)`` with Huber's ``rho`` (``e^2`` inside, ``2 d e - d^2`` beyond)."""
+        d = self.settings.huber_px
+        e = r.norm(dim=-1)
+        rho = torch.where(e <= d, e * e, 2 * d * e - d * d)
+        return (w * rho).sum()
+
+    def prior_cost(self, grid: torch.Tensor, grid0: torch.Tensor, s: torch.Tensor) -> torch.Tensor:
+        i, j, k = self.triples
+        g, g0 = grid.reshape(-1, 3), grid0.reshape(-1, 3)
+        d2 = (g[i] - 2 * g[j] + g[k]) - (g0[i] - 2 * g0[j] + g0[k])
+        free = self.shift_free.to(s.dtype)[:, None]
+        return self.smooth_w * (d2 * d2).sum() + self.shift_w * (free * s * s).sum()
+
+    def cost(self, st: _State, r: torch.Tensor, w: torch.Tensor) -> float:
+        return float(self.data_cost(r, w) + self.prior_cost(st.grid, st.grid0, st.s))
+
+
+def _angular_pitch(spline: GridSpline) -> float:
+    """Radians per pixel of the grid: the median angle between neighbouring nodes / cell length."""
+    g = spline.grid
+    ang = torch.acos(torch.clamp((g[:, 1:] * g[:, :-1]).sum(-1), -1.0, 1.0))
+    return float(torch.median(ang)) * float(spline.scale[0])
+
+
+def _second_difference_triples(gh: int, gw: int, device: torch.device
+                               ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Flat node indices ``(i, j, k)`` of every three consecutive nodes along rows and columns."""
+    idx = torch.arange(gh * gw, device=device).reshape(gh, gw)
+    rows = (idx[:, :-2].reshape(-1), idx[:, 1:-1].reshape(-1), idx[:, 2:].reshape(-1))
+    cols = (idx[:-2].reshape(-1), idx[1:-1].reshape(-1), idx[2:].reshape(-1))
+    return tuple(torch.cat([a, b]) for a, b in zip(rows, cols, strict=True))
+
+
+def _robust_weights(r: torch.Tensor, huber_px: float) -> torch.Tensor:
+    """IRLS weights of Huber's loss on the residual norm: 1 inside, ``delta / e`` beyond."""
+    e = r.norm(dim=-1)
+    return torch.where(e <= huber_px, torch.ones_like(e), huber_px / e.clamp_min(1e-300))
+
+
+def _normal_equations(pb: _Problem, st: _State, w: torch.Tensor, r: torch.Tensor
+                      ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor,
+                                 torch.Tensor]:
+    """Gauss-Newton blocks: ``Hgg (G, G)``, ``Hgp (G, F, 8)``, ``Hpp (F, 8, 8)``, ``bg``, ``bp``.
+
+    Per-frame block columns: ``omega (3), dt (3), s (2)``. Also returns the grid's node tangents.
+    """
+    Hgg, Hgp, Hpp, bg, bp, tang = _data_equations(pb, st, w, r)
+    _add_priors(pb, st, tang, Hgg, bg, Hpp, bp)
+    return Hgg, Hgp, Hpp, bg, bp, tang
+
+
+def _data_equations(pb: _Problem, st: _State, w: torch.Tensor, r: torch.Tensor
+                    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor,
+                               torch.Tensor]:
+    """The observations' part of :func:`_normal_equations` (no priors)."""
+    sel = torch.nonzero(w > 0).squeeze(1)
+    fr = pb.frame[sel]
+    X = torch.einsum("nij,nj->ni", st.R[fr], pb.points[sel]) + st.t[fr]
+    J_p, J_g, nodes = projection_jacobians(pb.spline.with_grid(st.grid), st.u[sel], X)
+    RX = X - st.t[fr]
+    J_pose = frame_jacobian(J_p, RX)
+    ws = w[sel][:, None, None]
+    rs = r[sel][:, :, None]
+    G = 2 * pb.gh * pb.gw
+    F = pb.num_frames
+    dev, dt = X.device, X.dtype
+    cell = nodes[:, 0]
+    n_nodes = pb.gh * pb.gw
+    Hcell = torch.zeros(n_nodes, 32, 32, dtype=dt, device=dev)
+    Hcell.index_add_(0, cell, J_g.transpose(1, 2) @ (ws * J_g))
+    used = torch.nonzero(Hcell.abs().sum((1, 2)) > 0).squeeze(1)
+    cell_nodes = _cell_nodes(used, pb.gw)
+    Hgg = torch.zeros(G, G, dtype=dt, device=dev)
+    accumulate_blocks(Hgg, param_columns(cell_nodes), Hcell[used])
+    key = fr * n_nodes + cell
+    ukey, inv = torch.unique(key, return_inverse=True)
+    Hgp_pairs = torch.zeros(len(ukey), 32, 8, dtype=dt, device=dev)
+    Hgp_pairs.index_add_(0, inv, J_g.transpose(1, 2) @ (ws * J_pose))
+    pair_frame = ukey // n_nodes
+    pair_cols = param_columns(_cell_nodes(ukey % n_nodes, pb.gw))
+    Hgp = torch.zeros(G * F * 8, dtype=dt, device=dev)
+    flat = (pair_cols[:, :, None] * (F * 8) + pair_frame[:, None, None] * 8
+            + torch.arange(8, device=dev)).reshape(-1)
+    Hgp.index_add_(0, flat, Hgp_pairs.reshape(-1))
+    Hgp = Hgp.reshape(G, F, 8)
+    Hgp[:, ~pb.shift_free, 6:] = 0.0
+    Hpp = torch.zeros(F, 8, 8, dtype=dt, device=dev).index_add_(0, fr, J_pose.transpose(1, 2) @ (ws * J_pose))
+    bp = torch.zeros(F, 8, dtype=dt, device=dev).index_add_(
+        0, fr, (J_pose.transpose(1, 2) @ (ws * rs))[..., 0])
+    bg = torch.zeros(G, dtype=dt, device=dev).index_add_(
+        0, param_columns(nodes).reshape(-1), (J_g.transpose(1, 2) @ (ws * rs)).reshape(-1))
+    tang = tangent_basis(st.grid.reshape(-1, 3))
+    return Hgg, Hgp, Hpp, bg, bp, tang
+
+
+def _cell_nodes(first: torch.Tensor, gw: int) -> torch.Tensor:
+    """The 16 flat node indices of the cells whose first (top-left) node is ``first (K,)``."""
+    offs = torch.arange(4, device=first.device)
+    return (first[:, None, None] + offs[:, None] * gw + offs[None, :]).reshape(len(first), 16)
+
+
+def _add_priors(pb: _Problem, st: _State, tang: torch.Tensor, Hgg: torch.Tensor, bg: torch.Tensor,
+                Hpp: torch.Tensor, bp: torch.Tensor) -> None:
+    """Add the smoothness prior (grid) and the shift prior (frames) to the normal equations."""
+    i, j, k = pb.triples
+    g, g0 = st.grid.reshape(-1, 3), st.grid0.reshape(-1, 3)
+    res = (g[i] - 2 * g[j] + g[k]) - (g0[i] - 2 * g0[j] + g0[k])
+    J = torch.stack([tang[i], -2 * tang[j], tang[k]], 1)  # (T, 3 nodes, 2, 3)
+    Jm = J.permute(0, 3, 1, 2).reshape(len(i), 3, 6)
+    nodes = torch.stack([i, j, k], 1)
+    cols = param_columns(nodes)
+    accumulate_blocks(Hgg, cols, pb.smooth_w * Jm.transpose(1, 2) @ Jm)
+    bg.index_add_(0, cols.reshape(-1), -pb.smooth_w * (Jm.transpose(1, 2) @ res[:, :, None]).reshape(-1))
+    free = pb.shift_free
+    Hpp[free, 6, 6] += pb.shift_w
+    Hpp[free, 7, 7] += pb.shift_w
+    bp[free, 6:] -= pb.shift_w * st.s[free]
+    fixed = ~free
+    Hpp[fixed, 6:, :] = 0.0
+    Hpp[fixed, :, 6:] = 0.0
+    Hpp[fixed, 6, 6] = 1.0
+    Hpp[fixed, 7, 7] = 1.0
+    bp[fixed, 6:] = 0.0
+
+
+def _solve(Hgg: torch.Tensor, Hgp: torch.Tensor, Hpp: torch.Tensor, bg: torch.Tensor,
+           bp: torch.Tensor, lam: float) -> tuple[torch.Tensor, torch.Tensor] | None:
+    """Damped step ``(dg (G,), dp (F, 8))`` by the Schur complement; None if not positive definite."""
+    G = Hgg.shape[0]
+    F = Hpp.shape[0]
+    eye8 = torch.eye(8, dtype=Hpp.dtype, device=Hpp.device)
+    Hpp_d = Hpp + lam * torch.diag_embed(torch.diagonal(Hpp, dim1=1, dim2=2)) + 1e-12 * eye8
+    try:
+        Lp = torch.linalg.cholesky(Hpp_d)
+    except torch.linalg.LinAlgError:
+        return None
+    Hpp_inv = torch.cholesky_inverse(Lp)
+    Y = torch.einsum("gfi,fij->gfj", Hgp, Hpp_inv).reshape(G, F * 8)
+    S = Hgg - Y @ Hgp.reshape(G, F * 8).T
+    diag = torch.diagonal(Hgg)
+    S.diagonal().add_(lam * diag + 1e-12 * float(diag.mean()))
+    rhs = bg - Y @ bp.reshape(-1)
+    try:
+        L = torch.linalg.cholesky(S)
+    except torch.linalg.LinAlgError:
+        return None
+    dg = torch.cholesky_solve(rhs[:, None], L)[:, 0]
+    dp = torch.einsum("fij,fj->fi", Hpp_inv, bp - torch.einsum("gfi,g->fi", Hgp, dg))
+    return dg, dp
+
+
+def _gauge_rotation(spline: GridSpline, grid: torch.Tensor) -> torch.Tensor:
+    """``Q (3, 3)``: maps the image centre's direction to +z and the right edge's into x-z (x > 0)."""
+    lo, hi = spline.lo, spline.hi
+    mid = 0.5 * (lo + hi)
+    px = torch.stack([mid, torch.stack([hi[0], mid[1]])])
+    d = spline.with_grid(grid).evaluate(px).d
+    z = d[0]
+    x = d[1] - (d[1] @ z) * z
+    x = x / x.norm()
+    y = torch.linalg.cross(z, x, dim=0)
+    return torch.stack([x, y, z])
+
+
+def bundle_adjust(model: CentralGeneric, poses: Sequence[Pose], frame: ArrayLike, points: ArrayLike,
+                  observed: ArrayLike, weights: ArrayLike | None = None,
+                  shift_free: ArrayLike | None = None, settings: BundleSettings | None = None,
+                  progress: bool = False, prior: CentralGeneric | None = None) -> BundleResult:
+    """Fit the generic camera's grid, every frame's pose and the free per-frame shifts.
+
+    Args:
+        model: initial generic camera (e.g. :func:`blurcalib.camera.generic.fit_to_rays` of the
+            parametric calibration); its calibrated area and grid size are kept.
+        poses: ``(F,)`` initial poses (target -> camera) in ``model``'s camera frame.
+        frame: ``(N,)`` frame index of each observation.
+        points: ``(N, 3)`` target points (m).
+        observed: ``(N, 2)`` observed positions (px, OpenCV convention).
+        weights: ``(N,)`` observation weights ``>= 0`` (default 1).
+        shift_free: ``(F,)`` bool, frames with a free image shift ``s_f`` (blurry frames).
+        settings: solver options.
+        progress: log one line per iteration.
+        prior: the camera whose shape the smoothness prior keeps (its grid's second
+            differences; same grid as ``model``, each in its own gauge). Default ``model``: a
+            warm start from another fit's camera passes the initial camera of a cold start here,
+            so that cells without observations follow it and not the warm start.
+
+    Raises:
+        ValueError: inconsistent shapes or a frame without observations.
+    """
+    settings = settings or BundleSettings()
+    t_wall, t_cpu = time.perf_counter(), time.process_time()
+    dev = torch.device(settings.device)
+    kw = {"dtype": torch.float64, "device": dev}
+    fr_np = np.asarray(frame, dtype=np.int64).reshape(-1)
+    P = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    p = np.asarray(observed, dtype=np.float64).reshape(-1, 2)
+    n = len(fr_np)
+    F = len(poses)
+    if P.shape[0] != n or p.shape[0] != n:
+        raise ValueError(f"need frame (N,), points (N, 3), observed (N, 2); got {n}, {P.shape}, {p.shape}")
+    if n == 0 or fr_np.min() < 0 or fr_np.max() >= F:
+        raise ValueError(f"frame indices must lie in [0, {F})")
+    counts = np.bincount(fr_np, minlength=F)
+    if np.any(counts == 0):
+        raise ValueError(f"frames without observations: {np.nonzero(counts == 0)[0].tolist()[:10]}")
+    w_np = np.ones(n) if weights is None else np.asarray(weights, dtype=np.float64).reshape(-1)
+    if w_np.shape != (n,) or np.any(w_np < 0) or not np.all(np.isfinite(w_np)):
+        raise ValueError(f"weights must be finite, >= 0 and of shape ({n},)")
+    free_np = np.zeros(F, bool) if shift_free is None else np.asarray(shift_free, bool).reshape(-1)
+    if free_np.shape != (F,):
+        raise ValueError(f"shift_free must have shape ({F},)")
+
+    spline = model.spline(dev)
+    pb = _Problem(spline, torch.as_tensor(fr_np, device=dev), torch.as_tensor(P, **kw),
+                  torch.as_tensor(p, **kw), torch.as_tensor(w_np, **kw),
+                  torch.as_tensor(free_np, device=dev), settings)
+    Q = _gauge_rotation(spline, spline.grid)
+    grid = spline.grid @ Q.T
+    grid0 = grid.clone()
+    if prior is not None:
+        if (prior.grid_height, prior.grid_width) != spline.shape:
+            raise ValueError(f"prior grid {prior.grid_height}x{prior.grid_width} differs from the model's "
+                             f"{spline.shape[0]}x{spline.shape[1]}")
+        prior_grid = prior.spline(dev).grid
+        grid0 = prior_grid @ _gauge_rotation(spline, prior_grid).T
+    R = Q @ torch.as_tensor(np.stack([q.R for q in poses]), **kw)
+    t = torch.as_tensor(np.stack([q.t for q in poses]), **kw) @ Q.T
+    s = torch.zeros(F, 2, **kw)
+    u, inside, r = pb.project(grid, R, t, s, None)
+    st = _State(grid, grid0, R, t, s, u, inside)
+    use = pb.weights * inside.to(torch.float64)
+    cost = pb.cost(st, torch.where(inside[:, None], r, 0.0), use)
+    lam = 1e-6
+    it = 0
+    removed = not settings.outlier_iteration
+    remove_after = settings.outlier_iteration
+    for it in range(1, settings.max_iterations + 1):
+        if not removed and it > remove_after:
+            removed = True
+            e = r.norm(dim=-1)[use > 0]
+            q1, q3 = torch.quantile(e, 0.25), torch.quantile(e, 0.75)
+            thresh = float(q3 + settings.outlier_iqr * (q3 - q1))
+            outlier = r.norm(dim=-1) > thresh
+            pb.weights = torch.where(outlier, 0.0, pb.weights)
+            use = pb.weights * st.inside.to(torch.float64)
+            cost = pb.cost(st, torch.where(st.inside[:, None], r, 0.0), use)
+            log.info("outlier removal: %d observations above %.3f px", int(outlier.sum()), thresh)
+        w = use * _robust_weights(r, settings.huber_px)
+        Hgg, Hgp, Hpp, bg, bp, _tang = _normal_equations(pb, st, w, r)
+        accepted = False
+        while lam < 1e8:
+            step = _solve(Hgg, Hgp, Hpp, bg, bp, lam)
+            if step is None:
+                lam *= 4
+                continue
+            dg, dp = step
+            grid_n = apply_update(st.grid, dg.reshape(pb.gh, pb.gw, 2))
+            R_n = exp_so3(dp[:, :3]) @ st.R
+            t_n = st.t + dp[:, 3:6]
+            s_n = st.s + dp[:, 6:8]
+            u_n, in_n, r_n = pb.project(grid_n, R_n, t_n, s_n, st.u)
+            use_n = pb.weights * in_n.to(torch.float64)
+            trial = _State(grid_n, st.grid0, R_n, t_n, s_n, u_n, in_n)
+            cost_n = pb.cost(trial, torch.where(in_n[:, None], r_n, 0.0), use_n)
+            if cost_n < cost:
+                Qg = _gauge_rotation(spline, grid_n)
+                trial.grid = grid_n @ Qg.T
+                trial.grid0 = st.grid0 @ Qg.T
+                trial.R = Qg @ R_n
+                trial.t = t_n @ Qg.T
+                rel = (cost - cost_n) / max(cost, 1e-300)
+                st, r, use, cost = trial, r_n, use_n, cost_n
+                lam = max(lam * 0.2, 1e-12)
+                accepted = True
+                break
+            lam *= 4
+        if progress:
+            log.info("iteration %d: cost %.6g, lambda %.2g", it, cost, lam)
+        if not accepted or rel < settings.tol:
+            if removed:
+                break
+            remove_after = 0
+    inlier = (pb.weights > 0) & st.inside
+    res = torch.where(st.inside[:, None], r, torch.nan)
+    e = r.norm(dim=-1)[inlier]
+    out_model = model.with_grid(st.grid.cpu().numpy())
+    coverage = _coverage(out_model, st.u[inlier].cpu().numpy())
+    warnings = coverage_warnings(out_model, coverage)
+    for line in warnings:
+        log.info(line)
+    Rn, tn = st.R.cpu().numpy(), st.t.cpu().numpy()
+    return BundleResult(
+        model=out_model,
+        poses=[Pose(orthonormal(Rn[f]), tn[f]) for f in range(F)],
+        shifts=st.s.cpu().numpy(), residuals=res.cpu().numpy(), inlier=inlier.cpu().numpy(),
+        median_error=float(torch.median(e)) if len(e) else math.nan,
+        rms_error=float(torch.sqrt(torch.mean(e * e))) if len(e) else math.nan,
+        iterations=it, cost=cost, seconds=time.perf_counter() - t_wall,
+        cpu_seconds=time.process_time() - t_cpu, warnings=warnings, coverage=coverage,
+        data=BundleData(fr_np, P, p, pb.weights.cpu().numpy(), free_np, settings, pb.pitch))
+
+
+def normal_equations(result: BundleResult) -> NormalEquations:
+    """The Gauss-Newton blocks of ``result``'s objective at its solution (:class:`NormalEquations`).
+
+    Built with the final inlier set and the Huber IRLS weights of the final residuals; no
+    Levenberg-Marquardt damping.
+    """
+    data = result.data
+    settings = data.settings
+    dev = torch.device(settings.device)
+    kw = {"dtype": torch.float64, "device": dev}
+    spline = result.model.spline(dev)
+    pb = _Problem(spline, torch.as_tensor(data.frame, device=dev), torch.as_tensor(data.points, **kw),
+                  torch.as_tensor(data.observed, **kw), torch.as_tensor(data.weights, **kw),
+                  torch.as_tensor(data.shift_free, device=dev), settings)
+    pb.smooth_w = 1.0 / (settings.smoothness_px * data.angular_pitch) ** 2
+    inlier = torch.as_tensor(result.inlier, device=dev)
+    r = torch.where(inlier[:, None], torch.as_tensor(np.nan_to_num(result.residuals), **kw), 0.0)
+    s = torch.as_tensor(result.shifts, **kw)
+    u = torch.where(inlier[:, None], pb.observed - r - s[pb.frame], 0.0)
+    R = torch.as_tensor(np.stack([q.R for q in result.poses]), **kw)
+    t = torch.as_tensor(np.stack([q.t for q in result.poses]), **kw)
+    st = _State(spline.grid, spline.grid, R, t, s, u, inlier)
+    w = pb.weights * inlier.to(torch.float64) * _robust_weights(r, settings.huber_px)
+    Hgg, Hgf, Hff, bg, bf, tang = _data_equations(pb, st, w, r)
+    fixed = ~pb.shift_free
+    Hff[fixed, 6:, :] = 0.0
+    Hff[fixed, :, 6:] = 0.0
+    Hgg_p = torch.zeros_like(Hgg)
+    Hff_p = torch.zeros_like(Hff)
+    _add_priors(pb, st, tang, Hgg_p, torch.zeros_like(bg), Hff_p, torch.zeros_like(bf))
+    return NormalEquations(Hgg, Hgg_p, Hgf, Hff, Hff_p, float((w * (r * r).sum(-1)).sum()),
+                           int(inlier.sum()))
+
+
+def _coverage(model: CentralGeneric, px: np.ndarray) -> np.ndarray:
+    """Observation count per grid cell of the calibrated area, ``(GH - 3, GW - 3)``."""
+    g = model.to_grid(px)
+    cw, ch = model.grid_width - 3, model.grid_height - 3
+    cx = np.clip(np.floor(g[:, 0]).astype(int) - 1, 0, cw - 1)
+    cy = np.clip(np.floor(g[:, 1]).astype(int) - 1, 0, ch - 1)
+    return np.bincount(cy * cw + cx, minlength=cw * ch).reshape(ch, cw)

@@ -1,0 +1,91 @@
+"""Report figures: the reprojection-error direction image and per-frame error plots.
+
+The direction image follows the reference calibration tool's drawing: the error direction ``a``
+(angle of the residual vector, image x right and y down) is the colour
+``(R, G, B) = (127 + 127 sin a, 127 + 127 cos a, 127)``; here that colour is scaled by the error
+magnitude (brightness), saturating at ``saturate_px``. A systematic (directional) bias shows as
+large areas of one hue; unbiased noise as a random speckle of hues.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+
+from blurcalib.io.atomic import atomic_path
+
+
+def direction_colours(error: np.ndarray, full_px: float | None = None) -> np.ndarray:
+    """RGB (0..255, float) of error vectors ``error (..., 2)`` (px, x right, y down), the
+    reference tool's ``(127 + 127 sin a, 127 + 127 cos a, 127)`` for ``a = atan2(e_y, e_x)``.
+
+    With ``full_px`` the colour is scaled by the error's length, full brightness at ``full_px``
+    px and black at zero; without it every colour has full brightness.
+    """
+    e = np.asarray(error, dtype=np.float64)
+    a = np.arctan2(e[..., 1], e[..., 0])
+    rgb = np.stack([127 + 127 * np.sin(a), 127 + 127 * np.cos(a), np.full_like(a, 127.0)], axis=-1)
+    if full_px is None:
+        return rgb
+    bright = np.clip(np.hypot(e[..., 0], e[..., 1]) / max(full_px, 1e-12), 0.0, 1.0)
+    return rgb * bright[..., None]
+
+
+def error_direction_image(xy: np.ndarray, residuals: np.ndarray, image_size: tuple[int, int],
+                          cell_px: int = 8, saturate_px: float = 0.5) -> np.ndarray:
+    """Render residual directions and magnitudes as a BGR ``uint8`` image of ``image_size``.
+
+    Args:
+        xy: ``(N, 2)`` feature positions (px, OpenCV convention).
+        residuals: ``(N, 2)`` residual vectors (px), observed minus model.
+        image_size: ``(width, height)`` px.
+        cell_px: residuals are averaged over square cells of this side (px).
+        saturate_px: magnitude shown at full brightness (px).
+    Returns:
+        ``(height, width, 3)`` BGR image; cells without features are black.
+    """
+    w, h = image_size
+    gw, gh = -(-w // cell_px), -(-h // cell_px)
+    xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
+    res = np.asarray(residuals, dtype=np.float64).reshape(-1, 2)
+    ok = np.all(np.isfinite(xy), axis=1) & np.all(np.isfinite(res), axis=1)
+    cx = np.clip((xy[ok, 0] + 0.5) // cell_px, 0, gw - 1).astype(np.int64)
+    cy = np.clip((xy[ok, 1] + 0.5) // cell_px, 0, gh - 1).astype(np.int64)
+    sums = np.zeros((gh, gw, 2))
+    count = np.zeros((gh, gw))
+    np.add.at(sums, (cy, cx), res[ok])
+    np.add.at(count, (cy, cx), 1.0)
+    mean = sums / np.maximum(count, 1)[..., None]
+    rgb = direction_colours(mean, saturate_px) * (count > 0)[..., None]
+    cells = np.round(rgb[..., ::-1]).astype(np.uint8)
+    return np.repeat(np.repeat(cells, cell_px, axis=0), cell_px, axis=1)[:h, :w]
+
+
+def save_frame_error_plot(path: str | os.PathLike, rows: list[dict],
+                          sharp_errors: dict[str, dict]) -> Path:
+    """Bar plot of the median alignment error per blurry frame (coloured by status) beside the
+    sharp frames' median calibration errors (px)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 2, figsize=(12, 4), gridspec_kw={"width_ratios": [3, 1]})
+    blurry = [r for r in rows if "median_error" in r]
+    axes[0].bar(range(len(blurry)), [r["median_error"] for r in blurry],
+                color=["black" if r.get("alignment") == "ill_conditioned" else
+                       "tab:blue" if r["status"] == "used" else "tab:red" for r in blurry])
+    axes[0].set_xlabel("blurry frame (black: flagged by the orientation filter)")
+    axes[0].set_ylabel("median error after global alignment (px)")
+    axes[0].set_title(f"{len(blurry)} aligned blurry frames of {len(rows)}")
+    sharp = [v["median_error_px"] for v in sharp_errors.values() if v["median_error_px"] is not None]
+    axes[1].bar(range(len(sharp)), sharp, color="tab:green")
+    axes[1].set_xlabel("sharp frame")
+    axes[1].set_title("sharp-set calibration")
+    fig.tight_layout()
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=80)
+    plt.close(fig)
+    return Path(path)

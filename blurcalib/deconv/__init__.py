@@ -1,0 +1,1 @@
+"""Local deconvolution of star blocks (homography, PSF and brightness per block)."""

@@ -1,0 +1,679 @@
+"""Feature extraction from frames: seed, grow, re-centre, align locally, write results.
+
+One frame (:func:`extract_frame`): find the tag (:mod:`blurcalib.growth.seed`), grow blocks front by
+front with the batched local deconvolution (:mod:`blurcalib.growth.grow`, :mod:`blurcalib.deconv.blocks`;
+PSFs come back re-centred on their centroids, so a block's star centre ``H(0, 0)`` is the centre
+of the star's time-averaged image), optionally solve the local alignment
+(:mod:`blurcalib.extract.local_alignment`) and turn accepted blocks into feature observations. With
+``ExtractSettings(kind="auto")`` each frame is classified sharp or blurry from its own measured
+blur (:func:`ring_blur`, the median blur extent of the tag ring's fitted PSFs, against
+:attr:`ExtractSettings.sharp_below_px`); the kind and the blur are recorded in ``frames.csv``.
+
+A folder run (:func:`extract_to_folder`) writes each frame's results as soon as it is done
+(``frames/<stem>.*``, see ``docs/results-format.md``), so an interrupted run loses at most the
+frame in progress and a re-run skips frames finished with the same pattern, settings and input
+file; at the end the per-frame files of the run's frames are collected into ``features.csv``,
+``blocks.csv``, ``psfs.npz``, ``corners.csv`` (the square corners shared by neighbouring
+blocks, after local alignment) and ``frames.csv`` (per-frame status). Frames come from folders,
+image files and videos (:mod:`blurcalib.io.sources`); in a sequence, a frame whose tag is not found
+is seeded from its nearest extracted neighbour, verified against its own pixels
+(:func:`seed_from_neighbour`).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+import multiprocessing
+import os
+import time
+from collections.abc import Callable, Sequence
+from concurrent.futures import ProcessPoolExecutor, as_completed
+from dataclasses import asdict, dataclass, field, replace
+from enum import Enum
+from pathlib import Path
+
+import numpy as np
+
+from blurcalib.camera.parametric import homography_centre
+from blurcalib.deconv.blocks import DeconvSettings
+from blurcalib.extract.local_alignment import LocalAlignment, align_locally, shared_corners
+from blurcalib.extract.noise import NoiseModel, frame_noise
+from blurcalib.growth.grow import GrowSettings, Growth, GrowthEvent, grow
+from blurcalib.growth.seed import (
+    DEFAULT_SCALES,
+    LabelCheck,
+    Seed,
+    SeedError,
+    block_homography,
+    check_labelling,
+    homography_from_features,
+    seed_frame,
+    tag_ring_features,
+)
+from blurcalib.io.atomic import OutputError, atomic_write_csv, claim_output_dir, remove_temporaries
+from blurcalib.io.frames import FrameError, FrameSizeError, frame_size_problem
+from blurcalib.io.results import (
+    FRAMES_DIR,
+    BlockTable,
+    FeatureFlags,
+    FeatureTable,
+    collect_results,
+    frame_result_paths,
+    read_feature_table,
+    read_frame_status,
+    write_frame_results,
+)
+from blurcalib.io.sources import FrameInput, in_sequences
+from blurcalib.pipeline.runtime import exit_with_parent
+from blurcalib.psf.kernel import blur_extent
+from blurcalib.target.pattern import StarPattern
+
+FRAMES_TABLE = "frames.csv"
+
+
+class FrameStatus(str, Enum):
+    """Outcome of one frame."""
+
+    OK = "ok"
+    NOT_SEEDED = "not_seeded"
+    NO_BLOCKS = "no_blocks"
+    UNREADABLE = "unreadable"
+    WRONG_SIZE = "wrong_size"
+    FAILED = "failed"
+
+
+FINAL_STATUSES = frozenset({FrameStatus.OK.value, FrameStatus.NOT_SEEDED.value,
+                            FrameStatus.NO_BLOCKS.value})
+"""Outcomes a resumed run keeps; unreadable, wrong-size and failed frames are retried."""
+
+FRAME_KINDS: tuple[str, ...] = ("auto", "sharp", "blurry")
+"""Values of :attr:`ExtractSettings.kind`."""
+
+SHARP_KERNEL_SIZE = 7
+"""PSF window of sharp frames (px)."""
+
+SHARP_BELOW_PX = 5.0
+"""Default :attr:`ExtractSettings.sharp_below_px`: a frame whose measured blur (:func:`ring_blur`)
+is below this is sharp. Measured (``docs/pipeline.md``): sharp simulated frames read 1.3-2.8 px,
+the real fixture frames 3.3-3.7 px, blurry simulated frames 3.0-21 px (from 4.7 px of motion,
+5.1 px or more), the fixture frames blurred by a 5 px line 6.3-6.5 px."""
+
+
+@dataclass(frozen=True)
+class ExtractSettings:
+    """How frames are processed.
+
+    Attributes:
+        deconv: block solver settings (kernel size etc.).
+        grow: growth acceptance rules.
+        local_alignment: move each block's star centre by its local-alignment translation.
+        kind: ``"blurry"``, ``"sharp"`` (recorded in the feature flags) or ``"auto"``: each frame
+            is classified from its own measured blur (:func:`ring_blur`), ``sharp`` below
+            ``sharp_below_px``; it is grown with these (blurry) settings, and a frame found sharp
+            is grown again from the same seed with :meth:`for_kind` ``("sharp")``.
+        scales: tag detection scales.
+        sharp_below_px: the classification threshold of ``kind="auto"`` (px of blur extent).
+    """
+
+    deconv: DeconvSettings = field(default_factory=DeconvSettings)
+    grow: GrowSettings = field(default_factory=GrowSettings)
+    local_alignment: bool = False
+    kind: str = "blurry"
+    scales: tuple[float, ...] = DEFAULT_SCALES
+    sharp_below_px: float = SHARP_BELOW_PX
+
+    def __post_init__(self) -> None:
+        if self.kind not in FRAME_KINDS:
+            raise ValueError(f"kind must be one of {FRAME_KINDS}, got {self.kind!r}")
+        if not self.sharp_below_px > 0:
+            raise ValueError(f"sharp_below_px must be positive, got {self.sharp_below_px}")
+
+    @staticmethod
+    def sharp(**changes) -> ExtractSettings:
+        """Settings for sharp frames: the same engine with a small (7 x 7) PSF window and free
+        PSFs only (no motion-path field: a sharp frame's PSF is its defocus; 4 of the demo's 20
+        sharp frames adapt their window, and their features stay as measured before the field)."""
+        return replace(ExtractSettings(deconv=DeconvSettings(kernel_size=SHARP_KERNEL_SIZE),
+                                       grow=GrowSettings(psf_field=False), kind="sharp"), **changes)
+
+    @staticmethod
+    def auto(**changes) -> ExtractSettings:
+        """Settings that classify each frame from its measured blur (``kind="auto"``, the blurry
+        frames' settings otherwise)."""
+        return replace(ExtractSettings(kind="auto"), **changes)
+
+    def for_kind(self, kind: str) -> ExtractSettings:
+        """These settings for frames of ``kind`` (``"sharp"`` or ``"blurry"``): for sharp frames
+        the :meth:`sharp` window and free PSFs, everything else kept."""
+        if kind == "sharp":
+            return replace(self, deconv=replace(self.deconv, kernel_size=SHARP_KERNEL_SIZE),
+                           grow=replace(self.grow, psf_field=False), kind="sharp")
+        return replace(self, kind=kind)
+
+
+@dataclass
+class FrameResult:
+    """Everything extracted from one frame.
+
+    Attributes:
+        frame: frame name.
+        status: outcome; ``message`` says why when not ok.
+        blocks: every attempted block with its figures and status.
+        features: one star-centre observation per accepted block (:meth:`BlockTable.features`).
+        corners: the square corners shared by accepted neighbouring blocks, after local
+            alignment (:func:`corner_rows`), one row each.
+        seed, growth, local: the intermediate results (None where not reached).
+        seconds: time spent in ``seed``, ``fit`` (growth) and ``align``.
+        kind: ``sharp`` or ``blurry``, as extracted (empty when not known: not seeded).
+        blur_px: the frame's measured blur (:func:`ring_blur`; NaN when not measured).
+        noise: the frame's noise (:func:`blurcalib.extract.noise.estimate_noise`; None when not
+            estimated), the unit of the blocks' :attr:`BlockTable.noise_var`.
+    """
+
+    frame: str
+    status: FrameStatus
+    message: str = ""
+    blocks: BlockTable = field(default_factory=BlockTable.empty)
+    features: FeatureTable = field(default_factory=FeatureTable.empty)
+    corners: list[list] = field(default_factory=list)
+    seed: Seed | None = None
+    growth: Growth | None = None
+    local: LocalAlignment | None = None
+    seconds: dict[str, float] = field(default_factory=dict)
+    kind: str = ""
+    blur_px: float = math.nan
+    noise: NoiseModel | None = None
+
+    def summary(self) -> dict:
+        """A JSON-serialisable one-line summary (the row of ``frames.csv``; ``psf`` says whether
+        the blocks were fitted with the frame's path-PSF field, ``field``, or with free PSFs,
+        ``free``, and ``psf_field`` holds the field, :meth:`blurcalib.psf.field.PathField.to_dict`;
+        ``kind`` and ``blur_px`` the frame's kind and measured blur, ``noise_dn`` its noise
+        (:attr:`blurcalib.extract.noise.NoiseModel.sigma`, grey levels), empty when unknown)."""
+        accepted = int(self.blocks.accepted.sum())
+        path_field = self.growth.psf_field if self.growth is not None else None
+        psf = {"psf": "" if self.growth is None else "free" if path_field is None else "field"}
+        if path_field is not None:
+            psf["psf_field"] = path_field.to_dict()
+        return {"frame": self.frame, "status": self.status.value, "message": printable_name(self.message),
+                "seeded_by": self.seed.method if self.seed is not None else "", **psf,
+                "kind": self.kind, "blur_px": round(self.blur_px, 3) if math.isfinite(self.blur_px) else "",
+                "noise_dn": round(self.noise.sigma, 3) if self.noise is not None else "",
+                "blocks": len(self.blocks), "accepted": accepted, "features": len(self.features),
+                "seconds": round(sum(self.seconds.values()), 3),
+                **{f"seconds_{k}": round(v, 3) for k, v in self.seconds.items()}}
+
+
+def extract_frame(image: np.ndarray, pattern: StarPattern, frame: str,
+                  settings: ExtractSettings | None = None, H_feature: np.ndarray | None = None,
+                  on_event: Callable[[GrowthEvent], None] | None = None,
+                  should_stop: Callable[[], bool] | None = None) -> FrameResult:
+    """Extract features and PSFs from one frame ``image (H, W)`` (grey levels 0..255).
+
+    Args:
+        image: the frame.
+        pattern: the target.
+        frame: the frame's name (recorded in every row).
+        settings: processing settings (blurry-frame defaults).
+        H_feature: a seed homography (feature coordinates -> px) to use instead of the tag.
+        on_event: per-block growth callback (for live display).
+        should_stop: polled between growth fronts.
+    """
+    settings = settings or ExtractSettings()
+    t0 = time.perf_counter()
+    try:
+        seed = seed_frame(image, pattern, H_feature, settings.scales)
+    except SeedError as exc:
+        return FrameResult(frame, FrameStatus.NOT_SEEDED, str(exc),
+                           seconds={"seed": time.perf_counter() - t0},
+                           kind="" if settings.kind == "auto" else settings.kind)
+    return grow_frame(image, pattern, frame, seed, settings, on_event, should_stop,
+                      {"seed": time.perf_counter() - t0})
+
+
+def ring_blur(growth: Growth | None) -> float:
+    """A frame's measured blur (px): the median blur extent ``sqrt(12) sigma_major``
+    (:func:`blurcalib.psf.kernel.blur_extent`) of the accepted blocks of the growth's first front (the
+    ring around the tag, or the first blocks of a given seed); NaN when none was accepted."""
+    if growth is None:
+        return math.nan
+    sigma = growth.fit.sigma_major[(growth.front == 0) & growth.accepted]
+    sigma = sigma[np.isfinite(sigma)]
+    return float(np.median(blur_extent(sigma))) if sigma.size else math.nan
+
+
+def grow_frame(image: np.ndarray, pattern: StarPattern, frame: str, seed: Seed,
+               settings: ExtractSettings, on_event: Callable[[GrowthEvent], None] | None = None,
+               should_stop: Callable[[], bool] | None = None,
+               seconds: dict[str, float] | None = None) -> FrameResult:
+    """The rest of :func:`extract_frame` from a ``seed``: grow (classifying the frame with
+    ``settings.kind == "auto"``), align locally, tabulate; ``seconds`` are times spent before."""
+    seconds = dict(seconds or {})
+    t1 = time.perf_counter()
+    kind = "blurry" if settings.kind == "auto" else settings.kind
+    used = settings.for_kind(kind) if settings.kind == "auto" else settings
+    noise = frame_noise(image)
+    growth = grow(image, pattern, seed, used.deconv, used.grow, on_event, should_stop, noise)
+    blur = ring_blur(growth)
+    if settings.kind == "auto" and blur < settings.sharp_below_px:
+        kind, used = "sharp", settings.for_kind("sharp")
+        growth = grow(image, pattern, seed, used.deconv, used.grow, on_event, should_stop, noise)
+    t2 = time.perf_counter()
+    seconds["fit"] = t2 - t1
+    if growth is None or not growth.accepted.any():
+        result = FrameResult(frame, FrameStatus.NO_BLOCKS,
+                             "the tag was found but no block around it could be fitted",
+                             seed=seed, growth=growth, seconds=seconds, kind=kind, blur_px=blur, noise=noise)
+        if growth is not None:
+            result.blocks = _block_table(frame, pattern, growth, None, noise)
+        return result
+    acc = np.flatnonzero(growth.accepted)
+    f = pattern.features[growth.feature_id[acc]]
+    local = align_locally(growth.fit.H[acc], f[:, 0], f[:, 1])
+    seconds["align"] = time.perf_counter() - t2
+    blocks = _block_table(frame, pattern, growth, local if used.local_alignment else None, noise)
+    features = _features(pattern, blocks, used)
+    corners = corner_rows(frame, pattern, local.H, f[:, 0], f[:, 1])
+    return FrameResult(frame, FrameStatus.OK, "", blocks, features, corners, seed, growth, local,
+                       seconds, kind, blur, noise)
+
+
+def corner_rows(frame: str, pattern: StarPattern, H: np.ndarray, fx: np.ndarray,
+                fy: np.ndarray) -> list[list]:
+    """Rows of ``corners.csv`` for the square corners shared by at least two blocks.
+
+    Args:
+        frame: frame name.
+        pattern: the target.
+        H: ``(B, 3, 3)`` block homographies after local alignment.
+        fx, fy: ``(B,)`` feature coordinates of the blocks.
+    """
+    corner2, xy, count = shared_corners(H, fx, fy)
+    half = pattern.square_length_m / 2.0
+    return [[frame, int(c[0]), int(c[1]), c[0] * half, c[1] * half, float(p[0]), float(p[1]), int(n)]
+            for c, p, n in zip(corner2, xy, count, strict=True)]
+
+
+def _block_table(frame: str, pattern: StarPattern, growth: Growth,
+                 local: LocalAlignment | None, noise: NoiseModel | None = None) -> BlockTable:
+    """Every attempted block of a growth, with the local alignment's homographies for the
+    accepted ones when ``local`` is given and their noise variances when ``noise`` is."""
+    fit = growth.fit
+    H = fit.H.copy()
+    if local is not None:
+        H[np.flatnonzero(growth.accepted)] = local.H
+    f = pattern.features[growth.feature_id]
+    return BlockTable(np.full(len(f), frame), growth.feature_id, f[:, 0], f[:, 1], growth.status, fit.loss,
+                      fit.boundary_energy, fit.sigma_major, fit.sigma_minor, fit.eccentricity,
+                      fit.orientation, fit.centroid, H, fit.coeffs, np.nan_to_num(fit.psf), fit.loss_extent,
+                      None if noise is None else noise.block_variance(fit.coeffs))
+
+
+def _features(pattern: StarPattern, blocks: BlockTable, settings: ExtractSettings) -> FeatureTable:
+    flags = FeatureFlags.STAR_CENTRE | (FeatureFlags.SHARP_FRAME if settings.kind == "sharp"
+                                        else FeatureFlags.BLURRY_FRAME)
+    if settings.local_alignment:
+        flags |= FeatureFlags.LOCALLY_ALIGNED
+    return blocks.select(blocks.accepted).features(pattern.square_length_m, flags)
+
+
+# ------------------------------------------------------------------------------- folders
+def _located(path: Path) -> Path:
+    """The absolute path a frame is named by: the file it resolves to, or, for a broken symbolic
+    link or a link loop, the link itself."""
+    return path.resolve() if path.exists() else path.parent.resolve() / path.name
+
+
+def printable_name(name: str) -> str:
+    """A file name as text that can be written as UTF-8: bytes of a name that is not valid
+    UTF-8 (decoded by Python as surrogates) are written as ``\\xNN`` escapes (``caf\\xe9.png``)."""
+    return os.fsencode(name).decode("utf-8", "backslashreplace")
+
+
+def frame_names(paths: Sequence[Path]) -> list[str]:
+    """Names recorded for frames: paths relative to their common folder (``0.png``,
+    ``seq1/0.png``), with ``/`` separators, non-UTF-8 bytes escaped (:func:`printable_name`)."""
+    if not paths:
+        return []
+    resolved = [_located(Path(p)) for p in paths]
+    common = Path(os.path.commonpath([p.parent for p in resolved]))
+    return [printable_name(p.relative_to(common).as_posix()) for p in resolved]
+
+
+def as_frame_inputs(frames: Sequence[FrameInput | str | os.PathLike]) -> list[FrameInput]:
+    """Frames given as :class:`blurcalib.io.sources.FrameInput` or as image paths (named by
+    :func:`frame_names`, each in the sequence of its folder, in the order given)."""
+    paths = [Path(f) for f in frames if not isinstance(f, FrameInput)]
+    named = iter(in_sequences([FrameInput(n, p) for p, n in zip(paths, frame_names(paths), strict=True)]))
+    return [f if isinstance(f, FrameInput) else next(named) for f in frames]
+
+
+def _source(frame: FrameInput) -> str:
+    """What a frame was extracted from: its file, and a video frame's index (``walk.mp4#12``)."""
+    path = printable_name(str(_located(frame.path)))
+    return path if frame.index is None else f"{path}#{frame.index}"
+
+
+@dataclass(frozen=True)
+class FolderSummary:
+    """Outcome of :func:`extract_to_folder`: per-frame summaries and the output files."""
+
+    frames: list[dict]
+    skipped: list[str]
+    outputs: dict[str, Path]
+
+
+_WORKER_STATE: tuple[StarPattern, ExtractSettings] | None = None
+"""Pattern and settings of a worker process of :func:`extract_to_folder` (unset in the main one)."""
+
+
+def _init_worker(pattern: StarPattern, settings: ExtractSettings) -> None:
+    global _WORKER_STATE  # each worker process keeps its pattern and settings
+    import torch
+
+    exit_with_parent()
+
+    torch.set_num_threads(1)
+    _WORKER_STATE = (pattern, settings)
+
+
+def _one_line(exc: BaseException) -> str:
+    return f"{type(exc).__name__}: {' '.join(str(exc).split())}"
+
+
+@dataclass(frozen=True)
+class NeighbourSeed:
+    """A seed for a frame whose tag was not found, from a neighbour in its sequence.
+
+    Attributes:
+        neighbour: the neighbour's name.
+        H_feature: ``(3, 3)`` the neighbour's homography, feature coordinates -> px
+            (:func:`blurcalib.growth.seed.homography_from_features` of its star centres).
+        message: why the frame itself could not be seeded.
+    """
+
+    neighbour: str
+    H_feature: np.ndarray
+    message: str
+
+
+_REFUSED = "; the seed from neighbour "
+"""Starts the part of a ``not_seeded`` frame's message that says why a neighbour's seed was refused."""
+
+
+def verify_labelling(image: np.ndarray, pattern: StarPattern, result: FrameResult) -> LabelCheck:
+    """Check an extracted frame's labelling against its pixels (:func:`blurcalib.growth.seed.check_labelling`)
+    under the homography of its star centres, blurred by the median of its accepted blocks' PSFs."""
+    f = result.features
+    H = homography_from_features(f.fx, f.fy, f.x, f.y)
+    if H is None or result.growth is None:
+        return LabelCheck(False, math.nan, 0, "too few star centres to fit the frame's homography")
+    psf = np.median(result.growth.fit.psf[result.growth.accepted], axis=0)
+    psf = np.clip(np.nan_to_num(psf), 0.0, None)
+    return check_labelling(image, pattern, H, psf / psf.sum() if psf.sum() > 0 else None)
+
+
+def seed_from_neighbour(image: np.ndarray, pattern: StarPattern, frame: str, hint: NeighbourSeed,
+                        settings: ExtractSettings | None = None) -> FrameResult:
+    """Extract a frame from a neighbour's seed, accepted only when its labelling is verified.
+
+    The frame is grown from ``hint.H_feature`` (from the ring around the tag when it is in view,
+    else from the blocks nearest the image centre) and
+    its star centres' homography is checked against its pixels (:func:`verify_labelling`): a
+    seed a square (or more) off grows as well as a right one, and only the tag and the target's
+    border tell them apart. An accepted frame is ``ok`` with ``seeded_by = neighbour``; a refused
+    one stays ``not_seeded``, the message saying why.
+    """
+    settings = settings or ExtractSettings()
+    t0 = time.perf_counter()
+    H = np.asarray(hint.H_feature, dtype=np.float64)
+    H = H / H[2, 2]
+    ring = tag_ring_features(pattern)
+    centres = homography_centre(block_homography(H, ring[:, 0], ring[:, 1]))
+    h, w = image.shape
+    inside = (centres[:, 0] > 0) & (centres[:, 0] < w - 1) & (centres[:, 1] > 0) & (centres[:, 1] < h - 1)
+    # the tag ring in view: grown as from a tag (the ring fitted, the seed re-estimated from it)
+    source = "tag" if len(ring) and inside.mean() > 0.75 else "given"
+    seed = Seed(H, -1, np.zeros((0, 2)), 1.0, source, "neighbour")
+    result = grow_frame(image, pattern, frame, seed, settings)
+    refused = f"{hint.message}{_REFUSED}{hint.neighbour} was refused: "
+    unknown = "" if settings.kind == "auto" else settings.kind
+    if result.status is not FrameStatus.OK:
+        no_blocks = result.status is FrameStatus.NO_BLOCKS
+        reason = "no block could be fitted from it" if no_blocks else result.message
+        return FrameResult(frame, FrameStatus.NOT_SEEDED, refused + reason,
+                           seconds={"neighbour": time.perf_counter() - t0}, kind=unknown)
+    t1 = time.perf_counter()
+    check = verify_labelling(image, pattern, result)
+    if not check.accepted:
+        return FrameResult(frame, FrameStatus.NOT_SEEDED, refused + check.reason,
+                           seconds={"neighbour": time.perf_counter() - t0}, kind=unknown)
+    result.message = (f"seeded from neighbour {hint.neighbour} (labelling verified: residual ratio "
+                      f"{check.ratio:.2f} against a square off)")
+    result.seconds["verify"] = time.perf_counter() - t1
+    return result
+
+
+def _process(frame: FrameInput, hint: NeighbourSeed | None, pattern: StarPattern,
+             settings: ExtractSettings, expected_size: tuple[int, int] | None) -> FrameResult:
+    """One frame of a folder run (from its own tag, or with ``hint`` from a neighbour);
+    whatever goes wrong ends as this frame's status."""
+    name = frame.name
+    t0 = time.perf_counter()
+    try:
+        image = frame.load(expected_size=expected_size)
+        if hint is not None:
+            return seed_from_neighbour(image, pattern, name, hint, settings)
+        return extract_frame(image, pattern, name, settings)
+    except FrameSizeError as exc:
+        return FrameResult(name, FrameStatus.WRONG_SIZE, str(exc),
+                           seconds={"load": time.perf_counter() - t0})
+    except FrameError as exc:
+        return FrameResult(name, FrameStatus.UNREADABLE, str(exc),
+                           seconds={"load": time.perf_counter() - t0})
+    except Exception as exc:  # any failure stays with its frame; the batch goes on
+        return FrameResult(name, FrameStatus.FAILED, _one_line(exc),
+                           seconds={"failed": time.perf_counter() - t0})
+
+
+def _process_in_worker(frame: FrameInput, hint: NeighbourSeed | None,
+                       expected_size: tuple[int, int] | None) -> FrameResult:
+    if _WORKER_STATE is None:
+        raise RuntimeError("worker process was not initialised")
+    return _process(frame, hint, *_WORKER_STATE, expected_size)
+
+
+def _settings_record(settings: ExtractSettings) -> dict:
+    """The settings that determine a frame's result, as a JSON-serialisable dict (the torch
+    device aside: it changes where, not what, is computed)."""
+    record = asdict(settings)
+    record["deconv"].pop("device")
+    return record
+
+
+def _digest(doc: object) -> str:
+    return hashlib.sha256(json.dumps(doc, sort_keys=True).encode("utf-8")).hexdigest()
+
+
+def _input_key(run_key: str, frame: FrameInput) -> str:
+    """A frame's result key: the run's pattern and settings, the input file's size and
+    modification time and a video frame's index (a missing file gets a key of its own and is
+    redone)."""
+    try:
+        st = frame.path.stat()
+        stamp: object = [st.st_size, st.st_mtime_ns]
+    except OSError:
+        stamp = None
+    return _digest([run_key, stamp] if frame.index is None else [run_key, stamp, frame.index])
+
+
+def _common_size(sizes: Sequence[tuple[int, int] | None]) -> tuple[int, int] | None:
+    """The most common size of the frames that can be processed (the first seen among
+    equally common ones), None if there is none."""
+    known = [s for s in sizes if s is not None and frame_size_problem(*s) is None]
+    return max(dict.fromkeys(known), key=known.count) if known else None
+
+
+def write_frames_table(out: Path, summaries: Sequence[dict]) -> Path:
+    """``frames.csv``: one row per frame (frame, status, message, seeded_by, psf, kind, blur_px,
+    noise_dn, blocks, accepted, features, seconds)."""
+    cols = ["frame", "status", "message", "seeded_by", "psf", "kind", "blur_px", "noise_dn", "blocks",
+            "accepted", "features", "seconds"]
+    rows = [[s.get(c, "") for c in cols] for s in sorted(summaries, key=lambda r: r["frame"])]
+    return atomic_write_csv(out / FRAMES_TABLE, cols, rows)
+
+
+def _check_sources(out: Path, sources: dict[str, str]) -> None:
+    """Refuse to replace a frame's stored result that was extracted from another file (another
+    dataset whose frames have the same names): each result records its ``source``."""
+    for name, source in sources.items():
+        status = read_frame_status(out, name)
+        recorded = None if status is None else status.get("source")
+        if recorded is not None and recorded != source:
+            raise OutputError(f"{out}: its frame {name} was extracted from {recorded}, not {source} "
+                              f"(another dataset with the same frame names); use --overwrite to "
+                              f"replace its results, or choose another output folder")
+
+
+NEIGHBOUR_REACH = 2
+"""A frame whose tag is not found is seeded from an extracted frame at most this many places
+away in its sequence (:func:`seed_from_neighbour`)."""
+
+NEIGHBOUR_TRIES = 2
+"""Neighbours tried per frame whose tag is not found."""
+
+
+def _neighbour_seeds(out: Path, frames: Sequence[FrameInput], summaries: dict[str, dict]
+                     ) -> list[tuple[FrameInput, NeighbourSeed]]:
+    """The frames ended ``not_seeded`` that have an extracted neighbour not tried yet, each with
+    the nearest one's seed (:data:`NEIGHBOUR_REACH`, :data:`NEIGHBOUR_TRIES`)."""
+    sequences: dict[str, list[FrameInput]] = {}
+    for f in frames:
+        if f.sequence:
+            sequences.setdefault(f.sequence, []).append(f)
+    seeds = []
+    for members in sequences.values():
+        members = sorted(members, key=lambda f: f.order)
+        for rank, f in enumerate(members):
+            status = summaries.get(f.name, {})
+            tried = status.get("neighbours_tried", [])
+            if status.get("status") != FrameStatus.NOT_SEEDED.value or len(tried) >= NEIGHBOUR_TRIES:
+                continue
+            near = sorted((abs(r - rank), r) for r in range(max(0, rank - NEIGHBOUR_REACH),
+                                                           min(len(members), rank + NEIGHBOUR_REACH + 1)))
+            for _, r in near:
+                g = members[r]
+                if summaries.get(g.name, {}).get("status") != FrameStatus.OK.value or g.name in tried:
+                    continue
+                table = read_feature_table(frame_result_paths(out, g.name).features)
+                H = homography_from_features(table.fx, table.fy, table.x, table.y)
+                if H is not None:
+                    message = status.get("message", "").split(_REFUSED)[0]
+                    seeds.append((f, NeighbourSeed(g.name, H, message)))
+                    break
+    return seeds
+
+
+def extract_to_folder(frames: Sequence[FrameInput | Path], pattern: StarPattern, out_dir: str | os.PathLike,
+                      settings: ExtractSettings | None = None, workers: int = 1,
+                      progress: Callable[[int, int, dict], None] | None = None,
+                      expected_size: tuple[int, int] | None = None, overwrite: bool = False,
+                      cluster: str | None = None) -> FolderSummary:
+    """Extract every frame of ``frames`` into ``out_dir`` (resumable).
+
+    Every frame ends with a status: an unreadable frame, one of another size, one that cannot
+    be seeded or fails is recorded with its status and message, and the others go on. A frame
+    finished by an earlier run is skipped when its result key (the pattern, the settings, the
+    input file's size and modification time and a video frame's index) is unchanged and its
+    status is final (:data:`FINAL_STATUSES`); otherwise it is redone. The top-level tables list
+    exactly the frames of this run, by their names. With ``cluster`` (a Dask scheduler address)
+    the frames run as tasks there (:mod:`blurcalib.pipeline.cluster`), else in ``workers`` local
+    processes.
+
+    Once every frame has been tried from its own tag, the frames of a sequence (a video, a
+    folder) whose tag was not found are seeded from their nearest extracted neighbour and
+    verified (:func:`seed_from_neighbour`), in rounds, so that a seeded frame can seed the next.
+
+    Args:
+        frames: :class:`blurcalib.io.sources.FrameInput` (:func:`blurcalib.io.sources.frame_inputs`),
+            or image paths (:func:`as_frame_inputs`).
+        expected_size: ``(width, height)`` every frame must have; None takes the most common
+            size of the readable frames. Frames of another size get the status ``wrong_size``.
+        overwrite: write into a non-empty folder that is not an ``extract`` output
+            (:func:`blurcalib.io.atomic.claim_output_dir`), or replace results of frames of the
+            same name extracted from other files (each frame's status records its ``source``).
+    Raises:
+        OutputError: the folder holds something else, or results of another dataset's frames
+            of the same names (without ``overwrite``), or cannot be written.
+    """
+    settings = settings or ExtractSettings()
+    inputs = as_frame_inputs(frames)
+    names = [f.name for f in inputs]
+    if len(set(names)) != len(names):
+        raise ValueError("frame names must be unique, one per frame")
+    record = _settings_record(settings)
+    sources = {f.name: _source(f) for f in inputs}
+    if not overwrite:
+        _check_sources(Path(out_dir), sources)
+    out = claim_output_dir(out_dir, "extract", record, overwrite)
+    remove_temporaries(out / FRAMES_DIR)
+    video_sizes: dict[Path, tuple[int, int] | None] = {}
+    for f in inputs:
+        if f.index is not None and f.path not in video_sizes:
+            video_sizes[f.path] = f.size()
+    sizes = {f.name: f.size() if f.index is None else video_sizes[f.path] for f in inputs}
+    size = expected_size or _common_size(list(sizes.values()))
+    run_key = _digest({"pattern": pattern.to_yaml_text(), "settings": record})
+    keys = {f.name: _input_key(run_key, f) for f in inputs}
+    summaries: dict[str, dict] = {}
+    for n in names:
+        status = read_frame_status(out, n)
+        if (status is not None and status.get("key") == keys[n]
+                and status.get("status") in FINAL_STATUSES
+                and (size is None or sizes[n] in (None, size))):
+            summaries[n] = status
+    skipped = list(summaries)
+    tried: dict[str, list[str]] = {}
+
+    def finish(result: FrameResult) -> None:
+        summary = {**result.summary(), "key": keys[result.frame], "source": sources[result.frame]}
+        if result.frame in tried:
+            summary["neighbours_tried"] = tried[result.frame]
+        write_frame_results(out, result.frame, result.features, result.blocks, result.corners,
+                            summary)
+        summaries[result.frame] = summary
+        write_frames_table(out, list(summaries.values()))
+        if progress is not None:
+            progress(len(summaries), len(names), summary)
+
+    def run(tasks: list[tuple[FrameInput, NeighbourSeed | None]]) -> None:
+        if cluster is not None and tasks:
+            from blurcalib.pipeline.cluster import run_on_cluster
+
+            for result in run_on_cluster(cluster, _process, tasks, (pattern, settings, size)):
+                finish(result)
+        elif workers > 1 and len(tasks) > 1:
+            ctx = multiprocessing.get_context("spawn")
+            with ProcessPoolExecutor(workers, mp_context=ctx, initializer=_init_worker,
+                                     initargs=(pattern, settings)) as pool:
+                futures = {pool.submit(_process_in_worker, f, hint, size): f.name for f, hint in tasks}
+                for future in as_completed(futures):
+                    try:
+                        result = future.result()
+                    except Exception as exc:  # a worker died (e.g. out of memory): the frame failed
+                        result = FrameResult(futures[future], FrameStatus.FAILED, _one_line(exc))
+                    finish(result)
+        else:
+            for f, hint in tasks:
+                finish(_process(f, hint, pattern, settings, size))
+
+    run([(f, None) for f in inputs if f.name not in summaries])
+    while seeds := _neighbour_seeds(out, inputs, summaries):
+        for f, hint in seeds:
+            tried[f.name] = [*summaries[f.name].get("neighbours_tried", []), hint.neighbour]
+        run(list(seeds))
+    outputs = collect_results(out, names)
+    outputs["frames"] = write_frames_table(out, list(summaries.values()))
+    return FolderSummary([summaries[n] for n in names], skipped, outputs)

@@ -1,0 +1,1 @@
+"""Rotations and other geometry shared by the solvers."""

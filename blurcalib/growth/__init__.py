@@ -1,0 +1,1 @@
+"""Seeding on the AprilTag and region growing of solved blocks, front by front."""

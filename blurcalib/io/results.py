@@ -1,0 +1,652 @@
+"""Results of feature and PSF extraction, and their one on-disk format.
+
+Conventions (see ``docs/results-format.md``):
+
+* Pixel coordinates follow OpenCV: the centre of the top-left pixel is ``(0, 0)``, x right,
+  y down.
+* Feature ``(fx, fy)`` sits at the metric target point ``(fx L, fy L, 0)`` metres.
+* A *block* is the star square around one feature; its homography ``H`` (3 x 3) maps block
+  coordinates ``q in [-1, 1]^2`` (star centre at 0, square corners at ``(+-1, +-1)``, i.e.
+  feature coordinates ``p = (fx, fy) + q / 2``) to pixels.
+* PSF pixel ``(i, j)`` (row, column) of a ``K x K`` kernel sits at offset ``(j - c, i - c)``
+  px from the kernel centre, ``c = (K - 1) / 2``.
+
+One output folder holds ``features.csv`` (one row per feature observation), ``blocks.csv`` (one
+row per fitted block) and ``psfs.npz`` (the blocks' kernels and homographies, in the rows' order).
+Floats are written with ``repr`` so that float64 values round-trip exactly. For resumable runs,
+:func:`write_frame_results` writes the same files per frame under ``frames/`` (plus the frame's
+corners, its status record and, last, a ``done`` marker; :func:`frame_result_paths` names them),
+and :func:`collect_results` concatenates the frames of a run into the top-level files. Every
+file is written atomically.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import re
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from enum import Enum, IntFlag
+from pathlib import Path
+
+import numpy as np
+
+from blurcalib.camera.parametric import homography_centre
+from blurcalib.io.atomic import (
+    atomic_path,
+    atomic_write_csv,
+    atomic_write_json,
+    atomic_write_text,
+    ensure_writable_dir,
+    read_csv_columns,
+)
+from blurcalib.psf.kernel import blur_per_square
+
+FEATURES_FILE = "features.csv"
+BLOCKS_FILE = "blocks.csv"
+PSFS_FILE = "psfs.npz"
+CORNERS_FILE = "corners.csv"
+FRAMES_DIR = "frames"
+MAX_STEM_CHARS = 100
+"""Longest readable part of a per-frame file stem (:func:`frame_stem`)."""
+
+FEATURE_COLUMNS: tuple[str, ...] = ("frame", "feature_id", "fx", "fy", "X", "Y", "x", "y", "weight",
+                                    "flags")
+"""Columns of ``features.csv``, in order."""
+
+H_COLUMNS: tuple[str, ...] = tuple(f"h{r}{c}" for r in range(3) for c in range(3))
+COEFF_COLUMNS: tuple[str, ...] = ("a1", "a2", "a3", "b1", "b2", "b3")
+BLOCK_COLUMNS: tuple[str, ...] = (
+    "frame", "feature_id", "fx", "fy", "status", "loss", "boundary_energy", "sigma_major",
+    "sigma_minor", "eccentricity", "orientation", "centroid_x", "centroid_y",
+    *H_COLUMNS, *COEFF_COLUMNS, "loss_extent", "noise_var")
+"""Columns of ``blocks.csv``, in order (a file without the last two reads ``loss_extent`` as 1 and
+``noise_var`` as NaN)."""
+
+BLUR_PER_SQUARE_LIMIT = 1.25
+""":attr:`BlockTable.blur_per_square` from which fewer blocks are found, and those found are poorer,
+even with the frame's path-PSF field (``scripts/bench_yield.py``: 85 % returned at 0.048 px from
+0.8, 77 % at 0.067 px from 1, 59 % at 0.059 px from 1.25, 22 % at 0.11 px from 1.5; with free
+PSFs alone it is 50 % from 0.8 and 10 % from 1)."""
+
+CORNER_COLUMNS: tuple[str, ...] = ("frame", "cx2", "cy2", "X", "Y", "x", "y", "blocks")
+"""Columns of ``corners.csv``: the corner's feature coordinates doubled (``cx2 = 2 fx + 1`` for
+the corner half a square right of feature ``fx``), its metric point ``(cx2 L / 2, cy2 L / 2)``
+(m), its image position (px, OpenCV convention) and the number of blocks that share it."""
+
+
+class ResultsFileError(ValueError):
+    """A results file is missing or malformed; the message names the file and the column/row."""
+
+
+class BlockStatus(str, Enum):
+    """Outcome of fitting one block: ``accepted`` or the reason it was rejected."""
+
+    ACCEPTED = "accepted"
+    HIGH_LOSS = "high_loss"
+    OUTSIDE_IMAGE = "outside_image"
+    DEGENERATE_HOMOGRAPHY = "degenerate_homography"
+    PSF_TRUNCATED = "psf_truncated"
+    NOT_CONVERGED = "not_converged"
+    FILTERED_BOUNDARY_ENERGY = "filtered_boundary_energy"
+    FILTERED_LOSS = "filtered_loss"
+    DISCONNECTED = "disconnected"
+
+
+class FeatureFlags(IntFlag):
+    """Bit mask describing how a feature observation was obtained."""
+
+    NONE = 0
+    STAR_CENTRE = 1
+    """The observation is a star centre (the only kind of feature so far)."""
+    SHARP_FRAME = 2
+    """Extracted from a sharp frame (PSF close to a delta)."""
+    BLURRY_FRAME = 4
+    """Extracted from a motion-blurred frame with a fitted PSF."""
+    LOCALLY_ALIGNED = 8
+    """Position refined by the per-block (local) alignment."""
+    GLOBALLY_ALIGNED = 16
+    """Position refined by the frame-wide (global) alignment."""
+    FILTERED_OUT = 32
+    """Rejected by a later filter; kept for diagnostics, not to be used for calibration."""
+    LENS_CORRECTED = 64
+    """Moved by minus the bias of its block homography under the calibrated lens's distortion
+    (:mod:`blurcalib.calib.lens_bias`)."""
+
+
+@dataclass(frozen=True)
+class FeatureObservation:
+    """One observed feature: a star centre's pixel position in one frame.
+
+    Attributes:
+        frame: frame name.
+        feature_id: id of the feature in :attr:`StarPattern.features`.
+        fx, fy: integer feature coordinates (squares).
+        X, Y: metric target point ``(fx L, fy L)`` in metres (Z = 0).
+        x, y: pixel position, OpenCV convention (top-left pixel centre at (0, 0)).
+        weight: relative confidence, >= 0 (1 nominal).
+        flags: :class:`FeatureFlags` bit mask.
+    """
+
+    frame: str
+    feature_id: int
+    fx: int
+    fy: int
+    X: float
+    Y: float
+    x: float
+    y: float
+    weight: float
+    flags: int
+
+
+# -------------------------------------------------------------------------------- column tables
+def _column(values: Sequence | np.ndarray, dtype: type, n: int | None = None) -> np.ndarray:
+    out = np.asarray(values, dtype=dtype)
+    if out.ndim != 1 or (n is not None and len(out) != n):
+        raise ValueError(f"column must be 1-D of length {n}, got shape {out.shape}")
+    return out
+
+
+@dataclass(eq=False)
+class FeatureTable:
+    """Feature observations as numpy columns (N rows); the fast form for large sets.
+
+    Columns (all ``(N,)``): ``frame`` str, ``feature_id, fx, fy, flags`` int64,
+    ``X, Y`` metres and ``x, y`` px (OpenCV convention) and ``weight``, float64.
+    """
+
+    frame: np.ndarray
+    feature_id: np.ndarray
+    fx: np.ndarray
+    fy: np.ndarray
+    X: np.ndarray
+    Y: np.ndarray
+    x: np.ndarray
+    y: np.ndarray
+    weight: np.ndarray
+    flags: np.ndarray
+
+    def __post_init__(self) -> None:
+        n = len(self.frame)
+        self.frame = _column(self.frame, np.str_, n)
+        for name in ("feature_id", "fx", "fy", "flags"):
+            setattr(self, name, _column(getattr(self, name), np.int64, n))
+        for name in ("X", "Y", "x", "y", "weight"):
+            setattr(self, name, _column(getattr(self, name), np.float64, n))
+
+    def __len__(self) -> int:
+        return len(self.frame)
+
+    @classmethod
+    def empty(cls) -> FeatureTable:
+        """A table with no rows."""
+        return cls(*([] for _ in FEATURE_COLUMNS))
+
+    @classmethod
+    def from_observations(cls, features: Sequence[FeatureObservation]) -> FeatureTable:
+        """Columns of a list of observations (row order kept)."""
+        if not features:
+            return cls.empty()
+        return cls(*(list(col) for col in zip(*((f.frame, f.feature_id, f.fx, f.fy, f.X, f.Y, f.x, f.y,
+                                                 f.weight, f.flags) for f in features), strict=True)))
+
+    def to_observations(self) -> list[FeatureObservation]:
+        """One :class:`FeatureObservation` per row, with plain Python values."""
+        cols = [getattr(self, name).tolist() for name in FEATURE_COLUMNS]
+        return [FeatureObservation(*row) for row in zip(*cols, strict=True)]
+
+    def select(self, rows: np.ndarray) -> FeatureTable:
+        """The rows chosen by a boolean mask or an index array."""
+        return FeatureTable(*(getattr(self, name)[rows] for name in FEATURE_COLUMNS))
+
+    @classmethod
+    def concat(cls, tables: Sequence[FeatureTable]) -> FeatureTable:
+        """Rows of several tables, in order."""
+        if not tables:
+            return cls.empty()
+        return cls(*(np.concatenate([getattr(t, name) for t in tables]) for name in FEATURE_COLUMNS))
+
+
+@dataclass(eq=False)
+class BlockTable:
+    """The fitted blocks (star squares) of one or more frames as numpy columns (B rows, one
+    kernel size K): what extraction returns, the files hold and the pipeline and the app use.
+
+    Columns:
+        frame: ``(B,)`` str, frame name.
+        feature_id, fx, fy: ``(B,)`` int64, the block's feature (:attr:`StarPattern.features`)
+            and its integer feature coordinates (squares).
+        status: ``(B,)`` str, a :class:`BlockStatus` value: accepted, or why it was rejected.
+        loss: ``(B,)`` mean squared residual (8-bit grey levels squared).
+        boundary_energy: ``(B,)`` share of PSF energy in the kernel's outer two-pixel ring.
+        sigma_major, sigma_minor: ``(B,)`` px, square roots of the PSF second-moment eigenvalues.
+        eccentricity: ``(B,)`` ``sqrt(1 - sigma_minor^2 / sigma_major^2)`` (0 round, 1 a line).
+        orientation: ``(B,)`` rad in ``(-pi/2, pi/2]``, major axis from +x towards +y.
+        centroid: ``(B, 2)`` px, PSF intensity centroid relative to the kernel centre.
+        H: ``(B, 3, 3)`` float64 homographies, block coordinates ``q`` -> pixels.
+        coeffs: ``(B, 6)`` float64 ``a1, a2, a3, b1, b2, b3`` of the paper's affine intensity
+            model ``A(p) = a1 u + a2 v + a3``, ``B(p) = b1 u + b2 v + b3`` (grey levels).
+        psf: ``(B, K, K)`` float32 kernels, each summing to 1; pixel ``(i, j)`` at offset
+            ``(j - c, i - c)`` px, ``c = (K - 1) / 2``.
+        loss_extent: ``(B,)`` the area the block was fitted over, ``|q|_inf <= loss_extent``
+            (1: its square; :attr:`blurcalib.deconv.blocks.DeconvSettings.loss_extent`); 1 when not given.
+        noise_var: ``(B,)`` the frame's noise variance at the block's brightness (grey levels^2,
+            :meth:`blurcalib.extract.noise.NoiseModel.block_variance`): the unit of the noise-relative
+            loss threshold; NaN when not known.
+    """
+
+    frame: np.ndarray
+    feature_id: np.ndarray
+    fx: np.ndarray
+    fy: np.ndarray
+    status: np.ndarray
+    loss: np.ndarray
+    boundary_energy: np.ndarray
+    sigma_major: np.ndarray
+    sigma_minor: np.ndarray
+    eccentricity: np.ndarray
+    orientation: np.ndarray
+    centroid: np.ndarray
+    H: np.ndarray
+    coeffs: np.ndarray
+    psf: np.ndarray
+    loss_extent: np.ndarray | None = None
+    noise_var: np.ndarray | None = None
+
+    _SCALARS = ("loss", "boundary_energy", "sigma_major", "sigma_minor", "eccentricity", "orientation")
+    _FIELDS = ("frame", "feature_id", "fx", "fy", "status", *_SCALARS, "centroid", "H", "coeffs", "psf",
+               "loss_extent", "noise_var")
+
+    def __post_init__(self) -> None:
+        n = len(self.frame)
+        self.frame = _column(self.frame, np.str_, n)
+        statuses = self.status.tolist() if isinstance(self.status, np.ndarray) else list(self.status)
+        self.status = _column([BlockStatus(s).value for s in statuses], np.str_, n)
+        for name in ("feature_id", "fx", "fy"):
+            setattr(self, name, _column(getattr(self, name), np.int64, n))
+        for name in self._SCALARS:
+            setattr(self, name, _column(getattr(self, name), np.float64, n))
+        self.centroid = np.asarray(self.centroid, dtype=np.float64).reshape(n, 2)
+        self.H = np.asarray(self.H, dtype=np.float64).reshape(n, 3, 3)
+        self.coeffs = np.asarray(self.coeffs, dtype=np.float64).reshape(n, 6)
+        self.loss_extent = _column(np.ones(n) if self.loss_extent is None else self.loss_extent,
+                                   np.float64, n)
+        self.noise_var = _column(np.full(n, np.nan) if self.noise_var is None else self.noise_var,
+                                 np.float64, n)
+        self.psf = np.asarray(self.psf, dtype=np.float32)
+        if self.psf.ndim != 3 or self.psf.shape[0] != n or self.psf.shape[1] != self.psf.shape[2]:
+            raise ValueError(f"psf must be ({n}, K, K), got {self.psf.shape}")
+
+    def __len__(self) -> int:
+        return len(self.frame)
+
+    @classmethod
+    def empty(cls, kernel_size: int = 0) -> BlockTable:
+        """A table with no rows and kernels of ``kernel_size``."""
+        return cls([], [], [], [], [], *([] for _ in cls._SCALARS), np.zeros((0, 2)),
+                   np.zeros((0, 3, 3)), np.zeros((0, 6)), np.zeros((0, kernel_size, kernel_size)))
+
+    @property
+    def centre(self) -> np.ndarray:
+        """``(B, 2)`` px star centres ``H(0, 0)``; NaN for a degenerate ``H``."""
+        return homography_centre(self.H)
+
+    @property
+    def accepted(self) -> np.ndarray:
+        """``(B,)`` bool, the blocks whose status is ``accepted``."""
+        return self.status == BlockStatus.ACCEPTED.value
+
+    @property
+    def blur_per_square(self) -> np.ndarray:
+        """``(B,)`` blur extent over the star square's side (:func:`blurcalib.psf.kernel.blur_per_square`).
+        From :data:`BLUR_PER_SQUARE_LIMIT` even the frame's path-PSF field locates few stars
+        (docs/deconvolution.md); NaN where not fitted."""
+        return blur_per_square(self.sigma_major, self.H)
+
+    def features(self, square_length_m: float, flags: int) -> FeatureTable:
+        """One star-centre observation per row: ``(x, y)`` the star centre, ``(X, Y) = (fx L,
+        fy L)`` m, weight ``1 / (1 + loss)``, every row with the :class:`FeatureFlags` ``flags``."""
+        centre = self.centre
+        return FeatureTable(self.frame, self.feature_id, self.fx, self.fy, self.fx * square_length_m,
+                            self.fy * square_length_m, centre[:, 0], centre[:, 1], 1.0 / (1.0 + self.loss),
+                            np.full(len(self), int(flags)))
+
+    def select(self, rows: np.ndarray) -> BlockTable:
+        """The rows chosen by a boolean mask or an index array."""
+        return BlockTable(*(getattr(self, name)[rows] for name in self._FIELDS))
+
+    @classmethod
+    def concat(cls, tables: Sequence[BlockTable]) -> BlockTable:
+        """Rows of several tables, in order; kernels are zero-padded (centred) to the largest
+        size, which leaves them unchanged as kernels (the PSF window adapts to each frame's blur)."""
+        nonempty = [t for t in tables if len(t)]
+        if not nonempty:
+            return tables[0] if tables else cls.empty()
+        size = max(t.psf.shape[1] for t in nonempty)
+        if any((size - t.psf.shape[1]) % 2 for t in nonempty):
+            raise ValueError(f"cannot centre PSFs of sizes {sorted({t.psf.shape[1] for t in nonempty})}")
+
+        def column(t: BlockTable, name: str) -> np.ndarray:
+            if name != "psf":
+                return getattr(t, name)
+            p = (size - t.psf.shape[1]) // 2
+            return np.pad(t.psf, ((0, 0), (p, p), (p, p)))
+
+        return cls(*(np.concatenate([column(t, name) for t in nonempty]) for name in cls._FIELDS))
+
+
+# ------------------------------------------------------------------------------------- writing
+def _float_strings(values: np.ndarray) -> list[str]:
+    return list(map(repr, np.asarray(values, dtype=np.float64).tolist()))
+
+
+def _int_strings(values: np.ndarray) -> list[str]:
+    return list(map(str, np.asarray(values, dtype=np.int64).tolist()))
+
+
+def _csv_field(text: str) -> str:
+    """A CSV field as the ``csv`` module writes it (quoted only when it must be)."""
+    if any(ch in text for ch in ',"\r\n'):
+        return '"' + text.replace('"', '""') + '"'
+    return text
+
+
+def _str_strings(values: np.ndarray) -> list[str]:
+    names = np.asarray(values).tolist()
+    quoted = {name: _csv_field(name) for name in set(names)}
+    return [quoted[name] for name in names]
+
+
+def _csv_text(header: Sequence[str], columns: Sequence[list[str]]) -> str:
+    lines = [",".join(header), *map(",".join, zip(*columns, strict=True))]
+    return "\n".join(lines) + "\n"
+
+
+def _as_feature_table(features: Sequence[FeatureObservation] | FeatureTable) -> FeatureTable:
+    return features if isinstance(features, FeatureTable) else FeatureTable.from_observations(features)
+
+
+def write_features(path: str | os.PathLike, features: Sequence[FeatureObservation] | FeatureTable) -> Path:
+    """Write ``features.csv`` (columns :data:`FEATURE_COLUMNS`) atomically; return its path."""
+    t = _as_feature_table(features)
+    cols = [_str_strings(t.frame), *(_int_strings(getattr(t, n)) for n in ("feature_id", "fx", "fy")),
+            *(_float_strings(getattr(t, n)) for n in ("X", "Y", "x", "y", "weight")),
+            _int_strings(t.flags)]
+    return atomic_write_text(path, _csv_text(FEATURE_COLUMNS, cols))
+
+
+def write_blocks(csv_path: str | os.PathLike, npz_path: str | os.PathLike,
+                 t: BlockTable) -> tuple[Path, Path]:
+    """Write ``blocks.csv`` and ``psfs.npz`` atomically (each on its own); return their paths."""
+    cols = [_str_strings(t.frame), *(_int_strings(getattr(t, n)) for n in ("feature_id", "fx", "fy")),
+            _str_strings(t.status), *(_float_strings(getattr(t, n)) for n in BlockTable._SCALARS),
+            *(_float_strings(t.centroid[:, i]) for i in range(2)),
+            *(_float_strings(t.H[:, r, c]) for r in range(3) for c in range(3)),
+            *(_float_strings(t.coeffs[:, i]) for i in range(6)), _float_strings(t.loss_extent),
+            _float_strings(t.noise_var)]
+    atomic_write_text(csv_path, _csv_text(BLOCK_COLUMNS, cols))
+    with atomic_path(npz_path) as tmp, open(tmp, "wb") as handle:
+        np.savez(handle, frame=t.frame, feature_id=t.feature_id, psf=t.psf, H=t.H)
+    return Path(csv_path), Path(npz_path)
+
+
+def write_results(folder: str | os.PathLike, features: Sequence[FeatureObservation] | FeatureTable,
+                  blocks: BlockTable) -> dict[str, Path]:
+    """Write ``features.csv``, ``blocks.csv`` and ``psfs.npz`` into ``folder`` (created if needed).
+
+    The inputs are validated before anything is written; each file is replaced atomically.
+
+    Returns:
+        ``{"features": ..., "blocks": ..., "psfs": ...}`` paths.
+    Raises:
+        OutputError: the folder cannot be created or written.
+    """
+    feature_table = _as_feature_table(features)
+    out = ensure_writable_dir(folder)
+    paths = {"features": write_features(out / FEATURES_FILE, feature_table)}
+    paths["blocks"], paths["psfs"] = write_blocks(out / BLOCKS_FILE, out / PSFS_FILE, blocks)
+    return paths
+
+
+# ------------------------------------------------------------------------------------- reading
+def _parse(path: Path, name: str, values: list[str], convert: Callable[[str], object],
+           dtype: type, kind: str) -> np.ndarray:
+    try:
+        return np.array(list(map(convert, values)), dtype=dtype)
+    except ValueError:
+        for row, value in enumerate(values, start=1):
+            try:
+                convert(value)
+            except ValueError:
+                raise ResultsFileError(f"{path}: column '{name}', row {row}: cannot parse {value!r} "
+                                       f"as {kind}") from None
+        raise
+
+
+def _floats(path: Path, cols: dict[str, list[str]], name: str) -> np.ndarray:
+    return _parse(path, name, cols[name], float, np.float64, "a float")
+
+
+def _ints(path: Path, cols: dict[str, list[str]], name: str) -> np.ndarray:
+    return _parse(path, name, cols[name], int, np.int64, "an integer")
+
+
+def read_feature_table(path: str | os.PathLike) -> FeatureTable:
+    """Read a ``features.csv`` into columns.
+
+    Raises:
+        ResultsFileError: missing file, missing column, wrong field count or an unparsable value
+            (the message names the file and the column/row; rows count from 1 after the header).
+    """
+    p = Path(path)
+    cols, _ = read_csv_columns(p, FEATURE_COLUMNS, ResultsFileError, "results file")
+    return FeatureTable(
+        np.array(cols["frame"], dtype=np.str_),
+        *(_ints(p, cols, n) for n in ("feature_id", "fx", "fy")),
+        *(_floats(p, cols, n) for n in ("X", "Y", "x", "y", "weight")),
+        _ints(p, cols, "flags"))
+
+
+def read_features(path: str | os.PathLike) -> list[FeatureObservation]:
+    """Read a ``features.csv`` into observations (see :func:`read_feature_table`)."""
+    return read_feature_table(path).to_observations()
+
+
+def _status(path: Path, values: list[str]) -> np.ndarray:
+    valid = {s.value for s in BlockStatus}
+    for row, value in enumerate(values, start=1):
+        if value not in valid:
+            raise ResultsFileError(f"{path}: column 'status', row {row}: {value!r} is not one of "
+                                   f"{', '.join(sorted(valid))}")
+    return np.array(values, dtype=np.str_)
+
+
+def _read_psfs(path: Path, n: int) -> dict[str, np.ndarray]:
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            arrays = {k: data[k] for k in data.files}
+    except FileNotFoundError:
+        raise ResultsFileError(f"{path}: results file not found") from None
+    except (OSError, ValueError, EOFError) as exc:
+        raise ResultsFileError(f"{path}: not a readable npz archive ({exc})") from None
+    shapes = {"frame": (n,), "feature_id": (n,), "H": (n, 3, 3)}
+    for key in ("frame", "feature_id", "psf", "H"):
+        if key not in arrays:
+            raise ResultsFileError(f"{path}: missing array '{key}'")
+    for key, shape in shapes.items():
+        if arrays[key].shape != shape:
+            raise ResultsFileError(f"{path}: array '{key}' has shape {arrays[key].shape}, expected {shape}")
+    psf = arrays["psf"]
+    if psf.ndim != 3 or psf.shape[0] != n or psf.shape[1] != psf.shape[2]:
+        raise ResultsFileError(f"{path}: array 'psf' has shape {psf.shape}, expected ({n}, K, K)")
+    return arrays
+
+
+def read_block_table(folder: str | os.PathLike) -> BlockTable:
+    """Read ``blocks.csv`` and ``psfs.npz`` of a results folder into columns.
+
+    The npz rows must match the CSV rows (same frame, feature id and homography).
+
+    Raises:
+        ResultsFileError: a missing file, column or array, an unparsable value or a mismatch
+            between the two files (the message names the file and the column/row).
+    """
+    return _read_block_table(Path(folder) / BLOCKS_FILE, Path(folder) / PSFS_FILE)
+
+
+def _read_block_table(csv_path: Path, npz_path: Path) -> BlockTable:
+    cols, n = read_csv_columns(csv_path, BLOCK_COLUMNS[:-2], ResultsFileError, "results file",
+                               optional=BLOCK_COLUMNS[-2:])
+    frame = np.array(cols["frame"], dtype=np.str_)
+    feature_id = _ints(csv_path, cols, "feature_id")
+    H = np.stack([_floats(csv_path, cols, c) for c in H_COLUMNS], axis=1).reshape(n, 3, 3)
+    arrays = _read_psfs(npz_path, n)
+    for key, ours in (("frame", frame), ("feature_id", feature_id), ("H", H)):
+        differs = arrays[key] != ours
+        if key == "H":
+            differs &= ~(np.isnan(arrays[key]) & np.isnan(ours))
+        bad = np.flatnonzero(differs.reshape(n, -1).any(axis=1)) if n else []
+        if len(bad):
+            raise ResultsFileError(f"{npz_path}: array '{key}' differs from {csv_path.name} at row "
+                                   f"{bad[0] + 1}")
+    return BlockTable(
+        frame, feature_id, _ints(csv_path, cols, "fx"), _ints(csv_path, cols, "fy"),
+        _status(csv_path, cols["status"]), *(_floats(csv_path, cols, c) for c in BlockTable._SCALARS),
+        np.stack([_floats(csv_path, cols, c) for c in ("centroid_x", "centroid_y")], axis=1), H,
+        np.stack([_floats(csv_path, cols, c) for c in COEFF_COLUMNS], axis=1), arrays["psf"],
+        *(_floats(csv_path, cols, c) if c in cols else None for c in BLOCK_COLUMNS[-2:]))
+
+
+# ------------------------------------------------------------------------------ per-frame files
+@dataclass(frozen=True)
+class FramePaths:
+    """The per-frame files of one frame under ``folder/frames/`` (``<stem>`` is
+    :func:`frame_stem` of the frame name); the one place that knows their names.
+
+    Attributes:
+        features: ``<stem>.features.csv``, the frame's rows of ``features.csv``.
+        blocks: ``<stem>.blocks.csv``, its rows of ``blocks.csv``.
+        psfs: ``<stem>.psfs.npz``, its rows of ``psfs.npz``.
+        corners: ``<stem>.corners.csv``, its rows of ``corners.csv``.
+        status: ``<stem>.status.json``, its status record: the row of ``frames.csv`` plus
+            the key of what produced the result.
+        done: ``<stem>.done``, the marker holding the frame name, written last.
+    """
+
+    features: Path
+    blocks: Path
+    psfs: Path
+    corners: Path
+    status: Path
+    done: Path
+
+
+def frame_stem(frame_name: str) -> str:
+    """File-name stem of a frame's per-frame files; different frame names get different stems.
+
+    The name, extension kept (``0.png`` and ``0.jpg`` differ), with folders joined by ``__``,
+    characters outside ``[A-Za-z0-9._-]`` and a leading ``.`` replaced by ``_``. Where that
+    changes the name, or the name has upper-case letters (a case-insensitive file system
+    would fold them) or more than :data:`MAX_STEM_CHARS` characters, the readable part is cut
+    to that length and ``~`` plus 12 hex digits of the name's SHA-256 are appended
+    (``seq/img 1.png`` -> ``seq__img_1.png~<hash>``). ``~`` is never kept from a name, so a
+    stem without it is the frame name itself and a stem with it is unique to one name.
+    """
+    parts = [p for p in re.split(r"[\\/]+", frame_name) if p]
+    if not parts:
+        raise ValueError(f"frame name {frame_name!r} has no file-name part")
+    safe = re.sub(r"[^A-Za-z0-9._-]", "_", "__".join(parts))
+    if safe.startswith("."):
+        safe = "_" + safe[1:]
+    if safe == frame_name and safe == safe.lower() and len(safe) <= MAX_STEM_CHARS:
+        return safe
+    digest = hashlib.sha256(frame_name.encode("utf-8", "surrogatepass")).hexdigest()[:12]
+    return f"{safe[:MAX_STEM_CHARS]}~{digest}"
+
+
+def frame_result_paths(folder: str | os.PathLike, frame_name: str) -> FramePaths:
+    """Paths of a frame's per-frame files under ``folder/frames/`` (see :class:`FramePaths`)."""
+    base = f"{Path(folder) / FRAMES_DIR / frame_stem(frame_name)}."
+    return FramePaths(features=Path(base + FEATURES_FILE), blocks=Path(base + BLOCKS_FILE),
+                      psfs=Path(base + PSFS_FILE), corners=Path(base + CORNERS_FILE),
+                      status=Path(base + "status.json"), done=Path(base + "done"))
+
+
+def write_frame_results(folder: str | os.PathLike, frame_name: str,
+                        features: Sequence[FeatureObservation] | FeatureTable,
+                        blocks: BlockTable,
+                        corners: Sequence[Sequence[object]], status: dict) -> FramePaths:
+    """Write one frame's results under ``folder/frames/`` for resumable runs.
+
+    The ``done`` marker is removed first and written last (holding the frame name), after the
+    features, blocks, PSFs, corners (rows of :data:`CORNER_COLUMNS`) and the status record
+    ``status`` (JSON); a frame counts as finished only once its marker exists, so an
+    interrupted write is redone on resume.
+
+    Raises:
+        ValueError: a row or the status record belongs to another frame.
+        OutputError: the folder cannot be written.
+    """
+    ft = _as_feature_table(features)
+    others = [("feature", str(f)) for f in ft.frame[ft.frame != frame_name][:1]]
+    others += [("block", str(f)) for f in blocks.frame[blocks.frame != frame_name][:1]]
+    others += [("corner", str(r[0])) for r in corners if r[0] != frame_name][:1]
+    if status.get("frame") != frame_name:
+        others.append(("status", str(status.get("frame"))))
+    if others:
+        kind, other = others[0]
+        raise ValueError(f"{kind} row of frame {other!r} passed for frame {frame_name!r}")
+    ensure_writable_dir(Path(folder) / FRAMES_DIR)
+    paths = frame_result_paths(folder, frame_name)
+    paths.done.unlink(missing_ok=True)
+    write_features(paths.features, ft)
+    write_blocks(paths.blocks, paths.psfs, blocks)
+    atomic_write_csv(paths.corners, CORNER_COLUMNS, corners)
+    atomic_write_json(paths.status, status)
+    atomic_write_text(paths.done, frame_name + "\n")
+    return paths
+
+
+def read_frame_status(folder: str | os.PathLike, frame_name: str) -> dict | None:
+    """The status record of a finished frame, or None when the frame is not finished: no
+    ``done`` marker, or a marker or status record that is unreadable or names another frame
+    (such a frame is simply redone)."""
+    paths = frame_result_paths(folder, frame_name)
+    try:
+        marker = paths.done.read_text(encoding="utf-8")
+        record = json.loads(paths.status.read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return None
+    if marker != frame_name + "\n" or not isinstance(record, dict) or record.get("frame") != frame_name:
+        return None
+    return record
+
+
+def collect_results(folder: str | os.PathLike, frame_names: Sequence[str]) -> dict[str, Path]:
+    """Concatenate the per-frame files of ``frame_names``, in that order, into the top-level
+    ``features.csv``, ``blocks.csv``, ``psfs.npz`` and ``corners.csv`` of ``folder``.
+
+    Exactly these frames are collected: per-frame files of other frames (left by an earlier
+    run) stay under ``frames/`` but are not in the tables.
+
+    Returns:
+        The paths written by :func:`write_results`, plus ``"corners"``.
+    Raises:
+        ResultsFileError: a frame is not finished, or a per-frame file is missing or malformed.
+    """
+    paths = [frame_result_paths(folder, name) for name in frame_names]
+    for name, p in zip(frame_names, paths, strict=True):
+        if not p.done.is_file():
+            raise ResultsFileError(f"{p.done}: frame {name!r} has no finished per-frame results")
+    features = FeatureTable.concat([read_feature_table(p.features) for p in paths])
+    blocks = BlockTable.concat([_read_block_table(p.blocks, p.psfs) for p in paths])
+    corners: list[tuple[str, ...]] = []
+    for p in paths:
+        cols, _ = read_csv_columns(p.corners, CORNER_COLUMNS, ResultsFileError, "results file")
+        corners += zip(*(cols[c] for c in CORNER_COLUMNS), strict=True)
+    outputs = write_results(folder, features, blocks)
+    outputs["corners"] = atomic_write_csv(Path(folder) / CORNERS_FILE, CORNER_COLUMNS, corners)
+    return outputs

@@ -1,0 +1,147 @@
+"""What the experiments share: the simulated scene, extraction of simulated frames, JSON numbers
+and the command-line scaffolding of ``blurcalib experiment NAME``.
+
+Units: pixels in the OpenCV convention (top-left pixel centre at ``(0, 0)``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from blurcalib.deconv.blocks import DeconvSettings
+from blurcalib.extract.frame import ExtractSettings, FrameResult, FrameStatus, extract_frame
+from blurcalib.growth.grow import GrowSettings
+from blurcalib.io.atomic import OutputError
+from blurcalib.sim.synth import FrameTruth, Simulator, SynthConfig, TrueCamera, d435i_like_camera
+
+DEFAULT_OUT = Path("out") / "experiments"
+"""Default output folder of every experiment."""
+
+
+# ------------------------------------------------------------------------------ the scene
+def experiment_camera(seed: int = 0, scale: float = 0.5, deviation_px: float = 0.01) -> TrueCamera:
+    """The simulated camera of the real-world experiments.
+
+    :func:`blurcalib.sim.synth.d435i_like_camera` (1280 x 720 px) resized by ``scale``
+    (:meth:`BrownConrady.scaled`), with its smooth non-parametric deviation of ``deviation_px``
+    px peak in the resized image (the paper's sharp-set calibration fits its camera to about
+    0.03 px, so the deviation is kept small, as in the alignment experiment).
+    """
+    full = d435i_like_camera(seed, deviation_px)
+    return TrueCamera(full.model.scaled(scale), full.waves)
+
+
+def experiment_simulator(sharp: int, blurry: int, blur_px: tuple[float, float], seed: int,
+                         scale: float, deviation_px: float) -> Simulator:
+    """``sharp`` sharp frames (indices first) then ``blurry`` blurry ones, median blur length
+    uniform in ``blur_px`` (px), seen by :func:`experiment_camera`."""
+    config = SynthConfig(sharp=sharp, blurry=blurry, blur_min_px=blur_px[0], blur_max_px=blur_px[1],
+                         seed=seed)
+    return Simulator(config, camera=experiment_camera(seed, scale, deviation_px))
+
+
+def extract_settings(kernel_size: int = 17, max_blocks: int = 5000, device: str = "cpu") -> ExtractSettings:
+    """Blurry-frame extraction settings: ``K x K`` PSF window (px), growth capped at about
+    ``max_blocks`` attempted blocks, solve on the torch ``device``."""
+    return ExtractSettings(deconv=DeconvSettings(kernel_size=kernel_size, device=device),
+                           grow=GrowSettings(max_blocks=max_blocks))
+
+
+# ------------------------------------------------------------------------- extracted frames
+@dataclass(eq=False)
+class ExtractedFrame:
+    """One simulated blurry frame and its extraction (kept in memory, extracted once).
+
+    Attributes:
+        name: the frame's name (``blurry/0003.png``).
+        truth: its ground truth.
+        result: :func:`blurcalib.extract.frame.extract_frame`'s result (``growth.fit`` holds every
+            attempted block's figures, ``local`` the local alignment of the accepted ones).
+        image_size: ``(width, height)`` px.
+        seconds: render and extraction time (s).
+    """
+
+    name: str
+    truth: FrameTruth = field(repr=False)
+    result: FrameResult = field(repr=False)
+    image_size: tuple[int, int]
+    seconds: float
+
+    @property
+    def ok(self) -> bool:
+        """Extraction succeeded with at least one accepted block."""
+        return self.result.status is FrameStatus.OK and self.result.growth is not None
+
+    def summary(self) -> str:
+        """One progress line: status, block counts, true median blur, time."""
+        growth = self.result.growth
+        blocks = 0 if growth is None else len(growth.feature_id)
+        accepted = 0 if growth is None else int(growth.accepted.sum())
+        blur = float(np.median(self.truth.blur_length[self.truth.visible]))
+        return (f"  {self.name}: {self.result.status.value}, {accepted}/{blocks} blocks accepted, "
+                f"median blur {blur:.1f} px, {self.seconds:.1f} s")
+
+
+def extract_frames(sim: Simulator, indices: Sequence[int], settings: ExtractSettings,
+                   progress: Callable[[str], None] | None = None) -> list[ExtractedFrame]:
+    """Render and extract the simulator's frames ``indices`` once each.
+
+    A frame whose extraction raises (ValueError, RuntimeError, LinAlgError) is kept with status
+    ``failed`` and its message, as :func:`blurcalib.extract.frame.extract_to_folder` records it.
+    """
+    out = []
+    size = (sim.camera.model.width, sim.camera.model.height)
+    for index in indices:
+        t0 = time.perf_counter()
+        frame = sim.frame(index)
+        name = frame.truth.name
+        try:
+            result = extract_frame(frame.image.astype(np.float32), sim.pattern, name, settings)
+        except (ValueError, RuntimeError, np.linalg.LinAlgError) as exc:
+            result = FrameResult(name, FrameStatus.FAILED, f"{type(exc).__name__}: {exc}")
+        extracted = ExtractedFrame(name, frame.truth, result, size, time.perf_counter() - t0)
+        out.append(extracted)
+        if progress is not None:
+            progress(extracted.summary())
+    return out
+
+
+# ------------------------------------------------------------------------------- outputs
+def finite(v: float | None) -> float | None:
+    """``v`` rounded to 6 decimals for JSON, or None when missing or not finite."""
+    return round(float(v), 6) if v is not None and math.isfinite(v) else None
+
+
+def experiment_parser(name: str, description: str, outputs: str) -> argparse.ArgumentParser:
+    """The parser of ``blurcalib experiment NAME`` with its ``--out`` and ``--seed`` options."""
+    parser = argparse.ArgumentParser(prog=f"blurcalib experiment {name}", description=description)
+    parser.add_argument("--out", default=str(DEFAULT_OUT),
+                        help=f"output folder for {outputs} (%(default)s)")
+    parser.add_argument("--seed", type=int, default=0, help="random seed (%(default)s)")
+    return parser
+
+
+def run_experiment_cli(parser: argparse.ArgumentParser, argv: Sequence[str] | None,
+                       run: Callable[[argparse.Namespace], Sequence[Path]]) -> int:
+    """Parse ``argv``, call ``run(args)`` (which prints its tables and returns the files it
+    wrote) and list the outputs.
+
+    Returns 0, or 2 with ``blurcalib: error: ...`` on stderr for bad options (``ValueError``)
+    or an unwritable output folder (:class:`OutputError`).
+    """
+    args = parser.parse_args(argv)
+    try:
+        paths = run(args)
+    except (OutputError, ValueError) as exc:
+        print(f"blurcalib: error: {exc}", file=sys.stderr)
+        return 2
+    print("  outputs: " + ", ".join(str(p) for p in paths))
+    return 0

@@ -1,0 +1,490 @@
+"""The frame's PSF field: motion-path PSFs that vary smoothly over the image, fitted with the blocks.
+
+Hand shake moves the camera rigidly during the exposure, so the image of every target point runs
+along a short smooth path, and the paths vary smoothly over the frame. Under blur as long as the
+star squares, a free (non-parametric) PSF per block trades its shape against the star's position
+within the noise: started from the true homography such blocks land 0.3-1.2 px off, the same
+blocks fitted with their true PSF 0.04-0.1 px off (``docs/deconvolution.md``). This module gives
+the PSF few parameters and shares them over the frame:
+
+* **a path PSF** (``eq:path_psf``)::
+
+      k(d) = 1/T sum_t N(d; p(tau_t), sigma^2 I),    p(tau) = a tau + b (tau^2 - <tau^2>),
+      tau_t = (t + 1/2) / T - 1/2,
+
+  the time-averaged image of a point that moves along a quadratic path in equal time steps,
+  spread by a Gaussian (defocus, the pixel's area, the latent pattern's soft edge). ``p`` has
+  zero time-mean, so the PSF's centroid is 0 and a block's ``H(0, 0)`` is the star's
+  time-averaged image position, as after :func:`blurcalib.psf.kernel.recentre`. ``(a, b)`` and
+  ``(-a, b)`` give the same kernel (the direction of time is not seen).
+* **a field** ``theta(x) = (a(x), b(x), log sigma)``: ``a`` and ``b`` are polynomials of degree
+  ``<= 2`` in normalised image coordinates ``u = (x - x_c) / s``, ``v = (y - y_c) / s``
+  (``(x_c, y_c)`` the image centre, ``s`` half its longer side; a rigid motion moves the image of
+  a plane by a field quadratic in the undistorted image), ``sigma`` is one per frame. On the
+  simulated heavy-blur frames a quadratic field holds the true paths to 0.01 px RMS.
+* :func:`fit_path_field`: the field and every block's homography and brightness in one
+  Gauss-Newton problem (``eq:field_fit``), the blocks' parameters eliminated by the Schur
+  complement. The blocks' fit with the field's kernels held is :func:`blurcalib.deconv.blocks.fit_blocks`
+  with ``psf_fixed``.
+
+Conventions: OpenCV pixels (top-left pixel centre at ``(0, 0)``); kernels ``K x K`` with
+``k[i, j]`` the weight of offset ``(j - c, i - c)`` px (``docs/conventions.md``).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, replace
+
+import cv2
+import numpy as np
+import torch
+
+from blurcalib.deconv.blocks import BlockProblem, DeconvSettings, block_windows, update_homography
+from blurcalib.io.results import BlockStatus
+from blurcalib.psf.kernel import psf_moments
+
+__all__ = [
+    "FieldFit",
+    "FieldSettings",
+    "PathField",
+    "constant_field",
+    "fit_path_field",
+    "path_kernels",
+]
+
+PATH_SAMPLES = 48
+"""Time samples ``T`` of a path PSF: 0.8 px apart on a 40 px path, below the Gaussian's width."""
+_NUM_THETA = 5
+"""Path parameters per block: ``a_x, a_y, b_x, b_y, log sigma``."""
+TERMS = (1, 3, 6)
+"""Monomials of a field of degree 0, 1, 2 (:func:`monomials`)."""
+
+
+def _basis_in_time(T: int, dtype: torch.dtype, device: torch.device) -> torch.Tensor:
+    """``(T, 2)``: ``tau_t`` and ``tau_t^2 - <tau^2>`` (zero time-mean columns)."""
+    tau = (torch.arange(T, dtype=torch.float64, device=device) + 0.5) / T - 0.5
+    return torch.stack([tau, tau * tau - (tau * tau).mean()], dim=1).to(dtype)
+
+
+def path_kernels(theta: torch.Tensor, size: int, with_jac: bool = False, samples: int = PATH_SAMPLES
+                 ) -> tuple[torch.Tensor, torch.Tensor | None]:
+    """Path PSFs ``eq:path_psf`` and their derivatives.
+
+    The Gaussian is separable, so each kernel is a ``(K, T) x (T, K)`` product.
+
+    Args:
+        theta: ``(B, 5)`` ``(a_x, a_y, b_x, b_y, log sigma)`` (px, px, log px).
+        size: ``K`` (odd), the kernel side (px).
+        with_jac: also return the derivatives.
+        samples: ``T``.
+    Returns:
+        ``k (B, K, K)`` (sum ~1 while the path and its spread stay inside the window) and, with
+        ``with_jac``, ``dk (B, 5, K, K)`` w.r.t. the entries of ``theta``.
+    """
+    B, dt, dev = theta.shape[0], theta.dtype, theta.device
+    basis = _basis_in_time(samples, dt, dev)
+    coef = theta[:, :4].reshape(B, 2, 2)  # (B, [a, b], [x, y])
+    p = torch.einsum("tj,bjc->btc", basis, coef)  # (B, T, 2)
+    sigma = torch.exp(theta[:, 4])[:, None, None]
+    d = torch.arange(size, dtype=dt, device=dev) - (size - 1) / 2
+    ex = (d[None, None, :] - p[..., 0:1]) / sigma  # (B, T, K)
+    ey = (d[None, None, :] - p[..., 1:2]) / sigma
+    norm = 1.0 / (math.sqrt(2.0 * math.pi) * sigma)
+    gx, gy = torch.exp(-0.5 * ex * ex) * norm, torch.exp(-0.5 * ey * ey) * norm / samples
+    k = gy.transpose(1, 2) @ gx  # (B, K, K): row i from y, column j from x
+    if not with_jac:
+        return k, None
+    gx_p, gy_p = gx * ex / sigma, gy * ey / sigma  # d/dp_x of gx, d/dp_y of gy
+    gx_s, gy_s = gx * (ex * ex - 1.0), gy * (ey * ey - 1.0)  # d/dlog sigma
+    dk = torch.empty((B, _NUM_THETA, size, size), dtype=dt, device=dev)
+    for j in range(2):  # a, b
+        w = basis[None, :, j, None]
+        dk[:, 2 * j] = gy.transpose(1, 2) @ (gx_p * w)
+        dk[:, 2 * j + 1] = (gy_p * w).transpose(1, 2) @ gx
+    dk[:, 4] = gy_s.transpose(1, 2) @ gx + gy.transpose(1, 2) @ gx_s
+    return k, dk
+
+
+@dataclass(frozen=True)
+class PathField:
+    """A frame's field of path PSFs (``eq:path_psf``).
+
+    Attributes:
+        coeffs: ``(P, 4)`` px, the polynomial coefficients of ``(a_x, a_y, b_x, b_y)`` over the
+            monomials ``1, u, v, u^2, u v, v^2`` (the first ``P``: 1, 3 or 6 for degree 0, 1, 2).
+        log_sigma: log of the Gaussian spread (px).
+        image_size: ``(width, height)`` px, which fixes ``u, v``.
+    """
+
+    coeffs: np.ndarray
+    log_sigma: float
+    image_size: tuple[int, int]
+
+    @property
+    def degree(self) -> int:
+        """Polynomial degree (0, 1 or 2)."""
+        return TERMS.index(len(self.coeffs))
+
+    def basis(self, xy: np.ndarray) -> np.ndarray:
+        """``(B, P)`` monomials at image points ``xy (B, 2)`` px."""
+        return monomials(np.asarray(xy, dtype=np.float64), self.image_size, self.degree)
+
+    def theta(self, xy: np.ndarray) -> np.ndarray:
+        """``(B, 5)`` path parameters at image points ``xy (B, 2)`` px."""
+        ab = self.basis(xy) @ self.coeffs
+        return np.concatenate([ab, np.full((len(ab), 1), self.log_sigma)], axis=1)
+
+    def reach(self, xy: np.ndarray) -> np.ndarray:
+        """``(B,)`` px: the largest distance of the path from the star's time-averaged image,
+        plus three Gaussian widths (what a window must hold)."""
+        th = torch.as_tensor(self.theta(xy))
+        p = torch.einsum("tj,bjc->btc", _basis_in_time(PATH_SAMPLES, th.dtype, th.device),
+                         th[:, :4].reshape(-1, 2, 2))
+        return p.abs().amax(dim=(1, 2)).numpy() + 3.0 * math.exp(self.log_sigma)
+
+    def kernel_size(self, xy: np.ndarray, largest: int) -> int:
+        """The odd window side (px) that holds the paths at ``xy``, at most ``largest``."""
+        k = 2 * math.ceil(float(np.max(self.reach(xy), initial=0.0)) + 1.0) + 1
+        return int(min(k, largest - 1 + largest % 2))
+
+    def kernels(self, xy: np.ndarray, size: int) -> np.ndarray:
+        """``(B, K, K)`` float64 path PSFs at ``xy (B, 2)`` px, each summing to 1."""
+        k, _ = path_kernels(torch.as_tensor(self.theta(xy)), size)
+        k = k.numpy()
+        return k / k.sum(axis=(1, 2), keepdims=True)
+
+    def with_degree(self, degree: int) -> PathField:
+        """The same field as a polynomial of ``degree`` (higher terms 0; lower ones dropped)."""
+        P = TERMS[degree]
+        coeffs = np.zeros((P, 4))
+        n = min(P, len(self.coeffs))
+        coeffs[:n] = self.coeffs[:n]
+        return PathField(coeffs, self.log_sigma, self.image_size)
+
+    def footprint(self, xy: np.ndarray, largest: int, margin_px: int = 2) -> np.ndarray:
+        """``(F, F)`` uint8: where the PSF at image point ``xy (2,)`` px has weight (above 1 % of
+        its peak), dilated by ``margin_px`` px: a pixel sees a tag through the blur only within
+        the tag dilated by it (:func:`blurcalib.growth.grow.pixel_mask`)."""
+        xy = np.asarray(xy, dtype=np.float64).reshape(1, 2)
+        size = self.kernel_size(xy, largest)
+        k = self.kernels(xy, size)[0]
+        core = (k > 0.01 * k.max()).astype(np.uint8)
+        core = np.pad(core, margin_px)
+        return cv2.dilate(core, np.ones((2 * margin_px + 1,) * 2, dtype=np.uint8))
+
+    def to_dict(self) -> dict:
+        return {"degree": self.degree, "coeffs": np.round(self.coeffs, 6).tolist(),
+                "sigma_px": round(math.exp(self.log_sigma), 6), "image_size": list(self.image_size)}
+
+    @classmethod
+    def from_dict(cls, d: dict) -> PathField:
+        coeffs = np.asarray(d["coeffs"], dtype=np.float64).reshape(-1, 4)
+        if len(coeffs) not in TERMS or not float(d["sigma_px"]) > 0:
+            raise ValueError(f"not a path field: {len(coeffs)} coefficient rows, sigma {d['sigma_px']}")
+        return cls(coeffs, math.log(float(d["sigma_px"])), (int(d["image_size"][0]), int(d["image_size"][1])))
+
+
+def monomials(xy: np.ndarray, image_size: tuple[int, int], degree: int) -> np.ndarray:
+    """``(B, P)``: ``1, u, v, u^2, u v, v^2`` (the first ``P`` for ``degree`` 0, 1, 2) at image
+    points ``xy (B, 2)`` px, ``u = (x - x_c) / s``, ``v = (y - y_c) / s``."""
+    w, h = image_size
+    s = max(w, h) / 2.0
+    u, v = (xy[:, 0] - (w - 1) / 2.0) / s, (xy[:, 1] - (h - 1) / 2.0) / s
+    terms = [np.ones_like(u), u, v, u * u, u * v, v * v]
+    return np.stack(terms[:TERMS[degree]], axis=1)
+
+
+def constant_field(psfs: np.ndarray, image_size: tuple[int, int], degree: int) -> PathField:
+    """A field of straight paths, the same everywhere, from fitted (re-centred) PSFs
+    ``(B, K, K)``: the median blur extent ``sqrt(12) sigma_major`` along their mean orientation
+    (averaged as doubled angles), the median ``sigma_minor`` as the spread (within 0.5-1 px: free
+    PSFs under long blur spread into noise, measured up to 4 px where the truth is 0.8 px); the
+    higher-degree coefficients 0 (:func:`fit_path_field`'s start)."""
+    ok = np.all(np.isfinite(psfs), axis=(1, 2)) & (np.nan_to_num(psfs).sum(axis=(1, 2)) > 0)
+    if not ok.any():
+        raise ValueError("no finite PSF to start a path field from")
+    m = psf_moments(psfs[ok])
+    angle = 0.5 * float(np.angle(np.mean(np.exp(2j * np.asarray(m.orientation)))))
+    length = math.sqrt(12.0) * float(np.median(m.sigma_major))
+    coeffs = np.zeros((TERMS[degree], 4))
+    coeffs[0, :2] = length * math.cos(angle), length * math.sin(angle)
+    return PathField(coeffs, math.log(min(max(float(np.median(m.sigma_minor)), 0.5), 1.0)), image_size)
+
+
+@dataclass(frozen=True)
+class FieldSettings:
+    """Settings of :func:`fit_path_field`.
+
+    Attributes:
+        iterations: largest number of Levenberg-Marquardt steps.
+        loss_extent: the blocks' loss covers ``|q|_inf <= loss_extent`` (block units).
+        largest_kernel: largest PSF window (px, odd).
+        outlier_loss: blocks whose mean squared residual exceeds this multiple of the median
+            block's are down-weighted (weight ``outlier_loss median / loss``; a block that
+            settled off must not bend the field).
+        tolerance: stop when a step lowers the objective by less than this share.
+        min_sigma_px: the Gaussian spread is kept above this (px).
+        hold_steps: at most this many first steps hold the blocks' homographies at their
+            starts (only the field and the brightness move; not when tied): a block fitted
+            with a poor early field runs away (measured on a 24 px curved blur: 10 of 40 blocks
+            that started 0.05-0.27 px off ended 5-27 px off).
+    """
+
+    iterations: int = 25
+    loss_extent: float = 1.5
+    largest_kernel: int = 81
+    outlier_loss: float = 2.0
+    tolerance: float = 1e-4
+    min_sigma_px: float = 0.35
+    hold_steps: int = 10
+
+
+@dataclass
+class FieldFit:
+    """Result of :func:`fit_path_field` for ``B`` blocks.
+
+    Attributes:
+        field: the fitted :class:`PathField`.
+        H: ``(B, 3, 3)`` the blocks' homographies (``H(0, 0)`` the time-averaged star centre);
+            the start for blocks that could not be fitted.
+        loss: ``(B,)`` mean squared residual over each block's loss area (grey levels^2; NaN
+            where not fitted).
+        weight: ``(B,)`` the final block weights (0 where not fitted).
+        kernel_size: the window used (px).
+        iterations: LM steps taken.
+        objective: ``(iterations + 1,)`` the weighted objective before each step and at the end.
+    """
+
+    field: PathField
+    H: np.ndarray
+    loss: np.ndarray
+    weight: np.ndarray
+    kernel_size: int
+    iterations: int
+    objective: np.ndarray
+
+
+class _FieldProblem:
+    """The blocks of :func:`fit_path_field`: their windows, pixels and the field's basis."""
+
+    def __init__(self, image: np.ndarray, H0: np.ndarray, num_segments: int, s: DeconvSettings,
+                 pixel_mask: np.ndarray | None, basis: np.ndarray) -> None:
+        origin, size, Hn, status = block_windows(H0, image.shape, s)
+        self.rows = np.flatnonzero([st is BlockStatus.ACCEPTED for st in status])
+        dev = torch.device(s.device)
+        img = torch.as_tensor(np.asarray(image, dtype=np.float32 if s.dtype == "float32" else np.float64),
+                              device=dev)
+        ok = None if pixel_mask is None else torch.as_tensor(np.asarray(pixel_mask, dtype=bool), device=dev)
+        r = self.rows
+        self.prob = BlockProblem(img, ok, origin[r], size[r], num_segments, s)
+        self.H_loc = self.prob.to_local(Hn[r])
+        self.mask = self.prob.square_mask(self.H_loc).to(self.prob.dt)  # held through the fit
+        self.basis = torch.as_tensor(basis[r], dtype=self.prob.dt, device=dev)
+        self.one = torch.ones_like(self.prob.u_e)
+
+    def evaluate(self, H_loc: torch.Tensor, bright: torch.Tensor | None, coeffs: torch.Tensor,
+                 log_sigma: torch.Tensor, with_jac: bool) -> dict[str, torch.Tensor]:
+        """Residuals ``(b, n)`` and, optionally, the Jacobians of the blocks' own parameters
+        ``Jl (b, 14, n)`` (8 of ``H``, 6 of the brightness) and of the shared ones
+        ``Js (b, 4 P + 1, n)``; ``bright`` None solves the brightness in closed form first."""
+        pb, b = self.prob, H_loc.shape[0]
+        dt = pb.dt
+        theta = torch.cat([self.basis @ coeffs.to(dt), log_sigma.to(dt).expand(b, 1)], dim=1)
+        k, dk = path_kernels(theta, pb.s.kernel_size, with_jac)
+        S, dS = pb.latent(H_loc, with_jac=with_jac)
+        conv = pb.conv(torch.cat([S[:, None], dS], dim=1), k) if with_jac else pb.conv(S[:, None], k)
+        C, u, v = conv[:, 0], pb.u_e, pb.v_e
+        lin = torch.stack([u * C, v * C, C, u, v, self.one], dim=1) * self.mask[:, None]  # (b, 6, h, w)
+        if bright is None:
+            L = lin.reshape(b, 6, -1)
+            G = (L @ L.transpose(1, 2)).double()
+            diag = G.diagonal(dim1=1, dim2=2)
+            diag.add_(1e-9 * diag.mean(dim=1, keepdim=True) + 1e-12)
+            rhs = (L @ (pb.img * self.mask).reshape(b, -1, 1)).double()
+            bright = torch.linalg.solve_ex(G, rhs)[0][..., 0]
+        p = bright.to(dt)
+        r = (pb.img * self.mask - (lin * p[:, :, None, None]).sum(dim=1)).reshape(b, -1)
+        out = {"r": r, "bright": bright}
+        if with_jac:
+            A = (p[:, 0, None, None] * u + p[:, 1, None, None] * v + p[:, 2, None, None]) * self.mask
+            dC = pb.conv(S[:, None], dk) * A[:, None]  # (b, 5, h, w): d model / d theta
+            out["Jl"] = torch.cat([conv[:, 1:] * A[:, None], lin], dim=1).reshape(b, 14, -1)
+            Jt = dC.reshape(b, _NUM_THETA, -1)
+            shared = (Jt[:, None, :4] * self.basis[:, :, None, None]).reshape(b, -1, Jt.shape[-1])
+            out["Js"] = torch.cat([shared, Jt[:, 4:]], dim=1)
+        return out
+
+
+_UPDATE_ENTRIES = ((0, 0), (0, 1), (0, 2), (1, 0), (1, 1), (1, 2), (2, 0), (2, 1))
+"""Entries of the 8-parameter update ``Delta`` of a homography
+(:func:`blurcalib.deconv.blocks.update_homography`)."""
+
+
+def _tied_map(A: np.ndarray) -> np.ndarray:
+    """``(b, 8, 8)``: the block-side updates ``Delta_b`` (rows, :data:`_UPDATE_ENTRIES`) that a
+    feature-side update ``H_F (I + Delta_F)`` makes of the blocks ``H_b = H_F A_b`` (columns):
+    ``Delta_b = A_b^-1 Delta_F A_b``, its ``[2, 2]`` entry moved into the others (to first order
+    ``I + Delta`` and ``(I + Delta) / (1 + Delta_22)`` are the same homography)."""
+    A_inv = np.linalg.inv(A)
+    out = np.zeros((len(A), 8, 8))
+    for j, (r, c) in enumerate(_UPDATE_ENTRIES):
+        E = np.zeros((3, 3))
+        E[r, c] = 1.0
+        D = A_inv @ E @ A
+        D -= D[:, 2:, 2:] * np.eye(3)
+        out[:, :, j] = np.stack([D[:, rr, cc] for rr, cc in _UPDATE_ENTRIES], axis=1)
+    return out
+
+
+def _feature_blocks(features: np.ndarray) -> np.ndarray:
+    """``(B, 3, 3)``: block coordinates -> feature coordinates ``(fx, fy) + q / 2``."""
+    A = np.zeros((len(features), 3, 3))
+    A[:, 0, 0] = A[:, 1, 1] = 0.5
+    A[:, :2, 2] = features
+    A[:, 2, 2] = 1.0
+    return A
+
+
+def fit_path_field(image: np.ndarray, H0: np.ndarray, num_segments: int, start: PathField,
+                   deconv: DeconvSettings | None = None, settings: FieldSettings | None = None,
+                   pixel_mask: np.ndarray | None = None, features: np.ndarray | None = None) -> FieldFit:
+    """Fit a frame's path field and its blocks together (``eq:field_fit``)::
+
+        argmin_{field, H_i, p_i}  sum_i w_i sum_{x in block i} (I(x) - m_i(x))^2,
+        m_i = A_i (k(theta(x_i)) * S(H_i)) + B_i
+
+    with ``k`` the path PSF ``eq:path_psf`` at the block's star centre ``x_i`` (from the start),
+    ``A_i, B_i`` affine brightness and ``w_i`` block weights (:attr:`FieldSettings.outlier_loss`).
+    Levenberg-Marquardt on all parameters; each step solves the shared ``4 P + 1`` after
+    eliminating every block's 14 (Schur complement, ``(b, 14, 14)`` batched solves).
+
+    *Tied* (``features`` given): the blocks are those of one feature homography, ``H_i = H_F
+    B(f_i)`` (:func:`blurcalib.growth.seed.block_homography`), and ``H_F``'s 8 parameters are shared
+    instead of each block's: the blocks around a tag, whose starts are px off under long blur,
+    move together (a plane over a few squares; the lens bends it by far less than that).
+
+    Args:
+        image: ``(height, width)`` grey levels.
+        H0: ``(B, 3, 3)`` block homographies to start from (the blocks' fits; a few tenths of a
+            px off is fine, or, tied, a few px).
+        num_segments: star segments ``N``.
+        start: the field to start from, e.g. :func:`constant_field` (its degree is the fit's).
+        deconv: settings of the blocks' windows and latent pattern (kernel size and loss extent
+            are set here).
+        settings: :class:`FieldSettings`.
+        pixel_mask: as for :func:`blurcalib.deconv.blocks.fit_blocks`.
+        features: ``(B, 2)`` feature coordinates of the blocks to tie them (``H_F`` starts from
+            the least-squares homography of ``H0``'s star centres), or None.
+    Returns:
+        :class:`FieldFit`.
+    Raises:
+        ValueError: no block can be fitted (all windows outside the image or degenerate), or,
+            tied, fewer than 4 blocks.
+    """
+    fs = settings or FieldSettings()
+    H0 = np.asarray(H0, dtype=np.float64).reshape(-1, 3, 3)
+    centres = H0[:, :2, 2] / H0[:, 2:, 2]
+    if features is not None:
+        features = np.asarray(features, dtype=np.float64).reshape(-1, 2)
+        ok = np.all(np.isfinite(centres), axis=1)
+        if ok.sum() < 4:
+            raise ValueError("a tied path field needs at least 4 blocks")
+        H_F, _ = cv2.findHomography(features[ok], centres[ok], 0)
+        if H_F is None:
+            raise ValueError("no homography fits the tied blocks' centres")
+        H0 = H_F[None] @ _feature_blocks(features)
+        H0 = H0 / H0[:, 2:, 2:]
+        centres = H0[:, :2, 2]
+    K = start.kernel_size(centres, fs.largest_kernel)
+    K = max(K, 2 * math.ceil(1.25 * (K // 2)) + 1)  # room for the path to grow during the fit
+    K = min(K, fs.largest_kernel - 1 + fs.largest_kernel % 2)
+    s = replace(deconv or DeconvSettings(), kernel_size=K, loss_extent=fs.loss_extent)
+    fp = _FieldProblem(image, H0, num_segments, s, pixel_mask, start.basis(centres))
+    b = len(fp.rows)
+    if b == 0 or (features is not None and b < 4):
+        raise ValueError("too few blocks of the path field's fit lie inside the image")
+    dev = fp.H_loc.device
+    P = len(start.coeffs)
+    coeffs = torch.as_tensor(start.coeffs, dtype=torch.float64, device=dev)
+    log_sigma = torch.tensor([start.log_sigma], dtype=torch.float64, device=dev)
+    H_loc = fp.H_loc
+    if features is not None:  # the blocks in latent-local px: T(-origin) H_F A_b
+        H_F = torch.as_tensor(H_F / H_F[2, 2], dtype=torch.float64, device=dev)
+        A = torch.as_tensor(_feature_blocks(features[fp.rows]), dtype=torch.float64, device=dev)
+        to_local = H_loc @ torch.linalg.inv(torch.as_tensor(H0[fp.rows], dtype=torch.float64, device=dev))
+        tie = torch.as_tensor(_tied_map(_feature_blocks(features[fp.rows])), device=dev)
+    nh = 8 if features is not None else 0  # shared homography parameters
+    hold = 0 if features is not None else fs.hold_steps  # steps left with the blocks' H held
+    cur = fp.evaluate(H_loc, None, coeffs, log_sigma, with_jac=True)
+    npix = fp.mask.reshape(b, -1).sum(dim=1).double().clamp_min(1)
+
+    def block_loss(r: torch.Tensor) -> torch.Tensor:
+        return (r.double() ** 2).sum(dim=1) / npix
+
+    def weights(loss: torch.Tensor) -> torch.Tensor:
+        limit = fs.outlier_loss * loss.median()
+        return torch.where(loss > limit, limit / loss, torch.ones_like(loss))
+
+    def jacobians(cur: dict[str, torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]:
+        """``(Jl (b, 14 or 6, n), Js (b, nh + 4 P + 1, n))``: the blocks' own and the shared
+        ones (each block's ``H`` is its own unless tied or held)."""
+        if nh:
+            J_F = torch.einsum("bin,bij->bjn", cur["Jl"][:, :8], tie.to(cur["Jl"].dtype))
+            return cur["Jl"][:, 8:], torch.cat([J_F, cur["Js"]], dim=1)
+        return (cur["Jl"][:, 8:] if hold else cur["Jl"]), cur["Js"]
+
+    w = weights(block_loss(cur["r"]))
+    obj = float((w * block_loss(cur["r"]) * npix).sum())
+    history, mu, steps = [obj], 1e-3, 0
+    while steps < fs.iterations:
+        steps += 1
+        (Jl, Js), r = jacobians(cur), cur["r"]
+        wt = w.to(r.dtype)[:, None, None]
+        Nll = ((Jl * wt) @ Jl.transpose(1, 2)).double()
+        Nls = ((Jl * wt) @ Js.transpose(1, 2)).double()
+        Nss = ((Js * wt) @ Js.transpose(1, 2)).double().sum(dim=0)
+        gl = ((Jl * wt) @ r[..., None]).double()
+        gs = ((Js * wt) @ r[..., None]).double().sum(dim=0)
+        Nll.diagonal(dim1=1, dim2=2).mul_(1.0 + mu).add_(1e-12)
+        Nss.diagonal().mul_(1.0 + mu).add_(1e-12)
+        X = torch.linalg.solve_ex(Nll, torch.cat([Nls, gl], dim=2))[0]
+        reduced = Nss - (Nls.transpose(1, 2) @ X[..., :-1]).sum(dim=0)
+        ds = torch.linalg.solve_ex(reduced, gs - (Nls.transpose(1, 2) @ X[..., -1:]).sum(dim=0))[0][:, 0]
+        dl = torch.linalg.solve_ex(Nll, gl - Nls @ ds[:, None])[0][..., 0]
+        if nh:
+            H_F_try = update_homography(H_F[None], ds[None, :8])[0]
+            H_try = to_local @ H_F_try[None] @ A
+            H_try = H_try / H_try[:, 2:, 2:]
+        else:
+            H_try = H_loc if hold else update_homography(H_loc, dl[:, :8])
+        coeffs_try = coeffs + ds[nh:nh + 4 * P].reshape(P, 4)
+        sigma_try = (log_sigma + ds[nh + 4 * P:]).clamp_min(math.log(fs.min_sigma_px))
+        trial = fp.evaluate(H_try, cur["bright"] + dl[:, -6:], coeffs_try, sigma_try, with_jac=True)
+        obj_try = float((w * block_loss(trial["r"]) * npix).sum())
+        accepted = math.isfinite(obj_try) and obj_try < obj
+        converged = (not accepted and mu > 1e5) or (accepted and (obj - obj_try) < fs.tolerance * obj)
+        if accepted:
+            H_loc, coeffs, log_sigma, cur = H_try, coeffs_try, sigma_try, trial
+            if nh:
+                H_F = H_F_try
+            mu /= 3.0
+            w = weights(block_loss(cur["r"]))  # re-weighted (IRLS); the objective follows
+            obj = float((w * block_loss(cur["r"]) * npix).sum())
+            history.append(obj)
+        else:
+            mu *= 4.0
+        if hold:  # the held phase ends when it has converged or after hold_steps
+            hold = 0 if converged else hold - 1
+            mu = 1e-3 if not hold else mu
+        elif converged:
+            break
+    B = len(H0)
+    H = H0.copy()
+    H[fp.rows] = fp.prob.to_image(H_loc)
+    loss = np.full(B, np.nan)
+    loss[fp.rows] = block_loss(cur["r"]).cpu().numpy()
+    weight = np.zeros(B)
+    weight[fp.rows] = w.cpu().numpy()
+    field = PathField(coeffs.cpu().numpy(), float(log_sigma), start.image_size)
+    return FieldFit(field, H / H[:, 2:, 2:], loss, weight, K, steps, np.asarray(history))

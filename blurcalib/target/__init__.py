@@ -1,0 +1,1 @@
+"""The star calibration target: its pattern and its printable page."""
