@@ -21,8 +21,8 @@ import time
 
 import numpy as np
 
-from blurcalib.camera.parametric import translation
 from blurcalib.deconv.blocks import BlockFit, DeconvSettings, fit_blocks
+from blurcalib.geometry.homography import translation
 from blurcalib.sim.synth import SimulatedBlocks, simulate_blocks
 from blurcalib.target.pattern import layout_pattern
 

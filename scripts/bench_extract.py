@@ -24,9 +24,9 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from blurcalib.camera.parametric import homography_centre
 from blurcalib.deconv.blocks import DeconvSettings
 from blurcalib.extract.frame import ExtractSettings, extract_frame
+from blurcalib.geometry.homography import homography_centre
 from blurcalib.io.frames import load_frame
 from blurcalib.sim.synth import Simulator, SynthConfig, splat
 from blurcalib.target.pattern import load_pattern

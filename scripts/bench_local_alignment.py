@@ -24,10 +24,10 @@ import argparse
 
 import numpy as np
 
-from blurcalib.camera.parametric import homography_centre
 from blurcalib.deconv.blocks import DeconvSettings
 from blurcalib.extract.frame import ExtractSettings, extract_frame
 from blurcalib.extract.local_alignment import align_locally, corner_gaps, neighbour_pairs
+from blurcalib.geometry.homography import homography_centre
 from blurcalib.sim.synth import Simulator, SynthConfig
 
 

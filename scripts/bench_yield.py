@@ -47,9 +47,9 @@ import numpy as np
 import torch
 
 from blurcalib.calib.alignment import MIN_BLOCKS
-from blurcalib.camera.parametric import apply_homography
 from blurcalib.extract.frame import ExtractSettings, extract_frame
 from blurcalib.extract.quality import QualitySettings, filter_frame
+from blurcalib.geometry.homography import apply_homography
 from blurcalib.growth.grow import GrowSettings
 from blurcalib.sim import synth
 from blurcalib.sim.synth import SimulatedFrame, Simulator, SynthConfig

@@ -41,9 +41,10 @@ from blurcalib.calib.sharp import (
     calibrate_sharp,
     load_calibration,
 )
-from blurcalib.camera.parametric import BrownConrady, Pose
+from blurcalib.camera.parametric import BrownConrady
 from blurcalib.extract.frame import FrameResult, FrameStatus
 from blurcalib.extract.quality import FrameFilter
+from blurcalib.geometry.pose import Pose
 from blurcalib.io.results import FeatureTable
 from blurcalib.target.pattern import StarPattern
 from state.app_state import AppState

@@ -16,15 +16,15 @@ import cv2
 import numpy as np
 
 from blurcalib.calib.alignment import align_global
-from blurcalib.camera.parametric import (
-    BrownConrady,
-    Pose,
+from blurcalib.camera.parametric import BrownConrady
+from blurcalib.extract.local_alignment import align_locally, corner_gaps, neighbour_pairs
+from blurcalib.geometry.homography import (
     apply_homography,
     homography_centre,
     plane_homography,
     translation,
 )
-from blurcalib.extract.local_alignment import align_locally, corner_gaps, neighbour_pairs
+from blurcalib.geometry.pose import Pose
 from blurcalib.growth.seed import block_homography
 from blurcalib.psf.kernel import shift_pair
 from blurcalib.sim.synth import splat

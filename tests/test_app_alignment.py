@@ -8,9 +8,10 @@ import numpy as np
 import pytest
 
 from blurcalib.calib.sharp import calibrate_sharp, save_calibration
-from blurcalib.camera.parametric import BrownConrady, Pose, project_points
+from blurcalib.camera.parametric import BrownConrady, project_points
 from blurcalib.extract.frame import FrameResult, FrameStatus
 from blurcalib.extract.quality import QualitySettings
+from blurcalib.geometry.pose import Pose
 from blurcalib.io.results import BlockStatus, BlockTable, FeatureFlags, FeatureObservation, FeatureTable
 from blurcalib.sim.synth import DatasetTruth, TrueCamera
 from blurcalib.target.pattern import layout_pattern

@@ -7,7 +7,8 @@ import pytest
 
 from blurcalib.calib.bundle import BundleSettings, bundle_adjust, coverage_warnings
 from blurcalib.camera.generic import CentralGeneric, fit_to_rays
-from blurcalib.camera.parametric import BrownConrady, Pose
+from blurcalib.camera.parametric import BrownConrady
+from blurcalib.geometry.pose import Pose
 
 TRUE_CAM = BrownConrady(fx=300.0, fy=298.0, cx=160.4, cy=119.7, k1=-0.12, k2=0.03, p1=0.0005,
                         p2=-0.0003, k3=0.0, width=320, height=240)

@@ -17,7 +17,8 @@ from blurcalib.calib.sharp import (
     save_calibration,
     solve_pose,
 )
-from blurcalib.camera.parametric import BrownConrady, Pose, load_camera_yaml, project_points
+from blurcalib.camera.parametric import BrownConrady, load_camera_yaml, project_points
+from blurcalib.geometry.pose import Pose
 from blurcalib.io.results import FeatureFlags, FeatureTable
 from blurcalib.sim.synth import TrueCamera, d435i_like_camera, sample_pose
 from blurcalib.target.pattern import StarPattern, layout_pattern

@@ -14,17 +14,15 @@ import pytest
 from blurcalib.camera.parametric import (
     BrownConrady,
     CameraFileError,
-    Pose,
-    apply_homography,
-    homography_scale,
     load_camera_json,
     load_camera_yaml,
-    plane_homography,
     project_points,
     project_poses,
     save_camera_json,
     save_camera_yaml,
 )
+from blurcalib.geometry.homography import apply_homography, homography_scale, plane_homography
+from blurcalib.geometry.pose import Pose
 
 CV_UNDISTORT_CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 200, 1e-16)
 

@@ -10,8 +10,8 @@ import pytest
 import torch
 from scipy.ndimage import convolve
 
-from blurcalib.camera.parametric import translation
 from blurcalib.deconv.blocks import BlockFit, BlockProblem, DeconvSettings, fit_blocks, render_model
+from blurcalib.geometry.homography import translation
 from blurcalib.io.results import BlockStatus
 from blurcalib.psf.kernel import boundary_energy, psf_centroid, psf_moments, recentre, shift_pair
 from blurcalib.sim.synth import SimulatedBlocks, simulate_blocks

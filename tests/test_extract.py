@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 import blurcalib.extract.frame as extract_module
-from blurcalib.camera.parametric import BrownConrady, apply_homography, homography_centre, translation
+from blurcalib.camera.parametric import BrownConrady
 from blurcalib.deconv.blocks import DeconvSettings
 from blurcalib.extract.frame import (
     SHARP_BELOW_PX,
@@ -22,6 +22,7 @@ from blurcalib.extract.frame import (
     seed_from_neighbour,
 )
 from blurcalib.extract.local_alignment import align_locally, shared_corners
+from blurcalib.geometry.homography import apply_homography, homography_centre, translation
 from blurcalib.growth.seed import (
     SeedError,
     block_homography,

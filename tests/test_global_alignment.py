@@ -22,7 +22,8 @@ from blurcalib.calib.alignment import (
     orientation_ok,
 )
 from blurcalib.calib.report import direction_colours
-from blurcalib.camera.parametric import BrownConrady, Pose, project_points
+from blurcalib.camera.parametric import BrownConrady, project_points
+from blurcalib.geometry.pose import Pose
 from blurcalib.paper.alignment import (
     ROWS,
     AlignmentSettings,

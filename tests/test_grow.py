@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from blurcalib.camera.parametric import apply_homography
 from blurcalib.deconv.blocks import DeconvSettings, fit_blocks
+from blurcalib.geometry.homography import apply_homography
 from blurcalib.growth.grow import (
     GrowSettings,
     blur_footprint,

@@ -11,8 +11,8 @@ import numpy as np
 import pytest
 import torch
 
-from blurcalib.camera.parametric import homography_centre, translation
 from blurcalib.deconv.blocks import DeconvSettings, fit_blocks
+from blurcalib.geometry.homography import homography_centre, translation
 from blurcalib.growth.seed import block_homography
 from blurcalib.io.results import BlockStatus
 from blurcalib.psf.field import PathField, constant_field, fit_path_field, path_kernels

@@ -7,10 +7,10 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from blurcalib.camera.parametric import translation
 from blurcalib.deconv.blocks import DeconvSettings, fit_blocks
 from blurcalib.extract.noise import NoiseModel
 from blurcalib.extract.quality import REFERENCE_NOISE_VAR, QualitySettings, connected_blocks, filter_frame
+from blurcalib.geometry.homography import translation
 from blurcalib.io.results import BlockStatus, BlockTable
 from blurcalib.sim.synth import simulate_blocks
 from blurcalib.target.pattern import layout_pattern

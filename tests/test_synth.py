@@ -7,7 +7,8 @@ import json
 import numpy as np
 import pytest
 
-from blurcalib.camera.parametric import BrownConrady, Pose
+from blurcalib.camera.parametric import BrownConrady
+from blurcalib.geometry.pose import Pose
 from blurcalib.io.atomic import OutputError
 from blurcalib.sim.synth import (
     GROUND_TRUTH_FILE,

@@ -17,7 +17,7 @@ from blurcalib.calib.validation import (
     parametric_projector,
 )
 from blurcalib.camera.generic import fit_to_rays
-from blurcalib.camera.parametric import Pose
+from blurcalib.geometry.pose import Pose
 from blurcalib.io.results import FeatureFlags
 from blurcalib.sim.synth import d435i_like_camera
 from blurcalib.target.pattern import layout_pattern

@@ -12,7 +12,7 @@ import cv2
 import numpy as np
 import viser
 
-from blurcalib.camera.parametric import homography_centre
+from blurcalib.geometry.homography import homography_centre
 from blurcalib.io.results import BlockStatus
 from state import AppState, FrameView, Topic
 from state.figures import block_quads

@@ -65,7 +65,8 @@ import cv2
 import numpy as np
 from numpy.typing import ArrayLike
 
-from blurcalib.camera.parametric import BrownConrady, Pose, project_poses
+from blurcalib.camera.parametric import BrownConrady, project_poses
+from blurcalib.geometry.pose import Pose
 from blurcalib.target.pattern import StarPattern
 
 __all__ = [

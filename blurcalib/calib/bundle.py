@@ -60,8 +60,8 @@ from blurcalib.camera.generic import (
     projection_jacobians,
     tangent_basis,
 )
-from blurcalib.camera.parametric import Pose
 from blurcalib.geometry.lie import exp_so3, orthonormal, skew
+from blurcalib.geometry.pose import Pose
 from blurcalib.io.text import count
 
 __all__ = [

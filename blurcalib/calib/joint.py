@@ -48,7 +48,8 @@ from blurcalib.camera.generic import (
     fit_to_rays,
     undistortion_map,
 )
-from blurcalib.camera.parametric import BrownConrady, Pose
+from blurcalib.camera.parametric import BrownConrady
+from blurcalib.geometry.pose import Pose
 from blurcalib.io.atomic import atomic_path, atomic_write_csv, ensure_writable_dir
 from blurcalib.io.results import FeatureFlags, FeatureTable
 from blurcalib.target.pattern import StarPattern

@@ -32,7 +32,8 @@ from dataclasses import replace
 
 import numpy as np
 
-from blurcalib.camera.parametric import BrownConrady, apply_homography, translation
+from blurcalib.camera.parametric import BrownConrady
+from blurcalib.geometry.homography import apply_homography, translation
 from blurcalib.io.results import BlockTable, FeatureFlags, FeatureTable
 
 __all__ = ["centre_bias", "correct_blocks", "correct_features", "fit_homographies"]

@@ -69,13 +69,13 @@ from scipy.optimize import least_squares
 from blurcalib.camera.parametric import (
     BrownConrady,
     CameraFileError,
-    Pose,
     load_camera_json,
     project_poses,
     rodrigues_jacobian,
     save_camera_json,
     save_camera_yaml,
 )
+from blurcalib.geometry.pose import Pose
 from blurcalib.io.atomic import atomic_write_csv, atomic_write_text, ensure_writable_dir, read_csv_columns
 from blurcalib.io.results import FeatureFlags, FeatureObservation, FeatureTable
 from blurcalib.target.pattern import StarPattern

@@ -42,8 +42,9 @@ from blurcalib.calib.bundle import BundleSettings, bundle_adjust, frame_jacobian
 from blurcalib.calib.joint import GenericCalibration
 from blurcalib.calib.sharp import Calibration, CalibrationError, calibrate_sharp, solve_pose
 from blurcalib.camera.generic import CentralGeneric, fit_to_rays, projection_jacobians
-from blurcalib.camera.parametric import BrownConrady, Pose
+from blurcalib.camera.parametric import BrownConrady
 from blurcalib.geometry.lie import exp_so3, orthonormal
+from blurcalib.geometry.pose import Pose
 from blurcalib.io.results import FeatureTable
 from blurcalib.target.pattern import StarPattern
 

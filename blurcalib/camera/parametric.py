@@ -1,4 +1,6 @@
-"""Camera model, poses, projection and camera-file I/O.
+"""The parametric (Brown-Conrady) camera: its projection with the Jacobian and its files.
+
+Poses are :class:`blurcalib.geometry.pose.Pose`; homographies are in :mod:`blurcalib.geometry.homography`.
 
 Conventions
 -----------
@@ -38,32 +40,26 @@ import cv2
 import numpy as np
 from numpy.typing import ArrayLike
 
+from blurcalib.geometry.pose import Pose, as_points
 from blurcalib.io.atomic import atomic_write_text
 
 __all__ = [
     "BrownConrady",
     "CameraFileError",
-    "Pose",
     "Projection",
-    "apply_homography",
-    "homography_centre",
     "load_camera_json",
     "load_camera_yaml",
-    "plane_homography",
     "project_points",
     "project_poses",
     "rodrigues_jacobian",
     "save_camera_json",
     "save_camera_yaml",
-    "translation",
 ]
 
 
 MODEL_NAME = "Brown_Conrady"
 _INTRINSIC_FIELDS = ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3")
 _SIZE_FIELDS = ("width", "height")
-_ROTATION_TOL = 1e-6
-_RODRIGUES_SMALL_THETA2 = 1e-6
 
 
 # ---------------------------------------------------------------------------
@@ -134,25 +130,6 @@ def _undistort_step(
         best_y = np.where(better, cand_y, best_y)
         best_err = np.where(better, cand_err, best_err)
     return best_x, best_y, best_err
-
-
-def _homography_xy(H: np.ndarray, pts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Apply ``H (..., 3, 3)`` to ``pts (..., N, 2)``; returns the two output components."""
-    x = pts[..., 0]
-    y = pts[..., 1]
-    h = H[..., None, :, :]
-    w = h[..., 2, 0] * x + h[..., 2, 1] * y + h[..., 2, 2]
-    u = (h[..., 0, 0] * x + h[..., 0, 1] * y + h[..., 0, 2]) / w
-    v = (h[..., 1, 0] * x + h[..., 1, 1] * y + h[..., 1, 2]) / w
-    return u, v
-
-
-def _as_points(values: ArrayLike, dim: int, name: str) -> np.ndarray:
-    """Convert to a float64 array of shape ``(..., dim)`` or raise ValueError."""
-    arr = np.asarray(values, dtype=np.float64)
-    if arr.ndim < 1 or arr.shape[-1] != dim:
-        raise ValueError(f"{name} must have shape (..., {dim}), got {arr.shape}")
-    return arr
 
 
 def _dist_from_array(dist: ArrayLike) -> tuple[float, float, float, float, float]:
@@ -311,7 +288,7 @@ class BrownConrady:
 
     def distort(self, xn: ArrayLike) -> np.ndarray:
         """Distort normalised coordinates: ``xn (N, 2)`` -> ``d(xn) (N, 2)`` (unitless)."""
-        xn = _as_points(xn, 2, "xn")
+        xn = as_points(xn, 2, "xn")
         xd, yd = _distort_xy(xn[..., 0], xn[..., 1], *self._coeffs)
         return np.stack([xd, yd], axis=-1)
 
@@ -323,7 +300,7 @@ class BrownConrady:
         distortion the result is accurate to ~1e-15 in normalised units after a handful of
         iterations. Points where ``d`` is not invertible get the best iterate found.
         """
-        xd = _as_points(xd, 2, "xd")
+        xd = as_points(xd, 2, "xd")
         tx, ty = xd[..., 0], xd[..., 1]
         x, y = tx.copy(), ty.copy()
         err = np.full(tx.shape, np.inf)
@@ -341,7 +318,7 @@ class BrownConrady:
         ``u = K (d(X/Z, Y/Z), 1)``. Points with ``Z <= 0`` are projected by the same
         formula (as ``cv2.projectPoints`` does); filter them beforehand if needed.
         """
-        pts = _as_points(points_cam, 3, "points_cam")
+        pts = as_points(points_cam, 3, "points_cam")
         xd, yd = _distort_xy(pts[..., 0] / pts[..., 2], pts[..., 1] / pts[..., 2], *self._coeffs)
         return np.stack([self.fx * xd + self.cx, self.fy * yd + self.cy], axis=-1)
 
@@ -351,7 +328,7 @@ class BrownConrady:
         Equivalent to ``cv2.undistortPoints`` without ``R``/``P`` but solved to full
         precision (see :meth:`undistort`).
         """
-        px = _as_points(px, 2, "px")
+        px = as_points(px, 2, "px")
         xd = np.stack([(px[..., 0] - self.cx) / self.fx, (px[..., 1] - self.cy) / self.fy], -1)
         return self.undistort(xd, max_iter=max_iter)
 
@@ -388,111 +365,6 @@ class BrownConrady:
         if model != MODEL_NAME:
             raise ValueError(f"unsupported camera model {model!r}, expected {MODEL_NAME!r}")
         return cls(**{name: data[name] for name in fields})
-
-
-# ---------------------------------------------------------------------------
-# Poses
-# ---------------------------------------------------------------------------
-
-
-@dataclass(frozen=True, eq=False)
-class Pose:
-    """Rigid transform from target (world) to camera coordinates: ``X_cam = R X_world + t``.
-
-    Attributes:
-        R: rotation matrix, shape (3, 3) (validated orthonormal with det +1).
-        t: translation, shape (3,), metres.
-
-    Arrays are stored as read-only float64 copies.
-    """
-
-    R: np.ndarray
-    t: np.ndarray
-
-    def __post_init__(self) -> None:
-        R = np.array(self.R, dtype=np.float64)
-        t = np.array(self.t, dtype=np.float64).reshape(-1)
-        if R.shape != (3, 3):
-            raise ValueError(f"R must have shape (3, 3), got {R.shape}")
-        if t.shape != (3,):
-            raise ValueError(f"t must have 3 elements, got shape {np.shape(self.t)}")
-        if not (np.all(np.isfinite(R)) and np.all(np.isfinite(t))):
-            raise ValueError("pose contains non-finite values")
-        if np.max(np.abs(R.T @ R - np.eye(3))) > _ROTATION_TOL or np.linalg.det(R) <= 0.0:
-            raise ValueError(f"R is not a rotation matrix: {R.tolist()}")
-        R.setflags(write=False)
-        t.setflags(write=False)
-        object.__setattr__(self, "R", R)
-        object.__setattr__(self, "t", t)
-
-    @classmethod
-    def identity(cls) -> Pose:
-        """Pose with ``R = I`` and ``t = 0``."""
-        return cls(np.eye(3), np.zeros(3))
-
-    @classmethod
-    def from_rvec_tvec(cls, rvec: ArrayLike, tvec: ArrayLike) -> Pose:
-        """From an OpenCV Rodrigues vector ``rvec (3,)`` rad and ``tvec (3,)`` m."""
-        rvec = np.asarray(rvec, dtype=np.float64).reshape(-1)
-        if rvec.shape != (3,):
-            raise ValueError(f"rvec must have 3 elements, got shape {rvec.shape}")
-        R, _ = cv2.Rodrigues(rvec)
-        return cls(R, tvec)
-
-    @property
-    def rvec(self) -> np.ndarray:
-        """Rodrigues rotation vector, shape (3,), rad (axis times angle)."""
-        rvec, _ = cv2.Rodrigues(np.ascontiguousarray(self.R))
-        return rvec.reshape(3)
-
-    @property
-    def camera_center(self) -> np.ndarray:
-        """Camera centre in world coordinates ``-R^T t``, shape (3,), m."""
-        return -self.R.T @ self.t
-
-    def transform(self, points: ArrayLike) -> np.ndarray:
-        """Map world points ``(N, 3)`` m to camera coordinates ``R X + t`` ``(N, 3)`` m."""
-        pts = _as_points(points, 3, "points")
-        return pts @ self.R.T + self.t
-
-    def inverse(self) -> Pose:
-        """Inverse transform (camera -> world): ``R' = R^T``, ``t' = -R^T t``."""
-        return Pose(self.R.T, -self.R.T @ self.t)
-
-    def compose(self, other: Pose) -> Pose:
-        """``self ∘ other``: apply ``other`` first, then ``self``.
-
-        ``X -> R_s (R_o X + t_o) + t_s``, i.e. ``R = R_s R_o`` and ``t = R_s t_o + t_s``.
-        """
-        return Pose(self.R @ other.R, self.R @ other.t + self.t)
-
-    def optical_axis_angle_to_target_normal(self) -> float:
-        """Angle (rad, in ``[0, pi/2]``) between the optical axis and the target normal.
-
-        The optical axis in world coordinates is ``R^T (0, 0, 1)``, the target normal is
-        ``(0, 0, ±1)``; 0 means the camera looks straight at the target (fronto-parallel).
-        """
-        axis = self.R[2]
-        return float(np.arctan2(np.hypot(axis[0], axis[1]), abs(axis[2])))
-
-    def to_dict(self) -> dict[str, Any]:
-        """JSON-serialisable dict ``{"R": 3x3 nested list, "t": [tx, ty, tz]}`` (exact)."""
-        return {"R": self.R.tolist(), "t": self.t.tolist()}
-
-    @classmethod
-    def from_dict(cls, data: Mapping[str, Any]) -> Pose:
-        """Inverse of :meth:`to_dict`; a missing key raises ValueError naming it."""
-        if not isinstance(data, Mapping):
-            raise ValueError(f"pose description must be a mapping, got {type(data).__name__}")
-        for name in ("R", "t"):
-            if name not in data:
-                raise ValueError(f"pose description is missing key {name!r}")
-        return cls(np.asarray(data["R"], dtype=np.float64), np.asarray(data["t"], np.float64))
-
-
-# ---------------------------------------------------------------------------
-# NumPy projection helpers
-# ---------------------------------------------------------------------------
 
 
 def project_points(camera: BrownConrady, pose: Pose, points_world: ArrayLike) -> np.ndarray:
@@ -580,68 +452,6 @@ def project_poses(intrinsics: ArrayLike, rvecs: ArrayLike, tvecs: ArrayLike, poi
     return Projection(pixels, d_intr, np.concatenate([A @ dcam_dr, A], axis=2), A @ Rn)
 
 
-def plane_homography(K: ArrayLike, pose: Pose) -> np.ndarray:
-    """Target-plane homography ``H = K [r1 r2 t]`` (eq:T), shape (3, 3).
-
-    Maps target-plane metres ``(X, Y, 1)`` to undistorted pixel coordinates (px).
-    """
-    K = np.asarray(K, dtype=np.float64)
-    if K.shape != (3, 3):
-        raise ValueError(f"K must have shape (3, 3), got {K.shape}")
-    return K @ np.column_stack([pose.R[:, 0], pose.R[:, 1], pose.t])
-
-
-def translation(x: ArrayLike) -> np.ndarray:
-    """The paper's 2-D translation ``T(x)``: ``(..., 2)`` px -> ``(..., 3, 3)`` homographies."""
-    x = np.asarray(x, dtype=np.float64)
-    T = np.broadcast_to(np.eye(3), (*x.shape[:-1], 3, 3)).copy()
-    T[..., :2, 2] = x
-    return T
-
-
-def apply_homography(H: ArrayLike, pts: ArrayLike) -> np.ndarray:
-    """Apply homographies to 2-D points (with perspective division).
-
-    Args:
-        H: ``(3, 3)`` or ``(B, 3, 3)``.
-        pts: ``(N, 2)`` or ``(B, N, 2)``; batch dimensions broadcast against ``H``'s.
-
-    Returns:
-        ``(N, 2)`` or ``(B, N, 2)``; points mapped to infinity give inf/nan.
-    """
-    H = np.asarray(H, dtype=np.float64)
-    if H.ndim < 2 or H.shape[-2:] != (3, 3):
-        raise ValueError(f"H must have shape (..., 3, 3), got {H.shape}")
-    pts = _as_points(pts, 2, "pts")
-    with np.errstate(divide="ignore", invalid="ignore"):
-        u, v = _homography_xy(H, pts)
-    return np.stack([u, v], axis=-1)
-
-
-def homography_centre(H: ArrayLike) -> np.ndarray:
-    """``H(0, 0)``: where homographies ``(..., 3, 3)`` map the origin, ``(..., 2)`` =
-    ``H[:2, 2] / H[2, 2]``; for a block homography, its star centre (px). NaN (both
-    coordinates) where ``H`` is degenerate (maps the origin to infinity or is not finite)."""
-    H = np.asarray(H, dtype=np.float64)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        centre = H[..., :2, 2] / H[..., 2:, 2]
-    centre[~np.isfinite(centre).all(axis=-1)] = np.nan
-    return centre
-
-
-def homography_scale(H: ArrayLike) -> np.ndarray:
-    """Local scale of homographies ``(..., 3, 3)`` at the origin, ``(...)``: ``sqrt(|det J|)``
-    with ``J = (H[:2, :2] - H(0, 0) H[2, :2]) / H[2, 2]`` the Jacobian of the mapping there (px
-    per unit of the source plane; a block homography's square, 2 units wide, is twice this in
-    px). NaN where ``H`` is degenerate."""
-    H = np.asarray(H, dtype=np.float64)
-    c = homography_centre(H)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        J = (H[..., :2, :2] - c[..., :, None] * H[..., None, 2, :2]) / H[..., 2:, 2:]
-        return np.sqrt(np.abs(J[..., 0, 0] * J[..., 1, 1] - J[..., 0, 1] * J[..., 1, 0]))
-
-
-# ---------------------------------------------------------------------------
 # Camera files
 # ---------------------------------------------------------------------------
 

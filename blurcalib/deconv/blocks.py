@@ -84,7 +84,7 @@ import numpy as np
 import torch
 import torch.nn.functional as nnf
 
-from blurcalib.camera.parametric import homography_centre, translation
+from blurcalib.geometry.homography import homography_centre, translation
 from blurcalib.io.results import BlockStatus
 from blurcalib.psf.kernel import boundary_energy, psf_centroid, psf_moments, recentre
 from blurcalib.target.pattern import smooth_star, star_signed_distance_normal

@@ -36,10 +36,10 @@ from pathlib import Path
 
 import numpy as np
 
-from blurcalib.camera.parametric import homography_centre
 from blurcalib.deconv.blocks import DeconvSettings
 from blurcalib.extract.local_alignment import LocalAlignment, align_locally, shared_corners
 from blurcalib.extract.noise import NoiseModel, frame_noise
+from blurcalib.geometry.homography import homography_centre
 from blurcalib.growth.grow import GrowSettings, Growth, GrowthEvent, grow
 from blurcalib.growth.seed import (
     DEFAULT_SCALES,

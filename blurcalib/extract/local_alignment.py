@@ -23,7 +23,7 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 from scipy.sparse.csgraph import connected_components
 
-from blurcalib.camera.parametric import apply_homography, translation
+from blurcalib.geometry.homography import apply_homography, translation
 
 _CORNERS_RIGHT = (np.array([[1.0, -1.0], [1.0, 1.0]]), np.array([[-1.0, -1.0], [-1.0, 1.0]]))
 _CORNERS_DOWN = (np.array([[-1.0, 1.0], [1.0, 1.0]]), np.array([[-1.0, -1.0], [1.0, -1.0]]))

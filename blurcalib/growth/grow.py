@@ -61,10 +61,10 @@ from typing import Literal, get_args
 import cv2
 import numpy as np
 
-from blurcalib.camera.parametric import apply_homography, homography_centre, homography_scale
 from blurcalib.deconv.blocks import BlockFit, DeconvSettings, fit_blocks
 from blurcalib.extract.noise import NoiseModel
 from blurcalib.extract.quality import connected_blocks, noise_scale
+from blurcalib.geometry.homography import apply_homography, homography_centre, homography_scale
 from blurcalib.growth.seed import Seed, block_homography, tag_ring_features
 from blurcalib.io.results import BlockStatus
 from blurcalib.psf.field import FieldSettings, PathField, constant_field, fit_path_field
@@ -1093,7 +1093,7 @@ def judge_front(fit: BlockFit, H0: np.ndarray, settings: GrowSettings, off: np.n
     is rejected for a loss above ``max_loss`` (default :attr:`GrowSettings.max_loss`), boundary
     energy above :attr:`GrowSettings.max_boundary_energy`, a centre more than
     :attr:`GrowSettings.max_jump` squares (the side at the predicted centre,
-    :func:`blurcalib.camera.parametric.homography_scale`) from its prediction, or ``off (B,)`` (inconsistent
+    :func:`blurcalib.geometry.homography.homography_scale`) from its prediction, or ``off (B,)`` (inconsistent
     with its neighbours)."""
     limit = settings.max_loss if max_loss is None else max_loss
     jump = np.linalg.norm(fit.centre - homography_centre(H0), axis=1) / (2.0 * homography_scale(H0))

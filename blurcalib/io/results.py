@@ -33,7 +33,7 @@ from pathlib import Path
 
 import numpy as np
 
-from blurcalib.camera.parametric import homography_centre
+from blurcalib.geometry.homography import homography_centre
 from blurcalib.io.atomic import (
     atomic_path,
     atomic_write_csv,

@@ -54,7 +54,8 @@ from blurcalib.calib.alignment import align_global, orientation_ok
 from blurcalib.calib.bundle import BundleResult, BundleSettings, bundle_adjust
 from blurcalib.calib.sharp import solve_pose
 from blurcalib.camera.generic import CentralGeneric, calibrated_area, fit_to_rays
-from blurcalib.camera.parametric import BrownConrady, Pose
+from blurcalib.camera.parametric import BrownConrady
+from blurcalib.geometry.pose import Pose
 from blurcalib.io.atomic import atomic_path, atomic_write_text, ensure_writable_dir
 from blurcalib.paper.common import experiment_parser, run_experiment_cli
 from blurcalib.sim.evaluate import pixel_lattice, projection_errors

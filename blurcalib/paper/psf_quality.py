@@ -54,7 +54,7 @@ from matplotlib.figure import Figure
 from matplotlib.patches import Rectangle
 from scipy.stats import spearmanr
 
-from blurcalib.camera.parametric import apply_homography, homography_centre
+from blurcalib.geometry.homography import apply_homography, homography_centre
 from blurcalib.io.atomic import atomic_path, atomic_write_text, ensure_writable_dir
 from blurcalib.paper.common import (
     ExtractedFrame,

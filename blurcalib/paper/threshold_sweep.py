@@ -60,11 +60,11 @@ from matplotlib.ticker import FormatStrFormatter, LogLocator, NullFormatter, Nul
 
 from blurcalib.calib.alignment import MIN_BLOCKS, AlignmentError, AlignmentSettings, align_blocks
 from blurcalib.calib.sharp import Calibration, calibrate_sharp
-from blurcalib.camera.parametric import homography_centre
 from blurcalib.deconv.blocks import DeconvSettings
 from blurcalib.extract.frame import ExtractSettings, extract_frame
 from blurcalib.extract.local_alignment import align_locally
 from blurcalib.extract.quality import QualitySettings, filter_frame
+from blurcalib.geometry.homography import homography_centre
 from blurcalib.io.atomic import atomic_path, atomic_write_text, ensure_writable_dir
 from blurcalib.io.results import FeatureFlags, FeatureObservation, FeatureTable
 from blurcalib.paper.common import (

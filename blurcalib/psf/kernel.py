@@ -12,7 +12,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from blurcalib.camera.parametric import homography_scale, translation
+from blurcalib.geometry.homography import homography_scale, translation
 
 __all__ = [
     "PsfMoments",
@@ -93,7 +93,7 @@ def blur_extent(sigma_major: np.ndarray | float) -> np.ndarray | float:
 def blur_per_square(sigma_major: np.ndarray, H: np.ndarray) -> np.ndarray:
     """``(B,)`` blur extent over the star square's side: :func:`blur_extent` over ``2 |det
     J|^(1/2)``, ``J`` the Jacobian of the block homographies ``H (B, 3, 3)`` at the star centre
-    (:func:`blurcalib.camera.parametric.homography_scale`); NaN where ``sigma_major`` is."""
+    (:func:`blurcalib.geometry.homography.homography_scale`); NaN where ``sigma_major`` is."""
     with np.errstate(divide="ignore", invalid="ignore"):
         return blur_extent(np.asarray(sigma_major, dtype=np.float64)) / (2.0 * homography_scale(H))
 

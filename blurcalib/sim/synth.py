@@ -36,7 +36,9 @@ import cv2
 import numpy as np
 from scipy.interpolate import RectBivariateSpline
 
-from blurcalib.camera.parametric import BrownConrady, Pose, homography_centre, translation
+from blurcalib.camera.parametric import BrownConrady
+from blurcalib.geometry.homography import homography_centre, translation
+from blurcalib.geometry.pose import Pose
 from blurcalib.io.atomic import atomic_path, atomic_write_text, ensure_writable_dir
 from blurcalib.pipeline.runtime import exit_with_parent
 from blurcalib.psf.kernel import psf_centroid
