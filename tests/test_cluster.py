@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import os
 from pathlib import Path
 
@@ -111,3 +112,32 @@ def test_unreachable_scheduler_is_one_line_error(tmp_path, frames, capsys) -> No
                  "--cluster", "tcp://127.0.0.1:9"])
     err = capsys.readouterr().err.strip().splitlines()
     assert code == 2 and err[-1].startswith("blurcalib: error: tcp://127.0.0.1:9: cannot reach")
+
+
+def test_cli_calibrate_on_cluster_matches_local_run(tmp_path, cluster, one_thread) -> None:
+    """``calibrate --cluster``: the frames are extracted on the workers, the cameras fitted on the
+    client; the cameras, the per-frame statuses and the features are those of a local run."""
+    model = BrownConrady(fx=430.0, fy=430.0, cx=239.6, cy=179.3, k1=-0.05, k2=0.02, p1=0.0, p2=0.0,
+                         k3=0.0, width=480, height=360)
+    sim = Simulator(SynthConfig(sharp=6, blurry=0, square_px=(24.0, 30.0), max_tilt_deg=35.0, seed=11),
+                    camera=TrueCamera(model))
+    folder = tmp_path / "sharp"
+    folder.mkdir()
+    for i in range(6):
+        cv2.imwrite(str(folder / f"s{i}.png"), sim.frame(i).image)
+    yaml = tmp_path / "pattern.yaml"
+    sim.pattern.save_yaml(yaml)
+    runs = {}
+    for name, extra in (("local", ["--workers", "1"]), ("dask", ["--cluster", cluster])):
+        out = tmp_path / name
+        assert main(["calibrate", "--sharp", str(folder), "--pattern", str(yaml), "--out", str(out),
+                     "--model", "parametric", *extra]) == 0
+        runs[name] = out
+    camera = {name: BrownConrady.from_dict(
+        json.loads((out / "report.json").read_text())["calibration"]["camera"]) for name, out in runs.items()}
+    assert np.allclose(camera["local"].params, camera["dask"].params, rtol=0, atol=1e-9)
+    assert abs(camera["dask"].fx - model.fx) < 1.0
+    frames = {name: (out / "frames.csv").read_text() for name, out in runs.items()}
+    assert frames["local"] == frames["dask"]
+    ref, got = (_features(out / "features.csv") for out in runs.values())
+    assert len(ref) > 300 and ref.keys() == got.keys()
