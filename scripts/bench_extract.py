@@ -24,11 +24,12 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from blurcalib.deconv.blocks import DeconvSettings
+from blurcalib.deconv.settings import DeconvSettings
 from blurcalib.extract.frame import ExtractSettings, extract_frame
 from blurcalib.geometry.homography import homography_centre
 from blurcalib.io.frames import load_frame
-from blurcalib.sim.synth import Simulator, SynthConfig, splat
+from blurcalib.sim.synth import Simulator, SynthConfig
+from blurcalib.sim.truth import splat
 from blurcalib.target.pattern import load_pattern
 
 FIXTURES = Path(os.environ.get("BLURCALIB_FIXTURES") or Path(__file__).resolve().parents[2] / "shared"
@@ -52,7 +53,7 @@ def simulated(frames: int, device: str) -> None:
     print("== simulated blurry frames (blur 4-15 px, noise 2) ==")
     sim = Simulator(SynthConfig(sharp=0, blurry=frames, blur_min_px=4.0, blur_max_px=15.0,
                                 noise_sigma=2.0, seed=7))
-    settings = ExtractSettings(deconv=DeconvSettings(kernel_size=17, device=device))
+    settings = ExtractSettings(deconv=DeconvSettings(device=device))
     all_err, all_err_la, recovered, times, blocks = [], [], [], [], []
     split = {"seed": 0.0, "fit": 0.0, "align": 0.0}
     for i in range(frames):
@@ -136,7 +137,7 @@ def semi_real(device: str) -> None:
         sharp = extract_frame(image, pattern, path.name, ExtractSettings.sharp())
         blurred = blur_spatially_varying(image, rng) + rng.normal(0, 1.0, image.shape)
         blurry = extract_frame(np.clip(blurred, 0, 255).astype(np.float32), pattern, path.name,
-                               ExtractSettings(deconv=DeconvSettings(kernel_size=17, device=device)))
+                               ExtractSettings(deconv=DeconvSettings(device=device)))
         if sharp.status.value != "ok" or blurry.status.value != "ok":
             print(f"{path.name}: sharp {sharp.status.value}, blurry {blurry.status.value} "
                   f"{blurry.message}")

@@ -17,7 +17,7 @@ on a shared machine the CPU time is the figure to compare, taken back to back). 
 
 * ``hints``: the defaults (neighbours' PSFs as hints; a hinted block left not converged whose
   blur is short for its square is accepted after a last step under 0.15 px, else re-fitted with
-  the full schedule, :func:`blurcalib.growth.grow.fit_hinted`);
+  the full schedule, :func:`blurcalib.growth.fronts.fit_hinted`);
 * ``no-hints``: ``GrowSettings(psf_hints=False)``, every block with the full schedule;
 * ``hints-front-retry``: hints, failed hinted blocks re-fitted only when their front accepts
   none (``GrowSettings(retry_below_blur_per_square=0)``).
@@ -39,10 +39,10 @@ import numpy as np
 import torch
 
 from blurcalib.extract.frame import ExtractSettings, extract_frame
-from blurcalib.growth.grow import GrowSettings
+from blurcalib.growth.settings import GrowSettings
 from blurcalib.io.frames import load_frame
 from blurcalib.io.refformat import read_ref_dataset
-from blurcalib.sim.synth import splat
+from blurcalib.sim.truth import splat
 from blurcalib.target.pattern import load_pattern
 
 FIXTURES = Path(os.environ.get("BLURCALIB_FIXTURES") or Path(__file__).resolve().parents[2] / "shared"

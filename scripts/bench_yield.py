@@ -4,7 +4,7 @@
 
 1. Simulated frames with 12 to 25 px of blur (1280x720, noise sigma 2, seed 11): per frame how it
    was seeded, whether its blocks were fitted with the frame's path-PSF field (``field``,
-   :func:`blurcalib.growth.grow.field_growth`) or with free PSFs (``free``), the PSF window reached
+   :func:`blurcalib.growth.field.field_growth`) or with free PSFs (``free``), the PSF window reached
    (the largest of the frame's kernels), the share of visible blocks returned, the error of the star
    centres against the time-averaged truth after removing the frame's mean offset. Targets:
    >= 90% of frames extracted, >= 85% of visible features returned, median <= 0.03 px, none off
@@ -16,7 +16,7 @@
    against its star square's side at mid-exposure): the visible features, the share returned and
    their median error.
 2. Simulated frames with 4 to 15 px of blur (the set of ``scripts/bench_extract.py``, seed 7):
-   the same figures with the fixed 17 px window (``GrowSettings(max_kernel_size=17)``, which
+   the same figures with the fixed 17 px window (``WindowPolicy(largest=17)``, which
    also turns the path-PSF field off) and with the defaults.
    Target: accuracy and time per frame no worse.
 3. Photometry (``--photometry N``): simulated frames with 4 to 15 px of blur (seed 23) whose paper
@@ -50,8 +50,8 @@ from blurcalib.calib.alignment import MIN_BLOCKS
 from blurcalib.extract.frame import ExtractSettings, extract_frame
 from blurcalib.extract.quality import QualitySettings, filter_frame
 from blurcalib.geometry.homography import apply_homography
-from blurcalib.growth.grow import GrowSettings
-from blurcalib.sim import synth
+from blurcalib.growth.window import WindowPolicy
+from blurcalib.sim import render, synth
 from blurcalib.sim.synth import SimulatedFrame, Simulator, SynthConfig
 
 
@@ -201,10 +201,10 @@ def photometric_frame(sim: Simulator, index: int, white: float, electrons_per_le
                               float(rng.uniform(*cfg.defocus_px)), rng, cfg.noise_sigma)
     black = truth.levels[0] * white / truth.levels[1]
     truth = dataclasses.replace(truth, levels=(black, white), noise=(1.0 / electrons_per_level, read_sigma))
-    levels = [sim.texture(synth.MIP_TEXELS_PER_SQUARE[k])
-              for k in synth.mip_levels_for(sim.camera, pose, sim.pattern, cfg.supersample)]
+    levels = [sim.texture(render.MIP_TEXELS_PER_SQUARE[k])
+              for k in render.mip_levels_for(sim.camera, pose, sim.pattern, cfg.supersample)]
     irradiance = sim.renderer.irradiance(levels, pose, motion)
-    return SimulatedFrame(synth.sensor_image(irradiance, truth, rng), truth)
+    return SimulatedFrame(render.sensor_image(irradiance, truth, rng), truth)
 
 
 def photometry(title: str, frames: list[SimulatedFrame], pattern) -> None:
@@ -256,7 +256,7 @@ def main() -> None:
         sim, light = frames((4.0, 15.0), args.light, 7, args.cache)
         light = light[first::step]
         run("4-15 px blur, fixed 17 px window (before)", sim, light,
-            ExtractSettings(grow=GrowSettings(max_kernel_size=17)))
+            ExtractSettings(window=WindowPolicy(largest=17)))
         run("4-15 px blur, adaptive window (default)", sim, light, ExtractSettings())
     if args.photometry:
         sim = Simulator(SynthConfig(sharp=0, blurry=args.photometry, blur_min_px=4.0, blur_max_px=15.0,

@@ -10,15 +10,19 @@ import pytest
 import torch
 from scipy.ndimage import convolve
 
-from blurcalib.deconv.blocks import BlockFit, BlockProblem, DeconvSettings, fit_blocks, render_model
+from blurcalib.deconv.blocks import fit_blocks, fit_blocks_fixed, fit_blocks_hinted, render_model
+from blurcalib.deconv.problem import BlockProblem
+from blurcalib.deconv.result import BlockFit
+from blurcalib.deconv.settings import DeconvSettings
 from blurcalib.geometry.homography import translation
 from blurcalib.io.results import BlockStatus
 from blurcalib.psf.kernel import boundary_energy, psf_centroid, psf_moments, recentre, shift_pair
-from blurcalib.sim.synth import SimulatedBlocks, simulate_blocks
+from blurcalib.sim.blocks import SimulatedBlocks, simulate_blocks
 from blurcalib.target.pattern import layout_pattern, star_signed_distance, star_signed_distance_normal
 
 SEGMENTS = 16
-SETTINGS = DeconvSettings(kernel_size=13)
+K = 13
+SETTINGS = DeconvSettings()
 
 
 def _simulate(num: int, seed: int, **kw) -> SimulatedBlocks:
@@ -45,7 +49,7 @@ def sim() -> SimulatedBlocks:
 
 @pytest.fixture(scope="module")
 def fit(sim: SimulatedBlocks) -> BlockFit:
-    return fit_blocks(sim.image, sim.H0, SEGMENTS, SETTINGS)
+    return fit_blocks(sim.image, sim.H0, SEGMENTS, K, SETTINGS)
 
 
 # ----------------------------------------------------------------------------------- recovery
@@ -57,7 +61,7 @@ def test_known_blocks_are_recovered(sim: SimulatedBlocks, fit: BlockFit) -> None
     assert fit.converged.all()
     # noise is 2; sharp edges leave up to ~3.5 (the soft-edge model, tau = 0.25 px)
     assert np.all((fit.residual_rms > 1.8) & (fit.residual_rms < 4.0)), fit.residual_rms
-    truth = _centred_truth(sim.psf_true, SETTINGS.kernel_size)
+    truth = _centred_truth(sim.psf_true, K)
     a = fit.psf - fit.psf.mean(axis=(1, 2), keepdims=True)
     b = truth - truth.mean(axis=(1, 2), keepdims=True)
     ncc = (a * b).sum(axis=(1, 2)) / np.sqrt((a * a).sum(axis=(1, 2)) * (b * b).sum(axis=(1, 2)))
@@ -67,7 +71,6 @@ def test_known_blocks_are_recovered(sim: SimulatedBlocks, fit: BlockFit) -> None
 
 
 def test_result_arrays_are_consistent(fit: BlockFit) -> None:
-    K = SETTINGS.kernel_size
     assert fit.H.shape == (6, 3, 3) and fit.psf.shape == (6, K, K) and fit.coeffs.shape == (6, 6)
     np.testing.assert_allclose(fit.H[:, 2, 2], 1.0)
     np.testing.assert_allclose(fit.psf.sum(axis=(1, 2)), 1.0, atol=1e-9)
@@ -79,10 +82,8 @@ def test_result_arrays_are_consistent(fit: BlockFit) -> None:
     assert np.all(fit.num_pixels == [m.sum() for m in fit.masks])
 
 
-@pytest.mark.parametrize("brightness", ["after_blur", "before_blur"])
-def test_render_model_reproduces_the_loss(sim: SimulatedBlocks, brightness: str) -> None:
-    settings = dataclasses.replace(SETTINGS, brightness=brightness)
-    fit = fit_blocks(sim.image, sim.H0[:2], SEGMENTS, settings)
+def test_render_model_reproduces_the_loss(sim: SimulatedBlocks) -> None:
+    fit = fit_blocks(sim.image, sim.H0[:2], SEGMENTS, K, SETTINGS)
     for i in range(2):
         shown = render_model(fit, sim.image, i)
         shape = tuple(fit.window_size[i][::-1])
@@ -97,15 +98,10 @@ def test_render_model_reproduces_the_loss(sim: SimulatedBlocks, brightness: str)
 @pytest.mark.parametrize("kernel_size", [3, 7])
 def test_small_kernels_for_nearly_sharp_frames(kernel_size: int) -> None:
     sim = _simulate(3, seed=9, blur_px=(0.5, 2.0))
-    fit = fit_blocks(sim.image, sim.H0, SEGMENTS, DeconvSettings(kernel_size=kernel_size))
+    fit = fit_blocks(sim.image, sim.H0, SEGMENTS, kernel_size)
     assert fit.psf.shape == (3, kernel_size, kernel_size)
     assert all(st is BlockStatus.ACCEPTED for st in fit.status)
     assert _centre_error(fit, sim).max() < 0.05
-
-
-def test_paper_pattern_model_runs_but_is_less_accurate(sim: SimulatedBlocks, fit: BlockFit) -> None:
-    paper = fit_blocks(sim.image, sim.H0[:3], SEGMENTS, dataclasses.replace(SETTINGS, pattern="sigmoid_sin"))
-    assert np.all(np.isfinite(paper.centre)) and np.all(paper.residual_rms > fit.residual_rms[:3])
 
 
 # ---------------------------------------------------------------------- translational ambiguity
@@ -129,7 +125,7 @@ def test_shifted_start_gives_the_same_recentred_centre(sim: SimulatedBlocks, fit
     # both fits to the same star centre and PSF; what differs is the optimisation path (kernel
     # support, LM steps), measured at <= 0.025 px over three seeds
     H0 = translation(np.array([2.0, -1.0])) @ sim.H0[:3]
-    moved = fit_blocks(sim.image, H0, SEGMENTS, SETTINGS)
+    moved = fit_blocks(sim.image, H0, SEGMENTS, K, SETTINGS)
     assert np.abs(moved.centre - fit.centre[:3]).max() < 0.03
     assert np.abs(moved.psf - fit.psf[:3]).max() < 0.1 * fit.psf[:3].max()
     assert _centre_error(moved, dataclasses.replace(sim, centre_true=sim.centre_true[:3])).max() < 0.05
@@ -166,7 +162,7 @@ def test_psf_figures_of_a_known_line_blur() -> None:
     line = np.zeros((21, 21))
     line[10, 10 - length // 2:10 + length // 2 + 1] = 1.0  # horizontal, 7 px
     sim = _simulate(3, seed=5, psf=line)
-    fit = fit_blocks(sim.image, sim.H0, SEGMENTS, SETTINGS)
+    fit = fit_blocks(sim.image, sim.H0, SEGMENTS, K, SETTINGS)
     assert _centre_error(fit, sim).max() < 0.05
     # a 7-px box has sigma sqrt((7^2 - 1) / 12) = 2 px; the fit also absorbs the pixel area
     assert np.all(np.abs(fit.sigma_major - 2.0) < 0.25), fit.sigma_major
@@ -183,28 +179,28 @@ def test_boundary_energy_flags_a_kernel_reaching_the_border() -> None:
     long_line = np.zeros((21, 21))
     long_line[10, 1:20] = 1.0  # 19 px: longer than the 13 x 13 window
     sim = _simulate(2, seed=6, psf=long_line)
-    fit = fit_blocks(sim.image, sim.H0, SEGMENTS, SETTINGS)
+    fit = fit_blocks(sim.image, sim.H0, SEGMENTS, K, SETTINGS)
     assert np.all(fit.boundary_energy > 0.15), fit.boundary_energy
 
 
 # ------------------------------------------------------------------------------------- batching
 def test_batch_equals_one_by_one(sim: SimulatedBlocks, fit: BlockFit) -> None:
     for i in (0, 4):
-        single = fit_blocks(sim.image, sim.H0[i:i + 1], SEGMENTS, SETTINGS)
+        single = fit_blocks(sim.image, sim.H0[i:i + 1], SEGMENTS, K, SETTINGS)
         assert np.abs(single.centre[0] - fit.centre[i]).max() < 2e-3
         assert np.abs(single.psf[0] - fit.psf[i]).max() < 2e-3
         assert single.loss[0] == pytest.approx(fit.loss[i], rel=1e-2)
-    small_batches = fit_blocks(sim.image, sim.H0, SEGMENTS, dataclasses.replace(SETTINGS, batch_size=4))
+    small_batches = fit_blocks(sim.image, sim.H0, SEGMENTS, K, dataclasses.replace(SETTINGS, batch_size=4))
     assert np.abs(small_batches.centre - fit.centre).max() < 2e-3
     for groups in (1, 64):  # stage groups of one block each, and the whole batch as one group
-        grouped = fit_blocks(sim.image, sim.H0, SEGMENTS,
+        grouped = fit_blocks(sim.image, sim.H0, SEGMENTS, K,
                              dataclasses.replace(SETTINGS, stage_batch_size=groups))
         assert np.abs(grouped.centre - fit.centre).max() < 2e-3
         assert [m.shape for m in grouped.masks] == [m.shape for m in fit.masks]
 
 
 def test_float64_agrees_with_float32(sim: SimulatedBlocks, fit: BlockFit) -> None:
-    fit64 = fit_blocks(sim.image, sim.H0[:2], SEGMENTS, dataclasses.replace(SETTINGS, dtype="float64"))
+    fit64 = fit_blocks(sim.image, sim.H0[:2], SEGMENTS, K, dataclasses.replace(SETTINGS, dtype="float64"))
     assert np.abs(fit64.centre - fit.centre[:2]).max() < 2e-3
 
 
@@ -214,13 +210,13 @@ def test_block_convolution_is_the_valid_convolution(kernel_size: int) -> None:
     the observed grid, as an independent ``scipy.ndimage.convolve`` does."""
     rng = np.random.default_rng(5)
     size = np.array([[23, 19], [17, 21]])
-    s = DeconvSettings(kernel_size=kernel_size, dtype="float64")
+    s = DeconvSettings(dtype="float64")
     prob = BlockProblem(torch.zeros((80, 80), dtype=torch.float64), None, np.array([[3, 4], [9, 2]]), size,
-                    SEGMENTS, s)
+                        SEGMENTS, kernel_size, s)
     L = torch.as_tensor(rng.random((2, 3, prob.Hl, prob.Wl)))
     k = torch.as_tensor(rng.random((2, kernel_size, kernel_size)))
     out = prob.conv(L, k).numpy()
-    r = s.radius
+    r = prob.r
     for b in range(2):
         for c in range(3):
             ref = convolve(L[b, c].numpy(), k[b].numpy(), mode="constant")[r:r + prob.h, r:r + prob.w]
@@ -237,7 +233,7 @@ def test_invalid_blocks_are_flagged_per_block(sim: SimulatedBlocks, fit: BlockFi
     behind[2] = [2.0, 0.0, 1.0]  # the horizon crosses the square
     outside = translation(np.array([-60.0, 0.0])) @ good  # the window leaves the image
     H0 = np.stack([good, nan_h, flat, behind, outside, np.zeros((3, 3))])
-    out = fit_blocks(sim.image, H0, SEGMENTS, SETTINGS)
+    out = fit_blocks(sim.image, H0, SEGMENTS, K, SETTINGS)
     assert out.status == (BlockStatus.ACCEPTED, BlockStatus.DEGENERATE_HOMOGRAPHY,
                           BlockStatus.DEGENERATE_HOMOGRAPHY, BlockStatus.DEGENERATE_HOMOGRAPHY,
                           BlockStatus.OUTSIDE_IMAGE, BlockStatus.DEGENERATE_HOMOGRAPHY)
@@ -256,7 +252,7 @@ def test_a_window_without_a_star_fails_alone(sim: SimulatedBlocks, fit: BlockFit
     image[y0:y0 + h, x0:x0 + w] = 120.0  # block 1: a blank window
     cx, cy = np.round(fit.centre[2]).astype(int)
     image[cy + 3, cx] = np.nan  # block 2: one non-finite pixel in the square, ignored
-    out = fit_blocks(image, sim.H0[:3], SEGMENTS, SETTINGS)
+    out = fit_blocks(image, sim.H0[:3], SEGMENTS, K, SETTINGS)
     assert out.status == (BlockStatus.ACCEPTED, BlockStatus.NOT_CONVERGED, BlockStatus.ACCEPTED)
     assert np.abs(out.centre[[0, 2]] - fit.centre[[0, 2]]).max() < 0.01
     assert out.num_pixels[2] == fit.num_pixels[2] - 1
@@ -267,7 +263,7 @@ def test_pixel_mask_removes_pixels_from_the_loss(sim: SimulatedBlocks, fit: Bloc
     x0, y0 = fit.origin[0]
     w, h = fit.window_size[0]
     mask[y0:y0 + h // 4, x0:x0 + w] = False  # the top quarter of block 0's window
-    out = fit_blocks(sim.image, sim.H0[:2], SEGMENTS, SETTINGS, pixel_mask=mask)
+    out = fit_blocks(sim.image, sim.H0[:2], SEGMENTS, K, SETTINGS, pixel_mask=mask)
     assert out.num_pixels[0] < fit.num_pixels[0] and out.num_pixels[1] == fit.num_pixels[1]
     assert not out.masks[0][: h // 4].any()
     assert _centre_error(out, dataclasses.replace(sim, centre_true=sim.centre_true[:2])).max() < 0.05
@@ -275,15 +271,15 @@ def test_pixel_mask_removes_pixels_from_the_loss(sim: SimulatedBlocks, fit: Bloc
 
 def test_bad_arguments_raise() -> None:
     with pytest.raises(ValueError, match="odd"):
-        DeconvSettings(kernel_size=12)
-    with pytest.raises(ValueError, match="brightness"):
-        DeconvSettings(brightness="sideways")  # type: ignore[arg-type]
-    with pytest.raises(ValueError, match="pattern"):
-        DeconvSettings(pattern="checker")  # type: ignore[arg-type]
+        fit_blocks(np.zeros((40, 40)), np.eye(3)[None], SEGMENTS, 12)
+    with pytest.raises(ValueError, match="dtype"):
+        DeconvSettings(dtype="float16")
     with pytest.raises(ValueError, match=r"\(height, width\)"):
-        fit_blocks(np.zeros((4, 4, 3)), np.eye(3)[None], SEGMENTS)
+        fit_blocks(np.zeros((4, 4, 3)), np.eye(3)[None], SEGMENTS, K)
     with pytest.raises(ValueError, match="pixel_mask"):
-        fit_blocks(np.zeros((40, 40)), np.eye(3)[None], SEGMENTS, pixel_mask=np.ones((4, 4), dtype=bool))
+        fit_blocks(np.zeros((40, 40)), np.eye(3)[None], SEGMENTS, K, pixel_mask=np.ones((4, 4), dtype=bool))
+    with pytest.raises(ValueError, match="psfs"):
+        fit_blocks_fixed(np.zeros((40, 40)), np.eye(3)[None], SEGMENTS, -np.ones((1, K, K)))
 
 
 @pytest.mark.parametrize("segments", [8, 16])
@@ -304,8 +300,8 @@ def test_psf_hint_replaces_the_coarse_kernel() -> None:
     support in one stage and land as close to the truth as the full schedule."""
     sim = _simulate(10, 21, blur_px=(5.0, 9.0), init_shift_px=0.4, truth_kernel_size=13)
     image = sim.image.astype(np.float32)
-    full = fit_blocks(image, sim.H0, SEGMENTS, SETTINGS)
-    hinted = fit_blocks(image, sim.H0, SEGMENTS, SETTINGS, psf_hint=sim.psf_true)
+    full = fit_blocks(image, sim.H0, SEGMENTS, K, SETTINGS)
+    hinted = fit_blocks_hinted(image, sim.H0, SEGMENTS, sim.psf_true, SETTINGS)
     ok = np.array([s is BlockStatus.ACCEPTED for s in hinted.status])
     assert ok.sum() >= 9
     err_full, err_hinted = _centre_error(full, sim), _centre_error(hinted, sim)
@@ -314,10 +310,10 @@ def test_psf_hint_replaces_the_coarse_kernel() -> None:
     # A block without a usable hint starts from the whole window (measured 0.17 px off).
     blank = sim.psf_true.copy()
     blank[0] = 0.0
-    rough = fit_blocks(image, sim.H0, SEGMENTS, SETTINGS, psf_hint=blank)
+    rough = fit_blocks_hinted(image, sim.H0, SEGMENTS, blank, SETTINGS)
     assert rough.status[0] is BlockStatus.ACCEPTED and _centre_error(rough, sim)[0] < 0.5
-    with pytest.raises(ValueError, match="psf_hint"):
-        fit_blocks(image, sim.H0, SEGMENTS, SETTINGS, psf_hint=sim.psf_true[:, 1:-1, 1:-1])
+    with pytest.raises(ValueError, match="hints"):
+        fit_blocks_hinted(image, sim.H0, SEGMENTS, sim.psf_true[:3], SETTINGS)
 
 
 def test_a_larger_loss_area_sees_more_pixels_and_lands_closer() -> None:
@@ -330,8 +326,8 @@ def test_a_larger_loss_area_sees_more_pixels_and_lands_closer() -> None:
         sim = _simulate(12, seed, blur_px=(14.0, 18.0), square_px=(26.0, 30.0), tile_px=112,
                         truth_kernel_size=29, init_shift_px=0.3)
         for extent in errors:
-            fit = fit_blocks(sim.image.astype(np.float32), sim.H0, SEGMENTS,
-                             DeconvSettings(kernel_size=29, loss_extent=extent), psf_hint=sim.psf_true)
+            fit = fit_blocks_hinted(sim.image.astype(np.float32), sim.H0, SEGMENTS, sim.psf_true,
+                                    DeconvSettings(loss_extent=extent))
             assert all(s is BlockStatus.ACCEPTED for s in fit.status)
             errors[extent].append(_centre_error(fit, sim))
             pixels[extent].append(fit.num_pixels)
@@ -341,3 +337,17 @@ def test_a_larger_loss_area_sees_more_pixels_and_lands_closer() -> None:
     assert np.median(large) < 0.75 * np.median(small) and large.max() < small.max()
     with pytest.raises(ValueError, match="loss_extent"):
         DeconvSettings(loss_extent=0.0)
+
+
+def test_concatenated_fits_share_the_largest_window(sim: SimulatedBlocks, fit: BlockFit) -> None:
+    """A fit reports its window from its PSFs; rows of several fits are zero-padded (centred) to
+    the largest, and a replaced row carries the other fit's values."""
+    big = fit_blocks(sim.image, sim.H0[:2], SEGMENTS, 17, SETTINGS)
+    both = BlockFit.concat([fit, big])
+    assert (fit.kernel_size, big.kernel_size, both.kernel_size) == (K, 17, 17) and len(both) == len(fit) + 2
+    np.testing.assert_array_equal(both.psf[:len(fit), 2:-2, 2:-2], fit.psf)
+    assert np.all(both.psf[:len(fit), :2] == 0) and np.all(both.psf[:len(fit), :, -2:] == 0)
+    swapped = fit.with_rows(np.array([1]), big, np.array([0]))
+    np.testing.assert_array_equal(swapped.H[1], big.H[0])
+    np.testing.assert_array_equal(swapped.H[[0, 2]], fit.H[[0, 2]])
+    assert swapped.kernel_size == 17 and swapped.status[1] is big.status[0]

@@ -10,7 +10,7 @@ import pytest
 
 import blurcalib.extract.frame as extract_module
 from blurcalib.camera.parametric import BrownConrady
-from blurcalib.deconv.blocks import DeconvSettings
+from blurcalib.deconv.settings import DeconvSettings
 from blurcalib.extract.frame import (
     SHARP_BELOW_PX,
     ExtractSettings,
@@ -31,6 +31,7 @@ from blurcalib.growth.seed import (
     homography_from_features,
     seed_frame,
 )
+from blurcalib.growth.window import WindowPolicy
 from blurcalib.io.atomic import RUN_MANIFEST, OutputError
 from blurcalib.io.frames import load_frame
 from blurcalib.io.refformat import read_ref_dataset
@@ -42,7 +43,8 @@ from blurcalib.io.results import (
     read_feature_table,
     read_features,
 )
-from blurcalib.sim.synth import Simulator, SynthConfig, TrueCamera
+from blurcalib.sim.synth import Simulator, SynthConfig
+from blurcalib.sim.truth import TrueCamera
 from blurcalib.target.pattern import layout_pattern, load_pattern
 from tests.conftest import FIXTURE_YAML, REAL
 
@@ -207,7 +209,7 @@ def engine(monkeypatch: pytest.MonkeyPatch) -> list[str]:
         calls.append(frame)
         if "boom" in frame:
             raise KeyError("boom in the solver")
-        kernel = settings.deconv.kernel_size
+        kernel = settings.window.start
         obs = FeatureObservation(frame, 0, 0, 0, 0.0, 0.0, float(image.mean()), float(kernel),
                                  1.0, 1)
         return FrameResult(frame, FrameStatus.OK, features=FeatureTable.from_observations([obs]),
@@ -294,11 +296,11 @@ def test_resume_redoes_what_changed(tmp_path, engine) -> None:
         return list(engine)
 
     assert rerun() == []
-    assert rerun(ExtractSettings(deconv=DeconvSettings(kernel_size=21))) == ["0.png", "1.png", "2.png"]
+    assert rerun(ExtractSettings(window=WindowPolicy(start=21))) == ["0.png", "1.png", "2.png"]
     assert {y for _, y in _table(out).values()} == {21.0}  # the new PSF size was used
     # the device changes where, not what, is computed
-    assert rerun(ExtractSettings(deconv=DeconvSettings(kernel_size=21, device="cuda"))) == []
-    assert rerun(ExtractSettings(deconv=DeconvSettings(kernel_size=21), local_alignment=True)
+    assert rerun(ExtractSettings(window=WindowPolicy(start=21), deconv=DeconvSettings(device="cuda"))) == []
+    assert rerun(ExtractSettings(window=WindowPolicy(start=21), local_alignment=True)
                  ) == ["0.png", "1.png", "2.png"]
     fixed = layout_pattern(tag_index=3)  # e.g. the pattern YAML was corrected
     assert rerun(pattern=fixed) == ["0.png", "1.png", "2.png"]
@@ -381,7 +383,7 @@ def test_auto_kind_classifies_each_frame_by_its_blur(sim: Simulator, sharp_frame
     assert np.array_equal(sharp.features.x, explicit.features.x)
     assert np.all(sharp.features.flags & int(FeatureFlags.SHARP_FRAME))
     assert np.all(blurry.features.flags & int(FeatureFlags.BLURRY_FRAME))
-    assert sharp.growth.fit.settings.kernel_size == 7 and blurry.growth.fit.settings.kernel_size >= 17
+    assert sharp.growth.fit.kernel_size == 7 and blurry.growth.fit.kernel_size >= 17
 
 
 def _shifted(image: np.ndarray, dx: float, dy: float) -> np.ndarray:

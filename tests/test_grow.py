@@ -5,36 +5,35 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from blurcalib.deconv.blocks import DeconvSettings, fit_blocks
+from blurcalib.deconv.blocks import fit_blocks, fit_blocks_hinted
+from blurcalib.deconv.settings import DeconvSettings
 from blurcalib.geometry.homography import apply_homography
-from blurcalib.growth.grow import (
-    GrowSettings,
-    blur_footprint,
-    choose_kernel_size,
-    final_fit,
-    fit_front,
-    fit_hinted,
-    inconsistent,
-    pixel_mask,
-)
+from blurcalib.growth.final import final_fit
+from blurcalib.growth.fronts import fit_hinted
+from blurcalib.growth.judge import inconsistent
+from blurcalib.growth.masks import blur_footprint, pixel_mask
 from blurcalib.growth.seed import line_kernel
+from blurcalib.growth.settings import GrowSettings
+from blurcalib.growth.window import WindowPolicy, fit_front
 from blurcalib.io.results import BlockStatus
 from blurcalib.psf.kernel import blur_per_square, psf_moments
-from blurcalib.sim.synth import simulate_blocks
+from blurcalib.sim.blocks import simulate_blocks
 from blurcalib.target.pattern import layout_pattern
 
 
 def test_kernel_size_grows_with_the_blur() -> None:
-    sizes = [choose_kernel_size(s, 17, 41) for s in (0.5, 2.0, 4.0, 5.0, 6.0, 8.0, 20.0)]
+    window = WindowPolicy(start=17, largest=41)
+    sizes = [window.choose(s) for s in (0.5, 2.0, 4.0, 5.0, 6.0, 8.0, 20.0)]
     assert sizes == sorted(sizes) and all(k % 2 == 1 for k in sizes)
     assert sizes[0] == 17 and sizes[-1] == 41  # the configured window and the cap
     # ~1.5 x the extent sqrt(12) sigma of a straight blur: a 24 px blur (sigma 6.9 px) -> 37 px.
-    assert choose_kernel_size(24.0 / np.sqrt(12.0), 17, 41) == 37
-    assert choose_kernel_size(24.0 / np.sqrt(12.0), 17, 41, per_extent=1.2) == 29
-    assert choose_kernel_size(np.array([np.nan]), 17, 41) == 17
-    assert choose_kernel_size(3.0, 17, 15) == 17  # a cap below the configured window is no cap
+    assert window.choose(24.0 / np.sqrt(12.0)) == 37
+    assert WindowPolicy(per_extent=1.2).choose(24.0 / np.sqrt(12.0)) == 29
+    assert window.choose(np.array([np.nan])) == 17
+    assert window.choose(3.0, largest=15) == 17  # a cap below the start window is no cap
+    assert window.adapts and not WindowPolicy(largest=17).adapts
     with pytest.raises(ValueError, match="odd"):
-        GrowSettings(max_kernel_size=40)
+        WindowPolicy(largest=40)
 
 
 def test_truncated_psf_is_refitted_with_a_larger_window() -> None:
@@ -42,13 +41,13 @@ def test_truncated_psf_is_refitted_with_a_larger_window() -> None:
     sim = simulate_blocks(pattern, 6, np.random.default_rng(3), blur_px=(22.0, 24.0),
                           gauss_sigma=(0.3, 0.5), square_px=(34.0, 38.0), tile_px=128,
                           truth_kernel_size=41, init_shift_px=0.5)
-    deconv = DeconvSettings(kernel_size=17)
-    fixed = fit_blocks(sim.image.astype(np.float32), sim.H0, pattern.num_star_segments, deconv)
+    deconv = DeconvSettings()
+    fixed = fit_blocks(sim.image.astype(np.float32), sim.H0, pattern.num_star_segments, 17, deconv)
     fitted = np.isfinite(fixed.boundary_energy)
     assert np.median(fixed.boundary_energy[fitted]) > 0.1  # a 17 px window truncates 23 px blur
-    grown = fit_front(sim.image.astype(np.float32), sim.H0, pattern.num_star_segments, deconv,
-                      GrowSettings(), 17)
-    assert grown.psf.shape[-1] > 17 and grown.settings.kernel_size == grown.psf.shape[-1]
+    grown = fit_front(sim.image.astype(np.float32), sim.H0, pattern.num_star_segments, fixed, WindowPolicy(),
+                      deconv, GrowSettings())
+    assert grown.psf.shape[-1] > 17 and grown.kernel_size == grown.psf.shape[-1]
     ok = np.array([s is BlockStatus.ACCEPTED for s in grown.status])
     assert ok.sum() >= 5 and np.all(grown.boundary_energy[ok] < 0.12)
     err = np.linalg.norm(grown.centre[ok] - sim.centre_true[ok], axis=1)
@@ -93,8 +92,7 @@ def test_tag_mask_follows_the_blur() -> None:
     angle = 0.6
     sim = simulate_blocks(pattern, 4, np.random.default_rng(5), psf=line_kernel(20.0, angle),
                           square_px=(34.0, 38.0), tile_px=128, init_shift_px=0.5)
-    fit = fit_blocks(sim.image.astype(np.float32), sim.H0, pattern.num_star_segments,
-                     DeconvSettings(kernel_size=31))
+    fit = fit_blocks(sim.image.astype(np.float32), sim.H0, pattern.num_star_segments, 31)
     footprint = blur_footprint(fit, 20.0)
     assert footprint is not None
     ys, xs = np.nonzero(footprint)
@@ -137,7 +135,7 @@ def test_window_adapts_where_the_blur_outgrows_it_away_from_the_tag() -> None:
         sizes = [ev.psf.shape[-1] for ev in g.events]
         return np.linalg.norm(d - np.median(d, axis=0), axis=1), sizes
 
-    fixed, fixed_sizes = errors(ExtractSettings(grow=GrowSettings(max_kernel_size=17)))
+    fixed, fixed_sizes = errors(ExtractSettings(window=WindowPolicy(largest=17)))
     adapted, sizes = errors(ExtractSettings())
     assert set(fixed_sizes) == {17}
     assert sizes[0] == 17 and max(sizes) > 17  # the ring kept the window, later fronts widened it
@@ -152,13 +150,13 @@ def test_a_front_whose_hints_fail_is_fitted_again_without_them() -> None:
     sim = simulate_blocks(pattern, 4, np.random.default_rng(21), blur_px=(5.0, 9.0), supersample=4,
                           tile_px=80, init_shift_px=0.4, truth_kernel_size=13)
     image = sim.image.astype(np.float32)
-    deconv = DeconvSettings(kernel_size=13)
+    deconv = DeconvSettings()
     wrong = np.zeros((4, 13, 13))
     wrong[:, :3, :3] = 1.0
-    hinted = fit_blocks(image, sim.H0, pattern.num_star_segments, deconv, psf_hint=wrong)
+    hinted = fit_blocks_hinted(image, sim.H0, pattern.num_star_segments, wrong, deconv)
     assert all(s is BlockStatus.NOT_CONVERGED for s in hinted.status)
     assert np.max(np.linalg.norm(hinted.centre - sim.centre_true, axis=1)) > 0.5
-    fit = fit_hinted(image, sim.H0, pattern.num_star_segments, deconv, None, wrong)
+    fit = fit_hinted(image, sim.H0, pattern.num_star_segments, 13, deconv, None, wrong)
     assert all(s is BlockStatus.ACCEPTED for s in fit.status)
     assert np.max(np.linalg.norm(fit.centre - sim.centre_true, axis=1)) < 0.05
 
@@ -173,20 +171,20 @@ def test_a_block_whose_hint_fails_is_fitted_again_while_its_front_succeeds() -> 
     sim = simulate_blocks(pattern, 4, np.random.default_rng(21), blur_px=(5.0, 9.0), supersample=4,
                           tile_px=80, init_shift_px=0.4, truth_kernel_size=13)
     image = sim.image.astype(np.float32)
-    deconv = DeconvSettings(kernel_size=13)
+    deconv = DeconvSettings()
     hints = sim.psf_true.copy()
     hints[3] = 0.0
     hints[3, :3, :3] = 1.0
-    hinted = fit_blocks(image, sim.H0, pattern.num_star_segments, deconv, psf_hint=hints)
+    hinted = fit_blocks_hinted(image, sim.H0, pattern.num_star_segments, hints, deconv)
     assert [s is BlockStatus.ACCEPTED for s in hinted.status] == [True, True, True, False]
     assert np.linalg.norm(hinted.centre[3] - sim.centre_true[3]) > 0.5
     assert np.array_equal(hinted.converged_within(deconv.converge_tol_px), hinted.converged)
     assert not hinted.converged_within(1.0)[3]  # no contrast: not fitted, however little it moved
     assert blur_per_square(psf_moments(hints[3:]).sigma_major, sim.H0[3:])[0] < 0.5
-    front_only = fit_hinted(image, sim.H0, pattern.num_star_segments, deconv, None, hints,
+    front_only = fit_hinted(image, sim.H0, pattern.num_star_segments, 13, deconv, None, hints,
                             GrowSettings(retry_below_blur_per_square=0.0))
     assert front_only.status[3] is BlockStatus.NOT_CONVERGED
-    fit = fit_hinted(image, sim.H0, pattern.num_star_segments, deconv, None, hints)
+    fit = fit_hinted(image, sim.H0, pattern.num_star_segments, 13, deconv, None, hints)
     assert all(s is BlockStatus.ACCEPTED for s in fit.status)
     assert np.max(np.linalg.norm(fit.centre - sim.centre_true, axis=1)) < 0.05
     assert np.array_equal(fit.H[:3], hinted.H[:3])  # the accepted blocks keep their hinted fit
@@ -199,17 +197,17 @@ def test_final_fit_over_a_larger_area_moves_inner_blocks_closer_to_the_truth() -
     0.0202 px over the 82 inner ones); blocks on the pattern's rim, and fits that move further
     than ``final_max_shift_px``, are left as they were."""
     pattern = layout_pattern()
-    deconv = DeconvSettings(kernel_size=29)
+    deconv, window = DeconvSettings(), WindowPolicy(start=29)
     before, after, rim_kept, inner_changed, inner = [], [], [], [], []
     for seed in range(5, 12):
         sim = simulate_blocks(pattern, 16, np.random.default_rng(seed), blur_px=(14.0, 18.0),
                               square_px=(26.0, 30.0), tile_px=112, truth_kernel_size=29,
                               init_shift_px=0.3, supersample=4)
         image = sim.image.astype(np.float32)
-        fit = fit_blocks(image, sim.H0, pattern.num_star_segments, deconv)
+        fit = fit_blocks(image, sim.H0, pattern.num_star_segments, 29, deconv)
         ok = np.array([s is BlockStatus.ACCEPTED for s in fit.status])
         ids = pattern.feature_ids(sim.features[:, 0], sim.features[:, 1])
-        final = final_fit(image, pattern, ids, fit, ok, deconv, GrowSettings(), None)
+        final = final_fit(image, pattern, ids, fit, ok, window, deconv, GrowSettings(), None)
         f = sim.features
         rim = (f[:, 0] == 0) | (f[:, 1] == 0) | (f[:, 0] == pattern.squares_x - 2) \
             | (f[:, 1] == pattern.squares_y - 2)
@@ -222,7 +220,7 @@ def test_final_fit_over_a_larger_area_moves_inner_blocks_closer_to_the_truth() -
         after.append(np.linalg.norm(final.centre - sim.centre_true, axis=1)[changed])
         if seed == 5:
             for rules in (GrowSettings(final_max_shift_px=1e-6), GrowSettings(final_extent=1.0)):
-                kept = final_fit(image, pattern, ids, fit, ok, deconv, rules, None)
+                kept = final_fit(image, pattern, ids, fit, ok, window, deconv, rules, None)
                 assert np.array_equal(kept.H, fit.H) and np.array_equal(kept.psf, fit.psf, equal_nan=True)
     assert all(rim_kept) and sum(inner_changed) >= 0.9 * sum(inner) and sum(inner) >= 60
     b, a = np.concatenate(before), np.concatenate(after)

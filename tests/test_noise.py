@@ -8,11 +8,12 @@ import numpy as np
 import pytest
 
 from blurcalib.extract.noise import NoiseModel, estimate_noise, frame_noise, highpass_residual
-from blurcalib.sim import synth
+from blurcalib.sim import render, synth
+from blurcalib.sim.truth import FrameTruth
 
 
 @pytest.fixture(scope="module")
-def rendered() -> tuple[np.ndarray, synth.FrameTruth]:
+def rendered() -> tuple[np.ndarray, FrameTruth]:
     """One blurry frame's irradiance (before the sensor) and its truth."""
     sim = synth.Simulator(synth.SynthConfig(sharp=0, blurry=1, blur_min_px=4.0, blur_max_px=10.0, seed=3))
     cfg = sim.config
@@ -21,8 +22,8 @@ def rendered() -> tuple[np.ndarray, synth.FrameTruth]:
     motion = synth.sample_motion(sim.renderer, pose, sim.pattern, rng, 6.0, curved=True)
     truth = synth.frame_truth("blurry/0000.png", "blurry", sim.pattern, sim.camera, pose, motion, 0.6, rng,
                               cfg.noise_sigma)
-    levels = [sim.texture(synth.MIP_TEXELS_PER_SQUARE[k])
-              for k in synth.mip_levels_for(sim.camera, pose, sim.pattern, cfg.supersample)]
+    levels = [sim.texture(render.MIP_TEXELS_PER_SQUARE[k])
+              for k in render.mip_levels_for(sim.camera, pose, sim.pattern, cfg.supersample)]
     return sim.renderer.irradiance(levels, pose, motion), truth
 
 
@@ -35,7 +36,7 @@ def test_the_estimate_tracks_the_simulated_noise(rendered, white: float, electro
     irradiance, truth = rendered
     black = 0.15 * white
     truth = dataclasses.replace(truth, levels=(black, white), noise=(1.0 / electrons, read))
-    image = synth.sensor_image(irradiance, truth, np.random.default_rng(1)).astype(np.float32)
+    image = render.sensor_image(irradiance, truth, np.random.default_rng(1)).astype(np.float32)
     model = estimate_noise(image)
     for mu in (black, (black + white) / 2, 0.9 * white):
         true = read**2 + 1.0 / 12.0 + mu / electrons

@@ -11,13 +11,14 @@ import numpy as np
 import pytest
 import torch
 
-from blurcalib.deconv.blocks import DeconvSettings, fit_blocks
+from blurcalib.deconv.blocks import fit_blocks, fit_blocks_fixed
+from blurcalib.deconv.settings import DeconvSettings
 from blurcalib.geometry.homography import homography_centre, translation
 from blurcalib.growth.seed import block_homography
 from blurcalib.io.results import BlockStatus
 from blurcalib.psf.field import PathField, constant_field, fit_path_field, path_kernels
 from blurcalib.psf.kernel import psf_centroid
-from blurcalib.sim.synth import simulate_blocks
+from blurcalib.sim.blocks import simulate_blocks
 from blurcalib.target.pattern import StarPattern, layout_pattern
 
 SEGMENTS = 16
@@ -85,18 +86,18 @@ def test_known_psfs_locate_stars_whose_blur_is_as_long_as_their_squares() -> Non
     """Blur 24 px on 24-28 px squares: free PSFs trade their shape against the star's position,
     the true PSFs held do not."""
     sim, kernels = _long_blur_blocks(3, FIELD)
-    settings = DeconvSettings(kernel_size=45, loss_extent=1.5)
+    settings = DeconvSettings(loss_extent=1.5)
     image = sim.image.astype(np.float32)
-    held = fit_blocks(image, sim.H0, SEGMENTS, settings, psf_fixed=kernels)
-    free = fit_blocks(image, sim.H0, SEGMENTS, settings)
+    held = fit_blocks_fixed(image, sim.H0, SEGMENTS, kernels, settings)
+    free = fit_blocks(image, sim.H0, SEGMENTS, 45, settings)
     err_held = np.linalg.norm(held.centre - sim.centre_true, axis=1)
     err_free = np.linalg.norm(free.centre - sim.centre_true, axis=1)
     assert sum(s is BlockStatus.ACCEPTED for s in held.status) >= 14
     assert np.median(err_held) < 0.06 and err_held.max() < 0.15, err_held
     assert err_free.max() > 0.4 and np.sum(err_free > 0.15) >= 3, err_free
     np.testing.assert_allclose(held.psf_fit, kernels / kernels.sum(axis=(1, 2), keepdims=True), atol=1e-6)
-    with pytest.raises(ValueError, match="psf_fixed"):
-        fit_blocks(image, sim.H0, SEGMENTS, settings, psf_fixed=kernels[:, :-2, :-2])
+    with pytest.raises(ValueError, match="psfs"):
+        fit_blocks_fixed(image, sim.H0, SEGMENTS, kernels[:2], settings)
 
 
 def test_field_fit_recovers_the_field_and_the_blocks() -> None:

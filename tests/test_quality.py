@@ -7,12 +7,12 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from blurcalib.deconv.blocks import DeconvSettings, fit_blocks
+from blurcalib.deconv.blocks import fit_blocks
 from blurcalib.extract.noise import NoiseModel
 from blurcalib.extract.quality import REFERENCE_NOISE_VAR, QualitySettings, connected_blocks, filter_frame
 from blurcalib.geometry.homography import translation
 from blurcalib.io.results import BlockStatus, BlockTable
-from blurcalib.sim.synth import simulate_blocks
+from blurcalib.sim.blocks import simulate_blocks
 from blurcalib.target.pattern import layout_pattern
 
 
@@ -101,7 +101,7 @@ def _poisson_frame(paper: float, ink: float, electrons: float, seed: int
     clean = sim.image.astype(np.float64)
     noisy = rng.poisson(clean * electrons) / electrons + rng.normal(0.0, 0.5, clean.shape)
     image = np.clip(np.round(noisy), 0, 255).astype(np.float32)
-    fit = fit_blocks(image, sim.H0, pattern.num_star_segments, DeconvSettings(kernel_size=17))
+    fit = fit_blocks(image, sim.H0, pattern.num_star_segments, 17)
     noise = NoiseModel(a=0.5**2 + 1.0 / 12.0, b=1.0 / electrons, level=(ink + paper) / 2)
     b = len(fit)
     fy, fx = np.divmod(np.arange(b), 3)

@@ -36,11 +36,12 @@ from pathlib import Path
 
 import numpy as np
 
-from blurcalib.deconv.blocks import DeconvSettings
+from blurcalib.deconv.settings import DeconvSettings
 from blurcalib.extract.local_alignment import LocalAlignment, align_locally, shared_corners
 from blurcalib.extract.noise import NoiseModel, frame_noise
 from blurcalib.geometry.homography import homography_centre
-from blurcalib.growth.grow import GrowSettings, Growth, GrowthEvent, grow
+from blurcalib.growth.grow import grow
+from blurcalib.growth.ledger import Growth, GrowthEvent
 from blurcalib.growth.seed import (
     DEFAULT_SCALES,
     LabelCheck,
@@ -52,6 +53,8 @@ from blurcalib.growth.seed import (
     seed_frame,
     tag_ring_features,
 )
+from blurcalib.growth.settings import GrowSettings
+from blurcalib.growth.window import SHARP_START, WindowPolicy
 from blurcalib.io.atomic import OutputError, atomic_write_csv, claim_output_dir, remove_temporaries
 from blurcalib.io.frames import FrameError, FrameSizeError, frame_size_problem
 from blurcalib.io.results import (
@@ -91,9 +94,6 @@ FINAL_STATUSES = frozenset({FrameStatus.OK.value, FrameStatus.NOT_SEEDED.value,
 FRAME_KINDS: tuple[str, ...] = ("auto", "sharp", "blurry")
 """Values of :attr:`ExtractSettings.kind`."""
 
-SHARP_KERNEL_SIZE = 7
-"""PSF window of sharp frames (px)."""
-
 SHARP_BELOW_PX = 5.0
 """Default :attr:`ExtractSettings.sharp_below_px`: a frame whose measured blur (:func:`ring_blur`)
 is below this is sharp. Measured (``docs/pipeline.md``): sharp simulated frames read 1.3-2.8 px,
@@ -106,7 +106,8 @@ class ExtractSettings:
     """How frames are processed.
 
     Attributes:
-        deconv: block solver settings (kernel size etc.).
+        window: the PSF windows (start, largest, field).
+        deconv: block solver settings.
         grow: growth acceptance rules.
         local_alignment: move each block's star centre by its local-alignment translation.
         kind: ``"blurry"``, ``"sharp"`` (recorded in the feature flags) or ``"auto"``: each frame
@@ -117,6 +118,7 @@ class ExtractSettings:
         sharp_below_px: the classification threshold of ``kind="auto"`` (px of blur extent).
     """
 
+    window: WindowPolicy = field(default_factory=WindowPolicy)
     deconv: DeconvSettings = field(default_factory=DeconvSettings)
     grow: GrowSettings = field(default_factory=GrowSettings)
     local_alignment: bool = False
@@ -135,7 +137,7 @@ class ExtractSettings:
         """Settings for sharp frames: the same engine with a small (7 x 7) PSF window and free
         PSFs only (no motion-path field: a sharp frame's PSF is its defocus; 4 of the demo's 20
         sharp frames adapt their window, and their features stay as measured before the field)."""
-        return replace(ExtractSettings(deconv=DeconvSettings(kernel_size=SHARP_KERNEL_SIZE),
+        return replace(ExtractSettings(window=WindowPolicy(start=SHARP_START),
                                        grow=GrowSettings(psf_field=False), kind="sharp"), **changes)
 
     @staticmethod
@@ -148,7 +150,7 @@ class ExtractSettings:
         """These settings for frames of ``kind`` (``"sharp"`` or ``"blurry"``): for sharp frames
         the :meth:`sharp` window and free PSFs, everything else kept."""
         if kind == "sharp":
-            return replace(self, deconv=replace(self.deconv, kernel_size=SHARP_KERNEL_SIZE),
+            return replace(self, window=replace(self.window, start=SHARP_START),
                            grow=replace(self.grow, psf_field=False), kind="sharp")
         return replace(self, kind=kind)
 
@@ -255,11 +257,11 @@ def grow_frame(image: np.ndarray, pattern: StarPattern, frame: str, seed: Seed,
     kind = "blurry" if settings.kind == "auto" else settings.kind
     used = settings.for_kind(kind) if settings.kind == "auto" else settings
     noise = frame_noise(image)
-    growth = grow(image, pattern, seed, used.deconv, used.grow, on_event, should_stop, noise)
+    growth = grow(image, pattern, seed, used.window, used.deconv, used.grow, on_event, should_stop, noise)
     blur = ring_blur(growth)
     if settings.kind == "auto" and blur < settings.sharp_below_px:
         kind, used = "sharp", settings.for_kind("sharp")
-        growth = grow(image, pattern, seed, used.deconv, used.grow, on_event, should_stop, noise)
+        growth = grow(image, pattern, seed, used.window, used.deconv, used.grow, on_event, should_stop, noise)
     t2 = time.perf_counter()
     seconds["fit"] = t2 - t1
     if growth is None or not growth.accepted.any():

@@ -58,7 +58,7 @@ class NoiseModel:
 
     def block_variance(self, coeffs: np.ndarray) -> np.ndarray:
         """``(B,)`` the variance at the mean level of blocks with the brightness coefficients
-        ``coeffs (B, 6)`` ``(a1, a2, a3, b1, b2, b3)`` of :class:`blurcalib.deconv.blocks.BlockFit`
+        ``coeffs (B, 6)`` ``(a1, a2, a3, b1, b2, b3)`` of :class:`blurcalib.deconv.result.BlockFit`
         (grey levels^2; NaN where not fitted). The star is half paper, half ink and the gradients
         vanish at the window's centre, so the mean level is ``b3 + a3 / 2``."""
         coeffs = np.asarray(coeffs, dtype=np.float64).reshape(-1, 6)

@@ -24,8 +24,8 @@ the PSF few parameters and shares them over the frame:
   simulated heavy-blur frames a quadratic field holds the true paths to 0.01 px RMS.
 * :func:`fit_path_field`: the field and every block's homography and brightness in one
   Gauss-Newton problem (``eq:field_fit``), the blocks' parameters eliminated by the Schur
-  complement. The blocks' fit with the field's kernels held is :func:`blurcalib.deconv.blocks.fit_blocks`
-  with ``psf_fixed``.
+  complement. The blocks' fit with the field's kernels held is
+  :func:`blurcalib.deconv.blocks.fit_blocks_fixed`.
 
 Conventions: OpenCV pixels (top-left pixel centre at ``(0, 0)``); kernels ``K x K`` with
 ``k[i, j]`` the weight of offset ``(j - c, i - c)`` px (``docs/conventions.md``).
@@ -40,7 +40,10 @@ import cv2
 import numpy as np
 import torch
 
-from blurcalib.deconv.blocks import BlockProblem, DeconvSettings, block_windows, update_homography
+from blurcalib.deconv.latent import update_homography
+from blurcalib.deconv.problem import BlockProblem
+from blurcalib.deconv.settings import DeconvSettings
+from blurcalib.deconv.windows import block_windows
 from blurcalib.io.results import BlockStatus
 from blurcalib.psf.kernel import psf_moments
 
@@ -165,7 +168,7 @@ class PathField:
     def footprint(self, xy: np.ndarray, largest: int, margin_px: int = 2) -> np.ndarray:
         """``(F, F)`` uint8: where the PSF at image point ``xy (2,)`` px has weight (above 1 % of
         its peak), dilated by ``margin_px`` px: a pixel sees a tag through the blur only within
-        the tag dilated by it (:func:`blurcalib.growth.grow.pixel_mask`)."""
+        the tag dilated by it (:func:`blurcalib.growth.masks.pixel_mask`)."""
         xy = np.asarray(xy, dtype=np.float64).reshape(1, 2)
         size = self.kernel_size(xy, largest)
         k = self.kernels(xy, size)[0]
@@ -268,8 +271,8 @@ class FieldFit:
 class _FieldProblem:
     """The blocks of :func:`fit_path_field`: their windows, pixels and the field's basis."""
 
-    def __init__(self, image: np.ndarray, H0: np.ndarray, num_segments: int, s: DeconvSettings,
-                 pixel_mask: np.ndarray | None, basis: np.ndarray) -> None:
+    def __init__(self, image: np.ndarray, H0: np.ndarray, num_segments: int, kernel_size: int,
+                 s: DeconvSettings, pixel_mask: np.ndarray | None, basis: np.ndarray) -> None:
         origin, size, Hn, status = block_windows(H0, image.shape, s)
         self.rows = np.flatnonzero([st is BlockStatus.ACCEPTED for st in status])
         dev = torch.device(s.device)
@@ -277,7 +280,7 @@ class _FieldProblem:
                               device=dev)
         ok = None if pixel_mask is None else torch.as_tensor(np.asarray(pixel_mask, dtype=bool), device=dev)
         r = self.rows
-        self.prob = BlockProblem(img, ok, origin[r], size[r], num_segments, s)
+        self.prob = BlockProblem(img, ok, origin[r], size[r], num_segments, kernel_size, s)
         self.H_loc = self.prob.to_local(Hn[r])
         self.mask = self.prob.square_mask(self.H_loc).to(self.prob.dt)  # held through the fit
         self.basis = torch.as_tensor(basis[r], dtype=self.prob.dt, device=dev)
@@ -291,7 +294,7 @@ class _FieldProblem:
         pb, b = self.prob, H_loc.shape[0]
         dt = pb.dt
         theta = torch.cat([self.basis @ coeffs.to(dt), log_sigma.to(dt).expand(b, 1)], dim=1)
-        k, dk = path_kernels(theta, pb.s.kernel_size, with_jac)
+        k, dk = path_kernels(theta, pb.K, with_jac)
         S, dS = pb.latent(H_loc, with_jac=with_jac)
         conv = pb.conv(torch.cat([S[:, None], dS], dim=1), k) if with_jac else pb.conv(S[:, None], k)
         C, u, v = conv[:, 0], pb.u_e, pb.v_e
@@ -318,7 +321,7 @@ class _FieldProblem:
 
 _UPDATE_ENTRIES = ((0, 0), (0, 1), (0, 2), (1, 0), (1, 1), (1, 2), (2, 0), (2, 1))
 """Entries of the 8-parameter update ``Delta`` of a homography
-(:func:`blurcalib.deconv.blocks.update_homography`)."""
+(:func:`blurcalib.deconv.latent.update_homography`)."""
 
 
 def _tied_map(A: np.ndarray) -> np.ndarray:
@@ -346,6 +349,56 @@ def _feature_blocks(features: np.ndarray) -> np.ndarray:
     return A
 
 
+def _schur_step(Jl: torch.Tensor, Js: torch.Tensor, r: torch.Tensor, w: torch.Tensor, mu: float
+                ) -> tuple[torch.Tensor, torch.Tensor]:
+    """One Levenberg-Marquardt step of :func:`fit_path_field`: the weighted normal equations of the
+    blocks' own parameters ``Jl (b, L, n)`` and the shared ones ``Js (b, S, n)`` at residuals
+    ``r (b, n)`` and block weights ``w (b,)``, damped by ``mu``; the blocks' parameters are
+    eliminated (Schur complement, ``(b, L, L)`` batched solves). Returns ``(ds (S,), dl (b, L))``."""
+    wt = w.to(r.dtype)[:, None, None]
+    Nll = ((Jl * wt) @ Jl.transpose(1, 2)).double()
+    Nls = ((Jl * wt) @ Js.transpose(1, 2)).double()
+    Nss = ((Js * wt) @ Js.transpose(1, 2)).double().sum(dim=0)
+    gl = ((Jl * wt) @ r[..., None]).double()
+    gs = ((Js * wt) @ r[..., None]).double().sum(dim=0)
+    Nll.diagonal(dim1=1, dim2=2).mul_(1.0 + mu).add_(1e-12)
+    Nss.diagonal().mul_(1.0 + mu).add_(1e-12)
+    X = torch.linalg.solve_ex(Nll, torch.cat([Nls, gl], dim=2))[0]
+    reduced = Nss - (Nls.transpose(1, 2) @ X[..., :-1]).sum(dim=0)
+    ds = torch.linalg.solve_ex(reduced, gs - (Nls.transpose(1, 2) @ X[..., -1:]).sum(dim=0))[0][:, 0]
+    dl = torch.linalg.solve_ex(Nll, gl - Nls @ ds[:, None])[0][..., 0]
+    return ds, dl
+
+
+def _tied_start(H0: np.ndarray, features: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The blocks ``H0 (B, 3, 3)`` at feature coordinates ``features (B, 2)`` as blocks of one
+    feature homography ``H_F`` (least squares on their star centres): ``(H_F B(f) (B, 3, 3),
+    H_F (3, 3))``."""
+    centres = H0[:, :2, 2] / H0[:, 2:, 2]
+    ok = np.all(np.isfinite(centres), axis=1)
+    if ok.sum() < 4:
+        raise ValueError("a tied path field needs at least 4 blocks")
+    H_F, _ = cv2.findHomography(features[ok], centres[ok], 0)
+    if H_F is None:
+        raise ValueError("no homography fits the tied blocks' centres")
+    H = H_F[None] @ _feature_blocks(features)
+    return H / H[:, 2:, 2:], H_F
+
+
+def _field_fit(fp: _FieldProblem, H0: np.ndarray, H_loc: torch.Tensor, loss: torch.Tensor,
+               weight: torch.Tensor, field: PathField, K: int, steps: int, history: list[float]) -> FieldFit:
+    """The :class:`FieldFit` of the fitted rows ``fp.rows``: ``H_loc``, their ``loss`` and
+    ``weight`` (tensors); the other rows keep ``H0`` with NaN loss and weight 0."""
+    B = len(H0)
+    H = H0.copy()
+    H[fp.rows] = fp.prob.to_image(H_loc)
+    loss_np = np.full(B, np.nan)
+    loss_np[fp.rows] = loss.cpu().numpy()
+    weight_np = np.zeros(B)
+    weight_np[fp.rows] = weight.cpu().numpy()
+    return FieldFit(field, H / H[:, 2:, 2:], loss_np, weight_np, K, steps, np.asarray(history))
+
+
 def fit_path_field(image: np.ndarray, H0: np.ndarray, num_segments: int, start: PathField,
                    deconv: DeconvSettings | None = None, settings: FieldSettings | None = None,
                    pixel_mask: np.ndarray | None = None, features: np.ndarray | None = None) -> FieldFit:
@@ -370,8 +423,8 @@ def fit_path_field(image: np.ndarray, H0: np.ndarray, num_segments: int, start: 
             px off is fine, or, tied, a few px).
         num_segments: star segments ``N``.
         start: the field to start from, e.g. :func:`constant_field` (its degree is the fit's).
-        deconv: settings of the blocks' windows and latent pattern (kernel size and loss extent
-            are set here).
+        deconv: settings of the blocks' windows and latent pattern (the loss extent is set
+            here; the PSF window follows the start's paths).
         settings: :class:`FieldSettings`.
         pixel_mask: as for :func:`blurcalib.deconv.blocks.fit_blocks`.
         features: ``(B, 2)`` feature coordinates of the blocks to tie them (``H_F`` starts from
@@ -384,23 +437,15 @@ def fit_path_field(image: np.ndarray, H0: np.ndarray, num_segments: int, start: 
     """
     fs = settings or FieldSettings()
     H0 = np.asarray(H0, dtype=np.float64).reshape(-1, 3, 3)
-    centres = H0[:, :2, 2] / H0[:, 2:, 2]
     if features is not None:
         features = np.asarray(features, dtype=np.float64).reshape(-1, 2)
-        ok = np.all(np.isfinite(centres), axis=1)
-        if ok.sum() < 4:
-            raise ValueError("a tied path field needs at least 4 blocks")
-        H_F, _ = cv2.findHomography(features[ok], centres[ok], 0)
-        if H_F is None:
-            raise ValueError("no homography fits the tied blocks' centres")
-        H0 = H_F[None] @ _feature_blocks(features)
-        H0 = H0 / H0[:, 2:, 2:]
-        centres = H0[:, :2, 2]
+        H0, H_F = _tied_start(H0, features)
+    centres = H0[:, :2, 2] / H0[:, 2:, 2]
     K = start.kernel_size(centres, fs.largest_kernel)
     K = max(K, 2 * math.ceil(1.25 * (K // 2)) + 1)  # room for the path to grow during the fit
     K = min(K, fs.largest_kernel - 1 + fs.largest_kernel % 2)
-    s = replace(deconv or DeconvSettings(), kernel_size=K, loss_extent=fs.loss_extent)
-    fp = _FieldProblem(image, H0, num_segments, s, pixel_mask, start.basis(centres))
+    s = replace(deconv or DeconvSettings(), loss_extent=fs.loss_extent)
+    fp = _FieldProblem(image, H0, num_segments, K, s, pixel_mask, start.basis(centres))
     b = len(fp.rows)
     if b == 0 or (features is not None and b < 4):
         raise ValueError("too few blocks of the path field's fit lie inside the image")
@@ -439,19 +484,7 @@ def fit_path_field(image: np.ndarray, H0: np.ndarray, num_segments: int, start: 
     history, mu, steps = [obj], 1e-3, 0
     while steps < fs.iterations:
         steps += 1
-        (Jl, Js), r = jacobians(cur), cur["r"]
-        wt = w.to(r.dtype)[:, None, None]
-        Nll = ((Jl * wt) @ Jl.transpose(1, 2)).double()
-        Nls = ((Jl * wt) @ Js.transpose(1, 2)).double()
-        Nss = ((Js * wt) @ Js.transpose(1, 2)).double().sum(dim=0)
-        gl = ((Jl * wt) @ r[..., None]).double()
-        gs = ((Js * wt) @ r[..., None]).double().sum(dim=0)
-        Nll.diagonal(dim1=1, dim2=2).mul_(1.0 + mu).add_(1e-12)
-        Nss.diagonal().mul_(1.0 + mu).add_(1e-12)
-        X = torch.linalg.solve_ex(Nll, torch.cat([Nls, gl], dim=2))[0]
-        reduced = Nss - (Nls.transpose(1, 2) @ X[..., :-1]).sum(dim=0)
-        ds = torch.linalg.solve_ex(reduced, gs - (Nls.transpose(1, 2) @ X[..., -1:]).sum(dim=0))[0][:, 0]
-        dl = torch.linalg.solve_ex(Nll, gl - Nls @ ds[:, None])[0][..., 0]
+        ds, dl = _schur_step(*jacobians(cur), cur["r"], w, mu)
         if nh:
             H_F_try = update_homography(H_F[None], ds[None, :8])[0]
             H_try = to_local @ H_F_try[None] @ A
@@ -479,12 +512,5 @@ def fit_path_field(image: np.ndarray, H0: np.ndarray, num_segments: int, start: 
             mu = 1e-3 if not hold else mu
         elif converged:
             break
-    B = len(H0)
-    H = H0.copy()
-    H[fp.rows] = fp.prob.to_image(H_loc)
-    loss = np.full(B, np.nan)
-    loss[fp.rows] = block_loss(cur["r"]).cpu().numpy()
-    weight = np.zeros(B)
-    weight[fp.rows] = w.cpu().numpy()
     field = PathField(coeffs.cpu().numpy(), float(log_sigma), start.image_size)
-    return FieldFit(field, H / H[:, 2:, 2:], loss, weight, K, steps, np.asarray(history))
+    return _field_fit(fp, H0, H_loc, block_loss(cur["r"]), w, field, K, steps, history)

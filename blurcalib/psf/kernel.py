@@ -22,6 +22,7 @@ __all__ = [
     "psf_centroid",
     "psf_moments",
     "recentre",
+    "resize_kernels",
     "shift_pair",
 ]
 
@@ -140,6 +141,15 @@ def psf_centroid(psf: np.ndarray, threshold: float = 0.0) -> np.ndarray:
     with np.errstate(invalid="ignore", divide="ignore"):
         out = np.stack([w.sum(axis=1) @ offs, w.sum(axis=2) @ offs], axis=1) / total[:, None]
     return out[0] if single else out
+
+
+def resize_kernels(k: np.ndarray, size: int) -> np.ndarray:
+    """``(..., K, K)`` kernels zero-padded or cropped (centred) to ``(..., size, size)`` (``K`` and
+    ``size`` odd): padding leaves a kernel unchanged as a convolution kernel."""
+    p = (size - k.shape[-1]) // 2
+    if p >= 0:
+        return np.pad(k, [(0, 0)] * (k.ndim - 2) + [(p, p), (p, p)]) if p else k
+    return k[..., -p:k.shape[-1] + p, -p:k.shape[-1] + p]
 
 
 def _shift_kernels(psf: np.ndarray, shift: np.ndarray) -> np.ndarray:

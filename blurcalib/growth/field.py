@@ -1,0 +1,312 @@
+"""The field growth: a frame's path-PSF field fitted from a growth, and the growth gone on with it.
+
+Under blur as long as the star squares a block's free PSF trades its shape against the star's
+position; the frame's motion-path field (:mod:`blurcalib.psf.field`) does not
+(:func:`field_growth`).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import replace
+
+import cv2
+import numpy as np
+
+from blurcalib.deconv.blocks import fit_blocks_fixed
+from blurcalib.deconv.result import BlockFit
+from blurcalib.deconv.settings import DeconvSettings
+from blurcalib.geometry.homography import homography_centre
+from blurcalib.growth.final import inner
+from blurcalib.growth.fronts import next_front, normalise
+from blurcalib.growth.judge import judge_front, neighbour_homographies
+from blurcalib.growth.ledger import Growth, GrowthEvent, GrowthLedger
+from blurcalib.growth.masks import pixel_mask, tag_centre
+from blurcalib.growth.seed import block_homography
+from blurcalib.growth.settings import GrowSettings
+from blurcalib.growth.window import WindowPolicy
+from blurcalib.io.results import BlockStatus
+from blurcalib.psf.field import FieldSettings, PathField, constant_field, fit_path_field
+from blurcalib.target.pattern import StarPattern
+
+
+def field_degree(xy: np.ndarray, image_size: tuple[int, int], count: int | None = None) -> int:
+    """Polynomial degree of a path field fitted from blocks at ``xy (B, 2)`` px (``count`` of
+    them, default ``B``): 2 from 30 blocks spanning 0.3 of the image's longer side, 1 from 10
+    spanning 0.1, else 0 (a field of higher degree than its blocks span would be extrapolated).
+    Measured on a 22 px blur: the tag ring (24 blocks over 0.14 of the image) fitted with
+    degree 0 lands 0.28 px off the truth at a loss of twice the noise's variance, with degree 1
+    0.09 px off at the noise's."""
+    ok = np.all(np.isfinite(xy), axis=1)
+    if not ok.any():
+        return 0
+    n = int(ok.sum()) if count is None else count
+    span = float((xy[ok].max(axis=0) - xy[ok].min(axis=0)).max()) / max(image_size)
+    if n >= 30 and span >= 0.3:
+        return 2
+    return 1 if n >= 10 and span >= 0.1 else 0
+
+
+def spread(xy: np.ndarray, most: int) -> np.ndarray:
+    """Sorted indices of at most ``most`` of the points ``xy (B, 2)``, spread over them
+    (farthest-point sampling from the point nearest their mean)."""
+    if len(xy) <= most:
+        return np.arange(len(xy))
+    chosen = [int(np.argmin(np.linalg.norm(xy - xy.mean(axis=0), axis=1)))]
+    dist = np.linalg.norm(xy - xy[chosen[0]], axis=1)
+    for _ in range(most - 1):
+        chosen.append(int(np.argmax(dist)))
+        dist = np.minimum(dist, np.linalg.norm(xy - xy[chosen[-1]], axis=1))
+    return np.sort(np.array(chosen))
+
+
+def fit_with_field(image: np.ndarray, pattern: StarPattern, ids: np.ndarray, H0: np.ndarray,
+                   psf_field: PathField, window: WindowPolicy, deconv: DeconvSettings, settings: GrowSettings,
+                   tag: np.ndarray | None) -> BlockFit:
+    """Fit blocks ``ids (B,)`` from ``H0 (B, 3, 3)`` with their PSFs held at the field's
+    (:func:`blurcalib.deconv.blocks.fit_blocks_fixed`), over ``|q|_inf <=``
+    :attr:`GrowSettings.final_extent` (blocks on the pattern's rim over their square,
+    :func:`blurcalib.growth.final.inner`), in one window that holds every block's path (at most
+    :attr:`WindowPolicy.field_largest`); pixels that see the tag through the field's blur at the
+    tag are left out (:func:`blurcalib.growth.masks.pixel_mask`)."""
+    xy = homography_centre(H0)
+    xy = np.where(np.isfinite(xy), xy, 0.0)  # degenerate blocks are not fitted
+    size = psf_field.kernel_size(xy, window.field_largest)
+    centre = tag_centre(tag)
+    footprint = None if centre is None else psf_field.footprint(centre, window.field_largest)
+    mask = pixel_mask(tag, size, footprint)
+    rim = ~inner(pattern, ids)
+    fits, rows = [], []
+    for sel, extent in ((np.flatnonzero(~rim), settings.final_extent), (np.flatnonzero(rim), 1.0)):
+        if sel.size:
+            fits.append(fit_blocks_fixed(image, H0[sel], pattern.num_star_segments,
+                                         psf_field.kernels(xy[sel], size),
+                                         replace(deconv, loss_extent=extent), mask))
+            rows.append(sel)
+    return BlockFit.concat(fits).take(np.argsort(np.concatenate(rows), kind="stable"))
+
+
+def fit_field(image: np.ndarray, pattern: StarPattern, ids: np.ndarray, H: np.ndarray, start: PathField,
+              window: WindowPolicy, deconv: DeconvSettings, settings: GrowSettings, tag: np.ndarray | None,
+              tied: bool = False) -> tuple[PathField, np.ndarray]:
+    """:func:`blurcalib.psf.field.fit_path_field` on blocks ``ids (B,)`` from ``H (B, 3, 3)``,
+    at most :attr:`GrowSettings.field_blocks` of them spread over the frame (all when ``tied``),
+    none on the pattern's rim (:func:`blurcalib.growth.final.inner`: their loss area would reach
+    the paper beyond the stars; farthest-point sampling picked them first, and 7 of 40 blocks
+    fitted at 50 x the noise's variance); pixels seeing the tag through ``start``'s blur are left
+    out. Returns the field and the fitted blocks' homographies ``(B, 3, 3)`` (rows not in the
+    fit keep ``H``)."""
+    largest = window.field_largest
+    off_rim = np.flatnonzero(inner(pattern, ids))
+    rows = off_rim if tied else off_rim[spread(homography_centre(H[off_rim]), settings.field_blocks)]
+    centre = tag_centre(tag)
+    size = start.kernel_size(homography_centre(H[rows]), largest)
+    mask = pixel_mask(tag, size, None if centre is None else start.footprint(centre, largest))
+    fit = fit_path_field(image, H[rows], pattern.num_star_segments, start, deconv,
+                         FieldSettings(loss_extent=settings.final_extent, largest_kernel=largest), mask,
+                         pattern.features[ids[rows]] if tied else None)
+    out = H.copy()
+    out[rows] = fit.H
+    return fit.field, out
+
+
+def _ring_seed(image: np.ndarray, pattern: StarPattern, growth: Growth, window: WindowPolicy,
+               deconv: DeconvSettings, settings: GrowSettings, tag: np.ndarray | None
+               ) -> tuple[np.ndarray, np.ndarray, PathField]:
+    """The tag ring's blocks fitted tied to one feature homography with a path field
+    (:func:`blurcalib.psf.field.fit_path_field` with ``features``), from their predictions:
+    a field of degree 0, then of degree 1 when the ring spans enough of the image
+    (:func:`field_degree`). Returns the ring's rows, their homographies and the field."""
+    h, w = image.shape
+    ring = np.flatnonzero(growth.front == 0)
+    start = constant_field(growth.fit.psf[ring], (w, h), 0)
+    ids = growth.feature_id[ring]
+    psf_field, H = fit_field(image, pattern, ids, growth.predicted[ring], start, window, deconv, settings,
+                             tag, tied=True)
+    if field_degree(homography_centre(H), (w, h), len(ring)) >= 1:
+        psf_field, H = fit_field(image, pattern, ids, H, psf_field.with_degree(1), window, deconv, settings,
+                                 tag, tied=True)
+    return ring, H, psf_field
+
+
+def local_predictions(pattern: StarPattern, ids: np.ndarray, accepted_H: dict[int, np.ndarray],
+                      fallback: np.ndarray, neighbours: int) -> tuple[np.ndarray, np.ndarray]:
+    """``(B, 3, 3)`` predictions of blocks ``ids`` from the homography of the ``neighbours``
+    accepted blocks nearest each in the pattern
+    (:func:`blurcalib.growth.judge.neighbour_homographies`, least median of squares), where one
+    exists, else ``fallback (B, 3, 3)`` (the mean of the adjacent blocks' predictions); and
+    ``(B,)`` bool, where it exists. Under blur as long as the squares a
+    block's fit stays where it starts along the blur, so a prediction from one or two neighbours
+    passes their errors on in chains (measured: 10 blocks 0.5-1 px off in a row); many
+    neighbours, most with shorter blur, hold it."""
+    ref = np.fromiter(accepted_H, dtype=np.int64, count=len(accepted_H))
+    f = pattern.features[ids]
+    homographies = neighbour_homographies(f, pattern.features[ref],
+                                          homography_centre(np.stack([accepted_H[i] for i in ref])),
+                                          neighbours, cv2.LMEDS, 0.0)
+    out = fallback.copy()
+    local = np.array([H is not None for H in homographies], dtype=bool)
+    for b in np.flatnonzero(local):
+        out[b] = normalise(block_homography(homographies[b], f[b, 0:1], f[b, 1:2])[0])
+    return out, local
+
+
+def field_growth(image: np.ndarray, pattern: StarPattern, growth: Growth, window: WindowPolicy,
+                 deconv: DeconvSettings, settings: GrowSettings, tag: np.ndarray | None,
+                 on_event: Callable[[GrowthEvent], None] | None = None,
+                 should_stop: Callable[[], bool] | None = None) -> Growth:
+    """Fit the frame's path-PSF field from a growth and grow on with it.
+
+    Under blur as long as the star squares a block's free PSF trades its shape against the
+    star's position; the frame's motion-path field (:mod:`blurcalib.psf.field`) does not. So:
+
+    1. **Seeds.** The field is fitted (:func:`blurcalib.psf.field.fit_path_field`) with at most
+       :attr:`GrowSettings.field_blocks` of the growth's accepted blocks spread over the frame,
+       from a straight path along their PSFs (:func:`blurcalib.psf.field.constant_field`), its
+       degree by their spread (:func:`field_degree`). When the growth failed (it accepted fewer
+       than half of the blocks it fitted, or fewer than :attr:`GrowSettings.field_min_blocks`:
+       blur as long as the squares, whose free fits settle px off) the seeds are the tag ring
+       instead, fitted tied to one feature homography (:func:`_ring_seed`), and the growth's
+       other accepted blocks are tried again.
+    2. The seeds are fitted again with the field's PSF over :attr:`GrowSettings.final_extent`
+       x their square (:func:`fit_with_field`), kept where accepted and moved less than
+       :attr:`GrowSettings.final_max_shift_px`.
+    3. The growth goes on, front by front, from the accepted blocks into every block not
+       accepted yet, each fitted with the field's PSF and judged by the growth's rules
+       (:func:`blurcalib.growth.judge.judge_front`, the loss limited to
+       :attr:`GrowSettings.field_loss_factor` x the median of step 2's) and by its neighbours
+       (:func:`blurcalib.growth.judge.inconsistent`). Whenever the accepted
+       blocks have doubled since the field was fitted, it is fitted again from them (warm
+       start); at the end the blocks fitted with an earlier field are fitted with the last.
+
+    ``on_event`` and ``should_stop`` are :func:`blurcalib.growth.grow.grow`'s (polled between
+    fronts). Returns the growth unchanged when no field could be fitted; else a new growth (rows of
+    blocks accepted now replace their earlier ones, new blocks are appended) with
+    :attr:`Growth.psf_field` set.
+    """
+    ledger = GrowthLedger(pattern, on_event, growth)
+    seeded = _field_seeds(image, pattern, growth, window, deconv, settings, tag)
+    if seeded is None:
+        return growth
+    seeds, H_seed, psf_field, from_ring = seeded
+    refit = fit_with_field(image, pattern, growth.feature_id[seeds], H_seed, psf_field, window, deconv,
+                           settings, tag)
+    ok = np.array([st is BlockStatus.ACCEPTED for st in refit.status], dtype=bool) & np.isfinite(refit.loss)
+    ok &= np.linalg.norm(refit.centre - homography_centre(H_seed), axis=1) < settings.final_max_shift_px
+    if not ok.any():
+        return growth
+    max_loss = min(settings.max_loss, settings.field_loss_factor * float(np.median(refit.loss[ok])))
+    ok &= (refit.loss <= max_loss) & (refit.boundary_energy <= settings.max_boundary_energy)
+    ledger.replace_fits(seeds[ok], refit, np.flatnonzero(ok))
+    for k in np.flatnonzero(ok):
+        ledger.restate(int(seeds[k]), BlockStatus.ACCEPTED, refit, int(k))
+    # tried again below: blocks whose two fits disagree (measured: free fits next to the tag
+    # 0.6-1 px off), and with seeds from the ring the other blocks the growth accepted
+    acc = np.flatnonzero(growth.accepted)
+    demoted = np.union1d(seeds[~ok], np.setdiff1d(acc, seeds) if from_ring else [])
+    for k in demoted.astype(np.int64):
+        if ledger.status[k] is BlockStatus.ACCEPTED:
+            ledger.restate(int(k), BlockStatus.NOT_CONVERGED, growth.fit, int(k))
+    for k in ledger.accepted_rows:
+        ledger.accept(ledger.ids[k], ledger.fit.H[k])
+    psf_field, stale = _grow_with_field(image, pattern, ledger, psf_field, max_loss, window, deconv, settings,
+                                        tag, should_stop)
+    # the blocks fitted with an earlier field, with the last one
+    rows = np.array([k for k in ledger.accepted_rows if ledger.ids[k] in stale], dtype=np.int64)
+    if rows.size:
+        fit = ledger.fit
+        last = fit_with_field(image, pattern, np.array(ledger.ids)[rows], fit.H[rows], psf_field, window,
+                              deconv, settings, tag)
+        keep = np.array([st is BlockStatus.ACCEPTED for st in last.status], dtype=bool)
+        keep &= (last.loss <= max_loss) & (np.linalg.norm(last.centre - fit.centre[rows], axis=1)
+                                           < settings.final_max_shift_px)
+        ledger.replace_fits(rows[keep], last, np.flatnonzero(keep))
+        for k in np.flatnonzero(keep):
+            ledger.emit(int(rows[k]), last, int(k))
+    return ledger.growth(psf_field)
+
+
+def _field_seeds(image: np.ndarray, pattern: StarPattern, growth: Growth, window: WindowPolicy,
+                 deconv: DeconvSettings, settings: GrowSettings, tag: np.ndarray | None
+                 ) -> tuple[np.ndarray, np.ndarray, PathField, bool] | None:
+    """Step 1 of :func:`field_growth`: the seed rows, their homographies ``(S, 3, 3)``, the
+    field and whether the seeds are the tag ring's; None when no field could be fitted."""
+    h, w = image.shape
+    acc = np.flatnonzero(growth.accepted)
+    ring = np.flatnonzero(growth.front == 0)
+    fitted = int(np.isfinite(growth.fit.loss).sum())
+    from_ring = ring.size >= 6 and (acc.size < settings.field_min_blocks or 2 * acc.size < fitted)
+    try:
+        if from_ring:
+            seeds, H_seed, psf_field = _ring_seed(image, pattern, growth, window, deconv, settings, tag)
+        elif acc.size >= settings.field_min_blocks:
+            seeds, H_seed = acc, growth.fit.H[acc]
+            start = constant_field(growth.fit.psf[acc], (w, h), field_degree(growth.fit.centre[acc], (w, h)))
+            psf_field, _ = fit_field(image, pattern, growth.feature_id[acc], H_seed, start, window, deconv,
+                                     settings, tag)
+        else:
+            return None
+    except ValueError:  # no usable PSF or block to fit a field from
+        return None
+    return seeds, H_seed, psf_field, from_ring
+
+
+def _grow_with_field(image: np.ndarray, pattern: StarPattern, ledger: GrowthLedger, psf_field: PathField,
+                     max_loss: float, window: WindowPolicy, deconv: DeconvSettings, settings: GrowSettings,
+                     tag: np.ndarray | None, should_stop: Callable[[], bool] | None
+                     ) -> tuple[PathField, set[int]]:
+    """Step 3 of :func:`field_growth`, recorded in ``ledger`` (whose accepted blocks it starts
+    from). Returns the last field and the accepted blocks (feature ids) fitted with an earlier
+    one."""
+    h, w = image.shape
+    accepted_H = ledger.accepted_H
+    tried = dict.fromkeys(accepted_H, 0)
+    new_ids = list(accepted_H)
+    generation = 0  # fits of the field so far, after the first
+    fitted_in = dict.fromkeys(accepted_H, generation)  # the field each accepted block was fitted with
+    fitted_with = len(accepted_H)  # accepted blocks when the field was last fitted
+    front_index = max(ledger.front) + 1
+    while new_ids and len(ledger) < settings.max_blocks:
+        if should_stop is not None and should_stop():
+            break
+        if len(accepted_H) >= 2 * fitted_with:
+            ids = np.fromiter(accepted_H, dtype=np.int64, count=len(accepted_H))
+            H_acc = np.stack(list(accepted_H.values()))
+            degree = max(psf_field.degree, field_degree(homography_centre(H_acc), (w, h)))
+            try:
+                psf_field, _ = fit_field(image, pattern, ids, H_acc, psf_field.with_degree(degree), window,
+                                         deconv, settings, tag)
+                generation += 1
+            except ValueError:
+                pass
+            fitted_with = len(accepted_H)
+        fids, preds, _ = next_front(pattern, accepted_H, tried, new_ids)
+        if not fids:
+            break
+        H0, local = local_predictions(pattern, np.asarray(fids), accepted_H, np.stack(preds),
+                                      settings.consistency_neighbours)
+        ffit = fit_with_field(image, pattern, np.asarray(fids), H0, psf_field, window, deconv, settings, tag)
+        # judged by the neighbours that predicted it (inconsistent's rule, one fit per block)
+        off = local & (np.linalg.norm(ffit.centre - homography_centre(H0), axis=1)
+                       > settings.max_inconsistency_px)
+        statuses = judge_front(ffit, H0, settings, off, max_loss)
+        tried.update(dict.fromkeys(fids, 0))
+        # a block tried before that fails again keeps its first record
+        decided = [k for k, fid in enumerate(fids)
+                   if fid not in ledger.row or statuses[k] is BlockStatus.ACCEPTED]
+        again = [k for k in decided if fids[k] in ledger.row]
+        fresh = [k for k in decided if fids[k] not in ledger.row]
+        new_ids = [fids[k] for k in decided if statuses[k] is BlockStatus.ACCEPTED]
+        for k in decided:
+            if statuses[k] is BlockStatus.ACCEPTED:
+                ledger.accept(fids[k], ffit.H[k])
+                fitted_in[fids[k]] = generation
+        again_rows = np.array([ledger.row[fids[k]] for k in again], dtype=np.int64)
+        for k in again + fresh:
+            ledger.record(fids[k], statuses[k], front_index, H0[k], ffit, k)
+        if again:
+            ledger.replace_fits(again_rows, ffit, np.array(again))
+        if fresh:
+            ledger.add_fits(ffit.take(np.array(fresh)))
+        front_index += 1
+    return psf_field, {fid for fid in accepted_H if fitted_in[fid] < generation}
