@@ -11,6 +11,7 @@ import torch
 from scipy.ndimage import convolve
 
 from blurcalib.deconv.blocks import fit_blocks, fit_blocks_fixed, fit_blocks_hinted, render_model
+from blurcalib.deconv.convolution import DIRECT_PER_FFT_POINT, fft_size
 from blurcalib.deconv.problem import BlockProblem
 from blurcalib.deconv.result import BlockFit
 from blurcalib.deconv.settings import DeconvSettings
@@ -204,15 +205,19 @@ def test_float64_agrees_with_float32(sim: SimulatedBlocks, fit: BlockFit) -> Non
     assert np.abs(fit64.centre - fit.centre[:2]).max() < 2e-3
 
 
-@pytest.mark.parametrize("kernel_size", [7, 29, 31])
-def test_block_convolution_is_the_valid_convolution(kernel_size: int) -> None:
-    """Both paths of the solver's convolution (direct up to 29 px, FFT above) give ``k * L`` on
-    the observed grid, as an independent ``scipy.ndimage.convolve`` does."""
+@pytest.mark.parametrize(("kernel_size", "side", "by_fft"),
+                         [(7, 20, False), (29, 20, False), (41, 100, True)])
+def test_block_convolution_is_the_valid_convolution(kernel_size: int, side: int, by_fft: bool) -> None:
+    """Both paths of the solver's convolution (direct for small windows and kernels, FFT for
+    large ones) give ``k * L`` on the observed grid, as an independent ``scipy.ndimage.convolve``
+    does."""
     rng = np.random.default_rng(5)
-    size = np.array([[23, 19], [17, 21]])
+    size = np.array([[side + 3, side - 1], [side - 3, side + 1]])
     s = DeconvSettings(dtype="float64")
-    prob = BlockProblem(torch.zeros((80, 80), dtype=torch.float64), None, np.array([[3, 4], [9, 2]]), size,
-                        SEGMENTS, kernel_size, s)
+    prob = BlockProblem(torch.zeros((side + 60, side + 60), dtype=torch.float64), None,
+                        np.array([[3, 4], [9, 2]]), size, SEGMENTS, kernel_size, s)
+    direct_cost = prob.h * prob.w * kernel_size**2
+    assert (direct_cost > DIRECT_PER_FFT_POINT * fft_size(prob.Hl) * fft_size(prob.Wl)) == by_fft
     L = torch.as_tensor(rng.random((2, 3, prob.Hl, prob.Wl)))
     k = torch.as_tensor(rng.random((2, kernel_size, kernel_size)))
     out = prob.conv(L, k).numpy()

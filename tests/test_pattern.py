@@ -1,4 +1,4 @@
-"""The star target: YAML, exact page render against the reference PNG, features, smooth model."""
+"""The star target: YAML, exact page render against the reference PNG, features, signed distance."""
 
 from __future__ import annotations
 
@@ -15,7 +15,6 @@ from blurcalib.target.pattern import (
     StarPattern,
     layout_pattern,
     load_pattern,
-    smooth_star,
     star_signed_distance,
 )
 from tests.conftest import FIXTURE_PNG, FIXTURE_YAML
@@ -104,16 +103,13 @@ def _random_block_points(n: int, seed: int) -> np.ndarray:
     return np.random.default_rng(seed).uniform(-1, 1, size=(n, 2))
 
 
-def test_smooth_star_sector_parity_matches_exact(fixture_pattern: StarPattern) -> None:
+def test_signed_distance_sign_matches_exact(fixture_pattern: StarPattern) -> None:
     q = _random_block_points(20000, 0)
     feature = np.array([2, 3])  # an ordinary star away from the tag
     exact = fixture_pattern.intensity(feature + q / 2)
-    qt = torch.from_numpy(q)
-    dist = star_signed_distance(qt, 16).numpy()
-    smooth = smooth_star(qt, 16, beta=20.0).numpy()
+    dist = star_signed_distance(torch.from_numpy(q), 16).numpy()
     clear = np.abs(dist) > 0.03
     assert clear.mean() > 0.6
-    assert np.array_equal(smooth[clear] > 0.5, exact[clear] > 0.5)
     assert np.array_equal(dist[clear] > 0, exact[clear] > 0.5)
 
 

@@ -5,10 +5,11 @@ from __future__ import annotations
 import torch
 import torch.nn.functional as nnf
 
-DIRECT_CONV_MAX_KERNEL = 29
-"""Largest kernel side (px) convolved directly rather than by FFT: on one CPU thread the direct
-(depthwise) convolution of the 9 Jacobian channels takes 0.28x the FFT's time at 7 px, 0.44x at
-19 px and 0.7x at 29 px; at 31 px the FFT is faster (``docs/deconvolution.md``)."""
+DIRECT_PER_FFT_POINT = 300.0
+"""Multiply-adds of a direct convolution that cost as much as one point of an FFT convolution
+(forward and inverse transforms): on one CPU thread a depthwise ``conv2d`` runs at ~0.03 ns per
+multiply-add and the FFT at 7-10 ns per point of its grid (9 channels of 7-24 blocks, kernels
+of 13-51 px, grids of 50-144 px)."""
 
 
 def fft_size(n: int) -> int:
@@ -32,11 +33,12 @@ def valid_convolution(L: torch.Tensor, k: torch.Tensor) -> torch.Tensor:
     ``h = Hl - 2c``, ``w = Wl - 2c`` (``c`` the kernel radius).
 
     ``k`` is ``(b, K, K)`` (one kernel for every channel of a block) or ``(b, C, K, K)`` (one
-    per channel; ``L`` may then have one channel, shared). Kernels up to
-    :data:`DIRECT_CONV_MAX_KERNEL` px: direct, as one depthwise ``conv2d`` over the ``b C``
-    channels (a correlation, so with the kernel flipped). Larger: circular FFT convolution on
-    a grid of at least ``(Hl, Wl)`` (5-smooth sides, the fast FFT sizes): the wrap-around only
-    reaches the first ``2c`` rows and columns, outside the output.
+    per channel; ``L`` may then have one channel, shared). Direct when its ``h w K^2``
+    multiply-adds per channel cost less than the FFT's grid (:data:`DIRECT_PER_FFT_POINT`):
+    one depthwise ``conv2d`` over the ``b C`` channels (a correlation, so with the kernel
+    flipped). Otherwise circular FFT convolution on a grid of at least ``(Hl, Wl)`` (5-smooth
+    sides, the fast FFT sizes): the wrap-around only reaches the first ``2c`` rows and
+    columns, outside the output.
     """
     k = k[:, None] if k.ndim == 3 else k
     b, C = L.shape[0], max(L.shape[1], k.shape[1])
@@ -44,12 +46,12 @@ def valid_convolution(L: torch.Tensor, k: torch.Tensor) -> torch.Tensor:
     K = k.shape[-1]
     r2 = K - 1
     h, w = Hl - r2, Wl - r2
-    if K <= DIRECT_CONV_MAX_KERNEL:
+    size = (fft_size(Hl), fft_size(Wl))
+    if h * w * K * K <= DIRECT_PER_FFT_POINT * size[0] * size[1]:
         weight = k.flip(-2, -1).expand(b, C, K, K).reshape(b * C, 1, K, K)
         L = L.expand(b, C, Hl, Wl)
         out = nnf.conv2d(L.reshape(1, b * C, Hl, Wl), weight, groups=b * C)
         return out.reshape(b, C, h, w)
-    size = (fft_size(Hl), fft_size(Wl))
     kf = torch.fft.rfft2(k, s=size)
     out = torch.fft.irfft2(torch.fft.rfft2(L, s=size) * kf, s=size)
     return out[..., r2:r2 + h, r2:r2 + w]

@@ -349,18 +349,26 @@ def _feature_blocks(features: np.ndarray) -> np.ndarray:
     return A
 
 
-def _schur_step(Jl: torch.Tensor, Js: torch.Tensor, r: torch.Tensor, w: torch.Tensor, mu: float
-                ) -> tuple[torch.Tensor, torch.Tensor]:
-    """One Levenberg-Marquardt step of :func:`fit_path_field`: the weighted normal equations of the
-    blocks' own parameters ``Jl (b, L, n)`` and the shared ones ``Js (b, S, n)`` at residuals
-    ``r (b, n)`` and block weights ``w (b,)``, damped by ``mu``; the blocks' parameters are
-    eliminated (Schur complement, ``(b, L, L)`` batched solves). Returns ``(ds (S,), dl (b, L))``."""
-    wt = w.to(r.dtype)[:, None, None]
-    Nll = ((Jl * wt) @ Jl.transpose(1, 2)).double()
-    Nls = ((Jl * wt) @ Js.transpose(1, 2)).double()
-    Nss = ((Js * wt) @ Js.transpose(1, 2)).double().sum(dim=0)
-    gl = ((Jl * wt) @ r[..., None]).double()
-    gs = ((Js * wt) @ r[..., None]).double().sum(dim=0)
+def _normal_equations(Jl: torch.Tensor, Js: torch.Tensor, r: torch.Tensor, w: torch.Tensor
+                      ) -> tuple[torch.Tensor, int]:
+    """The weighted normal equations of :func:`fit_path_field` at one point: the blocks' own
+    parameters ``Jl (b, L, n)``, the shared ones ``Js (b, S, n)``, residuals ``r (b, n)`` and
+    block weights ``w (b,)``. One product ``w_b [Jl; Js; r] [Jl; Js; r]^T`` per block: returns
+    it, ``(b, L + S + 1, L + S + 1)`` float64, and ``L``."""
+    J = torch.cat([Jl, Js, r[:, None]], dim=1)
+    return (J @ J.transpose(1, 2)).double() * w.double()[:, None, None], Jl.shape[1]
+
+
+def _schur_step(normal: torch.Tensor, L: int, mu: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """One Levenberg-Marquardt step of :func:`fit_path_field` from its normal equations
+    (:func:`_normal_equations`, ``L`` the blocks' own parameters), damped by ``mu``; the blocks'
+    parameters are eliminated (Schur complement, ``(b, L, L)`` batched solves). Returns
+    ``(ds (S,), dl (b, L))``."""
+    Nll = normal[:, :L, :L].clone()
+    Nls = normal[:, :L, L:-1]
+    Nss = normal[:, L:-1, L:-1].sum(dim=0)
+    gl = normal[:, :L, -1:]
+    gs = normal[:, L:-1, -1:].sum(dim=0)
     Nll.diagonal(dim1=1, dim2=2).mul_(1.0 + mu).add_(1e-12)
     Nss.diagonal().mul_(1.0 + mu).add_(1e-12)
     X = torch.linalg.solve_ex(Nll, torch.cat([Nls, gl], dim=2))[0]
@@ -410,7 +418,9 @@ def fit_path_field(image: np.ndarray, H0: np.ndarray, num_segments: int, start: 
     with ``k`` the path PSF ``eq:path_psf`` at the block's star centre ``x_i`` (from the start),
     ``A_i, B_i`` affine brightness and ``w_i`` block weights (:attr:`FieldSettings.outlier_loss`).
     Levenberg-Marquardt on all parameters; each step solves the shared ``4 P + 1`` after
-    eliminating every block's 14 (Schur complement, ``(b, 14, 14)`` batched solves).
+    eliminating every block's 14 (Schur complement, ``(b, 14, 14)`` batched solves); a trial
+    point's residuals come first, its Jacobians only once it is accepted (a rejected step
+    re-solves the normal equations it had, more damped).
 
     *Tied* (``features`` given): the blocks are those of one feature homography, ``H_i = H_F
     B(f_i)`` (:func:`blurcalib.growth.seed.block_homography`), and ``H_F``'s 8 parameters are shared
@@ -482,9 +492,12 @@ def fit_path_field(image: np.ndarray, H0: np.ndarray, num_segments: int, start: 
     w = weights(block_loss(cur["r"]))
     obj = float((w * block_loss(cur["r"]) * npix).sum())
     history, mu, steps = [obj], 1e-3, 0
+    normal, held = None, bool(hold)  # of the current point, kept through rejected steps
     while steps < fs.iterations:
         steps += 1
-        ds, dl = _schur_step(*jacobians(cur), cur["r"], w, mu)
+        if normal is None or held != bool(hold):
+            normal, held = _normal_equations(*jacobians(cur), cur["r"], w), bool(hold)
+        ds, dl = _schur_step(*normal, mu)
         if nh:
             H_F_try = update_homography(H_F[None], ds[None, :8])[0]
             H_try = to_local @ H_F_try[None] @ A
@@ -493,12 +506,14 @@ def fit_path_field(image: np.ndarray, H0: np.ndarray, num_segments: int, start: 
             H_try = H_loc if hold else update_homography(H_loc, dl[:, :8])
         coeffs_try = coeffs + ds[nh:nh + 4 * P].reshape(P, 4)
         sigma_try = (log_sigma + ds[nh + 4 * P:]).clamp_min(math.log(fs.min_sigma_px))
-        trial = fp.evaluate(H_try, cur["bright"] + dl[:, -6:], coeffs_try, sigma_try, with_jac=True)
+        bright_try = cur["bright"] + dl[:, -6:]
+        trial = fp.evaluate(H_try, bright_try, coeffs_try, sigma_try, with_jac=False)
         obj_try = float((w * block_loss(trial["r"]) * npix).sum())
         accepted = math.isfinite(obj_try) and obj_try < obj
         converged = (not accepted and mu > 1e5) or (accepted and (obj - obj_try) < fs.tolerance * obj)
-        if accepted:
-            H_loc, coeffs, log_sigma, cur = H_try, coeffs_try, sigma_try, trial
+        if accepted:  # the Jacobians only where a step is taken
+            cur = fp.evaluate(H_try, bright_try, coeffs_try, sigma_try, with_jac=True)
+            H_loc, coeffs, log_sigma, normal = H_try, coeffs_try, sigma_try, None
             if nh:
                 H_F = H_F_try
             mu /= 3.0

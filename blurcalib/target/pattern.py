@@ -15,8 +15,8 @@ Coordinate systems (see ``docs/conventions.md``):
 Colour convention: 1 is white paper, 0 black ink. In each star of ``N`` segments the angle
 ``theta = atan2(q_x, q_y)`` (from the +y axis, which points down the page, turning towards +x)
 splits into ``N`` sectors ``s = floor(N theta / 2 pi)``; odd sectors are white, as in the paper's
-supplement (``eq:hard``), and the smooth model is ``sigmoid(-beta sin(N theta / 2))``
-(``eq:soft``). Neighbouring stars have opposite colours along their shared square border.
+supplement (``eq:hard``). Neighbouring stars have opposite colours along their shared square
+border.
 """
 
 from __future__ import annotations
@@ -477,23 +477,6 @@ def star_sector_white(u: np.ndarray, v: np.ndarray, num_segments: int) -> np.nda
     theta = np.mod(np.arctan2(u, v), 2.0 * np.pi)
     sector = np.floor(theta * (num_segments / (2.0 * np.pi))).astype(np.int64) % num_segments
     return (sector % 2) == 1
-
-
-def smooth_star(q: torch.Tensor, num_segments: int, beta: float) -> torch.Tensor:
-    """The paper's differentiable star (supplement, ``eq:soft``): ``sigmoid(-beta sin(N theta/2))``.
-
-    Args:
-        q: ``(..., 2)`` block coordinates (period 2: star centres at even integers, the cell
-            centre is found by rounding ``q / 2`` and is detached, as in the supplement).
-        num_segments: N.
-        beta: edge sharpness (dimensionless).
-    Returns:
-        ``(...)`` intensities in (0, 1), 1 white.
-    """
-    centre = (2.0 * torch.round(q / 2.0)).detach()
-    d = q - centre
-    theta = torch.atan2(d[..., 0], d[..., 1])
-    return torch.sigmoid(-beta * torch.sin(0.5 * num_segments * theta))
 
 
 def star_signed_distance(q: torch.Tensor, num_segments: int) -> torch.Tensor:
