@@ -22,7 +22,7 @@ from typing import Protocol
 
 import viser
 
-from blurcalib.cli import positive_int
+from blurcalib.argtypes import positive_int
 from blurcalib.pipeline.runtime import capped_count, configure_threads
 from state import AppState, RunSettings, default_dataset
 from state.alignment import AlignmentCache

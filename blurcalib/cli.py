@@ -8,7 +8,7 @@ half-written output behind.
 from __future__ import annotations
 
 import argparse
-import math
+import inspect
 import os
 import sys
 import time
@@ -21,12 +21,25 @@ from typing import get_args
 from tqdm import tqdm
 
 from blurcalib import __version__
+from blurcalib.argtypes import (
+    cluster_address,
+    image_size,
+    page_size,
+    positive_int,
+    positive_number,
+    readout_ratio,
+    rolling_shutter_mode,
+)
+from blurcalib.calib.alignment import BIASES, LOSSES, AlignmentSettings
+from blurcalib.calib.joint import ROUTES, JointSettings
+from blurcalib.calib.rolling_shutter import RollingShutterSettings
+from blurcalib.calib.sequence import MODELS, SequenceSettings
 from blurcalib.calib.validation import ValidationMethod, ValidationSettings
-from blurcalib.extract.quality import LossMode
-from blurcalib.growth.grow import FinalFitFrames, GrowSettings
+from blurcalib.extract.quality import LossMode, QualitySettings
+from blurcalib.growth.settings import FinalFitFrames, GrowSettings
 from blurcalib.io.atomic import OutputError, output_lock, storage_error
 from blurcalib.io.text import count
-from blurcalib.pipeline.cluster import ClusterError, check_address
+from blurcalib.pipeline.cluster import ClusterError
 from blurcalib.pipeline.runtime import (
     DeviceError,
     available_cores,
@@ -47,20 +60,6 @@ DEFAULT_DEMO_DIR = Path("out") / "demo"
 
 class CliError(Exception):
     """A user-facing error: printed without a traceback, exit status 2."""
-
-
-def _page_size(text: str) -> tuple[float, float]:
-    if text in PAGE_SIZES_MM:
-        return PAGE_SIZES_MM[text]
-    try:
-        w, h = (float(v) for v in text.lower().split("x"))
-    except ValueError:
-        raise argparse.ArgumentTypeError(
-            f"page must be one of {', '.join(PAGE_SIZES_MM)} or WIDTHxHEIGHT in mm, got {text!r}"
-        ) from None
-    if w <= 0 or h <= 0:
-        raise argparse.ArgumentTypeError(f"page size must be positive, got {text!r}")
-    return (w, h)
 
 
 def _progress(desc: str) -> tuple[tqdm, Callable[[int, int, str], None]]:
@@ -114,10 +113,12 @@ def _check_empty_output(out: Path, overwrite: bool) -> None:
 def _simulate(out: Path, args: argparse.Namespace, pattern: StarPattern | None) -> None:
     from blurcalib.sim.synth import SynthConfig, write_dataset
 
+    readout = args.rolling_shutter if isinstance(args.rolling_shutter, float) else 0.0  # demo: off, auto
     try:
         config = SynthConfig(sharp=args.sharp, blurry=args.blurry, blur_min_px=args.blur_min,
                              blur_max_px=args.blur_max, max_tilt_deg=args.max_tilt,
-                             noise_sigma=args.noise, seed=args.seed)
+                             noise_sigma=args.noise, seed=args.seed,
+                             rolling_shutter=readout)
     except ValueError as exc:
         raise CliError(str(exc)) from None
     start = time.perf_counter()
@@ -146,20 +147,25 @@ def cmd_synth(args: argparse.Namespace) -> int:
 
 
 def _pipeline_settings(args: argparse.Namespace):
+    """The pipeline's settings from the options of ``calibrate`` and ``demo``."""
     from blurcalib.calib.trust import TrustSettings
-    from blurcalib.extract.frame import SHARP_BELOW_PX
-    from blurcalib.extract.quality import QualitySettings
+    from blurcalib.extract.frame import ExtractSettings
     from blurcalib.pipeline.run import PipelineSettings
 
     try:
-        return PipelineSettings(
+        base = ExtractSettings(local_alignment=args.local_alignment,
+                               sharp_below_px=getattr(args, "sharp_below", ExtractSettings.sharp_below_px))
+        extraction = replace(base, grow=replace(base.grow, final_fit_frames=args.final_fit,
+                                                psf_field=not args.no_psf_field))
+        calibration = SequenceSettings(
             quality=QualitySettings(tau_be=args.tau_be, tau_loss=args.tau_loss,
                                     min_sigma_major=args.min_sigma_major, loss_mode=args.loss_threshold),
-            loss=args.loss, bias=args.bias, workers=args.workers, cluster=args.cluster,
-            local_alignment=args.local_alignment, model=args.model, route=args.route, cell_px=args.cell_px,
-            lens_correction=not args.no_lens_correction, final_fit=args.final_fit,
-            psf_field=not args.no_psf_field, sharp_below_px=getattr(args, "sharp_below", SHARP_BELOW_PX),
-            trust=TrustSettings(validation=ValidationSettings(method=args.validation, folds=args.folds)))
+            alignment=AlignmentSettings(loss=args.loss, bias=args.bias), model=args.model,
+            generic=JointSettings(cell_px=args.cell_px, route=args.route),
+            lens_correction=not args.no_lens_correction,
+            trust=TrustSettings(validation=ValidationSettings(method=args.validation, folds=args.folds)),
+            rolling_shutter=RollingShutterSettings(args.rolling_shutter))
+        return PipelineSettings(extraction, calibration, workers=args.workers, cluster=args.cluster)
     except ValueError as exc:
         raise CliError(str(exc)) from None
 
@@ -206,6 +212,8 @@ def _run_pipeline(sharp: list[Path], blurry: list[Path], pattern: StarPattern, o
     if report.generic_sharp is not None:
         for warning in report.generic_sharp["warnings"]:
             print(f"warning: generic, sharp frames: {warning}")
+    if report.rolling_shutter is not None and report.rolling_shutter["message"]:
+        print(report.rolling_shutter["message"])
     for line in summary_lines(report.to_dict()):
         print(line)
     for kind in ("sharp", "blurry"):
@@ -268,7 +276,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
     from blurcalib.io.frames import list_frames
     from blurcalib.io.results import read_feature_table
     from blurcalib.sim.evaluate import evaluate_features
-    from blurcalib.sim.synth import GROUND_TRUTH_FILE, load_ground_truth
+    from blurcalib.sim.truth import GROUND_TRUTH_FILE, load_ground_truth
 
     out = Path(args.out)
     data = out / "data"
@@ -339,25 +347,24 @@ def _print_camera_accuracy(out: Path, truth) -> None:
 
 def cmd_extract(args: argparse.Namespace) -> int:
     """``blurcalib extract``: star features, PSFs and per-block figures from frames."""
-    from blurcalib.deconv.blocks import DeconvSettings
-    from blurcalib.extract.frame import SHARP_KERNEL_SIZE, ExtractSettings, extract_to_folder
+    from blurcalib.extract.frame import ExtractSettings, extract_to_folder
 
     pattern = load_pattern(args.pattern)
     paths = _frame_inputs(args)
     if args.sharp and args.kind not in ("auto", "sharp"):
         raise CliError(f"--sharp contradicts --kind {args.kind}")
     kind = "sharp" if args.sharp else args.kind
-    kernel = args.psf_size or (SHARP_KERNEL_SIZE if kind == "sharp" else 17)
     try:
-        deconv = DeconvSettings(kernel_size=kernel, device=check_device(args.device))
         # --kind sharp: calibrate's sharp settings (ExtractSettings.sharp), so that its runs reuse these
         base = ExtractSettings.sharp() if kind == "sharp" else ExtractSettings(kind=kind,
                                                                                sharp_below_px=args.sharp_below)
+        window = replace(base.window, start=args.psf_size) if args.psf_size else base.window
+        deconv = replace(base.deconv, device=check_device(args.device))
     except ValueError as exc:
         raise CliError(str(exc)) from None
     grow = replace(base.grow, final_fit_frames=args.final_fit,
                    psf_field=base.grow.psf_field and not args.no_psf_field)
-    settings = replace(base, deconv=deconv, grow=grow, local_alignment=args.local_alignment)
+    settings = replace(base, window=window, deconv=deconv, grow=grow, local_alignment=args.local_alignment)
     bar = tqdm(total=len(paths), desc="extracting", unit="frame", file=sys.stderr,
                dynamic_ncols=True, disable=None)
     counts: dict[str, int] = {}
@@ -418,66 +425,41 @@ def cmd_view(args: argparse.Namespace) -> int:
 
 
 # --------------------------------------------------------------------------------- parser
+def _default(func: Callable, name: str) -> object:
+    """The default of ``func``'s parameter ``name``: the option's default, said once."""
+    return inspect.signature(func).parameters[name].default
+
+
 def _plain(doc: str | None) -> str:
     """A docstring as help text: without reST's double backticks."""
     return (doc or "").replace("``", "")
 
 
-def _add_synth_options(p: argparse.ArgumentParser, sharp: int, blurry: int) -> None:
-    p.add_argument("--sharp", type=int, default=sharp, help="number of sharp frames (%(default)s)")
-    p.add_argument("--blurry", type=int, default=blurry,
+def _add_synth_options(p: argparse.ArgumentParser, rolling_shutter: bool = True) -> None:
+    from blurcalib.sim.synth import SynthConfig
+
+    p.add_argument("--sharp", type=int, default=SynthConfig.sharp,
+                   help="number of sharp frames (%(default)s)")
+    p.add_argument("--blurry", type=int, default=SynthConfig.blurry,
                    help="number of blurry frames (%(default)s)")
-    p.add_argument("--blur-min", type=float, default=2.0,
+    p.add_argument("--blur-min", type=float, default=SynthConfig.blur_min_px,
                    help="smallest median blur length of a blurry frame, px (%(default)s)")
-    p.add_argument("--blur-max", type=float, default=20.0,
+    p.add_argument("--blur-max", type=float, default=SynthConfig.blur_max_px,
                    help="largest median blur length of a blurry frame, px (%(default)s)")
-    p.add_argument("--max-tilt", type=float, default=60.0,
+    p.add_argument("--max-tilt", type=float, default=SynthConfig.max_tilt_deg,
                    help="largest angle between optical axis and target normal, deg (%(default)s)")
-    p.add_argument("--noise", type=float, default=2.0,
+    p.add_argument("--noise", type=float, default=SynthConfig.noise_sigma,
                    help="noise standard deviation at mid grey, grey levels (%(default)s)")
-    p.add_argument("--seed", type=int, default=0, help="random seed (%(default)s)")
+    p.add_argument("--seed", type=int, default=SynthConfig.seed, help="random seed (%(default)s)")
+    if rolling_shutter:
+        p.add_argument("--rolling-shutter", type=readout_ratio, default=SynthConfig.rolling_shutter,
+                       metavar="R", help="readout time of a rolling shutter in exposure times: row v is "
+                                         "exposed over its own window (%(default)s: a global shutter; "
+                                         "docs/rolling-shutter.md)")
     p.add_argument("--workers", type=int, default=min(2, os.cpu_count() or 1),
                    help="frames rendered in parallel (%(default)s)")
     p.add_argument("--overwrite", action="store_true",
                    help="write into a non-empty output folder")
-
-
-def _image_size(text: str) -> tuple[int, int]:
-    try:
-        w, h = (int(v) for v in text.lower().split("x"))
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected WxH in px (e.g. 1280x720), got {text!r}") from None
-    if w < 1 or h < 1:
-        raise argparse.ArgumentTypeError(f"width and height must be >= 1 px, got {text!r}")
-    return w, h
-
-
-def positive_int(text: str) -> int:
-    """An argparse type: a whole number >= 1 (counts of workers, threads, folds, frames)."""
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"must be a whole number >= 1, got {text!r}") from None
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"must be >= 1, got {value}")
-    return value
-
-
-def _positive_number(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"must be a number > 0, got {text!r}") from None
-    if not (math.isfinite(value) and value > 0):
-        raise argparse.ArgumentTypeError(f"must be a finite number > 0, got {text!r}")
-    return value
-
-
-def _cluster_address(text: str) -> str:
-    try:
-        return check_address(text)
-    except ClusterError as exc:
-        raise argparse.ArgumentTypeError(str(exc).split(": ", 1)[1]) from None
 
 
 def _add_run_options(p: argparse.ArgumentParser, workers: bool = True) -> None:
@@ -487,7 +469,7 @@ def _add_run_options(p: argparse.ArgumentParser, workers: bool = True) -> None:
     p.add_argument("--threads", type=positive_int, default=1,
                    help="compute threads of this process, for frames it runs itself (--workers 1); "
                         "worker processes use one (%(default)s; more only helps on an idle machine)")
-    p.add_argument("--cluster", metavar="ADDRESS", type=_cluster_address,
+    p.add_argument("--cluster", metavar="ADDRESS", type=cluster_address,
                    help="run frames as tasks on this Dask scheduler (tcp://host:8786; docs/cluster.md)")
 
 
@@ -504,31 +486,31 @@ def _add_fit_options(p: argparse.ArgumentParser, which: str) -> None:
 
 
 def _add_pipeline_options(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--tau-be", type=float, default=0.12,
+    p.add_argument("--tau-be", type=float, default=QualitySettings.tau_be,
                    help="largest PSF boundary energy kept (%(default)s)")
-    p.add_argument("--tau-loss", type=float, default=30.0,
+    p.add_argument("--tau-loss", type=float, default=QualitySettings.tau_loss,
                    help="largest block loss kept, grey levels^2: at a noise of 2 grey levels, scaled with "
                         "each block's noise variance (relative), or as given (absolute) (%(default)s)")
-    p.add_argument("--loss-threshold", choices=list(get_args(LossMode)), default="relative",
+    p.add_argument("--loss-threshold", choices=list(get_args(LossMode)), default=QualitySettings.loss_mode,
                    help="--tau-loss in the frame's own noise units, estimated from the image, or the "
                         "paper's absolute grey levels^2 (%(default)s; docs/pipeline.md)")
-    p.add_argument("--min-sigma-major", type=float, default=0.0,
+    p.add_argument("--min-sigma-major", type=float, default=QualitySettings.min_sigma_major,
                    help="drop blurry frames whose centre median sigma_major is below this, px "
                         "(%(default)s: keep every frame; the paper's choice for its camera is 3.8)")
-    p.add_argument("--loss", choices=["huber", "mean", "median"], default="huber",
+    p.add_argument("--loss", choices=LOSSES, default=AlignmentSettings.loss,
                    help="robust loss of the global alignment (%(default)s)")
-    p.add_argument("--bias", choices=["translation", "bilinear", "quadrants"], default="translation",
+    p.add_argument("--bias", choices=[b for b in BIASES if b != "none"], default=AlignmentSettings.bias,
                    help="bias model of the global alignment (%(default)s)")
     p.add_argument("--local-alignment", action="store_true",
                    help="use the local-alignment translations for blurry frames")
     _add_fit_options(p, "blurry ")
-    p.add_argument("--model", choices=["generic", "parametric"], default="generic",
+    p.add_argument("--model", choices=MODELS, default=SequenceSettings.model,
                    help="camera model delivered: the generic B-spline ray grid fitted to sharp and blurry "
                         "frames together, or Brown-Conrady from the sharp set only (%(default)s)")
-    p.add_argument("--route", choices=["joint", "aligned"], default="joint",
+    p.add_argument("--route", choices=ROUTES, default=JointSettings.route,
                    help="blurry frames in the generic fit: star centres with a free per-frame shift "
                         "(joint), or aligned to the parametric camera first, the paper's route (%(default)s)")
-    p.add_argument("--cell-px", type=_positive_number, default=25.0,
+    p.add_argument("--cell-px", type=positive_number, default=JointSettings.cell_px,
                    help="cell length of the generic model's grid, px (%(default)s)")
     p.add_argument("--no-lens-correction", action="store_true",
                    help="keep star centres as extracted instead of removing the bias of block homographies "
@@ -537,6 +519,13 @@ def _add_pipeline_options(p: argparse.ArgumentParser) -> None:
                    default=ValidationSettings.method,
                    help="held-out validation of the cameras: k-fold over frames, each held-out frame "
                         "scored by cameras fitted without it, or none (%(default)s; docs/validation.md)")
+    p.add_argument("--rolling-shutter", type=rolling_shutter_mode, default=RollingShutterSettings.mode,
+                   metavar="off|auto|R",
+                   help="the rolling shutter in the generic fit: off (a global shutter; a warning when the "
+                        "blurry frames' features say otherwise), auto (estimate the readout ratio and model "
+                        "it when significant) or the known readout time in exposure times R; with demo, "
+                        "a number R also simulates that rolling shutter (%(default)s; "
+                        "docs/rolling-shutter.md)")
     p.add_argument("--folds", type=positive_int, default=ValidationSettings.folds,
                    help="number of folds of the validation (%(default)s; needs at least "
                         f"{ValidationSettings.min_frames} frames)")
@@ -571,7 +560,7 @@ def build_parser() -> argparse.ArgumentParser:
                        description=_plain(cmd_demo.__doc__))
     p.add_argument("--out", default=str(DEFAULT_DEMO_DIR),
                    help="output folder (%(default)s); its data/ is reused when complete")
-    _add_synth_options(p, sharp=20, blurry=60)
+    _add_synth_options(p, rolling_shutter=False)
     _add_pipeline_options(p)
     _add_run_options(p, workers=False)
     p.set_defaults(func=cmd_demo)
@@ -585,7 +574,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--features", metavar="FILE",
                    help="calibrate from a feature file instead of frames: the reference tool's dataset "
                         "(.bin) or a blurcalib features.csv (rows flagged BLURRY_FRAME get a free shift)")
-    p.add_argument("--image-size", type=_image_size, metavar="WxH",
+    p.add_argument("--image-size", type=image_size, metavar="WxH",
                    help="image size of a features.csv, px (a .bin holds its own)")
     p.add_argument("--pattern", required=True, help="pattern YAML of the target")
     p.add_argument("--out", required=True, help="output folder (resumable)")
@@ -599,15 +588,17 @@ def build_parser() -> argparse.ArgumentParser:
                        description=_plain(cmd_pattern.__doc__))
     p.add_argument("--out", required=True,
                    help="output path without extension, e.g. targets/star_a4")
-    p.add_argument("--page", type=_page_size, default=PAGE_SIZES_MM["A4"],
+    p.add_argument("--page", type=page_size, default=PAGE_SIZES_MM["A4"],
                    help="A4, letter or WIDTHxHEIGHT in mm (A4)")
-    p.add_argument("--square-mm", type=float, default=12.0,
+    p.add_argument("--square-mm", type=float, default=_default(layout_pattern, "approx_square_length_mm"),
                    help="approximate square length, mm (%(default)s); adjusted to fit the page")
-    p.add_argument("--tag", type=int, default=0, help="tag36h11 id (%(default)s)")
-    p.add_argument("--segments", type=int, default=16,
+    p.add_argument("--tag", type=int, default=_default(layout_pattern, "tag_index"),
+                   help="tag36h11 id (%(default)s)")
+    p.add_argument("--segments", type=int, default=_default(layout_pattern, "num_star_segments"),
                    help="star segments, a multiple of 4 (%(default)s)")
-    p.add_argument("--margin-mm", type=float, default=4.0, help="page margin, mm (%(default)s)")
-    p.add_argument("--dpi", type=_positive_number, default=300.0,
+    p.add_argument("--margin-mm", type=float, default=_default(layout_pattern, "margin_mm"),
+                   help="page margin, mm (%(default)s)")
+    p.add_argument("--dpi", type=positive_number, default=300.0,
                    help="PNG resolution (%(default)s; the PNG may have at most 150 megapixels)")
     p.add_argument("--formats", default="pdf,png,yaml", help="comma list (%(default)s)")
     p.add_argument("--overwrite", action="store_true", help="replace existing files")
@@ -656,7 +647,7 @@ def build_parser() -> argparse.ArgumentParser:
                        description=_plain(cmd_synth.__doc__))
     p.add_argument("--out", required=True, help="output folder")
     p.add_argument("--pattern", help="pattern YAML (default: the reference A4 17x24 target)")
-    _add_synth_options(p, sharp=20, blurry=60)
+    _add_synth_options(p)
     p.set_defaults(func=cmd_synth)
     return parser
 

@@ -22,6 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
+from blurcalib.calib.sequence import SequenceSettings
 from blurcalib.calib.sharp import calibrate_sharp
 from blurcalib.extract.frame import ExtractSettings, extract_frame
 from blurcalib.extract.quality import QualitySettings
@@ -29,7 +30,8 @@ from blurcalib.io.frames import load_frame
 from blurcalib.io.results import FeatureTable, read_feature_table
 from blurcalib.pipeline.run import PipelineSettings, run_pipeline
 from blurcalib.sim.evaluate import evaluate_features
-from blurcalib.sim.synth import SynthConfig, load_ground_truth, write_dataset
+from blurcalib.sim.synth import SynthConfig, write_dataset
+from blurcalib.sim.truth import load_ground_truth
 from blurcalib.target.pattern import load_pattern
 
 FIXTURES = Path(os.environ.get("BLURCALIB_FIXTURES") or Path(__file__).resolve().parents[2] / "shared"
@@ -65,8 +67,8 @@ def simulated(sharp: int, blurry: int) -> None:
         pattern = load_pattern(data / "pattern.yaml")
         report = run_pipeline(sorted((data / "sharp").glob("*.png")),
                               sorted((data / "blurry").glob("*.png")), pattern, Path(tmp) / "out",
-                              PipelineSettings(quality=QualitySettings(min_sigma_major=1.0),
-                                               workers=2))
+                              PipelineSettings(calibration=SequenceSettings(
+                                                  quality=QualitySettings(min_sigma_major=1.0)), workers=2))
         ran_at = time.perf_counter()
         print(f"simulation {simulated_at - start:.0f} s, pipeline {ran_at - simulated_at:.0f} s; "
               f"sharp calibration median {report.calibration['median_error_px']:.4f} px; "

@@ -31,7 +31,8 @@ from blurcalib.io.frames import list_frames, load_frame
 from blurcalib.io.sources import frame_inputs
 from blurcalib.pipeline.run import PipelineSettings, run_pipeline
 from blurcalib.sim.evaluate import camera_accuracy
-from blurcalib.sim.synth import GROUND_TRUTH_FILE, SynthConfig, load_ground_truth, write_dataset
+from blurcalib.sim.synth import SynthConfig, write_dataset
+from blurcalib.sim.truth import GROUND_TRUTH_FILE, load_ground_truth
 from blurcalib.target.pattern import load_pattern
 
 

@@ -36,7 +36,7 @@ from blurcalib.camera.generic import calibrated_area, fit_to_rays
 from blurcalib.camera.parametric import BrownConrady
 from blurcalib.io.refformat import read_ref_dataset
 from blurcalib.paper import generic as experiment
-from blurcalib.sim.synth import d435i_like_camera
+from blurcalib.sim.truth import d435i_like_camera
 from blurcalib.target.pattern import layout_pattern
 
 REAL = Path(__file__).resolve().parents[2] / "shared" / "fixtures" / "real_star16"

@@ -24,7 +24,7 @@ import argparse
 
 import numpy as np
 
-from blurcalib.deconv.blocks import DeconvSettings
+from blurcalib.deconv.settings import DeconvSettings
 from blurcalib.extract.frame import ExtractSettings, extract_frame
 from blurcalib.extract.local_alignment import align_locally, corner_gaps, neighbour_pairs
 from blurcalib.geometry.homography import homography_centre
@@ -42,7 +42,7 @@ def main() -> None:
     args = parser.parse_args()
     sim = Simulator(SynthConfig(sharp=0, blurry=args.frames, blur_min_px=4.0, blur_max_px=12.0,
                                 noise_sigma=2.0, seed=7))
-    settings = ExtractSettings(deconv=DeconvSettings(kernel_size=17, device=args.device))
+    settings = ExtractSettings(deconv=DeconvSettings(device=args.device))
     print(f"{'frame':<18}{'blocks':>7}{'no LA med/p90':>16}{'LA med/p90':>16}"
           f"{'gap':>8}{'common':>8}{'true dx':>9}{'unexpl.':>9}")
     before_all, after_all = [], []

@@ -39,7 +39,7 @@ def run(frames: int, seed: int, threads: int, device: str, quiet: bool) -> dict:
     import torch
 
     torch.set_num_threads(threads)  # (not blurcalib.pipeline.runtime: the script also times older checkouts)
-    from blurcalib.deconv.blocks import DeconvSettings
+    from blurcalib.deconv.settings import DeconvSettings
     from blurcalib.extract.frame import ExtractSettings, extract_frame
 
     sims, pattern = _frames(frames, seed)

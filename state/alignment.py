@@ -13,8 +13,9 @@ views draw its residuals. Both need a reference Brown-Conrady camera ``pi_d`` an
 3. a calibration (:func:`blurcalib.calib.sharp.calibrate_sharp`) of the app's finished sharp
    frames' star centres, once at least :data:`MIN_SHARP_FRAMES` are finished.
 
-:func:`align_frame` aligns one frame's blocks kept by the quality filter, with the pipeline's
-choices (Huber loss, one translation ``x_G``, each block weighted by ``1 / (loss + eps)``), and
+:func:`align_frame` aligns one frame's blocks kept by the quality filter as the pipeline does
+(:func:`blurcalib.calib.alignment.align_kept_blocks`: Huber loss, one translation ``x_G``, each
+block weighted by ``1 / (loss + eps)``), and
 returns the residuals after alignment. :class:`AlignmentCache` keeps the results per frame and
 kept-block set, so moving a threshold slider only re-aligns the frames whose kept blocks changed
 (a few milliseconds per frame of ~250 blocks).
@@ -32,7 +33,7 @@ from pathlib import Path
 
 import numpy as np
 
-from blurcalib.calib.alignment import AlignmentError, AlignmentSettings, align_blocks, orientation_ok
+from blurcalib.calib.alignment import AlignmentError, AlignmentSettings, align_kept_blocks
 from blurcalib.calib.sharp import (
     CALIBRATION_FILE,
     CAMERA_JSON_FILE,
@@ -300,14 +301,11 @@ def align_frame(reference: Reference, pattern: StarPattern, result: FrameResult,
     if tuple(image_size) != (camera.width, camera.height):
         raise AlignmentError(f"the frame is {image_size[0]} x {image_size[1]} px, the reference camera "
                              f"{camera.width} x {camera.height} px")
-    centres = result.blocks.centre
     kept = np.zeros(len(result.blocks), dtype=bool) if flt is None else flt.kept
-    index = np.flatnonzero(kept & np.all(np.isfinite(centres), axis=1))
-    ids = result.blocks.feature_id[index]
-    ga = align_blocks(camera, pattern, reference.points, ids, centres[index], result.blocks.loss[index],
-                      settings)
-    return FrameAlignment(result.frame, index, ids, centres[index], ga.residuals, ga.translation, ga.pose,
-                          ga.angle_to_normal, orientation_ok(ga.pose), ga.converged, reference)
+    index, ga = align_kept_blocks(camera, pattern, reference.points, result.blocks, kept, settings)
+    return FrameAlignment(result.frame, index, result.blocks.feature_id[index], result.blocks.centre[index],
+                          ga.residuals, ga.translation, ga.pose, ga.angle_to_normal, not ga.ill_conditioned,
+                          ga.converged, reference)
 
 
 # -------------------------------------------------------------------------------- the cache
@@ -317,14 +315,14 @@ class AlignmentCache:
     The reference is found once per opened dataset (the sharp-frame calibration again when the
     set of finished sharp frames changes). A frame's alignment is kept per result and kept-block
     set, so thresholds that keep the same blocks cost nothing and moving back to earlier
-    thresholds finds the earlier alignment. Safe to use from several threads.
+    thresholds finds the earlier alignment. Safe to use from several threads. ``settings``: the
+    alignment's (loss, bias, orientation filter; the engine's defaults).
     """
 
-    def __init__(self, state: AppState, *, loss: str = "huber", bias: str = "translation",
+    def __init__(self, state: AppState, *, settings: AlignmentSettings | None = None,
                  size: int = 512) -> None:
         self.state = state
-        self.loss = loss
-        self.bias = bias
+        self.settings = settings or AlignmentSettings()
         self._size = size
         self._lock = threading.RLock()
         self._dataset: Dataset | None = None
@@ -381,8 +379,7 @@ class AlignmentCache:
                 outcome = None
         if outcome is None:
             try:
-                outcome = align_frame(reference, self.state.dataset.pattern, result, flt, size,
-                                      AlignmentSettings(loss=self.loss, bias=self.bias))
+                outcome = align_frame(reference, self.state.dataset.pattern, result, flt, size, self.settings)
             except AlignmentError as exc:
                 outcome = str(exc)
             with self._lock:

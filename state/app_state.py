@@ -25,12 +25,12 @@ import numpy as np
 from blurcalib.extract.frame import ExtractSettings, FrameResult, FrameStatus, extract_frame
 from blurcalib.extract.quality import FrameFilter, QualitySettings, filter_frame
 from blurcalib.geometry.homography import homography_centre
-from blurcalib.growth.grow import GrowthEvent
+from blurcalib.growth.ledger import GrowthEvent
 from blurcalib.growth.seed import block_homography
 from blurcalib.io.frames import FrameError
 from blurcalib.io.results import BlockStatus
 from blurcalib.io.sources import FrameInput
-from blurcalib.sim.synth import FrameTruth
+from blurcalib.sim.truth import FrameTruth
 from blurcalib.target.pattern import PatternFileError, StarPattern, load_pattern
 from state.events import Events, Notice, Topic
 from state.folder import Dataset, DatasetError, FrameFile, discover

@@ -9,19 +9,20 @@ Inputs (:func:`collect_inputs`), at the current thresholds:
   ``H(0, 0)`` (px, OpenCV convention), weighted ``1 / (1 + loss)``.
 
 The run (:class:`CalibrationRunner`, one worker thread, cancel between stages; the frames not
-extracted yet are extracted first, in the state's worker):
+extracted yet are extracted first, in the state's worker) is the engine's calibration sequence
+(:func:`blurcalib.calib.sequence.calibrate_features`), as ``blurcalib calibrate`` runs it, on
+these inputs:
 
-1. the parametric camera: :func:`blurcalib.calib.sharp.calibrate_sharp` of the sharp features; with
-   fewer than ``min_sharp_frames`` usable sharp frames the blurry frames' kept blocks join this
-   stage (their per-frame shift is not modelled there; the generic stage models it); then, as
-   in the pipeline, every star centre is corrected for the lens bias of its block homography
-   under that camera (:mod:`blurcalib.calib.lens_bias`) and the parametric camera fitted again;
-2. the generic camera: :func:`blurcalib.calib.joint.calibrate_generic` (``route="joint"``: a free image
-   shift per blurry frame), started from stage 1;
-3. the assessment without ground truth, as ``blurcalib calibrate`` makes it: the generic camera
-   of the sharp frames alone when blurry frames entered stage 2, then
-   :func:`blurcalib.calib.trust.assess_calibration` (held-out error, projection uncertainty,
-   cross-validation diff, guidance; ``docs/validation.md``);
+1. the parametric camera of the sharp features; with fewer than ``min_sharp_frames`` usable
+   sharp frames the blurry frames' kept blocks join this stage (their per-frame shift is not
+   modelled there; the generic stage models it); every star centre is corrected for the lens
+   bias of its block homography under that camera (:mod:`blurcalib.calib.lens_bias`) and the
+   parametric camera fitted again;
+2. the generic camera (``route="joint"``: a free image shift per blurry frame), started from
+   stage 1;
+3. the assessment without ground truth: the generic camera of the sharp frames alone when
+   blurry frames entered stage 2, then held-out error, projection uncertainty,
+   cross-validation diff and guidance (``docs/validation.md``);
 4. figures: observation coverage per grid cell (sharp and blurry apart), the
    generic-minus-parametric difference field (:func:`blurcalib.calib.joint.difference_field`) and, on
    a simulated dataset, both cameras' error against the true camera
@@ -44,28 +45,26 @@ from pathlib import Path
 
 import numpy as np
 
-from blurcalib.calib.alignment import MIN_BLOCKS
-from blurcalib.calib.joint import (
-    GenericCalibration,
-    JointSettings,
-    calibrate_generic,
-    difference_field,
-    save_generic_calibration,
+from blurcalib.calib.joint import GenericCalibration, difference_field, save_generic_calibration
+from blurcalib.calib.rolling_shutter import RollingShutterResult
+from blurcalib.calib.sequence import (
+    BLURRY_FLAGS,
+    BlurryFrame,
+    SequenceCancelledError,
+    SequenceSettings,
+    Stage,
+    calibrate_features,
 )
-from blurcalib.calib.lens_bias import correct_features
-from blurcalib.calib.sharp import Calibration, CalibrationError, calibrate_sharp
-from blurcalib.calib.trust import Trust, TrustSettings, assess_calibration
-from blurcalib.calib.uncertainty import projection_uncertainty
-from blurcalib.camera.generic import DEFAULT_CELL_PX
+from blurcalib.calib.sharp import Calibration, CalibrationError
+from blurcalib.calib.trust import Trust
 from blurcalib.camera.parametric import save_camera_yaml
 from blurcalib.extract.frame import FrameStatus
 from blurcalib.extract.quality import QualitySettings
 from blurcalib.io.atomic import ensure_writable_dir
-from blurcalib.io.results import BlockTable, FeatureFlags, FeatureTable
+from blurcalib.io.results import BlockTable, FeatureTable
 from blurcalib.io.text import count
 from blurcalib.sim.evaluate import projection_errors
-from blurcalib.sim.synth import TrueCamera
-from blurcalib.target.pattern import StarPattern
+from blurcalib.sim.truth import TrueCamera
 from state.app_state import DONE_STATUSES, AppState
 from state.events import Topic
 from state.folder import EXPORT_DIR
@@ -75,15 +74,11 @@ log = logging.getLogger(__name__)
 OPENCV_CAMERA_FILE = "camera.yaml"
 """The parametric camera as an OpenCV FileStorage file
 (:func:`blurcalib.camera.parametric.save_camera_yaml`)."""
-STAGES = ("extracting frames", "collecting features", "parametric calibration", "generic calibration",
-          "assessment (held-out error, uncertainty)", "figures")
+STAGES = ("extracting frames", "collecting features", *(s.value for s in Stage), "figures")
 """The run's stages; the first only when frames are extracted (or being extracted) first."""
 IN_PROGRESS = frozenset({"queued", "running"})
 """Frame statuses of an extraction under way."""
 USED = "used"
-BLURRY_FLAGS = int(FeatureFlags.STAR_CENTRE | FeatureFlags.BLURRY_FRAME)
-MIN_FRAMES = 2
-"""Fewest frames of a parametric stage that also uses the blurry frames."""
 
 
 @dataclass(frozen=True)
@@ -91,20 +86,21 @@ class CalibrationSettings:
     """Options of the app's calibration.
 
     Attributes:
-        cell_px: the generic grid's cell (px); the coverage map uses the same cells.
-        min_sharp_frames: fewest usable sharp frames for a sharp-only parametric stage.
-        min_sharp_features: a sharp frame needs this many accepted blocks.
-        min_blurry_blocks: a blurry frame needs this many kept blocks.
+        sequence: the calibration sequence's (:class:`blurcalib.calib.sequence.SequenceSettings`):
+            the generic grid's cell (the coverage map uses the same cells), the fewest usable
+            sharp frames and features of a sharp frame, the fewest kept blocks of a blurry frame
+            (``alignment.min_blocks``), the assessment; the blurry frames join the parametric
+            stage when the sharp frames are too few.
         lattice_px: step (px) of the lattice of the difference field and the error against truth.
-        trust: options of the assessment (:class:`blurcalib.calib.trust.TrustSettings`).
     """
 
-    cell_px: float = DEFAULT_CELL_PX
-    min_sharp_frames: int = 5
-    min_sharp_features: int = 20
-    min_blurry_blocks: int = MIN_BLOCKS
+    sequence: SequenceSettings = field(default_factory=lambda: SequenceSettings(blurry_in_parametric=True))
     lattice_px: float = 8.0
-    trust: TrustSettings = field(default_factory=TrustSettings)
+
+    @property
+    def cell_px(self) -> float:
+        """The generic grid's cell (px)."""
+        return self.sequence.generic.cell_px
 
 
 @dataclass(frozen=True)
@@ -202,9 +198,9 @@ def collect_inputs(state: AppState, settings: CalibrationSettings | None = None)
             reasons[entry.name] = f"another image size ({size[0]} x {size[1]})"
             continue
         if entry.kind == "sharp":
-            if len(result.features) < s.min_sharp_features:
+            if len(result.features) < s.sequence.min_sharp_features:
                 reasons[entry.name] = (f"too few accepted blocks ({len(result.features)} < "
-                                       f"{s.min_sharp_features})")
+                                       f"{s.sequence.min_sharp_features})")
                 continue
             sharp.append(result.features)
             blocks.append(result.blocks)
@@ -215,10 +211,10 @@ def collect_inputs(state: AppState, settings: CalibrationSettings | None = None)
                                    f"{state.quality.min_sigma_major:g} px)")
             continue
         kept = np.flatnonzero(flt.kept)
-        if len(kept) < s.min_blurry_blocks:
-            reasons[entry.name] = f"too few kept blocks ({len(kept)} < {s.min_blurry_blocks})"
+        if len(kept) < s.sequence.alignment.min_blocks:
+            reasons[entry.name] = f"too few kept blocks ({len(kept)} < {s.sequence.alignment.min_blocks})"
             continue
-        blurry.append(result.blocks.select(kept).features(square_m, BLURRY_FLAGS))
+        blurry.append(result.blocks.select(kept).features(square_m, int(BLURRY_FLAGS)))
         blocks.append(result.blocks.select(kept))
     return CalibrationInputs(FeatureTable.concat(sharp), FeatureTable.concat(blurry),
                              BlockTable.concat(blocks), image_size, reasons, state.quality)
@@ -272,6 +268,8 @@ class AppCalibration:
         sharp_failure: why there is no sharp-only generic camera though blurry frames were
             used, or why it was not assessed with the rest (then ``trust`` is the generic
             camera's alone, with the sharp-only uncertainty map added), or "".
+        rolling_shutter: the rolling-shutter step (readout ratio, each moving frame's blur
+            velocity, the warning), or None.
     """
 
     inputs: CalibrationInputs
@@ -287,6 +285,7 @@ class AppCalibration:
     seconds: float
     trust_failure: str = ""
     sharp_failure: str = ""
+    rolling_shutter: RollingShutterResult | None = None
 
     def frame_residuals(self, name: str) -> tuple[np.ndarray, np.ndarray]:
         """``(N, 2)`` px observations of frame ``name`` and their residuals under the generic model."""
@@ -307,48 +306,11 @@ def fit_status(inputs: CalibrationInputs, generic: GenericCalibration) -> dict[s
     return status
 
 
-@dataclass(eq=False)
-class Assessment:
-    """Stage 3 of :func:`fit`: the sharp-only generic camera and the assessment, or why not."""
-
-    generic_sharp: GenericCalibration | None
-    trust: Trust | None
-    sharp_failure: str = ""
-    trust_failure: str = ""
-
-
-def assess(generic: GenericCalibration, parametric: Calibration, sharp: FeatureTable, pattern: StarPattern,
-           size: tuple[int, int], joint: JointSettings, settings: TrustSettings) -> Assessment:
-    """The generic camera of the ``sharp`` features alone when ``generic`` used blurry frames, then
-    :func:`blurcalib.calib.trust.assess_calibration`, as ``blurcalib calibrate`` does. A failure is
-    recorded, not raised: the calibration stands without its assessment, and when only the
-    sharp-only camera's part fails, the generic camera is assessed alone and the sharp-only
-    camera keeps its uncertainty map."""
-    out = Assessment(None, None)
-    if generic.blurry_frames:
-        try:
-            out.generic_sharp = calibrate_generic(sharp, None, parametric, pattern, size, joint)
-        except (CalibrationError, ValueError) as exc:
-            out.sharp_failure = str(exc)
-    for generic_sharp in ([out.generic_sharp, None] if out.generic_sharp is not None else [None]):
-        try:
-            out.trust = assess_calibration(generic, generic_sharp, parametric, sharp, pattern, size,
-                                           settings, joint.bundle)
-            break
-        except (CalibrationError, ValueError, RuntimeError) as exc:  # torch's LinAlgError is a RuntimeError
-            log.warning("assessment failed: %s", exc)
-            failure = f"{type(exc).__name__}: {exc}"
-            if generic_sharp is None:
-                out.trust_failure = failure
-            else:
-                out.sharp_failure = f"its assessment failed ({failure})"
-    if out.trust is not None and out.generic_sharp is not None and out.trust.uncertainty_sharp is None:
-        try:
-            out.trust.uncertainty_sharp = projection_uncertainty(out.generic_sharp.bundle,
-                                                                 step_px=settings.step_px)
-        except (ValueError, RuntimeError) as exc:
-            out.sharp_failure += f"; no uncertainty map ({type(exc).__name__}: {exc})"
-    return out
+def _blurry_frames(inputs: CalibrationInputs) -> list[BlurryFrame]:
+    """The inputs' blurry frames as the sequence takes them: each with its kept blocks."""
+    names = list(dict.fromkeys(inputs.blurry.frame.tolist()))
+    return [BlurryFrame(name, blocks=(b := inputs.blocks.select(inputs.blocks.frame == name)),
+                        kept=np.ones(len(b), dtype=bool), flags=BLURRY_FLAGS) for name in names]
 
 
 def fit(inputs: CalibrationInputs, state: AppState, settings: CalibrationSettings,
@@ -361,36 +323,20 @@ def fit(inputs: CalibrationInputs, state: AppState, settings: CalibrationSetting
     """
     t0 = time.perf_counter()
     dataset = state.dataset
-    if not stage(2):
-        return None
-    sharp_frames = len(set(inputs.sharp.frame.tolist()))
-    few_sharp = sharp_frames < settings.min_sharp_frames
-    sharp, blurry = inputs.sharp, inputs.blurry
-    if len(set(sharp.frame.tolist()) | set(blurry.frame.tolist() if few_sharp else [])) == 0:
+    if not inputs.frames:
         raise CalibrationError("no usable frame: none is extracted with enough features and passes the "
                                "filters (see the frames' statuses)")
-    parametric = None
-    for _ in range(2):  # as the pipeline: calibrate, correct the centres' lens bias, calibrate again
-        if parametric is not None:
-            sharp = correct_features(inputs.sharp, inputs.blocks, parametric.camera)
-            blurry = correct_features(inputs.blurry, inputs.blocks, parametric.camera)
-        table = FeatureTable.concat([sharp, blurry]) if few_sharp else sharp
-        parametric = calibrate_sharp(table, dataset.pattern, inputs.image_size,
-                                     min_frames=MIN_FRAMES if few_sharp else settings.min_sharp_frames,
-                                     min_features=settings.min_blurry_blocks if few_sharp
-                                     else settings.min_sharp_features)
-    with_blurry = few_sharp and not set(parametric.poses).isdisjoint(blurry.frame.tolist())
-    if not stage(3):
+    try:
+        run = calibrate_features(inputs.sharp, inputs.blocks, _blurry_frames(inputs), dataset.pattern,
+                                 inputs.image_size, settings.sequence,
+                                 on_stage=lambda s: stage(STAGES.index(s.value)))
+    except SequenceCancelledError:
         return None
-    joint = JointSettings(cell_px=settings.cell_px, route="joint")
-    generic = calibrate_generic(sharp, blurry if len(blurry) else None, parametric,
-                                dataset.pattern, inputs.image_size, joint)
-    if not stage(4):
-        return None
-    assessment = assess(generic, parametric, sharp, dataset.pattern, inputs.image_size, joint,
-                        settings.trust)
+    if run.trust_failure:
+        log.warning("assessment failed: %s", run.trust_failure)
     if not stage(5):
         return None
+    generic, parametric = run.generic, run.calibration
     blurry_rows = np.isin(generic.frame, generic.blurry_frames)
     cov = coverage(generic.observed[~blurry_rows], generic.observed[blurry_rows], inputs.image_size,
                    settings.cell_px)
@@ -398,9 +344,9 @@ def fit(inputs: CalibrationInputs, state: AppState, settings: CalibrationSetting
     truth = None
     if dataset.truth is not None:
         truth = truth_errors(dataset.truth.camera, generic, parametric, settings.lattice_px)
-    return AppCalibration(inputs, parametric, with_blurry, generic, assessment.generic_sharp,
-                          assessment.trust, cov, difference, truth, fit_status(inputs, generic),
-                          time.perf_counter() - t0, assessment.trust_failure, assessment.sharp_failure)
+    return AppCalibration(inputs, parametric, run.parametric_with_blurry, generic, run.generic_sharp,
+                          run.trust, cov, difference, truth, fit_status(inputs, generic),
+                          time.perf_counter() - t0, run.trust_failure, run.sharp_failure, run.rolling_shutter)
 
 
 @dataclass(frozen=True)

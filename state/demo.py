@@ -27,7 +27,7 @@ from blurcalib.geometry.homography import (
 from blurcalib.geometry.pose import Pose
 from blurcalib.growth.seed import block_homography
 from blurcalib.psf.kernel import shift_pair
-from blurcalib.sim.synth import splat
+from blurcalib.sim.truth import splat
 from blurcalib.target.pattern import star_sector_white
 
 TILE_PX = 64

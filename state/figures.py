@@ -19,7 +19,7 @@ from blurcalib.extract.frame import FrameResult, FrameStatus
 from blurcalib.extract.quality import FrameFilter
 from blurcalib.geometry.homography import apply_homography
 from blurcalib.geometry.pose import Pose
-from blurcalib.sim.synth import DatasetTruth, FrameTruth
+from blurcalib.sim.truth import DatasetTruth, FrameTruth
 from blurcalib.target.pattern import StarPattern
 from state.alignment import AlignmentCache, FrameAlignment
 from state.app_state import AppState

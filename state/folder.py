@@ -16,14 +16,13 @@ from pathlib import Path
 
 from blurcalib.io.frames import FrameError, list_frames
 from blurcalib.io.sources import frame_inputs, is_video
-from blurcalib.sim.synth import (
+from blurcalib.sim.synth import SynthConfig, write_dataset
+from blurcalib.sim.truth import (
     GROUND_TRUTH_FILE,
     DatasetTruth,
-    SynthConfig,
     TrueCamera,
     d435i_like_camera,
     load_ground_truth,
-    write_dataset,
 )
 from blurcalib.target.pattern import PatternFileError, StarPattern, load_pattern
 

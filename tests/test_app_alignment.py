@@ -13,7 +13,7 @@ from blurcalib.extract.frame import FrameResult, FrameStatus
 from blurcalib.extract.quality import QualitySettings
 from blurcalib.geometry.pose import Pose
 from blurcalib.io.results import BlockStatus, BlockTable, FeatureFlags, FeatureObservation, FeatureTable
-from blurcalib.sim.synth import DatasetTruth, TrueCamera
+from blurcalib.sim.truth import DatasetTruth, TrueCamera
 from blurcalib.target.pattern import layout_pattern
 from state.alignment import (
     AlignmentError,

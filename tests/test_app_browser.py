@@ -28,7 +28,7 @@ from pathlib import Path
 import pytest
 
 from blurcalib.extract.frame import ExtractSettings
-from blurcalib.growth.grow import GrowSettings
+from blurcalib.growth.settings import GrowSettings
 from state import RunSettings
 from tests.test_app_state import SMALL_CONFIG, make_dataset
 

@@ -12,6 +12,7 @@ import pytest
 
 from blurcalib.calib.joint import JointSettings, calibrate_generic
 from blurcalib.calib.lens_bias import correct_features
+from blurcalib.calib.sequence import MIN_PARAMETRIC_FRAMES, SequenceSettings
 from blurcalib.calib.sharp import calibrate_sharp
 from blurcalib.calib.trust import TrustSettings
 from blurcalib.calib.uncertainty import cross_validation_diff
@@ -25,7 +26,6 @@ from blurcalib.sim.synth import SynthConfig
 from state import AppState, Topic, discover
 from state.calibration import (
     EXPORT_DIR,
-    MIN_FRAMES,
     OPENCV_CAMERA_FILE,
     STAGES,
     USED,
@@ -51,7 +51,8 @@ pytestmark = pytest.mark.slow
 CONFIG = SynthConfig(sharp=2, blurry=2, square_px=(36.0, 42.0), max_tilt_deg=30.0, blur_min_px=3.0,
                      blur_max_px=4.0, seed=5)
 """2 sharp and 2 little-blurred 416 x 312 frames: the blurry ones fail the 3.8 px pre-filter."""
-SETTINGS = CalibrationSettings(cell_px=40.0)
+SETTINGS = CalibrationSettings(SequenceSettings(generic=JointSettings(cell_px=40.0),
+                                                blurry_in_parametric=True))
 
 PAPER = QualitySettings(min_sigma_major=3.8)
 """The paper's thresholds: its 3.8 px pre-filter drops the small dataset's blurry frames (about 0.5 px
@@ -109,7 +110,7 @@ def test_inputs_coverage_and_statuses_follow_the_thresholds(defaults: AppState) 
     state.refilter(min_sigma_major=0.0)
     inputs = collect_inputs(state, SETTINGS)
     kept = {n: int(f.kept.sum()) for n, (_, f, _) in state.results().items() if n.startswith("blurry")}
-    assert all(k >= SETTINGS.min_blurry_blocks for k in kept.values())
+    assert all(k >= SETTINGS.sequence.alignment.min_blocks for k in kept.values())
     assert len(inputs.blurry) == sum(kept.values())
     cov = input_coverage(inputs, SETTINGS.cell_px)
     assert cov.blurry.sum() == sum(kept.values()) and cov.total == len(inputs.sharp) + len(inputs.blurry)
@@ -125,12 +126,13 @@ def _engine(state: AppState):
     """The engine's calibration of the app's inputs, called directly (with the lens-bias correction)."""
     inputs = collect_inputs(state, SETTINGS)
     table = FeatureTable.concat([inputs.sharp, inputs.blurry])
-    first = calibrate_sharp(table, state.dataset.pattern, inputs.image_size, min_frames=MIN_FRAMES,
-                            min_features=SETTINGS.min_blurry_blocks)
+    first = calibrate_sharp(table, state.dataset.pattern, inputs.image_size, min_frames=MIN_PARAMETRIC_FRAMES,
+                            min_features=SETTINGS.sequence.alignment.min_blocks)
     sharp, blurry = (correct_features(t, inputs.blocks, first.camera) for t in (inputs.sharp, inputs.blurry))
     parametric = calibrate_sharp(FeatureTable.concat([sharp, blurry]), state.dataset.pattern,
-                                 inputs.image_size, min_frames=MIN_FRAMES,
-                                 min_features=SETTINGS.min_blurry_blocks)
+                                 inputs.image_size, min_frames=MIN_PARAMETRIC_FRAMES,
+                                 min_features=SETTINGS.sequence.alignment.min_blocks)
+    blurry = correct_features(inputs.blurry, inputs.blocks, parametric.camera)  # under the final camera
     generic = calibrate_generic(sharp, blurry, parametric, state.dataset.pattern,
                                 inputs.image_size, JointSettings(cell_px=SETTINGS.cell_px, route="joint"))
     return parametric, generic
@@ -268,7 +270,8 @@ def test_calibration_run_cancel_and_export(defaults: AppState, tmp_path: Path) -
 def test_sharp_frames_only_label_and_held_out_table(defaults: AppState) -> None:
     """At the paper's pre-filter no blurry frame is an input: the parametric camera is labelled as
     the sharp frames' and the generic camera is assessed alone (validation lowered to 2 frames)."""
-    settings = replace(SETTINGS, trust=TrustSettings(validation=ValidationSettings(min_frames=2, folds=2)))
+    trust = TrustSettings(validation=ValidationSettings(min_frames=2, folds=2))
+    settings = replace(SETTINGS, sequence=replace(SETTINGS.sequence, trust=trust))
     runner = CalibrationRunner(defaults, settings)
     assert runner.run() and runner.wait(600)
     result = runner.result

@@ -12,9 +12,10 @@ import pytest
 from blurcalib.camera.parametric import BrownConrady
 from blurcalib.extract.frame import ExtractSettings
 from blurcalib.extract.quality import QualitySettings, noise_scale
-from blurcalib.growth.grow import GrowSettings
+from blurcalib.growth.settings import GrowSettings
 from blurcalib.io.results import BlockStatus
-from blurcalib.sim.synth import SynthConfig, TrueCamera
+from blurcalib.sim.synth import SynthConfig
+from blurcalib.sim.truth import TrueCamera
 from state import AppState, DatasetError, RunSettings, Topic, default_dataset, discover
 from state.alignment import AlignmentCache, AlignmentError
 from state.app_state import filter_counts

@@ -3,10 +3,20 @@
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 
 import numpy as np
 import pytest
 
+from blurcalib.calib.joint import JointSettings
+from blurcalib.calib.sequence import (
+    BLURRY_FLAGS,
+    BlurryFrame,
+    SequenceCancelledError,
+    SequenceSettings,
+    Stage,
+    calibrate_features,
+)
 from blurcalib.calib.sharp import (
     Calibration,
     CalibrationError,
@@ -17,10 +27,13 @@ from blurcalib.calib.sharp import (
     save_calibration,
     solve_pose,
 )
+from blurcalib.calib.trust import TrustSettings
+from blurcalib.calib.validation import ValidationSettings
 from blurcalib.camera.parametric import BrownConrady, load_camera_yaml, project_points
 from blurcalib.geometry.pose import Pose
 from blurcalib.io.results import FeatureFlags, FeatureTable
-from blurcalib.sim.synth import TrueCamera, d435i_like_camera, sample_pose
+from blurcalib.sim.synth import sample_pose
+from blurcalib.sim.truth import TrueCamera, d435i_like_camera
 from blurcalib.target.pattern import StarPattern, layout_pattern
 
 NOISE_PX = 0.05
@@ -209,3 +222,40 @@ def test_reprojection_errors_and_solve_pose(clean) -> None:
     assert np.linalg.norm(pose.t - calib.poses[name].t) < 1e-4
     with pytest.raises(ValueError, match="at least 4"):
         solve_pose(calib.camera, np.zeros((3, 3)), np.zeros((3, 2)))
+
+
+def test_calibration_sequence_fits_blurry_shifts_and_stops_when_asked(
+        clean, pattern: StarPattern, true_camera: BrownConrady) -> None:
+    """The in-memory sequence on 12 sharp frames and 3 blurry frames known by their features,
+    each moved by a whole-image shift: every blurry frame enters the generic fit with its shift,
+    its written features are its centres less that shift, and ``on_stage`` announces the stages
+    in order and stops the sequence when it says so."""
+    sharp = clean[0]
+    moved, _ = simulate(pattern, true_camera, 3, seed=7)
+    frames = []
+    for i, name in enumerate(sorted(set(moved.frame.tolist()))):
+        t = moved.select(moved.frame == name)
+        frames.append(BlurryFrame(f"blurry/{i}", features=replace(
+            t, frame=np.full(len(t), f"blurry/{i}"), x=t.x + 1.5, y=t.y - 1.0,
+            flags=np.full(len(t), int(BLURRY_FLAGS)))))
+    settings = SequenceSettings(generic=JointSettings(cell_px=160.0),
+                                trust=TrustSettings(validation=ValidationSettings(method="none"),
+                                                    cross_validation=False))
+    stages: list[Stage] = []
+    run = calibrate_features(sharp, None, frames, pattern, IMAGE_SIZE, settings,
+                             on_stage=lambda s: stages.append(s) or True)
+    assert stages == [Stage.PARAMETRIC, Stage.GENERIC, Stage.ASSESSMENT]
+    assert sorted(run.generic.blurry_frames) == [f.name for f in frames]
+    assert run.generic.median_error < 2 * NOISE_PX and run.generic_sharp is not None
+    assert run.trust is not None and not run.trust_failure and not run.sharp_failure
+    for o in run.blurry:
+        assert o.entered and o.skipped_features is None and np.all(np.isfinite(o.shift))
+        np.testing.assert_allclose(o.aligned.x, o.raw.x - o.shift[0])
+        assert np.all(o.aligned.flags & int(FeatureFlags.GLOBALLY_ALIGNED))
+    with pytest.raises(SequenceCancelledError):
+        calibrate_features(sharp, None, frames, pattern, IMAGE_SIZE, settings,
+                           on_stage=lambda s: s is not Stage.GENERIC)
+    parametric = calibrate_features(sharp, None, frames, pattern, IMAGE_SIZE,
+                                    replace(settings, model="parametric"))
+    assert parametric.generic is None and parametric.trust is None
+    assert parametric.calibration.median_error == pytest.approx(run.calibration.median_error)

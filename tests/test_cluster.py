@@ -16,7 +16,8 @@ from blurcalib.extract.frame import ExtractSettings, extract_to_folder
 from blurcalib.io.results import read_features
 from blurcalib.pipeline.cluster import ClusterError, run_on_cluster
 from blurcalib.pipeline.runtime import configure_threads
-from blurcalib.sim.synth import Simulator, SynthConfig, TrueCamera
+from blurcalib.sim.synth import Simulator, SynthConfig
+from blurcalib.sim.truth import TrueCamera
 
 pytestmark = pytest.mark.slow
 

@@ -10,7 +10,7 @@ import pytest
 
 from blurcalib.camera.parametric import BrownConrady
 from blurcalib.sim.evaluate import camera_accuracy
-from blurcalib.sim.synth import TrueCamera
+from blurcalib.sim.truth import TrueCamera
 
 LENS = BrownConrady(fx=640.0, fy=641.0, cx=639.0, cy=361.0, k1=0.05, k2=-0.06, p1=0.001, p2=-0.0005,
                     k3=0.02, width=1280, height=720)

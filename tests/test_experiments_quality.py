@@ -12,11 +12,12 @@ import pytest
 
 from blurcalib.calib.sharp import Calibration
 from blurcalib.camera.parametric import BrownConrady
-from blurcalib.paper import common, psf_quality, threshold_sweep
+from blurcalib.paper import common, psf_field, psf_quality, threshold_sweep
 from blurcalib.paper.common import ExtractedFrame
 from blurcalib.paper.psf_quality import PsfQualitySettings
 from blurcalib.paper.threshold_sweep import BIASES, CONFIGS, SweepExperiment, SweepSettings
-from blurcalib.sim.synth import Simulator, SynthConfig, TrueCamera
+from blurcalib.sim.synth import Simulator, SynthConfig
+from blurcalib.sim.truth import TrueCamera
 
 SHARP = 6
 BLURRY = 3
@@ -106,7 +107,7 @@ def test_statistics_and_figures(quality, tmp_path) -> None:
 def test_psf_mosaic_draws_each_accepted_block_at_its_place(frames: list[ExtractedFrame]) -> None:
     frame = frames[0]
     fit = frame.result.growth.fit
-    mosaic = psf_quality.psf_mosaic(frame, fit.psf, zoom=2)
+    mosaic = psf_field.psf_mosaic(frame, fit.psf, zoom=2)
     w, h = frame.image_size
     assert mosaic.shape == (2 * h, 2 * w) and mosaic.min() >= 0.0 and mosaic.max() == pytest.approx(1.0)
     acc = np.flatnonzero(frame.result.growth.accepted)

@@ -8,6 +8,8 @@ import json
 import numpy as np
 import pytest
 
+from blurcalib.calib.joint import JointSettings
+from blurcalib.calib.sequence import SequenceSettings
 from blurcalib.calib.trust import TrustSettings
 from blurcalib.calib.validation import ValidationSettings
 from blurcalib.cli import main
@@ -81,8 +83,8 @@ def test_reference_dataset_through_features(shared_fixtures, tmp_path, capsys) -
     """The reference tool's own features of the real camera: generic median reprojection and
     held-out error printed, the generic camera below the parametric one held out too."""
     real = shared_fixtures / "real_star16"
-    settings = PipelineSettings(trust=TrustSettings(validation=ValidationSettings(folds=3),
-                                                    cross_validation=False))
+    trust = TrustSettings(validation=ValidationSettings(folds=3), cross_validation=False)
+    settings = PipelineSettings(calibration=SequenceSettings(trust=trust))
     report = run_from_features(real / "features_10px.bin", load_pattern(real / "pattern.yaml"),
                                tmp_path / "out", settings)
     assert report.counts["sharp"].get("used", 0) >= 20
@@ -101,7 +103,8 @@ def test_a_full_disk_leaves_the_earlier_outputs_and_no_staging(features_csv, tmp
     import blurcalib.pipeline.run as pipeline
 
     trust = TrustSettings(validation=ValidationSettings(method="none"), cross_validation=False)
-    settings = PipelineSettings(cell_px=80.0, trust=trust)
+    calibration = SequenceSettings(generic=JointSettings(cell_px=80.0), trust=trust)
+    settings = PipelineSettings(calibration=calibration)
     out = tmp_path / "out"
     run_from_features(features_csv, layout_pattern(), out, settings, (1280, 720))
     before = (out / "report.json").read_bytes()

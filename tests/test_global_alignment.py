@@ -31,7 +31,8 @@ from blurcalib.paper.alignment import (
     main,
     run_alignment_experiment,
 )
-from blurcalib.sim.synth import d435i_like_camera, sample_pose
+from blurcalib.sim.synth import sample_pose
+from blurcalib.sim.truth import d435i_like_camera
 from blurcalib.target.pattern import StarPattern, layout_pattern
 
 SHIFT = np.array([3.0, -2.0])

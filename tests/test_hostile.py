@@ -559,7 +559,8 @@ def test_five_copies_of_one_frame_do_not_calibrate(tmp_path: Path) -> None:
     """Five copies of one sharp frame gave a "calibrated" camera (fx 836 against 900): they are
     one view, and a calibration needs 5 distinct ones."""
     from blurcalib.pipeline.run import PipelineError, run_pipeline
-    from blurcalib.sim.synth import SynthConfig, TrueCamera, write_dataset
+    from blurcalib.sim.synth import SynthConfig, write_dataset
+    from blurcalib.sim.truth import TrueCamera
     from tests.test_app_state import SMALL_CAMERA
 
     data = write_dataset(

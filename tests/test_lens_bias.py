@@ -14,7 +14,8 @@ from blurcalib.calib.lens_bias import centre_bias, correct_blocks, fit_homograph
 from blurcalib.camera.parametric import BrownConrady
 from blurcalib.extract.frame import ExtractSettings, extract_frame
 from blurcalib.geometry.homography import translation
-from blurcalib.sim.synth import Simulator, SynthConfig, TrueCamera, d435i_like_camera
+from blurcalib.sim.synth import Simulator, SynthConfig
+from blurcalib.sim.truth import TrueCamera, d435i_like_camera
 
 PINHOLE = BrownConrady(fx=640.0, fy=640.0, cx=640.0, cy=360.0, k1=0.0, k2=0.0, p1=0.0, p2=0.0, k3=0.0,
                        width=1280, height=720)

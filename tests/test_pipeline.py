@@ -12,8 +12,11 @@ import cv2
 import numpy as np
 import pytest
 
+import blurcalib.pipeline.frames as frame_rows
 import blurcalib.pipeline.run as pipeline
+from blurcalib.calib.alignment import AlignmentSettings
 from blurcalib.calib.report import error_direction_image
+from blurcalib.calib.sequence import SequenceSettings
 from blurcalib.calib.sharp import load_calibration
 from blurcalib.camera.files import read_generic_yaml
 from blurcalib.camera.parametric import BrownConrady
@@ -23,7 +26,8 @@ from blurcalib.io.atomic import OutputError
 from blurcalib.io.results import FeatureFlags, read_feature_table
 from blurcalib.pipeline.run import PUBLISHED, PipelineError, PipelineSettings, run_pipeline
 from blurcalib.sim.evaluate import camera_accuracy, evaluate_features
-from blurcalib.sim.synth import SynthConfig, TrueCamera, load_ground_truth, write_dataset
+from blurcalib.sim.synth import SynthConfig, write_dataset
+from blurcalib.sim.truth import TrueCamera, load_ground_truth
 from blurcalib.target.pattern import layout_pattern
 
 
@@ -45,7 +49,7 @@ def report_camera(out: Path) -> BrownConrady:
 
 
 def _settings() -> PipelineSettings:
-    return PipelineSettings(quality=QualitySettings(min_sigma_major=0.0))
+    return PipelineSettings(calibration=SequenceSettings(quality=QualitySettings(min_sigma_major=0.0)))
 
 
 def _frames(dataset):
@@ -73,11 +77,11 @@ def test_pipeline_end_to_end(finished, dataset) -> None:
     pattern = layout_pattern()
     assert report.calibration["num_frames"] == 6
     assert report.calibration["median_error_px"] < 0.1
-    statuses = {r["frame"]: r["status"] for r in report.frames}
+    statuses = {r.frame: r.status for r in report.frames}
     assert set(statuses) == {f"sharp/{i:04d}.png" for i in range(6)} | {
         "blurry/0000.png", "blurry/0001.png", "blurry/0002_1x1.png"}
-    bad = next(r for r in report.frames if r["frame"] == "blurry/0002_1x1.png")
-    assert bad["status"] == "unreadable" and "is 1x1 px, smaller than" in bad["reason"]
+    bad = next(r for r in report.frames if r.frame == "blurry/0002_1x1.png")
+    assert bad.status == "unreadable" and "is 1x1 px, smaller than" in bad.reason
     assert "used" in statuses.values() or "ill_conditioned" in statuses.values()
     for key in ("features", "reference_features", "frames", "error_directions_sharp",
                 "frame_errors"):
@@ -104,12 +108,12 @@ def test_pipeline_delivers_the_generic_camera(finished, dataset) -> None:
     assert Path(report.outputs["error_directions_generic"]).is_file()
     for name in ("generic_poses.csv", "undistortion_map.npz", "generic_coverage.png"):
         assert (out / "calibration" / name).is_file()
-    rows = {r["frame"]: r for r in report.frames}
+    rows = {r.frame: r for r in report.frames}
     for r in rows.values():
-        assert r["status"] == "used" or r["reason"], r
+        assert r.status == "used" or r.reason, r
     # Joint route: a blurry frame with enough kept blocks is used whatever its orientation.
-    assert all(r["status"] == "used" for r in rows.values()
-               if r["kind"] == "blurry" and r.get("alignment") in ("ok", "ill_conditioned"))
+    assert all(r.status == "used" for r in rows.values()
+               if r.kind == "blurry" and r.alignment in ("ok", "ill_conditioned"))
     parametric = camera_accuracy(truth.camera, report_camera(out))
     assert camera_accuracy(truth.camera, generic).median < parametric.median
 
@@ -137,8 +141,9 @@ def test_rerun_resumes_and_a_killed_write_never_mixes_runs(tmp_path, finished, d
     run_pipeline(*_frames(dataset), layout_pattern(), out, _settings())
     assert _published(out) == reference  # bit-identical re-run
     before = {p: (out / p).read_bytes() for p in [*reference, "report.json"]}
-    other = PipelineSettings(quality=QualitySettings(min_sigma_major=0.0), bias="bilinear",
-                             model="parametric")
+    other = PipelineSettings(calibration=SequenceSettings(quality=QualitySettings(min_sigma_major=0.0),
+                                                          alignment=AlignmentSettings(bias="bilinear"),
+                                                          model="parametric"))
 
     # killed (as by kill -9, leaving a temporary file) while writing the set of a run with
     # other settings: the folder keeps the previous set whole, report.json included
@@ -171,7 +176,7 @@ def test_rerun_resumes_and_a_killed_write_never_mixes_runs(tmp_path, finished, d
 
     # the next run cleans up and publishes one whole set
     run_pipeline(*_frames(dataset), layout_pattern(), out, other)
-    assert json.loads((out / "report.json").read_text())["settings"]["model"] == "parametric"
+    assert json.loads((out / "report.json").read_text())["settings"]["calibration"]["model"] == "parametric"
     assert (out / "features.csv").read_bytes() != reference["features.csv"]
     assert not [p.name for p in out.iterdir() if p.name.startswith(".")]
     run_pipeline(*_frames(dataset), layout_pattern(), out, _settings())
@@ -195,7 +200,7 @@ def test_calibrate_reuses_an_extract_output(tmp_path, finished, dataset) -> None
     assert (out / "blurry" / "features.csv").read_bytes() == extracted
     blurry = read_feature_table(out / "blurry" / "features.csv")
     assert len(set(zip(blurry.frame, blurry.feature_id, strict=True))) == len(blurry)
-    assert [r["frame"] for r in report.frames] == [r["frame"] for r in finished[1].frames]
+    assert [r.frame for r in report.frames] == [r.frame for r in finished[1].frames]
     ours, theirs = read_feature_table(out / "features.csv"), read_feature_table(finished[0] / "features.csv")
     assert np.array_equal(ours.frame, theirs.frame) and np.array_equal(ours.feature_id, theirs.feature_id)
     assert np.allclose(ours.x, theirs.x, atol=1e-5) and np.allclose(ours.y, theirs.y, atol=1e-5)
@@ -295,15 +300,15 @@ def test_a_frame_with_blur_as_long_as_its_squares_is_told_so() -> None:
     long, short = table(34.0), table(24.0)
     assert np.nanmedian(long.blur_per_square) > 1.3 and np.nanmedian(short.blur_per_square) < 1.05
     ratio = np.nanmedian(long.blur_per_square)
-    assert pipeline._blur_note(long).startswith(f"; its blur is {ratio:.2f} x the star squares' side")
-    assert pipeline._blur_note(short) == ""
+    assert frame_rows._blur_note(long).startswith(f"; its blur is {ratio:.2f} x the star squares' side")
+    assert frame_rows._blur_note(short) == ""
 
 
 @pytest.mark.slow
 def test_final_fit_option_reaches_every_blurry_frame(tmp_path, dataset) -> None:
     """``extract --final-fit all`` fits the inner accepted blocks of a little-blurred frame (its
     window does not grow) over 1.5 x their square, and those blocks' centres move; the default
-    leaves such a frame as the growth fitted it. The pipeline's settings validate the choice."""
+    leaves such a frame as the growth fitted it."""
     from blurcalib.io.results import read_block_table
 
     frame = str(dataset / "blurry" / "0000.png")
@@ -320,6 +325,3 @@ def test_final_fit_option_reaches_every_blurry_frame(tmp_path, dataset) -> None:
     assert np.all(every.accepted[wide])
     moved = np.linalg.norm(every.centre[wide] - default.centre[wide], axis=1)
     assert 0.0 < np.median(moved) < 0.1
-    assert PipelineSettings(final_fit="all").final_fit == "all"
-    with pytest.raises(ValueError, match="final_fit_frames"):
-        PipelineSettings(final_fit="some")  # type: ignore[arg-type]

@@ -10,20 +10,9 @@ import pytest
 from blurcalib.camera.parametric import BrownConrady
 from blurcalib.geometry.pose import Pose
 from blurcalib.io.atomic import OutputError
-from blurcalib.sim.synth import (
-    GROUND_TRUTH_FILE,
-    MIP_TEXELS_PER_SQUARE,
-    Motion,
-    Renderer,
-    Simulator,
-    SynthConfig,
-    TrueCamera,
-    d435i_like_camera,
-    dot_texture,
-    load_ground_truth,
-    mip_levels_for,
-    write_dataset,
-)
+from blurcalib.sim.render import MIP_TEXELS_PER_SQUARE, Renderer, dot_texture, mip_levels_for
+from blurcalib.sim.synth import Simulator, SynthConfig, write_dataset
+from blurcalib.sim.truth import GROUND_TRUTH_FILE, Motion, TrueCamera, d435i_like_camera, load_ground_truth
 from tests.symmetry import symmetry_centres
 
 

@@ -199,6 +199,11 @@ def summary(result: AppCalibration | None, statuses: dict[str, str]) -> str:
         if t is not None:
             lines.append(f"Against the true camera: over {t.pixels} lattice pixels of the calibrated area, "
                          "after the best-fit rotation.")
+        rs = result.rolling_shutter
+        if rs is not None and rs.message:
+            velocity = ", ".join(f"{md(n)} {v:.1f}" for n, v in sorted(rs.velocity_px.items()))
+            per_frame = f" Blur velocity per moving frame (px per exposure): {velocity}." if velocity else ""
+            lines.append(f"**Rolling shutter**: {md(rs.message)}.{per_frame}")
         if result.parametric_with_blurry:
             lines.append("Fewer than 5 sharp frames: the parametric stage also used the blurry frames' "
                          "kept blocks (without their shifts).")
@@ -281,7 +286,7 @@ class CalibrationPanel:
             return self._assessed[1:]
         text, unc, cv = "", None, None
         if result is not None:
-            trust = self.runner.settings.trust
+            trust = self.runner.settings.sequence.trust
             text = trust_summary(result, trust.validation.min_frames, trust.guidance_px)
             unc = uncertainty_image(result)
             diff = result.trust.cross_validation if result.trust is not None else None

@@ -67,6 +67,7 @@ from numpy.typing import ArrayLike
 
 from blurcalib.camera.parametric import BrownConrady, project_poses
 from blurcalib.geometry.pose import Pose
+from blurcalib.io.results import BlockTable
 from blurcalib.target.pattern import StarPattern
 
 __all__ = [
@@ -80,6 +81,7 @@ __all__ = [
     "GlobalAlignment",
     "align_blocks",
     "align_global",
+    "align_kept_blocks",
     "alignment_covariance",
     "bias_basis",
     "bias_field",
@@ -593,3 +595,22 @@ def align_blocks(camera: BrownConrady, pattern: StarPattern, reference_points: n
                             huber_px=s.huber_px, bias=s.bias, angle_threshold=s.angle_threshold)
     except ValueError as exc:
         raise AlignmentError(f"global alignment failed: {exc}") from None
+
+
+def align_kept_blocks(camera: BrownConrady, pattern: StarPattern, reference_points: np.ndarray | None,
+                      blocks: BlockTable, kept: np.ndarray, settings: AlignmentSettings | None = None
+                      ) -> tuple[np.ndarray, GlobalAlignment]:
+    """:func:`align_blocks` of a frame's blocks kept by the quality filter ``kept (B,)`` with
+    finite star centres ``H(0, 0)`` (px, OpenCV convention), each weighted by its deconvolution
+    loss: the one alignment of a blurry frame of the pipeline and the app.
+
+    Returns:
+        ``(N,)`` the indices of the aligned blocks into ``blocks``, and the alignment.
+
+    Raises:
+        AlignmentError: as :func:`align_blocks`.
+    """
+    centres = blocks.centre
+    index = np.flatnonzero(np.asarray(kept, dtype=bool) & np.all(np.isfinite(centres), axis=1))
+    return index, align_blocks(camera, pattern, reference_points, blocks.feature_id[index], centres[index],
+                               blocks.loss[index], settings)

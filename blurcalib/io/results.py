@@ -232,7 +232,7 @@ class BlockTable:
         psf: ``(B, K, K)`` float32 kernels, each summing to 1; pixel ``(i, j)`` at offset
             ``(j - c, i - c)`` px, ``c = (K - 1) / 2``.
         loss_extent: ``(B,)`` the area the block was fitted over, ``|q|_inf <= loss_extent``
-            (1: its square; :attr:`blurcalib.deconv.blocks.DeconvSettings.loss_extent`); 1 when not given.
+            (1: its square; :attr:`blurcalib.deconv.settings.DeconvSettings.loss_extent`); 1 when not given.
         noise_var: ``(B,)`` the frame's noise variance at the block's brightness (grey levels^2,
             :meth:`blurcalib.extract.noise.NoiseModel.block_variance`): the unit of the noise-relative
             loss threshold; NaN when not known.

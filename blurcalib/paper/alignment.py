@@ -3,7 +3,7 @@
 
 Protocol, adapted from the paper's D435I data to the simulator:
 
-1. The true camera is :func:`blurcalib.sim.synth.d435i_like_camera` (Brown-Conrady plus a smooth
+1. The true camera is :func:`blurcalib.sim.truth.d435i_like_camera` (Brown-Conrady plus a smooth
    non-parametric deviation of ``deviation_px``) and the target the reference A4 pattern
    (:func:`blurcalib.target.pattern.layout_pattern`). Frames get poses from
    :func:`blurcalib.sim.synth.sample_pose`; their features are the true projections of the target
@@ -59,8 +59,9 @@ from blurcalib.calib.alignment import LOSSES, align_global, alignment_covariance
 from blurcalib.calib.report import direction_colours
 from blurcalib.camera.parametric import BrownConrady
 from blurcalib.io.atomic import atomic_path, atomic_write_text, ensure_writable_dir
-from blurcalib.paper.common import experiment_parser, run_experiment_cli
-from blurcalib.sim.synth import TrueCamera, d435i_like_camera, sample_pose
+from blurcalib.paper.common import Option, experiment_parser, run_experiment_cli, settings_from
+from blurcalib.sim.synth import sample_pose
+from blurcalib.sim.truth import TrueCamera, d435i_like_camera
 from blurcalib.target.pattern import StarPattern, layout_pattern
 
 THRESHOLDS: tuple[float, ...] = (0.0, math.pi / 10)
@@ -495,31 +496,26 @@ def save_fig_exp42(experiment: AlignmentExperiment, path: str | Path, loss: str 
 
 
 # --------------------------------------------------------------------------------- command
+OPTIONS: tuple[Option, ...] = (
+    Option("--frames", "frames", "test frames"),
+    Option("--calibration-frames", "calibration_frames", "frames calibrating the reference"),
+    Option("--shift-px", "shift_px", "random translations in [-S, S]^2 px"),
+    Option("--noise-px", "noise_px", "feature noise per axis, px"),
+    Option("--deviation-px", "deviation_px", "peak non-parametric lens deviation, px"),
+    Option("--huber-px", "huber_px", "Huber threshold, px"))
+"""The options of ``blurcalib experiment alignment``."""
+
+
 def build_parser() -> argparse.ArgumentParser:
     """Options of ``blurcalib experiment alignment``."""
-    d = AlignmentSettings()
-    parser = experiment_parser(
+    return experiment_parser(
         "alignment", "Reproduce the paper's global alignment verification (tab:exp4, fig:exp41, "
                      "fig:exp42) on simulated ground-truth features.",
-        "alignment.json and the figures")
-    parser.add_argument("--frames", type=int, default=d.frames, help="test frames (%(default)s)")
-    parser.add_argument("--calibration-frames", type=int, default=d.calibration_frames,
-                        help="frames calibrating the reference (%(default)s)")
-    parser.add_argument("--shift-px", type=float, default=d.shift_px,
-                        help="random translations in [-S, S]^2 px (%(default)s)")
-    parser.add_argument("--noise-px", type=float, default=d.noise_px,
-                        help="feature noise per axis, px (%(default)s)")
-    parser.add_argument("--deviation-px", type=float, default=d.deviation_px,
-                        help="peak non-parametric lens deviation, px (%(default)s)")
-    parser.add_argument("--huber-px", type=float, default=d.huber_px,
-                        help="Huber threshold, px (%(default)s)")
-    return parser
+        "alignment.json and the figures", AlignmentSettings, OPTIONS)
 
 
 def _run(args: argparse.Namespace) -> list[Path]:
-    settings = AlignmentSettings(frames=args.frames, calibration_frames=args.calibration_frames,
-                                 shift_px=args.shift_px, noise_px=args.noise_px,
-                                 deviation_px=args.deviation_px, huber_px=args.huber_px)
+    settings = settings_from(AlignmentSettings, OPTIONS, args)
     out = ensure_writable_dir(args.out)
     experiment = run_alignment_experiment(settings, args.seed)
     print(f"reference calibrated from {settings.calibration_frames} frames: RMS "

@@ -1,5 +1,6 @@
-"""What the experiments share: the simulated scene, extraction of simulated frames, JSON numbers
-and the command-line scaffolding of ``blurcalib experiment NAME``.
+"""What the experiments share: the simulated scene, the settings of simulated blurry frames,
+extraction of simulated frames, JSON numbers and the command-line scaffolding of ``blurcalib
+experiment NAME`` (options read into settings dataclasses, defaults from their fields).
 
 Units: pixels in the OpenCV convention (top-left pixel centre at ``(0, 0)``).
 """
@@ -13,24 +14,29 @@ import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TypeVar
 
 import numpy as np
 
-from blurcalib.deconv.blocks import DeconvSettings
+from blurcalib.deconv.settings import DeconvSettings
 from blurcalib.extract.frame import ExtractSettings, FrameResult, FrameStatus, extract_frame
-from blurcalib.growth.grow import GrowSettings
+from blurcalib.growth.settings import GrowSettings
+from blurcalib.growth.window import WindowPolicy
 from blurcalib.io.atomic import OutputError
-from blurcalib.sim.synth import FrameTruth, Simulator, SynthConfig, TrueCamera, d435i_like_camera
+from blurcalib.pipeline.runtime import check_device
+from blurcalib.sim.synth import Simulator, SynthConfig
+from blurcalib.sim.truth import FrameTruth, TrueCamera, d435i_like_camera
 
 DEFAULT_OUT = Path("out") / "experiments"
 """Default output folder of every experiment."""
+S = TypeVar("S")
 
 
 # ------------------------------------------------------------------------------ the scene
 def experiment_camera(seed: int = 0, scale: float = 0.5, deviation_px: float = 0.01) -> TrueCamera:
     """The simulated camera of the real-world experiments.
 
-    :func:`blurcalib.sim.synth.d435i_like_camera` (1280 x 720 px) resized by ``scale``
+    :func:`blurcalib.sim.truth.d435i_like_camera` (1280 x 720 px) resized by ``scale``
     (:meth:`BrownConrady.scaled`), with its smooth non-parametric deviation of ``deviation_px``
     px peak in the resized image (the paper's sharp-set calibration fits its camera to about
     0.03 px, so the deviation is kept small, as in the alignment experiment).
@@ -51,8 +57,73 @@ def experiment_simulator(sharp: int, blurry: int, blur_px: tuple[float, float], 
 def extract_settings(kernel_size: int = 17, max_blocks: int = 5000, device: str = "cpu") -> ExtractSettings:
     """Blurry-frame extraction settings: ``K x K`` PSF window (px), growth capped at about
     ``max_blocks`` attempted blocks, solve on the torch ``device``."""
-    return ExtractSettings(deconv=DeconvSettings(kernel_size=kernel_size, device=device),
+    return ExtractSettings(window=WindowPolicy(start=kernel_size), deconv=DeconvSettings(device=device),
                            grow=GrowSettings(max_blocks=max_blocks))
+
+
+@dataclass(frozen=True)
+class Option:
+    """One option of ``blurcalib experiment NAME``, read into the field ``field`` of the
+    experiment's settings dataclass; its default and type are the field's."""
+
+    flag: str
+    field: str
+    help: str
+
+
+@dataclass(frozen=True)
+class BlurryFrameSettings:
+    """The simulated blurry frames of an experiment and their extraction: the base of the
+    settings of the experiments that extract them.
+
+    Attributes:
+        blur_min_px, blur_max_px: range of a frame's median blur path length (px).
+        scale: image scale relative to the 1280 x 720 D435I-like camera.
+        deviation_px: peak non-parametric lens deviation (px).
+        kernel_size: ``K``, the blurry frames' PSF window (px, odd; the paper's 17).
+        max_blocks: growth stops after about this many attempted blocks per frame.
+        device: torch device of the deconvolution.
+    """
+
+    blur_min_px: float = 2.0
+    blur_max_px: float = 20.0
+    scale: float = 0.5
+    deviation_px: float = 0.01
+    kernel_size: int = 17
+    max_blocks: int = 5000
+    device: str = "cpu"
+
+    def __post_init__(self) -> None:
+        if not 0 <= self.blur_min_px <= self.blur_max_px:
+            raise ValueError(f"need 0 <= blur_min_px <= blur_max_px, got {self.blur_min_px}, "
+                             f"{self.blur_max_px}")
+        if not 0.1 <= self.scale <= 2.0:
+            raise ValueError(f"scale must be in [0.1, 2], got {self.scale}")
+        if self.kernel_size < 5 or self.kernel_size % 2 == 0:
+            raise ValueError(f"kernel_size must be odd and >= 5, got {self.kernel_size}")
+        if self.deviation_px < 0 or self.max_blocks < 1:
+            raise ValueError(f"deviation_px must be >= 0 and max_blocks >= 1, got {self.deviation_px}, "
+                             f"{self.max_blocks}")
+        check_device(self.device)
+
+    def simulator(self, sharp: int, blurry: int, seed: int) -> Simulator:
+        """:func:`experiment_simulator` of ``sharp`` sharp and ``blurry`` blurry frames."""
+        return experiment_simulator(sharp, blurry, (self.blur_min_px, self.blur_max_px), seed, self.scale,
+                                    self.deviation_px)
+
+    def extraction(self) -> ExtractSettings:
+        """The blurry frames' :func:`extract_settings`."""
+        return extract_settings(self.kernel_size, self.max_blocks, self.device)
+
+
+BLURRY_FRAME_OPTIONS: tuple[Option, ...] = (
+    Option("--blur-min", "blur_min_px", "smallest median blur length of a blurry frame, px"),
+    Option("--blur-max", "blur_max_px", "largest median blur length of a blurry frame, px"),
+    Option("--scale", "scale", "image scale relative to the 1280x720 D435I-like camera"),
+    Option("--kernel", "kernel_size", "PSF window side of the blurry frames, px"),
+    Option("--max-blocks", "max_blocks", "stop growing a frame after about this many blocks"),
+    Option("--device", "device", "torch device of the deconvolution"))
+"""The options of :class:`BlurryFrameSettings`."""
 
 
 # ------------------------------------------------------------------------- extracted frames
@@ -120,13 +191,24 @@ def finite(v: float | None) -> float | None:
     return round(float(v), 6) if v is not None and math.isfinite(v) else None
 
 
-def experiment_parser(name: str, description: str, outputs: str) -> argparse.ArgumentParser:
-    """The parser of ``blurcalib experiment NAME`` with its ``--out`` and ``--seed`` options."""
+def experiment_parser(name: str, description: str, outputs: str, settings: type | None = None,
+                      options: Sequence[Option] = ()) -> argparse.ArgumentParser:
+    """The parser of ``blurcalib experiment NAME``: ``--out``, ``--seed`` and ``options``, each
+    with the default of its field of the ``settings`` dataclass."""
     parser = argparse.ArgumentParser(prog=f"blurcalib experiment {name}", description=description)
     parser.add_argument("--out", default=str(DEFAULT_OUT),
                         help=f"output folder for {outputs} (%(default)s)")
     parser.add_argument("--seed", type=int, default=0, help="random seed (%(default)s)")
+    for o in options:
+        default = getattr(settings, o.field)
+        parser.add_argument(o.flag, dest=o.field, metavar=o.flag[2:].replace("-", "_").upper(),
+                            type=type(default), default=default, help=f"{o.help} (%(default)s)")
     return parser
+
+
+def settings_from(settings: type[S], options: Sequence[Option], args: argparse.Namespace, **fixed) -> S:
+    """The ``settings`` dataclass of the parsed ``options``, with the ``fixed`` fields."""
+    return settings(**{o.field: getattr(args, o.field) for o in options}, **fixed)
 
 
 def run_experiment_cli(parser: argparse.ArgumentParser, argv: Sequence[str] | None,

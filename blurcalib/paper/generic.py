@@ -2,7 +2,7 @@
 
 Design (features are simulated, not rendered, to keep the experiment fast):
 
-1. The true camera is :func:`blurcalib.sim.synth.d435i_like_camera` (1280 x 720, Brown-Conrady plus a
+1. The true camera is :func:`blurcalib.sim.truth.d435i_like_camera` (1280 x 720, Brown-Conrady plus a
    smooth non-parametric deviation of ``deviation_px``, 0.3 px); the target is the reference A4
    star pattern (:func:`blurcalib.target.pattern.layout_pattern`) with its nominal metric points.
 2. **Sharp frames** (``sharp``): poses from :func:`blurcalib.sim.synth.sample_pose`, kept only when
@@ -53,13 +53,14 @@ import numpy as np
 from blurcalib.calib.alignment import align_global, orientation_ok
 from blurcalib.calib.bundle import BundleResult, BundleSettings, bundle_adjust
 from blurcalib.calib.sharp import solve_pose
-from blurcalib.camera.generic import CentralGeneric, calibrated_area, fit_to_rays
+from blurcalib.camera.generic import DEFAULT_CELL_PX, CentralGeneric, calibrated_area, fit_to_rays
 from blurcalib.camera.parametric import BrownConrady
 from blurcalib.geometry.pose import Pose
 from blurcalib.io.atomic import atomic_path, atomic_write_text, ensure_writable_dir
-from blurcalib.paper.common import experiment_parser, run_experiment_cli
+from blurcalib.paper.common import Option, experiment_parser, run_experiment_cli, settings_from
 from blurcalib.sim.evaluate import pixel_lattice, projection_errors
-from blurcalib.sim.synth import Motion, TrueCamera, d435i_like_camera, frame_truth, sample_pose
+from blurcalib.sim.synth import frame_truth, sample_pose
+from blurcalib.sim.truth import Motion, TrueCamera, d435i_like_camera
 from blurcalib.target.pattern import StarPattern, layout_pattern
 
 __all__ = [
@@ -90,7 +91,7 @@ class GenericSettings:
     sharp_outside: float = 0.05
     max_tilt_deg: float = 60.0
     square_px: tuple[float, float] = (24.0, 42.0)
-    cell_px: float = 25.0
+    cell_px: float = DEFAULT_CELL_PX
     border_px: float = 64.0
     corner_px: float = 128.0
     lattice_px: float = 4.0
@@ -377,20 +378,22 @@ def save_error_images(exp: GenericExperiment, out: Path, vmax: float = 0.1) -> l
     return paths
 
 
+OPTIONS: tuple[Option, ...] = (Option("--sharp", "sharp", "sharp frames"),
+                               Option("--blurry", "blurry", "blurry frames"),
+                               Option("--cell-px", "cell_px", "grid cell length, px"))
+"""The options of ``blurcalib experiment generic``."""
+
+
 def build_parser() -> argparse.ArgumentParser:
     """Options of ``blurcalib experiment generic``."""
-    d = GenericSettings()
     parser = experiment_parser("generic", __doc__.split("\n")[0],
-                               "table.txt, generic.json and the error images")
-    parser.set_defaults(seed=d.seed)
-    parser.add_argument("--sharp", type=int, default=d.sharp, help="sharp frames (%(default)s)")
-    parser.add_argument("--blurry", type=int, default=d.blurry, help="blurry frames (%(default)s)")
-    parser.add_argument("--cell-px", type=float, default=d.cell_px, help="grid cell length, px (%(default)s)")
+                               "table.txt, generic.json and the error images", GenericSettings, OPTIONS)
+    parser.set_defaults(seed=GenericSettings.seed)
     return parser
 
 
 def _run(args: argparse.Namespace) -> list[Path]:
-    settings = GenericSettings(sharp=args.sharp, blurry=args.blurry, seed=args.seed, cell_px=args.cell_px)
+    settings = settings_from(GenericSettings, OPTIONS, args, seed=args.seed)
     out = ensure_writable_dir(args.out)
     t0 = time.perf_counter()
     exp = run_generic_experiment(settings)

@@ -36,7 +36,7 @@ from scipy.ndimage import gaussian_filter
 from scipy.signal import convolve2d, correlate2d
 
 from blurcalib.io.atomic import atomic_path, atomic_write_text, ensure_writable_dir
-from blurcalib.paper.common import experiment_parser, run_experiment_cli
+from blurcalib.paper.common import Option, experiment_parser, run_experiment_cli, settings_from
 from blurcalib.target.pattern import star_sector_white
 
 PATTERNS: tuple[str, ...] = ("star", "checkerboard")
@@ -553,21 +553,22 @@ def save_figure(results: Sequence[PatternResult], kernels: dict[str, np.ndarray]
 
 
 # --------------------------------------------------------------------------------- command
+OPTIONS: tuple[Option, ...] = (
+    Option("--lam", "lam", "ridge weight on ||k||^2 against the mean squared residual"),
+    Option("--square-px", "square_px", "pattern square side in pixels"))
+"""The options of ``blurcalib experiment patterns``."""
+
+
 def build_parser() -> argparse.ArgumentParser:
     """Options of ``blurcalib experiment patterns``."""
-    parser = experiment_parser(
+    return experiment_parser(
         "patterns", "Reproduce the paper's pattern comparison (fig:exp2_test): recover 15x15 "
                     "glyph kernels from star and checkerboard images with the geometry fixed.",
-        "patterns.png and patterns.json")
-    parser.add_argument("--lam", type=float, default=PatternSettings.lam,
-                        help="ridge weight on ||k||^2 against the mean squared residual (%(default)s)")
-    parser.add_argument("--square-px", type=float, default=PatternSettings.square_px,
-                        help="pattern square side in pixels (%(default)s)")
-    return parser
+        "patterns.png and patterns.json", PatternSettings, OPTIONS)
 
 
 def _run(args: argparse.Namespace) -> list[Path]:
-    settings = PatternSettings(lam=args.lam, square_px=args.square_px)
+    settings = settings_from(PatternSettings, OPTIONS, args)
     out = ensure_writable_dir(args.out)
     solvers = pattern_solvers(settings=settings)
     results = run_pattern_experiment(seed=args.seed, settings=settings, solvers=solvers)

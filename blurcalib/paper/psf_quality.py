@@ -4,7 +4,7 @@
 Protocol, adapted from the paper's 204 hand-held D435I frames to the simulator:
 
 1. The camera is :func:`blurcalib.paper.common.experiment_camera`: the D435I-like
-   Brown-Conrady camera of :func:`blurcalib.sim.synth.d435i_like_camera` resized by ``scale``
+   Brown-Conrady camera of :func:`blurcalib.sim.truth.d435i_like_camera` resized by ``scale``
    (0.5: 640 x 360 px, to keep a run within minutes on two cores) with a non-parametric lens
    deviation of ``deviation_px``.
    The target is the reference A4 pattern; frames are :class:`blurcalib.sim.synth.Simulator`'s
@@ -47,30 +47,28 @@ from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
-import cv2
 import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
-from matplotlib.patches import Rectangle
 from scipy.stats import spearmanr
 
-from blurcalib.geometry.homography import apply_homography, homography_centre
+from blurcalib.geometry.homography import homography_centre
 from blurcalib.io.atomic import atomic_path, atomic_write_text, ensure_writable_dir
 from blurcalib.paper.common import (
+    BLURRY_FRAME_OPTIONS,
+    BlurryFrameSettings,
     ExtractedFrame,
+    Option,
     experiment_parser,
-    experiment_simulator,
     extract_frames,
-    extract_settings,
     finite,
     run_experiment_cli,
+    settings_from,
 )
-from blurcalib.pipeline.runtime import check_device
-from blurcalib.sim.synth import Simulator, TrueCamera
+from blurcalib.paper.psf_field import FieldChoice, choose_field_frame, save_fig_exp_real1
+from blurcalib.sim.synth import Simulator
+from blurcalib.sim.truth import TrueCamera
 from blurcalib.target.pattern import StarPattern
-
-SQUARE_CORNERS = np.array([[-1.0, -1.0], [1.0, -1.0], [1.0, 1.0], [-1.0, 1.0]])
-"""A block's square corners in block coordinates ``q``."""
 
 PAPER_CLAIMS: dict[str, str] = {
     "fig:exp_real1": "without centroid correction PSFs near the image boundary shift off centre and "
@@ -201,15 +199,11 @@ def _split(loss: np.ndarray, key: np.ndarray, threshold: float) -> dict:
 
 
 @dataclass(frozen=True)
-class PsfQualitySettings:
-    """Fixed choices of the experiment.
+class PsfQualitySettings(BlurryFrameSettings):
+    """Fixed choices of the experiment (the blurry frames' in :class:`BlurryFrameSettings`).
 
     Attributes:
         frames: blurry frames simulated and extracted (the paper: 204 real frames).
-        blur_min_px, blur_max_px: range of a frame's median blur path length (px).
-        scale: image scale relative to the 1280 x 720 D435I-like camera.
-        deviation_px: peak non-parametric lens deviation (px).
-        kernel_size: ``K``, the PSF window side (px, odd; the paper's 17).
         tau_be: ``tau_BE``, the boundary-energy threshold drawn and counted (0.12).
         tau_loss: ``tau_L``, the loss threshold drawn and counted (grey levels^2, 30).
         be_split: BE above which the paper observes elevated loss (0.15).
@@ -219,16 +213,9 @@ class PsfQualitySettings:
         field_min_blur_px: ``fig:exp_real1`` prefers frames whose true median blur is at least
             this (px), so that the PSFs show their shape.
         be_bins: bin edges of BE for the binned statistics.
-        max_blocks: growth stops after about this many attempted blocks per frame.
-        device: torch device of the deconvolution.
     """
 
     frames: int = 8
-    blur_min_px: float = 2.0
-    blur_max_px: float = 20.0
-    scale: float = 0.5
-    deviation_px: float = 0.01
-    kernel_size: int = 17
     tau_be: float = 0.12
     tau_loss: float = 30.0
     be_split: float = 0.15
@@ -236,24 +223,15 @@ class PsfQualitySettings:
     magnified: int = 4
     field_min_blur_px: float = 6.0
     be_bins: tuple[float, ...] = (0.0, 0.05, 0.12, 0.15, 0.2, 0.3, math.inf)
-    max_blocks: int = 5000
-    device: str = "cpu"
 
     def __post_init__(self) -> None:
         if self.frames < 1:
             raise ValueError(f"need at least 1 frame, got {self.frames}")
-        if not 0 <= self.blur_min_px <= self.blur_max_px:
-            raise ValueError(f"need 0 <= blur_min_px <= blur_max_px, got {self.blur_min_px}, "
-                             f"{self.blur_max_px}")
-        if not 0.1 <= self.scale <= 2.0:
-            raise ValueError(f"scale must be in [0.1, 2], got {self.scale}")
-        if self.kernel_size < 5 or self.kernel_size % 2 == 0:
-            raise ValueError(f"kernel_size must be odd and >= 5, got {self.kernel_size}")
-        if self.deviation_px < 0 or self.magnified < 1 or self.max_blocks < 1:
-            raise ValueError("deviation_px must be >= 0, magnified and max_blocks >= 1")
+        if self.magnified < 1:
+            raise ValueError(f"magnified must be >= 1, got {self.magnified}")
         if len(self.be_bins) < 2 or list(self.be_bins) != sorted(set(self.be_bins)):
             raise ValueError(f"be_bins must be at least 2 increasing edges, got {self.be_bins}")
-        check_device(self.device)
+        super().__post_init__()
 
 
 def quality_statistics(blocks: BlockFigures, settings: PsfQualitySettings) -> dict:
@@ -356,177 +334,6 @@ def frame_rows(frames: Sequence[ExtractedFrame], blocks: BlockFigures, settings:
     return rows
 
 
-# ---------------------------------------------------------------------------- the PSF field
-def field_variation(frame: ExtractedFrame, camera: TrueCamera, pattern: StarPattern) -> float:
-    """How much the true blur varies over the accepted blocks of a frame (dimensionless).
-
-    With ``e_k`` the image displacement of feature ``k`` from the first to the last instant of
-    the exposure, ``sqrt(mean |e_k - mean e|^2 / mean |e_k|^2)``: near 0 for a pure pan (the
-    same blur everywhere), large with roll (blur turning and growing away from the roll centre)
-    or zoom.
-    """
-    growth = frame.result.growth
-    ids = growth.feature_id[growth.accepted]
-    poses = frame.truth.motion.poses(frame.truth.pose)
-    if len(ids) < 2 or len(poses) < 2:
-        return 0.0
-    P = pattern.points_3d(ids)
-    e = camera.project(poses[-1].transform(P)) - camera.project(poses[0].transform(P))
-    spread = np.mean(np.sum((e - e.mean(axis=0)) ** 2, axis=1))
-    return float(math.sqrt(spread / max(float(np.mean(np.sum(e**2, axis=1))), 1e-12)))
-
-
-@dataclass(frozen=True)
-class FieldChoice:
-    """The frame of ``fig:exp_real1`` and its magnified region.
-
-    Attributes:
-        frame: index of the frame in the frame list.
-        variation: its :func:`field_variation`.
-        region: indices (into the frame's ``growth.fit``) of the magnified blocks.
-        box: ``(x0, y0, x1, y1)`` px, the region's bounding box.
-    """
-
-    frame: int
-    variation: float
-    region: np.ndarray
-    box: tuple[float, float, float, float]
-
-
-def choose_field_frame(frames: Sequence[ExtractedFrame], camera: TrueCamera, pattern: StarPattern,
-                       settings: PsfQualitySettings) -> FieldChoice | None:
-    """The frame with the most varying blur field among those whose PSFs fit the window.
-
-    Eligible: extracted, at least 12 accepted blocks, accepted blocks' median BE at most
-    ``tau_BE`` and true median blur at least ``field_min_blur_px``; failing that, the blur
-    condition is dropped, then every extracted frame is eligible. The magnified region is the
-    accepted block with BE at most ``tau_BE`` farthest from the image centre (the paper's
-    drifting PSFs sit near the border) and its ``magnified - 1`` nearest accepted neighbours on
-    the grid (Manhattan distance, ties broken by the Chebyshev distance).
-    """
-    ok = [i for i, f in enumerate(frames) if f.ok and f.result.growth.accepted.sum() >= 2]
-    if not ok:
-        return None
-
-    def fits(i: int) -> bool:
-        g = frames[i].result.growth
-        acc = g.accepted
-        return acc.sum() >= 12 and float(np.median(g.fit.boundary_energy[acc])) <= settings.tau_be
-
-    def blurred(i: int) -> bool:
-        truth = frames[i].truth
-        return float(np.median(truth.blur_length[truth.visible])) >= settings.field_min_blur_px
-
-    fitting = [i for i in ok if fits(i)]
-    eligible = [i for i in fitting if blurred(i)] or fitting or ok
-    scores = {i: field_variation(frames[i], camera, pattern) for i in eligible}
-    best = max(eligible, key=lambda i: scores[i])
-    growth = frames[best].result.growth
-    fit = growth.fit
-    acc = np.flatnonzero(growth.accepted)
-    good = acc[fit.boundary_energy[acc] <= settings.tau_be]
-    pool = good if len(good) else acc
-    w, h = frames[best].image_size
-    centre = fit.centre
-    far = pool[np.argmax(np.hypot(centre[pool, 0] - (w - 1) / 2, centre[pool, 1] - (h - 1) / 2))]
-    f = pattern.features[growth.feature_id]
-    d = np.abs(f[acc] - f[far])
-    region = acc[np.lexsort((d.max(axis=1), d.sum(axis=1)))[:settings.magnified]]
-    region = region[np.lexsort((f[region, 0], f[region, 1]))]
-    corners = apply_homography(fit.H[region], np.broadcast_to(SQUARE_CORNERS, (len(region), 4, 2)))
-    lo, hi = corners.reshape(-1, 2).min(axis=0), corners.reshape(-1, 2).max(axis=0)
-    return FieldChoice(best, scores[best], region, (float(lo[0]), float(lo[1]), float(hi[0]), float(hi[1])))
-
-
-def psf_mosaic(frame: ExtractedFrame, psfs: np.ndarray, zoom: int = 2, fill: float = 0.9) -> np.ndarray:
-    """The PSF field of a frame as an image: each accepted block's PSF, normalised to its peak
-    and resized (nearest neighbour) to ``fill`` of its square's bounding box, centred on the
-    block's star centre. Returns ``(height zoom, width zoom)`` in ``[0, 1]``.
-
-    Args:
-        frame: an extracted frame.
-        psfs: ``(B, K, K)`` the kernels to draw, aligned with ``growth.fit`` (``psf_fit`` or
-            ``psf``).
-        zoom: canvas pixels per image pixel.
-        fill: tile side over the smaller side of the square's bounding box.
-    """
-    w, h = frame.image_size
-    canvas = np.zeros((h * zoom, w * zoom))
-    growth = frame.result.growth
-    fit = growth.fit
-    acc = np.flatnonzero(growth.accepted)
-    corners = apply_homography(fit.H[acc], np.broadcast_to(SQUARE_CORNERS, (len(acc), 4, 2)))
-    for j, k in enumerate(acc):
-        psf = np.nan_to_num(psfs[k])
-        peak = float(psf.max())
-        box = corners[j].max(axis=0) - corners[j].min(axis=0)
-        side = int(fill * float(box.min()) * zoom)
-        if peak <= 0 or side < 3:
-            continue
-        tile = cv2.resize(psf / peak, (side, side), interpolation=cv2.INTER_NEAREST)
-        cx, cy = (fit.centre[k] + 0.5) * zoom - 0.5
-        x0, y0 = round(cx - (side - 1) / 2), round(cy - (side - 1) / 2)
-        xa, ya, xb, yb = max(x0, 0), max(y0, 0), min(x0 + side, w * zoom), min(y0 + side, h * zoom)
-        if xa >= xb or ya >= yb:
-            continue
-        canvas[ya:yb, xa:xb] = np.maximum(canvas[ya:yb, xa:xb], tile[ya - y0:yb - y0, xa - x0:xb - x0])
-    return canvas
-
-
-def save_fig_exp_real1(frames: Sequence[ExtractedFrame], choice: FieldChoice, path: str | Path,
-                       zoom: int = 2) -> Path:
-    """``fig:exp_real1``: the PSF field without (left, ``psf_fit``) and with (right, ``psf``)
-    centroid correction, and the magnified PSFs of the red-boxed region (bottom row: each
-    block's PSF before and after; a cross at the kernel centre, a dot at the centroid)."""
-    frame = frames[choice.frame]
-    fit = frame.result.growth.fit
-    acc = frame.result.growth.accepted
-    n = len(choice.region)
-    fig = Figure(figsize=(12.0, 6.6), dpi=110)
-    FigureCanvasAgg(fig)
-    grid = fig.add_gridspec(2, 2 * n, height_ratios=[3.0, 1.2], hspace=0.18, wspace=0.3, left=0.03,
-                            right=0.97, bottom=0.03, top=0.9)
-    cmag = np.linalg.norm(fit.centroid[acc], axis=1)
-    w, h = frame.image_size
-    x0, y0, x1, y1 = ((np.array(choice.box) + 0.5) * zoom - 0.5).tolist()
-    for col, (name, psfs) in enumerate((("without centroid correction (psf_fit)", fit.psf_fit),
-                                        ("with re-centring (psf)", fit.psf))):
-        ax = fig.add_subplot(grid[0, col * n:(col + 1) * n])
-        ax.imshow(psf_mosaic(frame, psfs, zoom), cmap="magma", vmin=0.0, vmax=1.0,
-                  interpolation="nearest", extent=(-0.5, w * zoom - 0.5, h * zoom - 0.5, -0.5))
-        centres = (fit.centre[acc] + 0.5) * zoom - 0.5
-        ax.scatter(centres[:, 0], centres[:, 1], marker="+", s=5, c="cyan", linewidths=0.4, alpha=0.5)
-        ax.add_patch(Rectangle((x0, y0), x1 - x0, y1 - y0, fill=False, edgecolor="red", linewidth=1.2))
-        ax.set_xticks([])
-        ax.set_yticks([])
-        extra = (f": median |centroid| {np.median(cmag):.2f} px, max {cmag.max():.2f} px" if col == 0
-                 else ": centroids at the window centre")
-        ax.set_title(name + extra, fontsize=8)
-    K = fit.psf.shape[-1]
-    c = (K - 1) / 2
-    for j, k in enumerate(choice.region):
-        for col, (label, psf, centroid) in enumerate((("fit", fit.psf_fit[k], fit.centroid[k]),
-                                                      ("re-centred", fit.psf[k], np.zeros(2)))):
-            ax = fig.add_subplot(grid[1, col * n + j])
-            ax.imshow(np.nan_to_num(psf), cmap="magma", interpolation="nearest")
-            ax.axhline(c, color="white", lw=0.4, ls=":")
-            ax.axvline(c, color="white", lw=0.4, ls=":")
-            ax.plot(c + centroid[0], c + centroid[1], "o", color="cyan", ms=3)
-            ax.set_xticks([])
-            ax.set_yticks([])
-            fx, fy = frame.result.blocks.fx[k], frame.result.blocks.fy[k]
-            ax.set_title(f"({fx},{fy}) {label}\nBE {max(fit.boundary_energy[k], 0.0):.2f}, "
-                         f"c=({centroid[0]:+.2f},{centroid[1]:+.2f})", fontsize=6)
-    truth = frame.truth
-    blur = float(np.median(truth.blur_length[truth.visible]))
-    fig.suptitle(f"PSF field of {frame.name} ({w}x{h} px, {K}x{K} window, median blur {blur:.1f} px, "
-                 f"field variation {choice.variation:.2f}); bottom: the red box magnified "
-                 "(paper fig:exp_real1)", fontsize=9)
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, format="png")
-    return Path(path)
-
-
 # ------------------------------------------------------------------------- cross-frame scatter
 def save_fig_exp_real2(blocks: BlockFigures, settings: PsfQualitySettings, path: str | Path) -> Path:
     """``fig:exp_real2``: every fitted block of every frame. Left: loss against ``sigma_major``
@@ -617,13 +424,13 @@ def analyse_psf_quality(frames: Sequence[ExtractedFrame], camera: TrueCamera, pa
     blocks = block_figures(frames, pattern)
     return PsfQualityExperiment(settings, camera, list(frames), blocks, frame_rows(frames, blocks, settings),
                                 quality_statistics(blocks, settings),
-                                choose_field_frame(frames, camera, pattern, settings))
+                                choose_field_frame(frames, camera, pattern, settings.tau_be,
+                                                   settings.field_min_blur_px, settings.magnified))
 
 
 def simulator(settings: PsfQualitySettings, seed: int) -> Simulator:
     """The experiment's simulator: ``settings.frames`` blurry frames, no sharp ones."""
-    return experiment_simulator(0, settings.frames, (settings.blur_min_px, settings.blur_max_px), seed,
-                                settings.scale, settings.deviation_px)
+    return settings.simulator(0, settings.frames, seed)
 
 
 def run_psf_quality(settings: PsfQualitySettings | None = None, seed: int = 0,
@@ -631,9 +438,7 @@ def run_psf_quality(settings: PsfQualitySettings | None = None, seed: int = 0,
     """Simulate and extract ``settings.frames`` blurry frames, then analyse them (deterministic)."""
     settings = settings or PsfQualitySettings()
     sim = simulator(settings, seed)
-    frames = extract_frames(sim, range(settings.frames),
-                            extract_settings(settings.kernel_size, settings.max_blocks, settings.device),
-                            progress)
+    frames = extract_frames(sim, range(settings.frames), settings.extraction(), progress)
     return analyse_psf_quality(frames, sim.camera, sim.pattern, settings)
 
 
@@ -733,31 +538,20 @@ def write_outputs(experiment: PsfQualityExperiment, out: str | Path, seed: int) 
 
 
 # ------------------------------------------------------------------------------------ command
+OPTIONS: tuple[Option, ...] = (Option("--frames", "frames", "blurry frames"), *BLURRY_FRAME_OPTIONS)
+"""The options of ``blurcalib experiment psf-quality``."""
+
+
 def build_parser() -> argparse.ArgumentParser:
     """Options of ``blurcalib experiment psf-quality``."""
-    d = PsfQualitySettings()
-    parser = experiment_parser(
+    return experiment_parser(
         "psf-quality", "Reproduce the paper's PSF field and PSF quality figures (fig:exp_real1, "
                        "fig:exp_real2) on simulated motion-blurred frames.",
-        "psf_quality.json and the figures")
-    parser.add_argument("--frames", type=int, default=d.frames, help="blurry frames (%(default)s)")
-    parser.add_argument("--blur-min", type=float, default=d.blur_min_px,
-                        help="smallest median blur length of a frame, px (%(default)s)")
-    parser.add_argument("--blur-max", type=float, default=d.blur_max_px,
-                        help="largest median blur length of a frame, px (%(default)s)")
-    parser.add_argument("--scale", type=float, default=d.scale,
-                        help="image scale relative to the 1280x720 D435I-like camera (%(default)s)")
-    parser.add_argument("--kernel", type=int, default=d.kernel_size, help="PSF window side, px (%(default)s)")
-    parser.add_argument("--max-blocks", type=int, default=d.max_blocks,
-                        help="stop growing a frame after about this many blocks (%(default)s)")
-    parser.add_argument("--device", default=d.device, help="torch device of the deconvolution (%(default)s)")
-    return parser
+        "psf_quality.json and the figures", PsfQualitySettings, OPTIONS)
 
 
 def _run(args: argparse.Namespace) -> list[Path]:
-    settings = PsfQualitySettings(frames=args.frames, blur_min_px=args.blur_min,
-                                  blur_max_px=args.blur_max, scale=args.scale, kernel_size=args.kernel,
-                                  max_blocks=args.max_blocks, device=args.device)
+    settings = settings_from(PsfQualitySettings, OPTIONS, args)
     out = ensure_writable_dir(args.out)
     print(f"extracting {settings.frames} blurry frames ({settings.kernel_size}x{settings.kernel_size} "
           f"PSF window)")

@@ -60,7 +60,7 @@ from matplotlib.ticker import FormatStrFormatter, LogLocator, NullFormatter, Nul
 
 from blurcalib.calib.alignment import MIN_BLOCKS, AlignmentError, AlignmentSettings, align_blocks
 from blurcalib.calib.sharp import Calibration, calibrate_sharp
-from blurcalib.deconv.blocks import DeconvSettings
+from blurcalib.deconv.settings import DeconvSettings
 from blurcalib.extract.frame import ExtractSettings, extract_frame
 from blurcalib.extract.local_alignment import align_locally
 from blurcalib.extract.quality import QualitySettings, filter_frame
@@ -68,17 +68,19 @@ from blurcalib.geometry.homography import homography_centre
 from blurcalib.io.atomic import atomic_path, atomic_write_text, ensure_writable_dir
 from blurcalib.io.results import FeatureFlags, FeatureObservation, FeatureTable
 from blurcalib.paper.common import (
+    BLURRY_FRAME_OPTIONS,
+    BlurryFrameSettings,
     ExtractedFrame,
+    Option,
     experiment_parser,
-    experiment_simulator,
     extract_frames,
-    extract_settings,
     finite,
     run_experiment_cli,
+    settings_from,
 )
-from blurcalib.pipeline.runtime import check_device
 from blurcalib.sim.evaluate import refit_pose
-from blurcalib.sim.synth import Simulator, TrueCamera, sample_pose
+from blurcalib.sim.synth import Simulator, sample_pose
+from blurcalib.sim.truth import TrueCamera
 from blurcalib.target.pattern import StarPattern
 
 CONFIGS: tuple[str, ...] = ("raw", "be_filtered", "local_aligned", "local_aligned_kept")
@@ -100,16 +102,13 @@ PAPER_FULL_PIPELINE_PX = 0.08
 
 
 @dataclass(frozen=True)
-class SweepSettings:
-    """Fixed choices of the experiment.
+class SweepSettings(BlurryFrameSettings):
+    """Fixed choices of the experiment (the blurry frames' in :class:`BlurryFrameSettings`).
 
     Attributes:
+        blur_min_px, blur_max_px: range of a blurry frame's median blur path length (px).
         sharp: sharp frames calibrating ``pi_d`` (the paper's 20).
         blurry: blurry frames swept (the paper kept 42 of 204 real ones).
-        blur_min_px, blur_max_px: range of a blurry frame's median blur path length (px).
-        scale: image scale relative to the 1280 x 720 D435I-like camera.
-        deviation_px: peak non-parametric lens deviation (px).
-        kernel_size: ``K``, the blurry frames' PSF window (px, odd; the paper's 17).
         tau_be: ``tau_BE`` of the filtered configurations (0.12).
         tau_losses: the swept ``tau_L`` (grey levels^2; ``inf``: no loss filter).
         sharp_source: ``"truth"`` (noisy true projections) or ``"extract"`` (rendered and
@@ -118,47 +117,32 @@ class SweepSettings:
         loss: robust loss of the global alignment.
         min_blocks: a frame is aligned only with at least this many kept blocks (the engine's
             :data:`blurcalib.calib.alignment.MIN_BLOCKS`).
-        max_blocks: growth stops after about this many attempted blocks per frame.
-        device: torch device of the deconvolution.
     """
 
-    sharp: int = 20
-    blurry: int = 12
     blur_min_px: float = 4.0
     blur_max_px: float = 15.0
-    scale: float = 0.5
-    deviation_px: float = 0.01
-    kernel_size: int = 17
+    sharp: int = 20
+    blurry: int = 12
     tau_be: float = 0.12
     tau_losses: tuple[float, ...] = (5.0, 10.0, 20.0, 30.0, 50.0, 100.0, math.inf)
     sharp_source: str = "truth"
     sharp_noise_px: float = 0.02
     loss: str = "huber"
     min_blocks: int = MIN_BLOCKS
-    max_blocks: int = 5000
-    device: str = "cpu"
 
     def __post_init__(self) -> None:
         if self.sharp < 5 or self.blurry < 1:
             raise ValueError(f"need at least 5 sharp and 1 blurry frame, got {self.sharp} and {self.blurry}")
-        if not 0 <= self.blur_min_px <= self.blur_max_px:
-            raise ValueError(f"need 0 <= blur_min_px <= blur_max_px, got {self.blur_min_px}, "
-                             f"{self.blur_max_px}")
-        if not 0.1 <= self.scale <= 2.0:
-            raise ValueError(f"scale must be in [0.1, 2], got {self.scale}")
-        if self.kernel_size < 5 or self.kernel_size % 2 == 0:
-            raise ValueError(f"kernel_size must be odd and >= 5, got {self.kernel_size}")
         if not self.tau_losses or any(not t > 0 for t in self.tau_losses) or list(self.tau_losses) != sorted(
                 self.tau_losses):
             raise ValueError(f"tau_losses must be positive and increasing, got {self.tau_losses}")
-        if not self.tau_be > 0 or self.deviation_px < 0 or self.sharp_noise_px < 0:
-            raise ValueError("tau_be must be positive, deviation_px and sharp_noise_px >= 0")
+        if not self.tau_be > 0 or self.sharp_noise_px < 0:
+            raise ValueError("tau_be must be positive and sharp_noise_px >= 0")
         if self.sharp_source not in ("truth", "extract"):
             raise ValueError(f"sharp_source must be 'truth' or 'extract', got {self.sharp_source!r}")
-        if self.min_blocks < 8 or self.max_blocks < 1:
-            raise ValueError(f"min_blocks must be >= 8 and max_blocks >= 1, got {self.min_blocks}, "
-                             f"{self.max_blocks}")
-        check_device(self.device)
+        if self.min_blocks < 8:
+            raise ValueError(f"min_blocks must be >= 8, got {self.min_blocks}")
+        super().__post_init__()
 
 
 # ------------------------------------------------------------------------------ calibration
@@ -192,7 +176,7 @@ def sharp_observations_from_truth(sim: Simulator, indices: Sequence[int], noise_
 def sharp_observations_extracted(sim: Simulator, indices: Sequence[int], device: str,
                                  progress: Callable[[str], None] | None = None) -> FeatureTable:
     """Sharp-frame star centres from rendering and extracting the frames (7 x 7 PSF window)."""
-    settings = ExtractSettings.sharp(deconv=DeconvSettings(kernel_size=7, device=device))
+    settings = ExtractSettings.sharp(deconv=DeconvSettings(device=device))
     out = []
     for index in indices:
         frame = sim.frame(index)
@@ -361,8 +345,7 @@ def analyse_sweep(frames: Sequence[ExtractedFrame], calibration: Calibration, ca
 
 def simulator(settings: SweepSettings, seed: int) -> Simulator:
     """The sequence: ``sharp`` sharp frames (indices first) then ``blurry`` blurry ones."""
-    return experiment_simulator(settings.sharp, settings.blurry, (settings.blur_min_px, settings.blur_max_px),
-                                seed, settings.scale, settings.deviation_px)
+    return settings.simulator(settings.sharp, settings.blurry, seed)
 
 
 def calibrate(sim: Simulator, settings: SweepSettings, seed: int,
@@ -386,9 +369,8 @@ def run_threshold_sweep(settings: SweepSettings | None = None, seed: int = 0,
     if progress is not None:
         progress(f"calibrated pi_d from {calibration.num_frames} sharp frames ({settings.sharp_source}): "
                  f"median {calibration.median_error:.4f} px, RMS {calibration.rms_error:.4f} px")
-    frames = extract_frames(sim, range(settings.sharp, settings.sharp + settings.blurry),
-                            extract_settings(settings.kernel_size, settings.max_blocks, settings.device),
-                            progress)
+    blurry = range(settings.sharp, settings.sharp + settings.blurry)
+    frames = extract_frames(sim, blurry, settings.extraction(), progress)
     return analyse_sweep(frames, calibration, sim.camera, sim.pattern, settings)
 
 
@@ -534,41 +516,30 @@ def write_outputs(experiment: SweepExperiment, out: str | Path, seed: int) -> li
 
 
 # --------------------------------------------------------------------------------- command
+OPTIONS: tuple[Option, ...] = (Option("--sharp", "sharp", "sharp calibration frames"),
+                               Option("--blurry", "blurry", "blurry frames"),
+                               Option("--tau-be", "tau_be", "boundary-energy threshold of the filtered "
+                                                            "configurations"),
+                               *BLURRY_FRAME_OPTIONS)
+"""The options of ``blurcalib experiment threshold-sweep`` (and ``--extract-sharp``)."""
+
+
 def build_parser() -> argparse.ArgumentParser:
     """Options of ``blurcalib experiment threshold-sweep``."""
-    d = SweepSettings()
     parser = experiment_parser(
         "threshold-sweep",
         "Reproduce the paper's loss-threshold sweep (fig:exp_real3): median reprojection error after "
         "global alignment against tau_L, on a simulated sequence.",
-        "threshold_sweep.json and fig_exp_real3.png")
-    parser.add_argument("--sharp", type=int, default=d.sharp, help="sharp calibration frames (%(default)s)")
-    parser.add_argument("--blurry", type=int, default=d.blurry, help="blurry frames (%(default)s)")
-    parser.add_argument("--blur-min", type=float, default=d.blur_min_px,
-                        help="smallest median blur length of a blurry frame, px (%(default)s)")
-    parser.add_argument("--blur-max", type=float, default=d.blur_max_px,
-                        help="largest median blur length of a blurry frame, px (%(default)s)")
-    parser.add_argument("--tau-be", type=float, default=d.tau_be,
-                        help="boundary-energy threshold of the filtered configurations (%(default)s)")
-    parser.add_argument("--scale", type=float, default=d.scale,
-                        help="image scale relative to the 1280x720 D435I-like camera (%(default)s)")
-    parser.add_argument("--kernel", type=int, default=d.kernel_size,
-                        help="PSF window side of the blurry frames, px (%(default)s)")
+        "threshold_sweep.json and fig_exp_real3.png", SweepSettings, OPTIONS)
     parser.add_argument("--extract-sharp", action="store_true",
                         help="calibrate from rendered and extracted sharp frames instead of noisy true "
                              "projections (slower)")
-    parser.add_argument("--max-blocks", type=int, default=d.max_blocks,
-                        help="stop growing a frame after about this many blocks (%(default)s)")
-    parser.add_argument("--device", default=d.device, help="torch device of the deconvolution (%(default)s)")
     return parser
 
 
 def _run(args: argparse.Namespace) -> list[Path]:
-    settings = SweepSettings(sharp=args.sharp, blurry=args.blurry, blur_min_px=args.blur_min,
-                             blur_max_px=args.blur_max, tau_be=args.tau_be, scale=args.scale,
-                             kernel_size=args.kernel,
-                             sharp_source="extract" if args.extract_sharp else "truth",
-                             max_blocks=args.max_blocks, device=args.device)
+    settings = settings_from(SweepSettings, OPTIONS, args,
+                             sharp_source="extract" if args.extract_sharp else "truth")
     out = ensure_writable_dir(args.out)
     experiment = run_threshold_sweep(settings, args.seed, progress=print)
     print(format_table(experiment))

@@ -24,7 +24,7 @@ from blurcalib.camera.generic import CentralGeneric, best_fit_rotation
 from blurcalib.camera.parametric import BrownConrady
 from blurcalib.geometry.pose import Pose
 from blurcalib.io.results import FeatureFlags, FeatureTable
-from blurcalib.sim.synth import DatasetTruth, TrueCamera
+from blurcalib.sim.truth import DatasetTruth, TrueCamera
 from blurcalib.target.pattern import StarPattern
 
 

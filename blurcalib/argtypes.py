@@ -1,0 +1,87 @@
+"""Command-line value types: each parses and checks one option's text (argparse ``type=``) and
+raises :class:`argparse.ArgumentTypeError` with a one-line message naming the value."""
+
+from __future__ import annotations
+
+import argparse
+import math
+
+from blurcalib.calib.rolling_shutter import parse_rolling_shutter
+from blurcalib.pipeline.cluster import ClusterError, check_address
+from blurcalib.target.pattern import PAGE_SIZES_MM
+
+__all__ = ["cluster_address", "image_size", "page_size", "positive_int", "positive_number", "readout_ratio",
+           "rolling_shutter_mode"]
+
+
+def page_size(text: str) -> tuple[float, float]:
+    """A page: one of :data:`blurcalib.target.pattern.PAGE_SIZES_MM` or ``WIDTHxHEIGHT`` in mm."""
+    if text in PAGE_SIZES_MM:
+        return PAGE_SIZES_MM[text]
+    try:
+        w, h = (float(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"page must be one of {', '.join(PAGE_SIZES_MM)} or WIDTHxHEIGHT in mm, got {text!r}"
+        ) from None
+    if w <= 0 or h <= 0:
+        raise argparse.ArgumentTypeError(f"page size must be positive, got {text!r}")
+    return (w, h)
+
+
+def image_size(text: str) -> tuple[int, int]:
+    """An image size ``WxH`` in px, both >= 1."""
+    try:
+        w, h = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected WxH in px (e.g. 1280x720), got {text!r}") from None
+    if w < 1 or h < 1:
+        raise argparse.ArgumentTypeError(f"width and height must be >= 1 px, got {text!r}")
+    return w, h
+
+
+def positive_int(text: str) -> int:
+    """An argparse type: a whole number >= 1 (counts of workers, threads, folds, frames)."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"must be a whole number >= 1, got {text!r}") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be >= 1, got {value}")
+    return value
+
+
+def positive_number(text: str) -> float:
+    """A finite number > 0."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"must be a number > 0, got {text!r}") from None
+    if not (math.isfinite(value) and value > 0):
+        raise argparse.ArgumentTypeError(f"must be a finite number > 0, got {text!r}")
+    return value
+
+
+def cluster_address(text: str) -> str:
+    """A Dask scheduler address (:func:`blurcalib.pipeline.cluster.check_address`)."""
+    try:
+        return check_address(text)
+    except ClusterError as exc:
+        raise argparse.ArgumentTypeError(str(exc).split(": ", 1)[1]) from None
+
+
+def rolling_shutter_mode(text: str) -> str | float:
+    """``off``, ``auto`` or a readout ratio
+    (:func:`blurcalib.calib.rolling_shutter.parse_rolling_shutter`)."""
+    try:
+        return parse_rolling_shutter(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+
+
+def readout_ratio(text: str) -> float:
+    """A simulated rolling shutter's readout ratio: a number in [0, 10] (0: a global shutter)."""
+    value = rolling_shutter_mode(text)
+    if not isinstance(value, float):
+        raise argparse.ArgumentTypeError(f"rolling shutter {text!r}: expected a readout ratio in [0, 10]")
+    return value

@@ -1,0 +1,564 @@
+"""The rolling shutter in the calibration: each moving frame's row-dependent geometry, the
+readout ratio of the camera, and the detector of row-correlated residuals
+(``docs/rolling-shutter.md``).
+
+Model. Row ``v`` of an ``H``-row sensor is exposed over the window centred at
+``c(v) = r y(v)`` exposure times, ``y(v) = (v - (H - 1) / 2) / H`` in ``[-1/2, 1/2]``
+(:func:`blurcalib.sim.shutter.row_time`), ``r = readout / exposure time``. A feature seen in row
+``v`` is the time-average of its image over that window, so (to second order in the motion) it
+is seen from the frame's pose moved by the motion over ``c(v)``::
+
+    p_i = pi(exp([y_i alpha_w + y_i^2 beta_w]_x) (R P_i + t) + y_i alpha_v + y_i^2 beta_v) + s
+
+with the frame's rolling twist ``alpha = (alpha_w rad, alpha_v m)`` (the camera's velocity times
+``r``, per unit of ``y``) and its curvature ``beta`` (``r^2`` times the acceleration), ``s`` the
+blurry frame's free image shift. :func:`fit_rolling_frames` fits ``M_f, s_f, alpha_f, beta_f``
+per frame with the camera held (batched Gauss-Newton, ``(F, 20, 20)`` normal equations).
+
+Readout ratio. A feature's image velocity is ``g_i = dp_i / dy = J_i (alpha + 2 y_i beta)``
+(px per unit ``y``), which is ``r`` times its image velocity per exposure time ``u_i``. The blur
+measures ``|u_i|``: the PSF of a line blur of length ``L`` has the second moment ``L^2 / 12``
+along its axis, so ``L_i = sqrt(12 (sigma_major^2 - sigma_minor^2))`` (the minor axis carries the
+optics) along ``d_i`` (``orientation``; its sign is unknown). Per frame
+``r_f = sum_i |g_i . d_i| L_i / sum_i L_i^2``; the camera's ``r`` is their mean weighted by
+``sum_i L_i^2``, with the standard error of that mean.
+
+Significance. With the frame fitted, ``z_f = theta_f^T Cov(theta_f)^-1 theta_f`` (``theta =
+(alpha, beta)``, ``Cov = sigma^2 H^-1``, ``sigma`` the residuals' robust scale) is chi-square
+with 12 degrees of freedom when the frame has no rolling-shutter geometry. The capture has a
+rolling shutter when ``sum_f z_f`` exceeds its ``1 - alpha`` quantile under that null *and*,
+where the blur is measured, ``r`` exceeds 3 standard errors (the blur confirms that the
+row-dependent geometry follows the motion).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+import torch
+from scipy.stats import chi2
+
+from blurcalib.calib.bundle import frame_jacobian
+from blurcalib.calib.joint import GenericCalibration, JointSettings, calibrate_generic
+from blurcalib.calib.sharp import Calibration
+from blurcalib.calib.validation import Projector, generic_projector
+from blurcalib.geometry.lie import exp_so3, orthonormal, skew
+from blurcalib.geometry.pose import Pose
+from blurcalib.io.results import BlockTable, FeatureTable
+from blurcalib.sim.shutter import row_time
+from blurcalib.target.pattern import StarPattern
+
+__all__ = ["BlurVelocity", "RollingFit", "RollingShutterResult", "RollingShutterSettings",
+           "blur_velocities", "calibrate_rolling_shutter", "estimate_ratio", "fit_rolling_frames",
+           "parse_rolling_shutter", "rolling_displacement", "row_coordinate"]
+
+_PARAMS = 20  # omega (3), dt (3), s (2), alpha (6), beta (6)
+
+
+def row_coordinate(v: np.ndarray, height: int) -> np.ndarray:
+    """``y(v) = (v - (H - 1) / 2) / H``: the row ``v`` (px) as a share of the readout, ``(N,)``."""
+    return row_time(v, height, 1.0)
+
+
+def parse_rolling_shutter(text: str) -> str | float:
+    """``off``, ``auto`` or a readout ratio ``R >= 0`` (readout / exposure time).
+
+    Raises:
+        ValueError: naming the value, when it is none of these.
+    """
+    if text in ("off", "auto"):
+        return text
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not (math.isfinite(value) and 0 <= value <= 10):
+        raise ValueError(f"rolling shutter {text!r}: expected off, auto or a readout ratio in [0, 10]")
+    return value
+
+
+@dataclass(frozen=True)
+class RollingShutterSettings:
+    """How the rolling shutter enters the calibration.
+
+    Attributes:
+        mode: ``"off"`` (the global-shutter model; the detector still runs), ``"auto"`` (estimate
+            ``r``; correct the frames only when the rolling-shutter geometry is significant) or a
+            known readout ratio ``R`` (correct the frames whatever the test says).
+        rounds: camera / frames alternations.
+        alpha: false-alarm probability of the chi-square test.
+        correction_twist_sigma: the rolling parameters' prior (:func:`fit_rolling_frames`) of the
+            fits that correct the features: weaker than that of the test and the ratio (0.3), whose
+            estimates it steadies; measured, the camera comes out closer to the truth with the
+            weaker prior (``scripts/bench_rolling_shutter.py``: 0.145 against 0.46 px).
+    """
+
+    mode: str | float = "off"
+    rounds: int = 1
+    alpha: float = 1e-4
+    correction_twist_sigma: float = 3.0
+
+    def __post_init__(self) -> None:
+        if isinstance(self.mode, str) and self.mode not in ("off", "auto"):
+            raise ValueError(f"rolling shutter mode must be off, auto or a ratio, got {self.mode!r}")
+        if self.rounds < 1:
+            raise ValueError(f"rolling shutter rounds must be >= 1, got {self.rounds}")
+
+
+@dataclass(frozen=True)
+class BlurVelocity:
+    """Each block's blur as an image velocity per exposure time, sign unknown (``(B,)`` columns).
+
+    Attributes:
+        frame, feature_id: the block.
+        length: ``L = sqrt(12 (sigma_major^2 - sigma_minor^2))`` px.
+        direction: ``(B, 2)`` unit vector of the PSF's major axis (either sign).
+    """
+
+    frame: np.ndarray
+    feature_id: np.ndarray
+    length: np.ndarray
+    direction: np.ndarray
+
+
+def blur_velocities(tables: Sequence[BlockTable]) -> BlurVelocity:
+    """The blocks' blur vectors (module docstring, *Readout ratio*), of every table in order."""
+    major = np.concatenate([t.sigma_major for t in tables]) if tables else np.zeros(0)
+    minor = np.concatenate([t.sigma_minor for t in tables]) if tables else np.zeros(0)
+    theta = np.concatenate([t.orientation for t in tables]) if tables else np.zeros(0)
+    return BlurVelocity(np.concatenate([t.frame for t in tables]) if tables else np.zeros(0, str),
+                        np.concatenate([t.feature_id for t in tables]) if tables else np.zeros(0, np.int64),
+                        np.sqrt(12.0 * np.clip(major**2 - minor**2, 0.0, None)),
+                        np.column_stack([np.cos(theta), np.sin(theta)]))
+
+
+@dataclass(eq=False)
+class RollingFit:
+    """Frames fitted with their rolling-shutter geometry, the camera held
+    (:func:`fit_rolling_frames`).
+
+    Attributes:
+        poses: ``(F,)`` poses at ``y = 0`` (target -> camera).
+        shifts: ``(F, 2)`` px.
+        theta: ``(F, 12)`` ``alpha (rad, m), beta (rad, m)`` per unit ``y`` and ``y^2``.
+        z: ``(F,)`` chi-square statistics of ``theta`` (12 degrees of freedom without a rolling
+            shutter); NaN where the frame's rolling parameters are held at 0.
+        sigma_px: the residuals' robust scale per coordinate.
+        residuals: ``(N, 2)`` px; NaN where the ray left the calibrated area.
+        correction: ``(N, 2)`` px, ``pi(rolling pose) - pi(rigid pose)``: what the rolling shutter
+            adds to each observation.
+        velocity: ``(N, 2)`` px per unit ``y``, ``g_i``.
+        velocity_jacobian: ``(N, 2, 12)`` ``d g_i / d theta``.
+        theta_cov: ``(F, 12, 12)`` covariance of ``theta`` (``sigma^2 H^-1``; NaN where held).
+    """
+
+    poses: list[Pose]
+    shifts: np.ndarray
+    theta: np.ndarray
+    z: np.ndarray
+    sigma_px: float
+    residuals: np.ndarray
+    correction: np.ndarray
+    velocity: np.ndarray
+    velocity_jacobian: np.ndarray
+    theta_cov: np.ndarray
+
+
+def _motion_points(R: torch.Tensor, t: torch.Tensor, theta: torch.Tensor, fr: torch.Tensor,
+                   P: torch.Tensor, y: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Camera points of the rolling model ``(N, 3)``, their rotation ``(N, 3, 3)`` and ``R P``."""
+    RP = torch.einsum("nij,nj->ni", R[fr], P)
+    X0 = RP + t[fr]
+    th = theta[fr]
+    w = y[:, None] * th[:, 0:3] + (y * y)[:, None] * th[:, 6:9]
+    v = y[:, None] * th[:, 3:6] + (y * y)[:, None] * th[:, 9:12]
+    Ri = exp_so3(w)
+    return torch.einsum("nij,nj->ni", Ri, X0) + v, Ri, RP
+
+
+def fit_rolling_frames(projector: Projector, poses: Sequence[Pose], frame: np.ndarray, points: np.ndarray,
+                       observed: np.ndarray, shift_free: np.ndarray, rolling: np.ndarray, height: int, *,
+                       iterations: int = 30, huber_px: float = 1.0, shift_sigma_px: float = 20.0,
+                       twist_sigma: float = 0.3) -> RollingFit:
+    """Fit every frame's pose, free shift and (where ``rolling``) rolling twist and curvature
+    with the camera held (module docstring), Huber ``rho`` by iteratively reweighted
+    Levenberg-Marquardt (``lambda diag(H)`` per frame, /10 on success, x10 on failure).
+
+    Args:
+        projector: the camera held (:func:`blurcalib.calib.validation.generic_projector`).
+        poses: ``(F,)`` initial poses; frame ``(N,)`` index; points ``(N, 3)`` m; observed
+            ``(N, 2)`` px (OpenCV).
+        shift_free, rolling: ``(F,)`` bool: frames with a free shift, and with rolling parameters.
+        height: sensor rows ``H`` (px).
+        huber_px, shift_sigma_px: as :class:`blurcalib.calib.bundle.BundleSettings`.
+        twist_sigma: a weak prior ``|theta / sigma_theta|^2`` on the rolling parameters,
+            ``sigma_theta`` this in rad and this times the frame's distance in m: it holds the
+            combinations of pose and rolling geometry that the frame cannot tell apart near 0
+            (the covariance and the test use the data alone).
+    """
+    kw = {"dtype": torch.float64}
+    F = len(poses)
+    fr = torch.as_tensor(np.asarray(frame, dtype=np.int64))
+    P = torch.as_tensor(np.asarray(points, dtype=np.float64))
+    p = torch.as_tensor(np.asarray(observed, dtype=np.float64))
+    y = torch.as_tensor(row_coordinate(np.asarray(observed)[:, 1], height))
+    free = np.zeros((F, _PARAMS), dtype=bool)
+    free[:, :6] = True
+    free[:, 6:8] = np.asarray(shift_free, dtype=bool)[:, None]
+    free[:, 8:] = np.asarray(rolling, dtype=bool)[:, None]
+    free_t = torch.as_tensor(free)
+    R = torch.as_tensor(np.stack([q.R for q in poses]), **kw)
+    t = torch.as_tensor(np.stack([q.t for q in poses]), **kw)
+    s = torch.zeros(F, 2, **kw)
+    theta = torch.zeros(F, 12, **kw)
+    shift_w = 1.0 / shift_sigma_px**2
+    depth = t.norm(dim=1, keepdim=True)
+    theta_w = 1.0 / torch.cat([torch.full((F, 3), twist_sigma, **kw), (twist_sigma * depth).expand(F, 3)] * 2,
+                               dim=1) ** 2
+
+    def evaluate(R, t, s, theta, init):
+        X, Ri, RP = _motion_points(R, t, theta, fr, P, y)
+        u, J_p, inside = projector(X, init)
+        r = p - u - s[fr]
+        e = torch.where(inside, r.norm(dim=-1), 0.0)
+        rho = torch.where(e <= huber_px, e * e, 2 * huber_px * e - huber_px**2)
+        cost = torch.zeros(F, **kw).index_add_(0, fr, rho) + shift_w * (s * s).sum(-1) \
+            + (theta_w * theta * theta).sum(-1)
+        return (X, Ri, RP, u, J_p, inside, r), cost
+
+    state, cost = evaluate(R, t, s, theta, None)
+    lam = torch.full((F,), 1e-4, **kw)
+    for _ in range(iterations):
+        J, sel, w = _jacobian(state, fr, y, huber_px)
+        f = fr[sel]
+        r = state[6][sel]
+        H = torch.zeros(F, _PARAMS, _PARAMS, **kw).index_add_(0, f, J.transpose(1, 2) @ (w * J))
+        b = torch.zeros(F, _PARAMS, **kw).index_add_(0, f, (J.transpose(1, 2) @ (w * r[:, :, None]))[..., 0])
+        H[:, 6, 6] += shift_w
+        H[:, 7, 7] += shift_w
+        b[:, 6:8] -= shift_w * s
+        H = torch.where(free_t[:, :, None] & free_t[:, None, :], H, 0.0)
+        H = H + torch.diag_embed((~free_t).to(H.dtype))
+        H_data = H.clone()
+        H[:, 8:, 8:] += torch.diag_embed(theta_w)
+        b[:, 8:] -= theta_w * theta
+        b = torch.where(free_t, b, 0.0)
+        diag = torch.diag_embed(torch.diagonal(H, dim1=1, dim2=2).clamp_min(1e-12))
+        for _try in range(8):
+            dp = torch.linalg.solve(H + lam[:, None, None] * diag, b)
+            trial = (exp_so3(dp[:, :3]) @ R, t + dp[:, 3:6], s + dp[:, 6:8], theta + dp[:, 8:])
+            trial_state, trial_cost = evaluate(*trial, state[3])
+            worse = trial_cost > cost * (1 + 1e-12)
+            lam = torch.where(worse, lam * 10.0, (lam / 10.0).clamp_min(1e-9))
+            if not bool(worse.any()):
+                break
+        better = ~worse
+        R = torch.where(better[:, None, None], trial[0], R)
+        t = torch.where(better[:, None], trial[1], t)
+        s = torch.where(better[:, None], trial[2], s)
+        theta = torch.where(better[:, None], trial[3], theta)
+        state, cost = (trial_state, trial_cost) if bool(better.all()) else evaluate(R, t, s, theta, state[3])
+        if float((dp * better[:, None]).abs().max()) < 1e-10:
+            break
+    return _finish(projector, state, R, t, s, theta, free, fr, y, p, huber_px, H_data)
+
+
+def _jacobian(state, fr: torch.Tensor, y: torch.Tensor, huber_px: float
+              ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """``(N', 2, 20)`` Jacobian of the projected observations inside the area, their indices and
+    Huber weights ``(N', 1, 1)``."""
+    X, Ri, RP, _, J_p, inside, r = state
+    sel = torch.nonzero(inside).squeeze(1)
+    Jp = J_p[sel]
+    rigid = frame_jacobian(Jp @ Ri[sel], RP[sel])
+    ys = y[sel][:, None, None]
+    twist = torch.cat([-Jp @ skew(X[sel]), Jp], dim=2)
+    J = torch.cat([rigid, ys * twist, ys * ys * twist], dim=2)
+    e = r[sel].norm(dim=-1)
+    w = torch.where(e <= huber_px, torch.ones_like(e), huber_px / e.clamp_min(1e-300))[:, None, None]
+    return J, sel, w
+
+
+def _finish(projector: Projector, state, R, t, s, theta, free: np.ndarray, fr: torch.Tensor,
+            y: torch.Tensor, p: torch.Tensor, huber_px: float, H: torch.Tensor) -> RollingFit:
+    X, _, RP, u, J_p, inside, r = state
+    res = torch.where(inside[:, None], r, torch.nan).numpy()
+    ok = np.all(np.isfinite(res), axis=1)
+    sigma = float(1.4826 * np.median(np.abs(res[ok]))) if ok.any() else math.nan
+    rigid_X = RP + t[fr]
+    u_rigid, _, _ = projector(rigid_X, u)
+    correction = (u - u_rigid).numpy()
+    twist = torch.cat([-J_p @ skew(X), J_p], dim=2)
+    th = theta[fr]
+    G = torch.cat([twist, 2 * y[:, None, None] * twist], dim=2)
+    velocity = (G @ th[:, :, None])[..., 0].numpy()
+    z = np.full(len(free), math.nan)
+    Hn = H.numpy()
+    covs = np.full((len(free), 12, 12), math.nan)
+    for f in np.flatnonzero(free[:, 8:].all(axis=1)):
+        covs[f] = np.linalg.pinv(Hn[f])[8:, 8:] * sigma**2
+        th_f = theta[f].numpy()
+        z[f] = float(th_f @ np.linalg.pinv(covs[f]) @ th_f)
+    Rn, tn = R.numpy(), t.numpy()
+    return RollingFit([Pose(orthonormal(Rn[i]), tn[i]) for i in range(len(Rn))], s.numpy(), theta.numpy(),
+                      z, sigma, res, np.where(ok[:, None], correction, 0.0),
+                      np.where(ok[:, None], velocity, 0.0), np.where(ok[:, None, None], G.numpy(), 0.0),
+                      covs)
+
+
+def rolling_displacement(projector: Projector, fit: RollingFit, frame: np.ndarray, points: np.ndarray,
+                         observed: np.ndarray, height: int) -> np.ndarray:
+    """``(N, 2)`` px: ``pi(rolling pose) - pi(rigid pose)`` of each observation under ``projector``
+    with the fit's poses and rolling parameters (NaN where either projection leaves the area)."""
+    kw = {"dtype": torch.float64}
+    fr = torch.as_tensor(np.asarray(frame, dtype=np.int64))
+    P = torch.as_tensor(np.asarray(points, dtype=np.float64))
+    y = torch.as_tensor(row_coordinate(np.asarray(observed)[:, 1], height))
+    R = torch.as_tensor(np.stack([q.R for q in fit.poses]), **kw)
+    t = torch.as_tensor(np.stack([q.t for q in fit.poses]), **kw)
+    X, _, RP = _motion_points(R, t, torch.as_tensor(fit.theta, **kw), fr, P, y)
+    u, _, inside = projector(X, None)
+    u_rigid, _, inside_rigid = projector(RP + t[fr], u)
+    ok = (inside & inside_rigid)[:, None]
+    return torch.where(ok, u - u_rigid, torch.nan).numpy()
+
+
+def estimate_ratio(fit: RollingFit, frame: np.ndarray, blur: np.ndarray, direction: np.ndarray
+                   ) -> tuple[float, float, np.ndarray]:
+    """The readout ratio from the fitted frames and the blur (module docstring).
+
+    Per frame, with ``s_i = sign(g_i . d_i)``, ``r_f = k_f . theta_f`` where
+    ``k_f = sum_i s_i L_i d_i^T G_i / sum_i L_i^2`` (``G_i = d g_i / d theta``), of variance
+    ``k_f^T Cov(theta_f) k_f``: a frame whose rolling geometry trades off against its pose counts
+    little. ``r`` is the inverse-variance mean of the ``r_f``; its standard error the larger of
+    the formal one and the frames' weighted scatter over ``sqrt(F)``.
+
+    Args:
+        fit: the frames' fit; frame ``(N,)`` int, its observations' frames.
+        blur: ``(N,)`` px blur lengths ``L`` (NaN: no PSF); direction ``(N, 2)`` unit axes.
+    Returns:
+        ``(r, sigma_r, r_f (F,))`` (``r_f`` NaN for frames without blur or rolling parameters).
+    """
+    F = len(fit.theta)
+    r_f = np.full(F, math.nan)
+    var = np.full(F, math.nan)
+    ok = np.isfinite(blur) & (blur > 0)
+    for f in range(F):
+        m = ok & (frame == f)
+        den = float((blur[m] ** 2).sum())
+        if m.sum() < 6 or den <= 0 or not np.all(np.isfinite(fit.theta_cov[f])):
+            continue
+        sign = np.sign((fit.velocity[m] * direction[m]).sum(axis=1))
+        k = np.einsum("n,ni,nij->j", sign * blur[m], direction[m], fit.velocity_jacobian[m]) / den
+        r_f[f] = float(k @ fit.theta[f])
+        var[f] = float(k @ fit.theta_cov[f] @ k)
+    have = np.isfinite(r_f) & (var > 0)
+    if not have.any():
+        return math.nan, math.nan, r_f
+    w = 1.0 / var[have]
+    ratio = float((w * r_f[have]).sum() / w.sum())
+    n = int(have.sum())
+    scatter = float(np.sqrt((w * (r_f[have] - ratio) ** 2).sum() / w.sum() / max(n - 1, 1)))
+    return ratio, max(float(np.sqrt(1.0 / w.sum())), scatter if n > 1 else 0.0), r_f
+
+
+@dataclass(eq=False)
+class RollingShutterResult:
+    """What the rolling-shutter step found and did.
+
+    Attributes:
+        mode: the setting (``off``, ``auto`` or a known ratio).
+        ratio, sigma: the estimated readout ratio (readout / exposure time) and its standard
+            error; NaN when the blur could not be measured.
+        applied: whether the frames were corrected (the returned camera uses the model).
+        significant: whether the features fit no rigid pose in the way a rolling shutter
+            explains (the test of the module docstring).
+        statistic, threshold: ``sum_f z_f`` and its null quantile.
+        frames: the moving frames fitted.
+        velocity_px: frame -> median blur velocity ``|u|`` (px per exposure time).
+        frame_ratio: frame -> ``r_f``.
+        rms_correction_px: RMS of the fitted rolling-shutter displacement over the moving frames'
+            features (``pi(rolling pose) - pi(rigid pose)``, the pose held).
+        message: one line for the user ("" with ``off`` when nothing was found).
+        corrected: the blurry features the returned camera was fitted to (the raw ones minus
+            their frame's rolling displacement), or None when not applied.
+    """
+
+    mode: str | float
+    ratio: float
+    sigma: float
+    applied: bool
+    significant: bool
+    statistic: float
+    threshold: float
+    frames: list[str]
+    velocity_px: dict[str, float] = field(default_factory=dict)
+    frame_ratio: dict[str, float] = field(default_factory=dict)
+    rms_correction_px: float = math.nan
+    message: str = ""
+    corrected: FeatureTable | None = field(default=None, repr=False)
+
+    def to_dict(self) -> dict:
+        def num(x: float) -> float | None:
+            return float(x) if math.isfinite(x) else None
+
+        return {"mode": self.mode, "ratio": num(self.ratio), "sigma": num(self.sigma),
+                "applied": self.applied, "significant": self.significant,
+                "statistic": num(self.statistic), "threshold": num(self.threshold),
+                "frames": len(self.frames), "rms_correction_px": num(self.rms_correction_px),
+                "velocity_px": {k: num(v) for k, v in self.velocity_px.items()},
+                "frame_ratio": {k: num(v) for k, v in self.frame_ratio.items()}, "message": self.message}
+
+
+def _blur_columns(calib: GenericCalibration, velocities: BlurVelocity | None
+                  ) -> tuple[np.ndarray, np.ndarray]:
+    """``(N,)`` blur lengths and ``(N, 2)`` directions of the calibration's observations (NaN where
+    no block matches; block frames match by name or by the name after ``blurry/``)."""
+    n = len(calib.frame)
+    blur = np.full(n, math.nan)
+    direction = np.zeros((n, 2))
+    if velocities is None:
+        return blur, direction
+    lookup = {(str(f), int(i)): k for k, (f, i) in enumerate(zip(velocities.frame, velocities.feature_id,
+                                                                 strict=True))}
+    for row, (f, i) in enumerate(zip(calib.frame, calib.feature_id, strict=True)):
+        name = str(f)
+        k = lookup.get((name, int(i)), lookup.get((name.split("/", 1)[-1], int(i))))
+        if k is not None:
+            blur[row] = velocities.length[k]
+            direction[row] = velocities.direction[k]
+    return blur, direction
+
+
+def _raw_observed(calib: GenericCalibration, blurry: FeatureTable) -> np.ndarray:
+    """``(N, 2)`` px: the calibration's observations, the blurry ones as ``blurry`` gives them (raw)."""
+    raw = {(str(f), int(i)): (x, y) for f, i, x, y in zip(blurry.frame, blurry.feature_id, blurry.x, blurry.y,
+                                                           strict=True)}
+    observed = calib.observed.copy()
+    for row, (f, i) in enumerate(zip(calib.frame, calib.feature_id, strict=True)):
+        observed[row] = raw.get((str(f), int(i)), observed[row])
+    return observed
+
+
+def _fit(calib: GenericCalibration, blurry: FeatureTable, height: int,
+         camera: GenericCalibration | None = None, twist_sigma: float = 0.3
+         ) -> tuple[RollingFit, np.ndarray, list[str]]:
+    """Fit every frame of a generic calibration with its camera (or ``camera``'s) held, with
+    rolling parameters for its blurry frames, to the blurry frames' raw observations (``blurry``,
+    uncorrected)."""
+    names = calib.frames
+    index = {f: k for k, f in enumerate(names)}
+    frame = np.array([index[f] for f in calib.frame])
+    moving = np.array([f in calib.blurry_frames for f in names])
+    shifts = np.array([f in calib.shifts for f in names])
+    observed = _raw_observed(calib, blurry)
+    model = calib.model if camera is None else camera.model
+    fit = fit_rolling_frames(generic_projector(model), [calib.poses[f] for f in names], frame,
+                             calib.points, observed, shifts, moving, height, twist_sigma=twist_sigma)
+    return fit, frame, [f for f, m in zip(names, moving, strict=True) if m]
+
+
+def calibrate_rolling_shutter(sharp: FeatureTable, blurry: FeatureTable, parametric: Calibration,
+                              pattern: StarPattern, size: tuple[int, int], settings: RollingShutterSettings,
+                              joint: JointSettings | None = None, velocities: BlurVelocity | None = None,
+                              first: GenericCalibration | None = None
+                              ) -> tuple[GenericCalibration, RollingShutterResult]:
+    """The generic calibration with the rolling shutter (module docstring).
+
+    Starts from the global-shutter calibration (``first``, or :func:`calibrate_generic` of the
+    features), fits the moving frames' rolling geometry with that camera held, tests it and
+    estimates ``r``; then, when the mode asks for it (``auto`` and significant, or a known
+    ratio), alternates ``rounds`` times: correct the blurry observations by the fitted
+    displacement, recalibrate, refit. The corrections are fitted with the camera of the sharp
+    frames alone held (the global-shutter camera of sharp and blurry frames has absorbed part of
+    the rolling-shutter geometry that all frames share), except for frames of which more than a
+    fifth lies outside that camera's calibrated area, fitted with the current camera. The test and
+    ``r`` are those of the first fit, with the global-shutter camera held (measured closest to the
+    truth: ``docs/rolling-shutter.md``). With ``off``
+    or a non-significant ``auto`` the returned camera is the global-shutter one, unchanged.
+    """
+    height = size[1]
+    calib = first or calibrate_generic(sharp, blurry, parametric, pattern, size, joint)
+    fit, frame, moving = _fit(calib, blurry, height)
+    result = _assess(calib, fit, frame, moving, settings, velocities)
+    if not result.applied:
+        return calib, result
+    sharp_only = calibrate_generic(sharp, None, parametric, pattern, size, joint)
+    for _ in range(settings.rounds):
+        fit, frame, _ = _fit(calib, blurry, height, sharp_only, settings.correction_twist_sigma)
+        fit = _fallback(fit, _fit(calib, blurry, height, None, settings.correction_twist_sigma)[0], frame)
+        corrected = _corrected(blurry, calib, fit, frame, height, sharp_only)
+        calib = calibrate_generic(sharp, corrected, parametric, pattern, size, joint)
+    return calib, replace(result, corrected=corrected)
+
+
+def _fallback(fit: RollingFit, other: RollingFit, frame: np.ndarray, share: float = 0.8) -> RollingFit:
+    """``fit`` with the poses and rolling parameters of ``other`` for the frames of which fewer than
+    ``share`` of the observations were inside ``fit``'s camera's calibrated area."""
+    inside = np.all(np.isfinite(fit.residuals), axis=1)
+    counts = np.bincount(frame, minlength=len(fit.poses))
+    kept = np.bincount(frame, weights=inside, minlength=len(fit.poses)) >= share * np.maximum(counts, 1)
+    return replace(fit, poses=[p if k else q for p, q, k in zip(fit.poses, other.poses, kept, strict=True)],
+                   theta=np.where(kept[:, None], fit.theta, other.theta))
+
+
+def _corrected(blurry: FeatureTable, calib: GenericCalibration, fit: RollingFit, frame: np.ndarray,
+               height: int, camera: GenericCalibration) -> FeatureTable:
+    """The raw blurry features minus their frames' rolling displacement, fitted with ``camera``
+    held and evaluated under it, or under ``calib``'s camera (which covers every feature it was
+    fitted to) where ``camera``'s calibrated area ends."""
+    observed = _raw_observed(calib, blurry)
+    shift = rolling_displacement(generic_projector(camera.model), fit, frame, calib.points, observed, height)
+    outside = ~np.all(np.isfinite(shift), axis=1)
+    if outside.any():
+        shift[outside] = rolling_displacement(generic_projector(calib.model), fit, frame, calib.points,
+                                              observed, height)[outside]
+    shift = np.nan_to_num(shift)
+    key = {(str(f), int(i)): k for k, (f, i) in enumerate(zip(calib.frame, calib.feature_id, strict=True))}
+    x, y = blurry.x.copy(), blurry.y.copy()
+    for row, (f, i) in enumerate(zip(blurry.frame, blurry.feature_id, strict=True)):
+        k = key.get((str(f), int(i)))
+        if k is not None:
+            x[row] -= shift[k, 0]
+            y[row] -= shift[k, 1]
+    return replace(blurry, x=x, y=y)
+
+
+def _assess(calib: GenericCalibration, fit: RollingFit, frame: np.ndarray, moving: list[str],
+            settings: RollingShutterSettings, velocities: BlurVelocity | None) -> RollingShutterResult:
+    names = calib.frames
+    z = fit.z[np.isfinite(fit.z)]
+    statistic = float(z.sum()) if len(z) else math.nan
+    threshold = float(chi2.isf(settings.alpha, 12 * len(z))) if len(z) else math.nan
+    on_moving = np.isin(frame, [names.index(f) for f in moving])
+    corr = fit.correction[on_moving]
+    rms_corr = float(np.sqrt((corr**2).sum(axis=1).mean())) if len(corr) else math.nan
+    blur, direction = _blur_columns(calib, velocities)
+    sel = on_moving & np.isfinite(blur)
+    ratio, sigma, r_f = estimate_ratio(fit, frame, np.where(sel, blur, math.nan), direction)
+    confirmed = not math.isfinite(ratio) or not math.isfinite(sigma) or ratio > 3.0 * sigma
+    significant = bool(len(z) and statistic > threshold and confirmed)
+    velocity = {names[f]: float(np.median(blur[frame == f][np.isfinite(blur[frame == f])]))
+                for f in np.unique(frame[sel])}
+    frame_ratio = {names[f]: float(r_f[f]) for f in range(len(r_f)) if np.isfinite(r_f[f])}
+    applied = isinstance(settings.mode, float) or (settings.mode == "auto" and significant)
+    out = RollingShutterResult(settings.mode, ratio, sigma, applied, significant, statistic, threshold,
+                               moving, velocity, frame_ratio, rms_corr)
+    return replace(out, message=_message(out, applied))
+
+
+def _message(res: RollingShutterResult, applied: bool) -> str:
+    est = f"readout ratio {res.ratio:.2f} +- {res.sigma:.2f}" if math.isfinite(res.ratio) else \
+        "readout ratio not measured (no blur)"
+    if res.mode == "off":
+        if res.significant:
+            return (f"warning: the blurry frames' features fit no rigid pose in the way a rolling shutter "
+                    f"explains ({est}, RMS displacement {res.rms_correction_px:.2f} px); "
+                    f"try --rolling-shutter auto")
+        return ""
+    if applied:
+        return f"rolling shutter: modelled, {est} over {len(res.frames)} moving frames"
+    return f"rolling shutter: none found ({est}; not significant): the global-shutter camera is kept"
