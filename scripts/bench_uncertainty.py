@@ -34,7 +34,7 @@ from blurcalib.calib.uncertainty import BORDER_PX, projection_uncertainty
 from blurcalib.camera.generic import calibrated_area, fit_to_rays
 from blurcalib.paper import generic as experiment
 from blurcalib.sim.evaluate import camera_accuracy, projection_error_vectors
-from blurcalib.sim.synth import d435i_like_camera
+from blurcalib.sim.truth import d435i_like_camera
 from blurcalib.target.pattern import layout_pattern
 
 PRIOR_SCALES = (1.0, 0.3, 0.1)

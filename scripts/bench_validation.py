@@ -24,6 +24,7 @@ import cv2
 import numpy as np
 import torch
 
+from blurcalib.calib.sequence import SequenceSettings
 from blurcalib.calib.trust import TrustSettings
 from blurcalib.calib.validation import ValidationSettings, assign_folds
 from blurcalib.pipeline.run import PipelineSettings, read_feature_input, run_from_features
@@ -61,7 +62,8 @@ def main() -> None:
     cv2.setNumThreads(1)
     real = args.fixtures / "real_star16"
     pattern = load_pattern(real / "pattern.yaml")
-    settings = PipelineSettings(trust=TrustSettings(validation=ValidationSettings(folds=args.folds)))
+    trust = TrustSettings(validation=ValidationSettings(folds=args.folds))
+    settings = PipelineSettings(calibration=SequenceSettings(trust=trust))
     t0, c0 = time.perf_counter(), time.process_time()
     with tempfile.TemporaryDirectory() as out:
         report = run_from_features(real / "features_10px.bin", pattern, Path(out) / "run", settings).to_dict()

@@ -2,10 +2,19 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
+import torch
 
-from blurcalib.calib.bundle import BundleSettings, bundle_adjust, coverage_warnings
+from blurcalib.calib.bundle import (
+    BundleSettings,
+    bundle_adjust,
+    coverage_warnings,
+    leave_out_models,
+    reduce_frames,
+)
 from blurcalib.camera.generic import CentralGeneric, fit_to_rays
 from blurcalib.camera.parametric import BrownConrady
 from blurcalib.geometry.pose import Pose
@@ -104,3 +113,58 @@ def test_coverage_warnings_name_regions(truth: CentralGeneric) -> None:
     coverage[:2, :2] = 0
     lines = coverage_warnings(truth, coverage)
     assert len(lines) == 1 and "top-left" in lines[0] and "4 grid cells" in lines[0]
+
+
+def test_reduce_frames_is_the_schur_complement() -> None:
+    """The reduced camera system against the dense formula, frames touching row spans only."""
+    rng = np.random.default_rng(0)
+    G, F = 700, 150
+    Hgp = np.zeros((G, F, 8))
+    for f in range(F):
+        a = rng.integers(0, G - 100)
+        Hgp[a:a + rng.integers(20, 600), f] = rng.normal(size=8)
+    M = rng.normal(size=(F, 8, 8))
+    Hpp_inv = np.linalg.inv(M @ M.transpose(0, 2, 1) + 8 * np.eye(8))
+    B = rng.normal(size=(G, G))
+    Hgg, bg, bp = B @ B.T, rng.normal(size=G), rng.normal(size=(F, 8))
+    Y = np.einsum("gfi,fij->gfj", Hgp, Hpp_inv).reshape(G, -1)
+    expected = Hgg - Y @ Hgp.reshape(G, -1).T
+    S, c = reduce_frames(*(torch.as_tensor(x) for x in (Hgg, Hgp, Hpp_inv, bg, bp)))
+    np.testing.assert_allclose(S.numpy(), expected, atol=1e-9)
+    np.testing.assert_allclose(c.numpy(), bg - Y @ bp.reshape(-1), atol=1e-9)
+    low, _ = reduce_frames(*(torch.as_tensor(x) for x in (Hgg, Hgp, Hpp_inv)), lower=True)
+    np.testing.assert_allclose(np.tril(low.numpy()), np.tril(expected), atol=1e-9)
+
+
+def test_leave_out_step_is_the_refit_without_those_frames(truth: CentralGeneric) -> None:
+    """Each left-out camera, one step from the full fit, is near the converged bundle adjustment
+    of the other frames (warm started from the full fit); leaving nothing out keeps the full
+    fit's camera."""
+    poses, index, points, observed = _scene(truth, 12, seed=6)
+    observed = observed + np.random.default_rng(1).normal(0, 0.05, observed.shape)
+    free = np.arange(12) % 3 == 0
+    observed[free[index]] += [0.7, -0.4]
+    start = fit_to_rays(START_CAM.pixel_to_ray, 320, 240, cell_px=40.0)
+    settings = BundleSettings(max_iterations=20, tol=1e-12)
+    full = bundle_adjust(start, poses, index, points, observed, shift_free=free, settings=settings)
+    masks = [np.arange(12) < 4, np.arange(12) % 2 == 1, np.zeros(12, bool)]
+    models = leave_out_models(full, masks, [start, truth, start])
+    px = np.random.default_rng(2).uniform([20, 20], [300, 220], (500, 2))
+
+    def moved(a: CentralGeneric, b: CentralGeneric) -> float:
+        ra, rb = a.pixel_to_ray(px), b.pixel_to_ray(px)
+        u, _ = b.project(ra @ _kabsch(ra, rb).T)
+        return float(np.abs(u - px).max())
+
+    for mask, prior, model in zip(masks[:2], [start, truth], models[:2], strict=True):
+        keep = ~mask[index]
+        frame = np.cumsum(~mask)[index[keep]] - 1
+        refit = bundle_adjust(full.model, [p for p, m in zip(full.poses, mask, strict=True) if not m], frame,
+                              points[keep], observed[keep], weights=full.inlier[keep].astype(float),
+                              shift_free=free[~mask], settings=replace(settings, outlier_iteration=0),
+                              prior=prior)
+        assert moved(model, full.model) > 0.05
+        assert moved(model, refit.model) < 0.1 * moved(model, full.model)
+    assert moved(models[2], full.model) < 0.005
+    with pytest.raises(ValueError, match="one prior"):
+        leave_out_models(full, masks, [start])

@@ -9,7 +9,8 @@ from blurcalib.calib.joint import JointSettings, calibrate_generic, generic_repo
 from blurcalib.calib.sharp import calibrate_sharp
 from blurcalib.camera.files import read_generic_yaml
 from blurcalib.io.results import FeatureFlags, FeatureTable
-from blurcalib.sim.synth import d435i_like_camera, sample_pose
+from blurcalib.sim.synth import sample_pose
+from blurcalib.sim.truth import d435i_like_camera
 from blurcalib.target.pattern import layout_pattern
 
 

@@ -8,6 +8,7 @@ import pytest
 from blurcalib.calib import validation
 from blurcalib.calib.joint import JointSettings, calibrate_generic
 from blurcalib.calib.sharp import calibrate_sharp
+from blurcalib.calib.uncertainty import cross_validation_diff
 from blurcalib.calib.validation import (
     ValidationSettings,
     assign_folds,
@@ -19,7 +20,7 @@ from blurcalib.calib.validation import (
 from blurcalib.camera.generic import fit_to_rays
 from blurcalib.geometry.pose import Pose
 from blurcalib.io.results import FeatureFlags
-from blurcalib.sim.synth import d435i_like_camera
+from blurcalib.sim.truth import d435i_like_camera
 from blurcalib.target.pattern import layout_pattern
 from tests.test_generic_joint import _table
 
@@ -83,17 +84,19 @@ def test_no_frame_is_scored_by_a_camera_that_saw_it(coarse, monkeypatch) -> None
     pattern, sharp, parametric, joint, alone = coarse
     seen: list[set[str]] = []
     scored: list[tuple[int, set[str]]] = []
-    refit, score, project = validation.refit_generic, validation._score_frames, validation.generic_projector
+    leave_out, score = validation.leave_out_generic, validation._score_frames
+    project = validation.generic_projector
 
     trained: dict[int, int] = {}
     alive: list[object] = []  # no id is reused while the spies look them up
 
-    def spy_refit(fit, keep, *args, **kwargs):
-        seen.append(set(np.array(fit.frames)[keep].tolist()))
-        model = refit(fit, keep, *args, **kwargs)
-        trained[id(model)] = len(seen) - 1
-        alive.append(model)
-        return model
+    def spy_leave_out(fit, left_out, *args, **kwargs):
+        models = leave_out(fit, left_out, *args, **kwargs)
+        for mask, model in zip(left_out, models, strict=True):
+            seen.append(set(np.array(fit.frames)[~np.asarray(mask)].tolist()))
+            trained[id(model)] = len(seen) - 1
+            alive.append(model)
+        return models
 
     def spy_projector(model):
         projector = project(model)
@@ -105,7 +108,7 @@ def test_no_frame_is_scored_by_a_camera_that_saw_it(coarse, monkeypatch) -> None
         scored.append((trained.get(id(projector), -1), set(np.array(fit.frames)[held].tolist())))
         return score(projector, poses, fit, held, settings)
 
-    monkeypatch.setattr(validation, "refit_generic", spy_refit)
+    monkeypatch.setattr(validation, "leave_out_generic", spy_leave_out)
     monkeypatch.setattr(validation, "_score_frames", spy_score)
     monkeypatch.setattr(validation, "generic_projector", spy_projector)
     result = kfold_validation(joint, alone, parametric, sharp, pattern, SIZE, ValidationSettings(folds=4))
@@ -124,8 +127,9 @@ def test_held_out_error_tells_the_cameras_apart(coarse) -> None:
     """Each camera scored on unseen frames: the generic camera near its training error (noise
     0.05 px per axis), the parametric one well above it (the lens is not Brown-Conrady)."""
     pattern, sharp, parametric, joint, alone = coarse
-    v = kfold_validation(joint, alone, parametric, sharp, pattern, SIZE)
+    v = kfold_validation(joint, alone, parametric, sharp, pattern, SIZE, halves=True)
     assert v is not None and set(v.scores) == {"generic", "generic_sharp", "parametric"}
+    assert v.halves is None  # 4 sharp frames in a half: too few for its parametric camera
     g = v.scores["generic"]
     assert g.frames == 14 and g.observations > 1000
     assert joint.median_error < g.median_px < 1.6 * joint.median_error
@@ -160,3 +164,22 @@ def test_blurry_frames_widening_the_calibrated_area(coarse) -> None:
     v = kfold_validation(joint, alone, parametric, sharp, pattern, SIZE)
     assert v is not None and v.scores["generic_sharp"].frames == v.scores["generic"].frames == 14
     assert v.scores["generic"].median_px < 0.1 and v.scores["generic_sharp"].median_px < 0.1
+
+
+@pytest.mark.slow
+def test_halves_from_the_same_pass() -> None:
+    """With enough sharp frames in each half, the validation also gives the cameras of two
+    halves of the frames."""
+    pattern = layout_pattern()
+    sharp = _table(12, 4, SHARP, "s")
+    blurry = _table(4, 5, BLURRY, "b", shift=2.0)
+    rng = np.random.default_rng(6)
+    for t in (sharp, blurry):
+        t.x += rng.normal(0, 0.05, len(t))
+        t.y += rng.normal(0, 0.05, len(t))
+    parametric = calibrate_sharp(sharp, pattern, SIZE)
+    joint = calibrate_generic(sharp, blurry, parametric, pattern, SIZE, JointSettings(cell_px=80.0))
+    v = kfold_validation(joint, None, parametric, sharp, pattern, SIZE, halves=True)
+    assert v is not None and v.halves is not None
+    diff = cross_validation_diff(*v.halves)
+    assert 0 < diff.median_px < 0.3  # 8 frames a half on a 80 px grid: 0.21 px (two refits: 0.22 px)

@@ -21,9 +21,10 @@ translation ``s_f`` (the deconvolution's translational ambiguity, paper ``eq:glo
 Solver: Levenberg-Marquardt (Marquardt's ``lambda diag(H)`` damping, starting at 1e-6, divided by 5 on
 success, x4 on failure). The per-frame blocks (pose: rotation increment ``omega`` with
 ``R <- exp(omega) R`` and ``t <- t + dt``; plus ``s_f``) are eliminated by the Schur complement;
-the reduced system on the ``2 GW GH`` grid parameters is dense and solved by Cholesky in torch
-float64. Projections are warm-started from the previous iteration's pixels; an observation
-whose ray leaves the calibrated area gets weight 0 (a clamped projection carries no gradient).
+the reduced system on the ``2 GW GH`` grid parameters is dense (formed frame chunk by frame
+chunk, :func:`reduce_frames`) and solved by Cholesky in torch float64. Projections are
+warm-started from the previous iteration's pixels; an observation whose ray leaves the
+calibrated area gets weight 0 (a clamped projection carries no gradient).
 
 Gauge. A central model's orientation is free (rotating every direction and every pose together
 changes nothing). As the reference tool does, after every accepted step the grid is re-rotated
@@ -36,7 +37,9 @@ as the reference tool does.
 
 The result keeps its observations (:class:`BundleData`); :func:`normal_equations` rebuilds the
 Gauss-Newton blocks at the solution, data and priors apart, for the projection uncertainty
-(:mod:`blurcalib.calib.uncertainty`).
+(:mod:`blurcalib.calib.uncertainty`), and :func:`leave_out_models` gives the cameras without
+given sets of frames, one step each from the solution, for the held-out validation
+(:mod:`blurcalib.calib.validation`).
 """
 
 from __future__ import annotations
@@ -45,7 +48,7 @@ import logging
 import math
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 import torch
@@ -72,10 +75,23 @@ __all__ = [
     "bundle_adjust",
     "coverage_warnings",
     "frame_jacobian",
+    "leave_out_models",
     "normal_equations",
+    "reduce_frames",
 ]
 
 log = logging.getLogger(__name__)
+
+OBSERVATION_CHUNK = 16384
+"""Observations whose Jacobian products are formed at once when the normal equations are
+accumulated (memory per chunk about 16 kB per observation)."""
+
+FRAME_CHUNK = 64
+"""Frames whose Schur complement terms are formed by one matrix product (:func:`reduce_frames`)."""
+
+ROW_BLOCK = 512
+"""Rows of the reduced system per product when :func:`reduce_frames` forms its lower triangle
+alone, block row by block row."""
 
 
 @dataclass(frozen=True)
@@ -332,43 +348,42 @@ def _normal_equations(pb: _Problem, st: _State, w: torch.Tensor, r: torch.Tensor
 def _data_equations(pb: _Problem, st: _State, w: torch.Tensor, r: torch.Tensor
                     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor,
                                torch.Tensor]:
-    """The observations' part of :func:`_normal_equations` (no priors)."""
-    sel = torch.nonzero(w > 0).squeeze(1)
-    fr = pb.frame[sel]
-    X = torch.einsum("nij,nj->ni", st.R[fr], pb.points[sel]) + st.t[fr]
-    J_p, J_g, nodes = projection_jacobians(pb.spline.with_grid(st.grid), st.u[sel], X)
-    RX = X - st.t[fr]
-    J_pose = frame_jacobian(J_p, RX)
-    ws = w[sel][:, None, None]
-    rs = r[sel][:, :, None]
+    """The observations' part of :func:`_normal_equations` (no priors).
+
+    Accumulated :data:`OBSERVATION_CHUNK` observations at a time, so that the per-observation
+    products (``(n, 32, 32)``) stay small whatever the number of observations.
+    """
     G = 2 * pb.gh * pb.gw
     F = pb.num_frames
-    dev, dt = X.device, X.dtype
-    cell = nodes[:, 0]
+    dt, dev = pb.points.dtype, pb.points.device
     n_nodes = pb.gh * pb.gw
+    spline = pb.spline.with_grid(st.grid)
     Hcell = torch.zeros(n_nodes, 32, 32, dtype=dt, device=dev)
-    Hcell.index_add_(0, cell, J_g.transpose(1, 2) @ (ws * J_g))
-    used = torch.nonzero(Hcell.abs().sum((1, 2)) > 0).squeeze(1)
-    cell_nodes = _cell_nodes(used, pb.gw)
-    Hgg = torch.zeros(G, G, dtype=dt, device=dev)
-    accumulate_blocks(Hgg, param_columns(cell_nodes), Hcell[used])
-    key = fr * n_nodes + cell
-    ukey, inv = torch.unique(key, return_inverse=True)
-    Hgp_pairs = torch.zeros(len(ukey), 32, 8, dtype=dt, device=dev)
-    Hgp_pairs.index_add_(0, inv, J_g.transpose(1, 2) @ (ws * J_pose))
-    pair_frame = ukey // n_nodes
-    pair_cols = param_columns(_cell_nodes(ukey % n_nodes, pb.gw))
     Hgp = torch.zeros(G * F * 8, dtype=dt, device=dev)
-    flat = (pair_cols[:, :, None] * (F * 8) + pair_frame[:, None, None] * 8
-            + torch.arange(8, device=dev)).reshape(-1)
-    Hgp.index_add_(0, flat, Hgp_pairs.reshape(-1))
+    Hpp = torch.zeros(F, 8, 8, dtype=dt, device=dev)
+    bp = torch.zeros(F, 8, dtype=dt, device=dev)
+    bg = torch.zeros(G, dtype=dt, device=dev)
+    lanes = torch.arange(8, device=dev)
+    for sel in torch.nonzero(w > 0).squeeze(1).split(OBSERVATION_CHUNK):
+        fr = pb.frame[sel]
+        X = torch.einsum("nij,nj->ni", st.R[fr], pb.points[sel]) + st.t[fr]
+        J_p, J_g, nodes = projection_jacobians(spline, st.u[sel], X)
+        J_pose = frame_jacobian(J_p, X - st.t[fr])
+        wJg = w[sel][:, None, None] * J_g
+        rs = r[sel][:, :, None]
+        Hcell.index_add_(0, nodes[:, 0], wJg.transpose(1, 2) @ J_g)
+        cols = param_columns(nodes)
+        flat = cols[:, :, None] * (F * 8) + fr[:, None, None] * 8 + lanes
+        Hgp.index_add_(0, flat.reshape(-1), (wJg.transpose(1, 2) @ J_pose).reshape(-1))
+        wJp = w[sel][:, None, None] * J_pose
+        Hpp.index_add_(0, fr, wJp.transpose(1, 2) @ J_pose)
+        bp.index_add_(0, fr, (wJp.transpose(1, 2) @ rs)[..., 0])
+        bg.index_add_(0, cols.reshape(-1), (wJg.transpose(1, 2) @ rs).reshape(-1))
+    used = torch.nonzero(Hcell.abs().sum((1, 2)) > 0).squeeze(1)
+    Hgg = torch.zeros(G, G, dtype=dt, device=dev)
+    accumulate_blocks(Hgg, param_columns(_cell_nodes(used, pb.gw)), Hcell[used])
     Hgp = Hgp.reshape(G, F, 8)
     Hgp[:, ~pb.shift_free, 6:] = 0.0
-    Hpp = torch.zeros(F, 8, 8, dtype=dt, device=dev).index_add_(0, fr, J_pose.transpose(1, 2) @ (ws * J_pose))
-    bp = torch.zeros(F, 8, dtype=dt, device=dev).index_add_(
-        0, fr, (J_pose.transpose(1, 2) @ (ws * rs))[..., 0])
-    bg = torch.zeros(G, dtype=dt, device=dev).index_add_(
-        0, param_columns(nodes).reshape(-1), (J_g.transpose(1, 2) @ (ws * rs)).reshape(-1))
     tang = tangent_basis(st.grid.reshape(-1, 3))
     return Hgg, Hgp, Hpp, bg, bp, tang
 
@@ -382,6 +397,13 @@ def _cell_nodes(first: torch.Tensor, gw: int) -> torch.Tensor:
 def _add_priors(pb: _Problem, st: _State, tang: torch.Tensor, Hgg: torch.Tensor, bg: torch.Tensor,
                 Hpp: torch.Tensor, bp: torch.Tensor) -> None:
     """Add the smoothness prior (grid) and the shift prior (frames) to the normal equations."""
+    _add_smoothness_prior(pb, st, tang, Hgg, bg)
+    _add_shift_prior(pb, st, Hpp, bp)
+
+
+def _add_smoothness_prior(pb: _Problem, st: _State, tang: torch.Tensor, Hgg: torch.Tensor | None,
+                          bg: torch.Tensor) -> None:
+    """Add the smoothness prior's Hessian (unless ``Hgg`` is None) and gradient side."""
     i, j, k = pb.triples
     g, g0 = st.grid.reshape(-1, 3), st.grid0.reshape(-1, 3)
     res = (g[i] - 2 * g[j] + g[k]) - (g0[i] - 2 * g0[j] + g0[k])
@@ -389,13 +411,20 @@ def _add_priors(pb: _Problem, st: _State, tang: torch.Tensor, Hgg: torch.Tensor,
     Jm = J.permute(0, 3, 1, 2).reshape(len(i), 3, 6)
     nodes = torch.stack([i, j, k], 1)
     cols = param_columns(nodes)
-    accumulate_blocks(Hgg, cols, pb.smooth_w * Jm.transpose(1, 2) @ Jm)
+    if Hgg is not None:
+        accumulate_blocks(Hgg, cols, pb.smooth_w * Jm.transpose(1, 2) @ Jm)
     bg.index_add_(0, cols.reshape(-1), -pb.smooth_w * (Jm.transpose(1, 2) @ res[:, :, None]).reshape(-1))
-    free = pb.shift_free
+
+
+def _add_shift_prior(pb: _Problem, st: _State, Hpp: torch.Tensor, bp: torch.Tensor,
+                     frames: torch.Tensor | None = None) -> None:
+    """Add the free shifts' prior; decouple the fixed shifts (identity block, zero gradient).
+    ``frames (F,)`` bool: only these frames' blocks (default all)."""
+    free = pb.shift_free if frames is None else pb.shift_free & frames
     Hpp[free, 6, 6] += pb.shift_w
     Hpp[free, 7, 7] += pb.shift_w
     bp[free, 6:] -= pb.shift_w * st.s[free]
-    fixed = ~free
+    fixed = ~pb.shift_free if frames is None else ~pb.shift_free & frames
     Hpp[fixed, 6:, :] = 0.0
     Hpp[fixed, :, 6:] = 0.0
     Hpp[fixed, 6, 6] = 1.0
@@ -403,11 +432,50 @@ def _add_priors(pb: _Problem, st: _State, tang: torch.Tensor, Hgg: torch.Tensor,
     bp[fixed, 6:] = 0.0
 
 
+def reduce_frames(Hgg: torch.Tensor, Hgp: torch.Tensor, Hpp_inv: torch.Tensor, bg: torch.Tensor | None = None,
+                  bp: torch.Tensor | None = None, lower: bool = False
+                  ) -> tuple[torch.Tensor, torch.Tensor | None]:
+    """The reduced camera system: the per-frame blocks eliminated by the Schur complement::
+
+        S = Hgg - sum_f Hgp_f Hpp_f^-1 Hgp_f^T        (G, G)
+        c = bg  - sum_f Hgp_f Hpp_f^-1 bp_f            (G,)
+
+    from ``Hgg (G, G)``, ``Hgp (G, F, 8)``, ``Hpp_inv (F, 8, 8)`` and, optionally, ``bg (G,)``,
+    ``bp (F, 8)`` (``c`` is None without them). With ``lower``, only the lower triangle of ``S``
+    is formed (its upper triangle keeps ``Hgg``'s): all a Cholesky factorisation reads, at about
+    half the products. A frame's rows of ``Hgp`` are zero outside the grid parameters its
+    observations touch, which lie within one span of rows (the target's footprint); frames are
+    sorted by that span and taken :data:`FRAME_CHUNK` at a time, each chunk's product restricted
+    to the union of its spans. Memory: ``S`` and one chunk.
+    """
+    G = Hgp.shape[0]
+    S = Hgg.clone()
+    c = None if bg is None else bg.clone()
+    touched = (Hgp != 0).any(2)
+    rows = torch.arange(G, device=Hgp.device)[:, None]
+    first = torch.where(touched, rows, G).amin(0)
+    last = torch.where(touched, rows, -1).amax(0)
+    order = torch.argsort(first)
+    order = order[first[order] < G]
+    for chunk in order.split(FRAME_CHUNK):
+        a, b = int(first[chunk].min()), int(last[chunk].max()) + 1
+        H = Hgp[a:b, chunk]
+        Y = torch.einsum("gfi,fij->gfj", H, Hpp_inv[chunk]).reshape(b - a, -1)
+        H = H.reshape(b - a, -1)
+        if lower:
+            for i in range(a, b, ROW_BLOCK):
+                j = min(i + ROW_BLOCK, b)
+                S[i:j, a:j].addmm_(Y[i - a:j - a], H[:j - a].T, alpha=-1.0)
+        else:
+            S[a:b, a:b].addmm_(Y, H.T, alpha=-1.0)
+        if c is not None and bp is not None:
+            c[a:b].sub_(Y @ bp[chunk].reshape(-1))
+    return S, c
+
+
 def _solve(Hgg: torch.Tensor, Hgp: torch.Tensor, Hpp: torch.Tensor, bg: torch.Tensor,
            bp: torch.Tensor, lam: float) -> tuple[torch.Tensor, torch.Tensor] | None:
     """Damped step ``(dg (G,), dp (F, 8))`` by the Schur complement; None if not positive definite."""
-    G = Hgg.shape[0]
-    F = Hpp.shape[0]
     eye8 = torch.eye(8, dtype=Hpp.dtype, device=Hpp.device)
     Hpp_d = Hpp + lam * torch.diag_embed(torch.diagonal(Hpp, dim1=1, dim2=2)) + 1e-12 * eye8
     try:
@@ -415,11 +483,9 @@ def _solve(Hgg: torch.Tensor, Hgp: torch.Tensor, Hpp: torch.Tensor, bg: torch.Te
     except torch.linalg.LinAlgError:
         return None
     Hpp_inv = torch.cholesky_inverse(Lp)
-    Y = torch.einsum("gfi,fij->gfj", Hgp, Hpp_inv).reshape(G, F * 8)
-    S = Hgg - Y @ Hgp.reshape(G, F * 8).T
+    S, rhs = reduce_frames(Hgg, Hgp, Hpp_inv, bg, bp, lower=True)
     diag = torch.diagonal(Hgg)
     S.diagonal().add_(lam * diag + 1e-12 * float(diag.mean()))
-    rhs = bg - Y @ bp.reshape(-1)
     try:
         L = torch.linalg.cholesky(S)
     except torch.linalg.LinAlgError:
@@ -580,12 +646,9 @@ def bundle_adjust(model: CentralGeneric, poses: Sequence[Pose], frame: ArrayLike
         data=BundleData(fr_np, P, p, pb.weights.cpu().numpy(), free_np, settings, pb.pitch))
 
 
-def normal_equations(result: BundleResult) -> NormalEquations:
-    """The Gauss-Newton blocks of ``result``'s objective at its solution (:class:`NormalEquations`).
-
-    Built with the final inlier set and the Huber IRLS weights of the final residuals; no
-    Levenberg-Marquardt damping.
-    """
+def _at_solution(result: BundleResult) -> tuple[_Problem, _State, torch.Tensor, torch.Tensor]:
+    """``result``'s problem and state at its solution, the IRLS weights ``w (N,)`` (observation
+    weight times Huber weight, 0 outside the inliers) and the residuals ``r (N, 2)`` (0 there)."""
     data = result.data
     settings = data.settings
     dev = torch.device(settings.device)
@@ -603,6 +666,16 @@ def normal_equations(result: BundleResult) -> NormalEquations:
     t = torch.as_tensor(np.stack([q.t for q in result.poses]), **kw)
     st = _State(spline.grid, spline.grid, R, t, s, u, inlier)
     w = pb.weights * inlier.to(torch.float64) * _robust_weights(r, settings.huber_px)
+    return pb, st, w, r
+
+
+def normal_equations(result: BundleResult) -> NormalEquations:
+    """The Gauss-Newton blocks of ``result``'s objective at its solution (:class:`NormalEquations`).
+
+    Built with the final inlier set and the Huber IRLS weights of the final residuals; no
+    Levenberg-Marquardt damping.
+    """
+    pb, st, w, r = _at_solution(result)
     Hgg, Hgf, Hff, bg, bf, tang = _data_equations(pb, st, w, r)
     fixed = ~pb.shift_free
     Hff[fixed, 6:, :] = 0.0
@@ -611,7 +684,81 @@ def normal_equations(result: BundleResult) -> NormalEquations:
     Hff_p = torch.zeros_like(Hff)
     _add_priors(pb, st, tang, Hgg_p, torch.zeros_like(bg), Hff_p, torch.zeros_like(bf))
     return NormalEquations(Hgg, Hgg_p, Hgf, Hff, Hff_p, float((w * (r * r).sum(-1)).sum()),
-                           int(inlier.sum()))
+                           int(st.inside.sum()))
+
+
+def leave_out_models(result: BundleResult, left_out: Sequence[ArrayLike], priors: Sequence[CentralGeneric],
+                     damping: float = 1e-6) -> list[CentralGeneric]:
+    """The camera without each set of frames, one damped Gauss-Newton step from ``result``.
+
+    ``left_out[k] (F,)`` bool marks the frames camera ``k`` must not see; camera ``k`` is the grid
+    of the step, from ``result``'s solution (grid, poses and shifts), of :func:`bundle_adjust`'s
+    objective over the other frames, its smoothness prior holding ``priors[k]``'s shape. The
+    objective's observations are ``result``'s inliers with their IRLS weights at the solution.
+    The frames of a set ``L`` add their own terms to the reduced camera system
+    (:func:`reduce_frames`; their poses and shifts eliminated)::
+
+        S_L = Hgg_L - sum_{f in L} Hgp_f Hpp_f^-1 Hgp_f^T,   c_L = bg_L - sum_{f in L} Hgp_f Hpp_f^-1 bp_f
+
+    so leaving ``L`` out subtracts its terms from those of all frames::
+
+        (S_all - S_L + H_prior + lambda diag) dg = c_all - c_L + b_prior(priors[k])
+
+    with Marquardt's damping ``lambda = damping`` on the kept data's diagonal (as the first step of
+    :func:`bundle_adjust`, no acceptance test). The grid is updated in its tangent parameters
+    and re-gauged as :func:`bundle_adjust` does. The cost: one pass over all observations, one
+    over each set's and one ``(G, G)`` Cholesky per camera, instead of a refit each.
+
+    Raises:
+        ValueError: a set not of shape ``(F,)``, not one prior per set, or a prior on another grid.
+    """
+    pb, st, w, r = _at_solution(result)
+    F = pb.num_frames
+    sets = [np.asarray(m, dtype=bool).reshape(-1) for m in left_out]
+    if len(sets) != len(priors) or any(m.shape != (F,) for m in sets):
+        raise ValueError(f"need one prior and one ({F},) frame mask per camera; got {len(priors)} "
+                         f"priors and {len(sets)} masks")
+    if any((p.grid_height, p.grid_width) != pb.spline.shape for p in priors):
+        raise ValueError(f"every prior must have the model's {pb.gh} x {pb.gw} grid")
+    dev = st.grid.device
+    kw = {"dtype": st.R.dtype, "device": dev}
+    G = 2 * pb.gh * pb.gw
+    eye8 = torch.eye(8, **kw)
+
+    def terms(frames: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """``S_L, c_L`` and the data diagonal of ``Hgg_L`` of the frames ``(F,)`` bool."""
+        if not bool((frames[pb.frame] & (w > 0)).any()):
+            return torch.zeros(G, G, **kw), torch.zeros(G, **kw), torch.zeros(G, **kw)
+        Hgg, Hgp, Hpp, bg, bp, _ = _data_equations(pb, st, torch.where(frames[pb.frame], w, 0.0), r)
+        _add_shift_prior(pb, st, Hpp, bp, frames)
+        Hpp[~frames] = eye8
+        Hpp = Hpp + damping * torch.diag_embed(torch.diagonal(Hpp, dim1=1, dim2=2)) + 1e-12 * eye8
+        diag = torch.diagonal(Hgg).clone()
+        Hpp_inv = torch.cholesky_inverse(torch.linalg.cholesky(Hpp))
+        S, c = reduce_frames(Hgg, Hgp, Hpp_inv, bg, bp, lower=True)
+        return S, c, diag
+
+    S_all, c_all, d_all = terms(torch.ones(F, dtype=torch.bool, device=dev))
+    tang = tangent_basis(st.grid.reshape(-1, 3))
+    before = torch.diagonal(S_all).clone()
+    _add_smoothness_prior(pb, st, tang, S_all, torch.zeros(G, **kw))
+    d_all += torch.diagonal(S_all) - before  # the prior's diagonal
+    models = []
+    for mask, prior in zip(sets, priors, strict=True):
+        S, c, d = terms(torch.as_tensor(mask, device=dev))
+        S = S_all - S
+        diag = d_all - d
+        S.diagonal().add_(damping * diag + 1e-12 * float(diag.mean()))
+        prior_grid = prior.spline(dev).grid
+        grid0 = prior_grid @ _gauge_rotation(pb.spline, prior_grid).T
+        rhs = c_all - c
+        _add_smoothness_prior(pb, replace(st, grid0=grid0), tang, None, rhs)
+        dg = torch.cholesky_solve(rhs[:, None], torch.linalg.cholesky(S))[:, 0]
+        del S
+        grid = apply_update(st.grid, dg.reshape(pb.gh, pb.gw, 2))
+        grid = grid @ _gauge_rotation(pb.spline, grid).T
+        models.append(result.model.with_grid(grid.cpu().numpy()))
+    return models
 
 
 def _coverage(model: CentralGeneric, px: np.ndarray) -> np.ndarray:

@@ -196,7 +196,7 @@ def calibrate_generic(sharp_features: FeatureTable, blurry_features: FeatureTabl
             else:
                 try:
                     pose = solve_pose(camera, pts, obs, ransac_px=20.0)
-                except ValueError:
+                except (ValueError, cv2.error):  # no pose, or OpenCV's SQPnP on a degenerate sample
                     skipped[name] = len(ids)
                     continue
             rows.append((np.full(len(ids), len(frames)), ids, pts, obs, table.weight[sel]))

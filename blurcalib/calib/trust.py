@@ -28,7 +28,7 @@ import numpy as np
 
 from blurcalib.calib.bundle import BundleSettings
 from blurcalib.calib.joint import GenericCalibration
-from blurcalib.calib.sharp import Calibration, CalibrationError, calibrate_sharp
+from blurcalib.calib.sharp import Calibration
 from blurcalib.calib.uncertainty import (
     CrossValidationDiff,
     ProjectionUncertainty,
@@ -43,10 +43,9 @@ from blurcalib.calib.uncertainty import (
 from blurcalib.calib.validation import (
     Validation,
     ValidationSettings,
-    assign_folds,
+    half_split,
     kfold_validation,
-    parametric_prior,
-    refit_generic,
+    leave_out_generic,
 )
 from blurcalib.io.results import FeatureTable
 from blurcalib.io.text import count
@@ -102,7 +101,8 @@ class Trust:
         cross_validation: the two halves' generic cameras compared, or None.
         guidance: plain-words advice on where more frames are needed.
         seconds: wall time (s) of each part: ``validation``, ``uncertainty``,
-            ``cross_validation``.
+            ``cross_validation`` (the comparison alone when the validation ran: the halves'
+            cameras come from its pass).
     """
 
     validation: Validation | None
@@ -157,25 +157,6 @@ def _round(v: float) -> float | None:
     return round(float(v), 5) if math.isfinite(v) else None
 
 
-def _halves(generic: GenericCalibration, sharp_features: FeatureTable, pattern: StarPattern,
-            size: tuple[int, int], bundle: BundleSettings, iterations: int) -> CrossValidationDiff | None:
-    """The generic cameras of two interleaved halves of the frames, compared; None when a half
-    has too few sharp frames for its own parametric camera (the prior of its refit)."""
-    frames = np.array(generic.frames)
-    blurry = np.isin(frames, generic.blurry_frames)
-    half = assign_folds(frames.tolist(), blurry, 2)
-    models = []
-    for h in (0, 1):
-        keep = half == h
-        train = sharp_features.select(np.isin(sharp_features.frame, frames[keep]))
-        try:
-            prior = parametric_prior(calibrate_sharp(train, pattern, size).camera, generic.model)
-        except CalibrationError:
-            return None
-        models.append(refit_generic(generic, keep, prior, bundle, iterations))
-    return cross_validation_diff(models[0], models[1])
-
-
 def assess_calibration(generic: GenericCalibration, generic_sharp: GenericCalibration | None,
                        calibration: Calibration, sharp_features: FeatureTable, pattern: StarPattern,
                        size: tuple[int, int], settings: TrustSettings | None = None,
@@ -195,15 +176,19 @@ def assess_calibration(generic: GenericCalibration, generic_sharp: GenericCalibr
     bundle = bundle or BundleSettings()
     t0 = time.perf_counter()
     validation = kfold_validation(generic, generic_sharp, calibration, sharp_features, pattern, size,
-                                  settings.validation, bundle)
+                                  settings.validation, bundle, halves=settings.cross_validation)
     t1 = time.perf_counter()
     unc = projection_uncertainty(generic.bundle, step_px=settings.step_px, prior_scale=settings.prior_scale)
     unc_sharp = None if generic_sharp is None else projection_uncertainty(
         generic_sharp.bundle, step_px=settings.step_px, prior_scale=settings.prior_scale)
     t2 = time.perf_counter()
     cv = None
-    if settings.cross_validation:
-        cv = _halves(generic, sharp_features, pattern, size, bundle, 2 * settings.validation.iterations)
+    if validation is not None and validation.halves is not None:
+        cv = cross_validation_diff(*validation.halves)
+    elif settings.cross_validation and validation is None:
+        split = half_split(generic, sharp_features, pattern, size)
+        if split is not None:
+            cv = cross_validation_diff(*leave_out_generic(generic, *split))
     advice = guidance(unc, size[0], size[1], threshold_px=settings.guidance_px)
     seconds = {"validation": t1 - t0, "uncertainty": t2 - t1, "cross_validation": time.perf_counter() - t2}
     return Trust(validation, unc, unc_sharp, cv, advice, seconds)

@@ -72,7 +72,7 @@ from matplotlib.figure import Figure
 from matplotlib.image import AxesImage
 from scipy.interpolate import RegularGridInterpolator
 
-from blurcalib.calib.bundle import BundleResult, NormalEquations, normal_equations
+from blurcalib.calib.bundle import BundleResult, NormalEquations, normal_equations, reduce_frames
 from blurcalib.camera.generic import CentralGeneric, GridSpline, best_fit_rotation, tangent_basis
 from blurcalib.geometry.lie import skew
 from blurcalib.io.atomic import atomic_path
@@ -188,21 +188,19 @@ def _rotation_directions(grid: torch.Tensor) -> torch.Tensor:
 
 def _grid_information(ne: NormalEquations, prior: torch.Tensor, noise_sq: float) -> torch.Tensor:
     """``A (G, G)``: the grid's information with the per-frame blocks marginalised (Schur), the
-    smoothness prior's Hessian ``prior (G, G)``."""
-    G, F = ne.hgf_data.shape[:2]
+    smoothness prior's Hessian ``prior (G, G)``; its lower triangle (all that
+    :func:`_gauge_marginalised`'s Cholesky factorisation reads)."""
     eye8 = torch.eye(8, dtype=ne.hff_data.dtype, device=ne.hff_data.device)
     Hff = ne.hff_data + noise_sq * ne.hff_prior + 1e-12 * eye8  # a frame without inliers stays regular
-    Hff_inv = torch.cholesky_inverse(torch.linalg.cholesky(Hff))
-    Y = torch.einsum("gfi,fij->gfj", ne.hgf_data, Hff_inv).reshape(G, F * 8)
-    A = ne.hgg_data - Y @ ne.hgf_data.reshape(G, F * 8).T
-    A = A / noise_sq + prior
-    return 0.5 * (A + A.T)
+    A, _ = reduce_frames(ne.hgg_data, ne.hgf_data, torch.cholesky_inverse(torch.linalg.cholesky(Hff)),
+                         lower=True)
+    return A / noise_sq + prior
 
 
 def _gauge_marginalised(A: torch.Tensor, prior: torch.Tensor, g: torch.Tensor
                         ) -> tuple[torch.Tensor, torch.Tensor]:
     """``Sigma = (A_m + k g g^T)^-1`` and the prior with the rotation marginalised, ``H_m`` (module
-    docstring); ``g (G, 3)`` orthonormal."""
+    docstring); ``g (G, 3)`` orthonormal, ``A``'s lower triangle read."""
     C = prior @ g
     B = g.T @ C
     evals, evecs = torch.linalg.eigh(0.5 * (B + B.T))
@@ -212,7 +210,7 @@ def _gauge_marginalised(A: torch.Tensor, prior: torch.Tensor, g: torch.Tensor
     k = float(torch.diagonal(A).mean())
     Am = A - coupling + k * (g @ g.T)
     Am.diagonal().add_(1e-12 * k)  # as the bundle adjustment's solver
-    Sigma = torch.cholesky_inverse(torch.linalg.cholesky(0.5 * (Am + Am.T)))
+    Sigma = torch.cholesky_inverse(torch.linalg.cholesky(Am))
     return Sigma, prior - coupling
 
 

@@ -5,14 +5,16 @@ error on frames a camera has not seen does not. The frames of the generic fit (s
 blurry) are dealt into ``K`` folds; for each fold ``k``:
 
 * the cameras are fitted again without fold ``k``: the parametric camera
-  (:func:`blurcalib.calib.sharp.calibrate_sharp` on the other sharp frames), the generic camera of
+  (:func:`blurcalib.calib.sharp.calibrate_sharp` on the other sharp frames, the target points held
+  nominal: the points every camera is scored with), the generic camera of
   sharp and blurry frames and, when blurry frames were given, the generic camera of the sharp
-  frames alone. A generic refit starts from the full fit's grid and poses (warm start,
-  :attr:`ValidationSettings.iterations` Levenberg-Marquardt iterations at most); its smoothness
-  prior keeps the shape of fold ``k``'s parametric camera (``bundle_adjust(prior=...)``), so no
-  grid cell is held to a shape that fold ``k``'s frames shaped. When the other sharp frames are
-  too few for a parametric camera, the fold has no parametric score and the refits' prior keeps
-  the full parametric camera's shape;
+  frames alone. A generic camera without fold ``k`` is one damped Gauss-Newton step from the
+  full fit: the full fit's reduced camera system minus fold ``k``'s own terms
+  (:func:`blurcalib.calib.bundle.leave_out_models`: one pass over the observations for all folds,
+  then one ``(G, G)`` solve per fold); its smoothness prior keeps the shape of fold ``k``'s
+  parametric camera, so no grid cell is held to a shape that fold ``k``'s frames shaped. When
+  the other sharp frames are too few for a parametric camera, the fold has no parametric score
+  and the generic cameras' prior keeps the full parametric camera's shape;
 * every frame of fold ``k`` is scored against those cameras: its pose ``M_f`` (and, for a
   blurry frame, its image shift ``s_f``, the deconvolution's translational ambiguity, with the
   same weak prior as in the bundle adjustment) is fitted alone with the camera held
@@ -24,6 +26,9 @@ the frame sits; a sharp frame's shift is fixed at 0. Every camera is scored by t
 (:func:`fit_frames`) through its own projection (:func:`generic_projector`,
 :func:`parametric_projector`).
 
+The cross-validation diff's cameras of two halves of the frames (:func:`half_split`) can come
+from the same pass (``kfold_validation(..., halves=True)``).
+
 A score pools the held-out residual norms of all scored frames: the median, and the RMS over
 the observations below ``Q3 + 6 (Q3 - Q1)`` (the bundle adjustment's outlier rule).
 """
@@ -32,13 +37,14 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from typing import Literal, get_args
 
+import cv2
 import numpy as np
 import torch
 
-from blurcalib.calib.bundle import BundleSettings, bundle_adjust, frame_jacobian
+from blurcalib.calib.bundle import BundleSettings, frame_jacobian, leave_out_models
 from blurcalib.calib.joint import GenericCalibration
 from blurcalib.calib.sharp import Calibration, CalibrationError, calibrate_sharp, solve_pose
 from blurcalib.camera.generic import CentralGeneric, fit_to_rays, projection_jacobians
@@ -57,15 +63,19 @@ __all__ = [
     "assign_folds",
     "fit_frames",
     "generic_projector",
+    "half_split",
     "kfold_validation",
+    "leave_out_generic",
     "parametric_prior",
     "parametric_projector",
-    "refit_generic",
 ]
 
 PRIOR_ITERATIONS = 0
 """Gauss-Newton steps of :func:`parametric_prior`'s ray fit after its linear start: a prior's
 shape needs none (on the demo the held-out medians agree to 1e-5 px with 4)."""
+COST_NOISE = 1e-7
+"""Relative rise of a frame's cost that :func:`fit_frames` still accepts: the generic projection
+is solved to 1e-8 px, which makes a converged frame's cost that uncertain."""
 ValidationMethod = Literal["kfold", "none"]
 METHODS: tuple[str, ...] = get_args(ValidationMethod)
 Projector = Callable[[torch.Tensor, "torch.Tensor | None"], tuple[torch.Tensor, torch.Tensor, torch.Tensor]]
@@ -82,24 +92,17 @@ class ValidationSettings:
         method: ``"kfold"`` or ``"none"``.
         folds: ``K``, the number of folds.
         min_frames: fewer frames in the generic fit: no validation (too few to hold any out).
-        iterations: Levenberg-Marquardt iterations of each warm-started generic refit. One step
-            from the full fit (the one-step approximation of leaving the fold out) gives the
-            demo's held-out medians within 3e-5 px of two or four steps, at a quarter of four's
-            time.
     """
 
     method: ValidationMethod = "kfold"
     folds: int = 5
     min_frames: int = 10
-    iterations: int = 1
 
     def __post_init__(self) -> None:
         if self.method not in METHODS:
             raise ValueError(f"validation must be one of {METHODS}, got {self.method!r}")
         if self.folds < 2:
             raise ValueError(f"folds must be at least 2, got {self.folds}")
-        if self.iterations < 1:
-            raise ValueError(f"iterations must be at least 1, got {self.iterations}")
 
 
 @dataclass(frozen=True)
@@ -140,12 +143,15 @@ class Validation:
             ``generic_sharp`` (sharp frames alone; only when blurry frames were given) and
             ``parametric`` (absent when no fold left enough sharp frames for it).
         fold_of: frame -> its fold.
+        halves: the generic cameras (sharp + blurry frames) of the two interleaved halves of the
+            frames (:func:`half_split`), when asked for and each half has enough sharp frames.
     """
 
     method: str
     folds: int
     scores: dict[str, CameraScore]
     fold_of: dict[str, int]
+    halves: tuple[CentralGeneric, CentralGeneric] | None = None
 
     def to_dict(self) -> dict:
         return {"method": self.method, "folds": self.folds,
@@ -250,7 +256,7 @@ def fit_frames(projector: Projector, poses: Sequence[Pose], frame: np.ndarray, p
         cost = torch.zeros(F, **kw).index_add_(0, fr, rho) + shift_w * (free[:, None] * s * s).sum(-1)
         return X, u, J_p, inside, r, cost
 
-    X, u, J_p, inside, r, cost = evaluate(R, t, s, None)
+    X, u, J_p, inside, r, cost = evaluate(R, t, s, p.clone())  # projections start where observed
     for _ in range(iterations):
         sel = torch.nonzero(inside).squeeze(1)
         f = fr[sel]
@@ -274,7 +280,7 @@ def fit_frames(projector: Projector, poses: Sequence[Pose], frame: np.ndarray, p
             d = dp * step[:, None]
             R_n = exp_so3(d[:, :3]) @ R
             trial = evaluate(R_n, t + d[:, 3:6], s + d[:, 6:], u)
-            worse = trial[-1] > cost * (1 + 1e-12)
+            worse = trial[-1] > cost * (1 + COST_NOISE)
             if not bool(worse.any()):
                 break
             step = torch.where(worse, step * 0.5, step)
@@ -307,21 +313,32 @@ def _score(errors: np.ndarray, blurry: np.ndarray, frames: int) -> CameraScore:
                        blurry_median_px=median(b))
 
 
-def refit_generic(fit: GenericCalibration, keep: np.ndarray, prior: CentralGeneric,
-                  settings: BundleSettings, iterations: int) -> CentralGeneric:
-    """The generic camera of ``fit`` fitted again on the frames ``keep`` ``(F,)`` bool (over
-    ``fit.frames``), warm-started from ``fit`` (its inliers only), its smoothness prior holding
-    ``prior``'s shape."""
-    names = np.array(fit.frames)
-    index = {f: i for i, f in enumerate(names[keep])}
-    rows = np.isin(fit.frame, names[keep])
-    frame = np.array([index[f] for f in fit.frame[rows]], dtype=np.int64)
-    free = np.array([f in fit.shifts for f in names[keep]])
-    res = bundle_adjust(fit.model, [fit.poses[f] for f in names[keep]], frame, fit.points[rows],
-                        fit.observed[rows], weights=fit.weight[rows] * fit.inlier[rows],
-                        shift_free=free, prior=prior,
-                        settings=replace(settings, max_iterations=iterations, outlier_iteration=0))
-    return res.model
+def leave_out_generic(fit: GenericCalibration, left_out: Sequence[np.ndarray],
+                      priors: Sequence[CentralGeneric]) -> list[CentralGeneric]:
+    """The generic camera of ``fit`` without each set of frames: ``left_out[k] (F,)`` bool over
+    ``fit.frames``; camera ``k`` is one step from ``fit`` on the other frames, its smoothness
+    prior holding ``priors[k]``'s shape (:func:`blurcalib.calib.bundle.leave_out_models`)."""
+    return leave_out_models(fit.bundle, left_out, priors)
+
+
+def half_split(generic: GenericCalibration, sharp_features: FeatureTable, pattern: StarPattern,
+               size: tuple[int, int]) -> tuple[list[np.ndarray], list[CentralGeneric]] | None:
+    """The two interleaved halves of ``generic.frames`` (:func:`assign_folds` with 2 folds) as
+    frames to leave out, ``[half 0, half 1]`` ``(F,)`` bool, and the priors of the cameras of the
+    other half: each the shape of that half's own parametric camera (target points refined, as
+    the full calibration's: with half the frames the prior shapes much of the grid, and held
+    nominal it moves the halves' diff by half). None when a half has too few sharp frames for it."""
+    frames = np.array(generic.frames)
+    half = assign_folds(frames.tolist(), np.isin(frames, generic.blurry_frames), 2)
+    priors = []
+    for h in (1, 0):
+        train = sharp_features.select(np.isin(sharp_features.frame, frames[half == h]))
+        try:
+            camera = calibrate_sharp(train, pattern, size).camera
+        except CalibrationError:
+            return None
+        priors.append(parametric_prior(camera, generic.model))
+    return [half == 0, half == 1], priors
 
 
 def parametric_prior(camera: BrownConrady, model: CentralGeneric) -> CentralGeneric:
@@ -349,7 +366,7 @@ def _score_frames(projector: Projector, poses: list[Pose], fit: GenericCalibrati
 def kfold_validation(generic: GenericCalibration, generic_sharp: GenericCalibration | None,
                      calibration: Calibration, sharp_features: FeatureTable, pattern: StarPattern,
                      size: tuple[int, int], settings: ValidationSettings | None = None,
-                     bundle: BundleSettings | None = None) -> Validation | None:
+                     bundle: BundleSettings | None = None, halves: bool = False) -> Validation | None:
     """Score each camera on frames it has not seen (module docstring); None for ``method="none"``
     or fewer than ``min_frames`` frames.
 
@@ -361,6 +378,8 @@ def kfold_validation(generic: GenericCalibration, generic_sharp: GenericCalibrat
         sharp_features: the sharp features it was fitted to (lens-corrected when it was).
         pattern, size: the target and the image size ``(width, height)`` px.
         settings: validation options; bundle: the bundle adjustment's options of the fits.
+        halves: also the generic cameras of two halves of the frames (:attr:`Validation.halves`),
+            from the same pass over the observations as the folds'.
     """
     settings = settings or ValidationSettings()
     bundle = bundle or BundleSettings()
@@ -374,34 +393,49 @@ def kfold_validation(generic: GenericCalibration, generic_sharp: GenericCalibrat
     obs_fold = np.array([fold_of[f] for f in generic.frame])
     obs_blurry = np.isin(generic.frame, generic.blurry_frames)
     errors = {k: np.full(len(generic.frame), np.nan) for k in ("generic", "generic_sharp", "parametric")}
+    params: list[Calibration | None] = []
+    for k in range(K):
+        train_sharp = sharp_features.select(~np.isin(sharp_features.frame, np.array(frames)[fold == k]))
+        try:
+            params.append(calibrate_sharp(train_sharp, pattern, size, refine_points=False))
+        except CalibrationError:  # too few sharp frames left: no parametric score for this fold
+            params.append(None)
+    shapes = [(param or calibration).camera for param in params]
+    masks = [fold == k for k in range(K)]
+    priors = [parametric_prior(c, generic.model) for c in shapes]
+    split = half_split(generic, sharp_features, pattern, size) if halves else None
+    if split is not None:
+        masks += split[0]
+        priors += split[1]
+    models = {"generic": leave_out_generic(generic, masks, priors)}
+    if generic_sharp is not None:
+        fold_sharp = np.array([fold_of.get(f, -1) for f in generic_sharp.frames])
+        same_grid = _same_grid(generic_sharp.model, generic.model)
+        models["generic_sharp"] = leave_out_generic(
+            generic_sharp, [fold_sharp == k for k in range(K)],
+            priors[:K] if same_grid else [parametric_prior(c, generic_sharp.model) for c in shapes])
     for k in range(K):
         held = fold == k
-        train_sharp = sharp_features.select(~np.isin(sharp_features.frame, np.array(frames)[held]))
-        try:
-            param: Calibration | None = calibrate_sharp(train_sharp, pattern, size)
-        except CalibrationError:  # too few sharp frames left: no parametric score for this fold
-            param = None
-        shape_camera = (param or calibration).camera
-        prior = parametric_prior(shape_camera, generic.model)
         held_names = np.array(frames)[held]
         generic_poses = [generic.poses[f] for f in held_names]
-        cams: dict[str, tuple[Projector, list[Pose]]] = {}
-        model = refit_generic(generic, ~held, prior, bundle, settings.iterations)
-        cams["generic"] = (generic_projector(model), generic_poses)
-        if generic_sharp is not None:
-            keep = np.array([fold_of.get(f, -1) != k for f in generic_sharp.frames])
-            model_s = refit_generic(generic_sharp, keep, parametric_prior(shape_camera, generic_sharp.model),
-                                    bundle, settings.iterations)
-            cams["generic_sharp"] = (generic_projector(model_s), generic_poses)
-        if param is not None:
-            cams["parametric"] = (parametric_projector(param.camera),
-                                  [_parametric_pose(param, generic, f) for f in held_names])
+        cams: dict[str, tuple[Projector, list[Pose]]] = {
+            key: (generic_projector(m[k]), generic_poses) for key, m in models.items()}
+        if params[k] is not None:
+            cams["parametric"] = (parametric_projector(params[k].camera),
+                                  [_parametric_pose(params[k], generic, f) for f in held_names])
         for key, (cam, poses) in cams.items():
             e = _score_frames(cam, poses, generic, held, bundle)
             errors[key][obs_fold == k] = e[obs_fold == k]
     scores = {key: _score(e, obs_blurry, len(set(generic.frame[np.isfinite(e)].tolist())))
               for key, e in errors.items() if np.isfinite(e).any()}
-    return Validation("kfold", K, scores, fold_of)
+    return Validation("kfold", K, scores, fold_of,
+                      None if split is None else (models["generic"][K], models["generic"][K + 1]))
+
+
+def _same_grid(a: CentralGeneric, b: CentralGeneric) -> bool:
+    """Whether two generic cameras share their calibrated area and grid size."""
+    return ((a.width, a.height, a.min_x, a.min_y, a.max_x, a.max_y, a.grid.shape)
+            == (b.width, b.height, b.min_x, b.min_y, b.max_x, b.max_y, b.grid.shape))
 
 
 def _parametric_pose(param: Calibration, generic: GenericCalibration, frame: str) -> Pose:
@@ -412,5 +446,5 @@ def _parametric_pose(param: Calibration, generic: GenericCalibration, frame: str
     rows = generic.frame == frame
     try:
         return solve_pose(param.camera, generic.points[rows], generic.observed[rows], ransac_px=20.0)
-    except ValueError:
+    except (ValueError, cv2.error):  # no pose, or OpenCV's SQPnP on a degenerate sample
         return generic.poses[frame]
