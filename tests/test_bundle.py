@@ -12,9 +12,9 @@ from blurcalib.calib.bundle import (
     BundleSettings,
     bundle_adjust,
     coverage_warnings,
-    leave_out_models,
     reduce_frames,
 )
+from blurcalib.calib.normal_equations import leave_out_models
 from blurcalib.camera.generic import CentralGeneric, fit_to_rays
 from blurcalib.camera.parametric import BrownConrady
 from blurcalib.geometry.pose import Pose

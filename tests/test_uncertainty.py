@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 import torch
 
-from blurcalib.calib.bundle import BundleSettings, bundle_adjust, normal_equations
+from blurcalib.calib.bundle import BundleSettings, bundle_adjust
+from blurcalib.calib.normal_equations import normal_equations
 from blurcalib.calib.uncertainty import (
     ProjectionUncertainty,
     cross_validation_diff,

@@ -35,11 +35,9 @@ Outliers: once, after ``outlier_iteration`` iterations (or at convergence if tha
 observations with an error above ``Q3 + 6 (Q3 - Q1)`` (quartiles of the error norms) are removed,
 as the reference tool does.
 
-The result keeps its observations (:class:`BundleData`); :func:`normal_equations` rebuilds the
-Gauss-Newton blocks at the solution, data and priors apart, for the projection uncertainty
-(:mod:`blurcalib.calib.uncertainty`), and :func:`leave_out_models` gives the cameras without
-given sets of frames, one step each from the solution, for the held-out validation
-(:mod:`blurcalib.calib.validation`).
+The result keeps its observations (:class:`BundleData`), from which
+:mod:`blurcalib.calib.normal_equations` rebuilds the Gauss-Newton blocks at the solution (the
+projection uncertainty's information, the held-out validation's leave-out cameras).
 """
 
 from __future__ import annotations
@@ -48,7 +46,7 @@ import logging
 import math
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 
 import numpy as np
 import torch
@@ -69,15 +67,20 @@ from blurcalib.io.text import count
 
 __all__ = [
     "BundleData",
+    "BundleProblem",
     "BundleResult",
     "BundleSettings",
-    "NormalEquations",
+    "BundleState",
+    "add_priors",
+    "add_shift_prior",
+    "add_smoothness_prior",
     "bundle_adjust",
     "coverage_warnings",
+    "data_equations",
     "frame_jacobian",
-    "leave_out_models",
-    "normal_equations",
+    "gauge_rotation",
     "reduce_frames",
+    "robust_weights",
 ]
 
 log = logging.getLogger(__name__)
@@ -159,7 +162,8 @@ class BundleResult:
         seconds, cpu_seconds: wall-clock and process CPU time.
         warnings: one line per image region with unobserved grid cells.
         coverage: ``(GH - 3, GW - 3)`` observation count per grid cell of the calibrated area.
-        data: the observations and options (what :func:`normal_equations` needs).
+        data: the observations and options (what
+            :func:`blurcalib.calib.normal_equations.normal_equations` needs).
     """
 
     model: CentralGeneric
@@ -176,38 +180,6 @@ class BundleResult:
     warnings: list[str]
     coverage: np.ndarray = field(repr=False)
     data: BundleData = field(repr=False)
-
-
-@dataclass(eq=False)
-class NormalEquations:
-    """Gauss-Newton blocks of :func:`bundle_adjust`'s objective at its solution, data and priors apart.
-
-    With the per-observation IRLS weights ``W`` (observation weight times Huber weight) and the
-    Jacobians of the residuals in the grid parameters ``J_g`` and in the per-frame blocks ``J_f``
-    (rotation increment, translation, shift: 8 columns)::
-
-        hgg_data = J_g^T W J_g,  hgf_data = J_g^T W J_f,  hff_data = J_f^T W J_f
-
-    and the priors' Hessians (costs in px^2, as the objective's): ``hgg_prior`` the smoothness
-    prior, ``hff_prior`` the shift prior. A frame whose shift is not free has its shift rows and
-    columns zero in the data blocks and an identity in ``hff_prior`` (it is decoupled). Tensors
-    are torch float64 on the bundle adjustment's device.
-
-    Attributes:
-        hgg_data, hgg_prior: ``(G, G)`` with ``G = 2 GW GH``.
-        hgf_data: ``(G, F, 8)``.
-        hff_data, hff_prior: ``(F, 8, 8)``.
-        weighted_sq: ``sum_i W_i |r_i|^2`` over the inliers (px^2).
-        observations: number of inliers ``N`` (each gives 2 residuals).
-    """
-
-    hgg_data: torch.Tensor
-    hgg_prior: torch.Tensor
-    hgf_data: torch.Tensor
-    hff_data: torch.Tensor
-    hff_prior: torch.Tensor
-    weighted_sq: float
-    observations: int
 
 
 def frame_jacobian(J_p: torch.Tensor, RX: torch.Tensor) -> torch.Tensor:
@@ -250,7 +222,9 @@ def coverage_warnings(model: CentralGeneric, coverage: np.ndarray) -> list[str]:
 
 
 @dataclass
-class _State:
+class BundleState:
+    """The unknowns of one bundle adjustment at an iterate, with the projections that warm-start the next."""
+
     grid: torch.Tensor  # (GH, GW, 3)
     grid0: torch.Tensor  # (GH, GW, 3) initial grid, rotated with the gauge
     R: torch.Tensor  # (F, 3, 3)
@@ -260,7 +234,7 @@ class _State:
     inside: torch.Tensor  # (N,) bool
 
 
-class _Problem:
+class BundleProblem:
     """Fixed data and the objective of one bundle adjustment."""
 
     def __init__(self, spline: GridSpline, frame: torch.Tensor, points: torch.Tensor,
@@ -281,7 +255,8 @@ class _Problem:
         self.shift_w = 1.0 / settings.shift_sigma_px ** 2
         self.triples = _second_difference_triples(gh, gw, spline.grid.device)
 
-    def camera_points(self, st: _State) -> torch.Tensor:
+    def camera_points(self, st: BundleState) -> torch.Tensor:
+        """``R_f P_i + t_f`` of every observation, ``(N, 3)`` m."""
         return torch.einsum("nij,nj->ni", st.R[self.frame], self.points) + st.t[self.frame]
 
     def project(self, grid: torch.Tensor, R: torch.Tensor, t: torch.Tensor,
@@ -301,13 +276,15 @@ class _Problem:
         return (w * rho).sum()
 
     def prior_cost(self, grid: torch.Tensor, grid0: torch.Tensor, s: torch.Tensor) -> torch.Tensor:
+        """Smoothness prior on the grid's second differences plus the free shifts' prior (px^2)."""
         i, j, k = self.triples
         g, g0 = grid.reshape(-1, 3), grid0.reshape(-1, 3)
         d2 = (g[i] - 2 * g[j] + g[k]) - (g0[i] - 2 * g0[j] + g0[k])
         free = self.shift_free.to(s.dtype)[:, None]
         return self.smooth_w * (d2 * d2).sum() + self.shift_w * (free * s * s).sum()
 
-    def cost(self, st: _State, r: torch.Tensor, w: torch.Tensor) -> float:
+    def cost(self, st: BundleState, r: torch.Tensor, w: torch.Tensor) -> float:
+        """The objective: data cost plus priors (px^2)."""
         return float(self.data_cost(r, w) + self.prior_cost(st.grid, st.grid0, st.s))
 
 
@@ -327,25 +304,25 @@ def _second_difference_triples(gh: int, gw: int, device: torch.device
     return tuple(torch.cat([a, b]) for a, b in zip(rows, cols, strict=True))
 
 
-def _robust_weights(r: torch.Tensor, huber_px: float) -> torch.Tensor:
+def robust_weights(r: torch.Tensor, huber_px: float) -> torch.Tensor:
     """IRLS weights of Huber's loss on the residual norm: 1 inside, ``delta / e`` beyond."""
     e = r.norm(dim=-1)
     return torch.where(e <= huber_px, torch.ones_like(e), huber_px / e.clamp_min(1e-300))
 
 
-def _normal_equations(pb: _Problem, st: _State, w: torch.Tensor, r: torch.Tensor
+def _normal_equations(pb: BundleProblem, st: BundleState, w: torch.Tensor, r: torch.Tensor
                       ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor,
                                  torch.Tensor]:
     """Gauss-Newton blocks: ``Hgg (G, G)``, ``Hgp (G, F, 8)``, ``Hpp (F, 8, 8)``, ``bg``, ``bp``.
 
     Per-frame block columns: ``omega (3), dt (3), s (2)``. Also returns the grid's node tangents.
     """
-    Hgg, Hgp, Hpp, bg, bp, tang = _data_equations(pb, st, w, r)
-    _add_priors(pb, st, tang, Hgg, bg, Hpp, bp)
+    Hgg, Hgp, Hpp, bg, bp, tang = data_equations(pb, st, w, r)
+    add_priors(pb, st, tang, Hgg, bg, Hpp, bp)
     return Hgg, Hgp, Hpp, bg, bp, tang
 
 
-def _data_equations(pb: _Problem, st: _State, w: torch.Tensor, r: torch.Tensor
+def data_equations(pb: BundleProblem, st: BundleState, w: torch.Tensor, r: torch.Tensor
                     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor,
                                torch.Tensor]:
     """The observations' part of :func:`_normal_equations` (no priors).
@@ -394,14 +371,14 @@ def _cell_nodes(first: torch.Tensor, gw: int) -> torch.Tensor:
     return (first[:, None, None] + offs[:, None] * gw + offs[None, :]).reshape(len(first), 16)
 
 
-def _add_priors(pb: _Problem, st: _State, tang: torch.Tensor, Hgg: torch.Tensor, bg: torch.Tensor,
+def add_priors(pb: BundleProblem, st: BundleState, tang: torch.Tensor, Hgg: torch.Tensor, bg: torch.Tensor,
                 Hpp: torch.Tensor, bp: torch.Tensor) -> None:
     """Add the smoothness prior (grid) and the shift prior (frames) to the normal equations."""
-    _add_smoothness_prior(pb, st, tang, Hgg, bg)
-    _add_shift_prior(pb, st, Hpp, bp)
+    add_smoothness_prior(pb, st, tang, Hgg, bg)
+    add_shift_prior(pb, st, Hpp, bp)
 
 
-def _add_smoothness_prior(pb: _Problem, st: _State, tang: torch.Tensor, Hgg: torch.Tensor | None,
+def add_smoothness_prior(pb: BundleProblem, st: BundleState, tang: torch.Tensor, Hgg: torch.Tensor | None,
                           bg: torch.Tensor) -> None:
     """Add the smoothness prior's Hessian (unless ``Hgg`` is None) and gradient side."""
     i, j, k = pb.triples
@@ -416,7 +393,7 @@ def _add_smoothness_prior(pb: _Problem, st: _State, tang: torch.Tensor, Hgg: tor
     bg.index_add_(0, cols.reshape(-1), -pb.smooth_w * (Jm.transpose(1, 2) @ res[:, :, None]).reshape(-1))
 
 
-def _add_shift_prior(pb: _Problem, st: _State, Hpp: torch.Tensor, bp: torch.Tensor,
+def add_shift_prior(pb: BundleProblem, st: BundleState, Hpp: torch.Tensor, bp: torch.Tensor,
                      frames: torch.Tensor | None = None) -> None:
     """Add the free shifts' prior; decouple the fixed shifts (identity block, zero gradient).
     ``frames (F,)`` bool: only these frames' blocks (default all)."""
@@ -495,7 +472,7 @@ def _solve(Hgg: torch.Tensor, Hgp: torch.Tensor, Hpp: torch.Tensor, bg: torch.Te
     return dg, dp
 
 
-def _gauge_rotation(spline: GridSpline, grid: torch.Tensor) -> torch.Tensor:
+def gauge_rotation(spline: GridSpline, grid: torch.Tensor) -> torch.Tensor:
     """``Q (3, 3)``: maps the image centre's direction to +z and the right edge's into x-z (x > 0)."""
     lo, hi = spline.lo, spline.hi
     mid = 0.5 * (lo + hi)
@@ -506,6 +483,31 @@ def _gauge_rotation(spline: GridSpline, grid: torch.Tensor) -> torch.Tensor:
     x = x / x.norm()
     y = torch.linalg.cross(z, x, dim=0)
     return torch.stack([x, y, z])
+
+
+def _checked_inputs(F: int, frame: ArrayLike, points: ArrayLike, observed: ArrayLike,
+                    weights: ArrayLike | None, shift_free: ArrayLike | None
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`bundle_adjust`'s observations as arrays ``frame (N,)``, ``points (N, 3)``,
+    ``observed (N, 2)``, ``weights (N,)`` and ``shift_free (F,)``; ValueError names what is wrong."""
+    fr_np = np.asarray(frame, dtype=np.int64).reshape(-1)
+    P = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    p = np.asarray(observed, dtype=np.float64).reshape(-1, 2)
+    n = len(fr_np)
+    if P.shape[0] != n or p.shape[0] != n:
+        raise ValueError(f"need frame (N,), points (N, 3), observed (N, 2); got {n}, {P.shape}, {p.shape}")
+    if n == 0 or fr_np.min() < 0 or fr_np.max() >= F:
+        raise ValueError(f"frame indices must lie in [0, {F})")
+    counts = np.bincount(fr_np, minlength=F)
+    if np.any(counts == 0):
+        raise ValueError(f"frames without observations: {np.nonzero(counts == 0)[0].tolist()[:10]}")
+    w_np = np.ones(n) if weights is None else np.asarray(weights, dtype=np.float64).reshape(-1)
+    if w_np.shape != (n,) or np.any(w_np < 0) or not np.all(np.isfinite(w_np)):
+        raise ValueError(f"weights must be finite, >= 0 and of shape ({n},)")
+    free_np = np.zeros(F, bool) if shift_free is None else np.asarray(shift_free, bool).reshape(-1)
+    if free_np.shape != (F,):
+        raise ValueError(f"shift_free must have shape ({F},)")
+    return fr_np, P, p, w_np, free_np
 
 
 def bundle_adjust(model: CentralGeneric, poses: Sequence[Pose], frame: ArrayLike, points: ArrayLike,
@@ -537,30 +539,14 @@ def bundle_adjust(model: CentralGeneric, poses: Sequence[Pose], frame: ArrayLike
     t_wall, t_cpu = time.perf_counter(), time.process_time()
     dev = torch.device(settings.device)
     kw = {"dtype": torch.float64, "device": dev}
-    fr_np = np.asarray(frame, dtype=np.int64).reshape(-1)
-    P = np.asarray(points, dtype=np.float64).reshape(-1, 3)
-    p = np.asarray(observed, dtype=np.float64).reshape(-1, 2)
-    n = len(fr_np)
+    fr_np, P, p, w_np, free_np = _checked_inputs(len(poses), frame, points, observed, weights, shift_free)
     F = len(poses)
-    if P.shape[0] != n or p.shape[0] != n:
-        raise ValueError(f"need frame (N,), points (N, 3), observed (N, 2); got {n}, {P.shape}, {p.shape}")
-    if n == 0 or fr_np.min() < 0 or fr_np.max() >= F:
-        raise ValueError(f"frame indices must lie in [0, {F})")
-    counts = np.bincount(fr_np, minlength=F)
-    if np.any(counts == 0):
-        raise ValueError(f"frames without observations: {np.nonzero(counts == 0)[0].tolist()[:10]}")
-    w_np = np.ones(n) if weights is None else np.asarray(weights, dtype=np.float64).reshape(-1)
-    if w_np.shape != (n,) or np.any(w_np < 0) or not np.all(np.isfinite(w_np)):
-        raise ValueError(f"weights must be finite, >= 0 and of shape ({n},)")
-    free_np = np.zeros(F, bool) if shift_free is None else np.asarray(shift_free, bool).reshape(-1)
-    if free_np.shape != (F,):
-        raise ValueError(f"shift_free must have shape ({F},)")
 
     spline = model.spline(dev)
-    pb = _Problem(spline, torch.as_tensor(fr_np, device=dev), torch.as_tensor(P, **kw),
-                  torch.as_tensor(p, **kw), torch.as_tensor(w_np, **kw),
-                  torch.as_tensor(free_np, device=dev), settings)
-    Q = _gauge_rotation(spline, spline.grid)
+    pb = BundleProblem(spline, torch.as_tensor(fr_np, device=dev), torch.as_tensor(P, **kw),
+                       torch.as_tensor(p, **kw), torch.as_tensor(w_np, **kw),
+                       torch.as_tensor(free_np, device=dev), settings)
+    Q = gauge_rotation(spline, spline.grid)
     grid = spline.grid @ Q.T
     grid0 = grid.clone()
     if prior is not None:
@@ -568,12 +554,12 @@ def bundle_adjust(model: CentralGeneric, poses: Sequence[Pose], frame: ArrayLike
             raise ValueError(f"prior grid {prior.grid_height}x{prior.grid_width} differs from the model's "
                              f"{spline.shape[0]}x{spline.shape[1]}")
         prior_grid = prior.spline(dev).grid
-        grid0 = prior_grid @ _gauge_rotation(spline, prior_grid).T
+        grid0 = prior_grid @ gauge_rotation(spline, prior_grid).T
     R = Q @ torch.as_tensor(np.stack([q.R for q in poses]), **kw)
     t = torch.as_tensor(np.stack([q.t for q in poses]), **kw) @ Q.T
     s = torch.zeros(F, 2, **kw)
     u, inside, r = pb.project(grid, R, t, s, None)
-    st = _State(grid, grid0, R, t, s, u, inside)
+    st = BundleState(grid, grid0, R, t, s, u, inside)
     use = pb.weights * inside.to(torch.float64)
     cost = pb.cost(st, torch.where(inside[:, None], r, 0.0), use)
     lam = 1e-6
@@ -591,7 +577,7 @@ def bundle_adjust(model: CentralGeneric, poses: Sequence[Pose], frame: ArrayLike
             use = pb.weights * st.inside.to(torch.float64)
             cost = pb.cost(st, torch.where(st.inside[:, None], r, 0.0), use)
             log.info("outlier removal: %d observations above %.3f px", int(outlier.sum()), thresh)
-        w = use * _robust_weights(r, settings.huber_px)
+        w = use * robust_weights(r, settings.huber_px)
         Hgg, Hgp, Hpp, bg, bp, _tang = _normal_equations(pb, st, w, r)
         accepted = False
         while lam < 1e8:
@@ -606,10 +592,10 @@ def bundle_adjust(model: CentralGeneric, poses: Sequence[Pose], frame: ArrayLike
             s_n = st.s + dp[:, 6:8]
             u_n, in_n, r_n = pb.project(grid_n, R_n, t_n, s_n, st.u)
             use_n = pb.weights * in_n.to(torch.float64)
-            trial = _State(grid_n, st.grid0, R_n, t_n, s_n, u_n, in_n)
+            trial = BundleState(grid_n, st.grid0, R_n, t_n, s_n, u_n, in_n)
             cost_n = pb.cost(trial, torch.where(in_n[:, None], r_n, 0.0), use_n)
             if cost_n < cost:
-                Qg = _gauge_rotation(spline, grid_n)
+                Qg = gauge_rotation(spline, grid_n)
                 trial.grid = grid_n @ Qg.T
                 trial.grid0 = st.grid0 @ Qg.T
                 trial.R = Qg @ R_n
@@ -644,121 +630,6 @@ def bundle_adjust(model: CentralGeneric, poses: Sequence[Pose], frame: ArrayLike
         iterations=it, cost=cost, seconds=time.perf_counter() - t_wall,
         cpu_seconds=time.process_time() - t_cpu, warnings=warnings, coverage=coverage,
         data=BundleData(fr_np, P, p, pb.weights.cpu().numpy(), free_np, settings, pb.pitch))
-
-
-def _at_solution(result: BundleResult) -> tuple[_Problem, _State, torch.Tensor, torch.Tensor]:
-    """``result``'s problem and state at its solution, the IRLS weights ``w (N,)`` (observation
-    weight times Huber weight, 0 outside the inliers) and the residuals ``r (N, 2)`` (0 there)."""
-    data = result.data
-    settings = data.settings
-    dev = torch.device(settings.device)
-    kw = {"dtype": torch.float64, "device": dev}
-    spline = result.model.spline(dev)
-    pb = _Problem(spline, torch.as_tensor(data.frame, device=dev), torch.as_tensor(data.points, **kw),
-                  torch.as_tensor(data.observed, **kw), torch.as_tensor(data.weights, **kw),
-                  torch.as_tensor(data.shift_free, device=dev), settings)
-    pb.smooth_w = 1.0 / (settings.smoothness_px * data.angular_pitch) ** 2
-    inlier = torch.as_tensor(result.inlier, device=dev)
-    r = torch.where(inlier[:, None], torch.as_tensor(np.nan_to_num(result.residuals), **kw), 0.0)
-    s = torch.as_tensor(result.shifts, **kw)
-    u = torch.where(inlier[:, None], pb.observed - r - s[pb.frame], 0.0)
-    R = torch.as_tensor(np.stack([q.R for q in result.poses]), **kw)
-    t = torch.as_tensor(np.stack([q.t for q in result.poses]), **kw)
-    st = _State(spline.grid, spline.grid, R, t, s, u, inlier)
-    w = pb.weights * inlier.to(torch.float64) * _robust_weights(r, settings.huber_px)
-    return pb, st, w, r
-
-
-def normal_equations(result: BundleResult) -> NormalEquations:
-    """The Gauss-Newton blocks of ``result``'s objective at its solution (:class:`NormalEquations`).
-
-    Built with the final inlier set and the Huber IRLS weights of the final residuals; no
-    Levenberg-Marquardt damping.
-    """
-    pb, st, w, r = _at_solution(result)
-    Hgg, Hgf, Hff, bg, bf, tang = _data_equations(pb, st, w, r)
-    fixed = ~pb.shift_free
-    Hff[fixed, 6:, :] = 0.0
-    Hff[fixed, :, 6:] = 0.0
-    Hgg_p = torch.zeros_like(Hgg)
-    Hff_p = torch.zeros_like(Hff)
-    _add_priors(pb, st, tang, Hgg_p, torch.zeros_like(bg), Hff_p, torch.zeros_like(bf))
-    return NormalEquations(Hgg, Hgg_p, Hgf, Hff, Hff_p, float((w * (r * r).sum(-1)).sum()),
-                           int(st.inside.sum()))
-
-
-def leave_out_models(result: BundleResult, left_out: Sequence[ArrayLike], priors: Sequence[CentralGeneric],
-                     damping: float = 1e-6) -> list[CentralGeneric]:
-    """The camera without each set of frames, one damped Gauss-Newton step from ``result``.
-
-    ``left_out[k] (F,)`` bool marks the frames camera ``k`` must not see; camera ``k`` is the grid
-    of the step, from ``result``'s solution (grid, poses and shifts), of :func:`bundle_adjust`'s
-    objective over the other frames, its smoothness prior holding ``priors[k]``'s shape. The
-    objective's observations are ``result``'s inliers with their IRLS weights at the solution.
-    The frames of a set ``L`` add their own terms to the reduced camera system
-    (:func:`reduce_frames`; their poses and shifts eliminated)::
-
-        S_L = Hgg_L - sum_{f in L} Hgp_f Hpp_f^-1 Hgp_f^T,   c_L = bg_L - sum_{f in L} Hgp_f Hpp_f^-1 bp_f
-
-    so leaving ``L`` out subtracts its terms from those of all frames::
-
-        (S_all - S_L + H_prior + lambda diag) dg = c_all - c_L + b_prior(priors[k])
-
-    with Marquardt's damping ``lambda = damping`` on the kept data's diagonal (as the first step of
-    :func:`bundle_adjust`, no acceptance test). The grid is updated in its tangent parameters
-    and re-gauged as :func:`bundle_adjust` does. The cost: one pass over all observations, one
-    over each set's and one ``(G, G)`` Cholesky per camera, instead of a refit each.
-
-    Raises:
-        ValueError: a set not of shape ``(F,)``, not one prior per set, or a prior on another grid.
-    """
-    pb, st, w, r = _at_solution(result)
-    F = pb.num_frames
-    sets = [np.asarray(m, dtype=bool).reshape(-1) for m in left_out]
-    if len(sets) != len(priors) or any(m.shape != (F,) for m in sets):
-        raise ValueError(f"need one prior and one ({F},) frame mask per camera; got {len(priors)} "
-                         f"priors and {len(sets)} masks")
-    if any((p.grid_height, p.grid_width) != pb.spline.shape for p in priors):
-        raise ValueError(f"every prior must have the model's {pb.gh} x {pb.gw} grid")
-    dev = st.grid.device
-    kw = {"dtype": st.R.dtype, "device": dev}
-    G = 2 * pb.gh * pb.gw
-    eye8 = torch.eye(8, **kw)
-
-    def terms(frames: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """``S_L, c_L`` and the data diagonal of ``Hgg_L`` of the frames ``(F,)`` bool."""
-        if not bool((frames[pb.frame] & (w > 0)).any()):
-            return torch.zeros(G, G, **kw), torch.zeros(G, **kw), torch.zeros(G, **kw)
-        Hgg, Hgp, Hpp, bg, bp, _ = _data_equations(pb, st, torch.where(frames[pb.frame], w, 0.0), r)
-        _add_shift_prior(pb, st, Hpp, bp, frames)
-        Hpp[~frames] = eye8
-        Hpp = Hpp + damping * torch.diag_embed(torch.diagonal(Hpp, dim1=1, dim2=2)) + 1e-12 * eye8
-        diag = torch.diagonal(Hgg).clone()
-        Hpp_inv = torch.cholesky_inverse(torch.linalg.cholesky(Hpp))
-        S, c = reduce_frames(Hgg, Hgp, Hpp_inv, bg, bp, lower=True)
-        return S, c, diag
-
-    S_all, c_all, d_all = terms(torch.ones(F, dtype=torch.bool, device=dev))
-    tang = tangent_basis(st.grid.reshape(-1, 3))
-    before = torch.diagonal(S_all).clone()
-    _add_smoothness_prior(pb, st, tang, S_all, torch.zeros(G, **kw))
-    d_all += torch.diagonal(S_all) - before  # the prior's diagonal
-    models = []
-    for mask, prior in zip(sets, priors, strict=True):
-        S, c, d = terms(torch.as_tensor(mask, device=dev))
-        S = S_all - S
-        diag = d_all - d
-        S.diagonal().add_(damping * diag + 1e-12 * float(diag.mean()))
-        prior_grid = prior.spline(dev).grid
-        grid0 = prior_grid @ _gauge_rotation(pb.spline, prior_grid).T
-        rhs = c_all - c
-        _add_smoothness_prior(pb, replace(st, grid0=grid0), tang, None, rhs)
-        dg = torch.cholesky_solve(rhs[:, None], torch.linalg.cholesky(S))[:, 0]
-        del S
-        grid = apply_update(st.grid, dg.reshape(pb.gh, pb.gw, 2))
-        grid = grid @ _gauge_rotation(pb.spline, grid).T
-        models.append(result.model.with_grid(grid.cpu().numpy()))
-    return models
 
 
 def _coverage(model: CentralGeneric, px: np.ndarray) -> np.ndarray:

@@ -72,7 +72,8 @@ from matplotlib.figure import Figure
 from matplotlib.image import AxesImage
 from scipy.interpolate import RegularGridInterpolator
 
-from blurcalib.calib.bundle import BundleResult, NormalEquations, normal_equations, reduce_frames
+from blurcalib.calib.bundle import BundleResult, reduce_frames
+from blurcalib.calib.normal_equations import NormalEquations, normal_equations
 from blurcalib.camera.generic import CentralGeneric, GridSpline, best_fit_rotation, tangent_basis
 from blurcalib.geometry.lie import skew
 from blurcalib.io.atomic import atomic_path

@@ -10,7 +10,7 @@ blurry) are dealt into ``K`` folds; for each fold ``k``:
   sharp and blurry frames and, when blurry frames were given, the generic camera of the sharp
   frames alone. A generic camera without fold ``k`` is one damped Gauss-Newton step from the
   full fit: the full fit's reduced camera system minus fold ``k``'s own terms
-  (:func:`blurcalib.calib.bundle.leave_out_models`: one pass over the observations for all folds,
+  (:func:`blurcalib.calib.normal_equations.leave_out_models`: one pass over the observations for all folds,
   then one ``(G, G)`` solve per fold); its smoothness prior keeps the shape of fold ``k``'s
   parametric camera, so no grid cell is held to a shape that fold ``k``'s frames shaped. When
   the other sharp frames are too few for a parametric camera, the fold has no parametric score
@@ -44,8 +44,9 @@ import cv2
 import numpy as np
 import torch
 
-from blurcalib.calib.bundle import BundleSettings, frame_jacobian, leave_out_models
+from blurcalib.calib.bundle import BundleSettings, frame_jacobian
 from blurcalib.calib.joint import GenericCalibration
+from blurcalib.calib.normal_equations import leave_out_models
 from blurcalib.calib.sharp import Calibration, CalibrationError, calibrate_sharp, solve_pose
 from blurcalib.camera.generic import CentralGeneric, fit_to_rays, projection_jacobians
 from blurcalib.camera.parametric import BrownConrady
@@ -317,7 +318,7 @@ def leave_out_generic(fit: GenericCalibration, left_out: Sequence[np.ndarray],
                       priors: Sequence[CentralGeneric]) -> list[CentralGeneric]:
     """The generic camera of ``fit`` without each set of frames: ``left_out[k] (F,)`` bool over
     ``fit.frames``; camera ``k`` is one step from ``fit`` on the other frames, its smoothness
-    prior holding ``priors[k]``'s shape (:func:`blurcalib.calib.bundle.leave_out_models`)."""
+    prior holding ``priors[k]``'s shape (:func:`blurcalib.calib.normal_equations.leave_out_models`)."""
     return leave_out_models(fit.bundle, left_out, priors)
 
 

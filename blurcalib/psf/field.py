@@ -407,6 +407,14 @@ def _field_fit(fp: _FieldProblem, H0: np.ndarray, H_loc: torch.Tensor, loss: tor
     return FieldFit(field, H / H[:, 2:, 2:], loss_np, weight_np, K, steps, np.asarray(history))
 
 
+def _fit_window(start: PathField, centres: np.ndarray, largest: int) -> int:
+    """The PSF window (odd, px) of the field's fit: the start's paths with room to grow by a
+    quarter during the fit, at most ``largest``."""
+    K = start.kernel_size(centres, largest)
+    K = max(K, 2 * math.ceil(1.25 * (K // 2)) + 1)
+    return min(K, largest - 1 + largest % 2)
+
+
 def fit_path_field(image: np.ndarray, H0: np.ndarray, num_segments: int, start: PathField,
                    deconv: DeconvSettings | None = None, settings: FieldSettings | None = None,
                    pixel_mask: np.ndarray | None = None, features: np.ndarray | None = None) -> FieldFit:
@@ -451,9 +459,7 @@ def fit_path_field(image: np.ndarray, H0: np.ndarray, num_segments: int, start: 
         features = np.asarray(features, dtype=np.float64).reshape(-1, 2)
         H0, H_F = _tied_start(H0, features)
     centres = H0[:, :2, 2] / H0[:, 2:, 2]
-    K = start.kernel_size(centres, fs.largest_kernel)
-    K = max(K, 2 * math.ceil(1.25 * (K // 2)) + 1)  # room for the path to grow during the fit
-    K = min(K, fs.largest_kernel - 1 + fs.largest_kernel % 2)
+    K = _fit_window(start, centres, fs.largest_kernel)
     s = replace(deconv or DeconvSettings(), loss_extent=fs.loss_extent)
     fp = _FieldProblem(image, H0, num_segments, K, s, pixel_mask, start.basis(centres))
     b = len(fp.rows)
