@@ -276,6 +276,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
     from blurcalib.io.frames import list_frames
     from blurcalib.io.results import read_feature_table
     from blurcalib.sim.evaluate import evaluate_features
+    from blurcalib.sim.shutter_effect import shutter_effect_lines
     from blurcalib.sim.truth import GROUND_TRUTH_FILE, load_ground_truth
 
     out = Path(args.out)
@@ -286,8 +287,8 @@ def cmd_demo(args: argparse.Namespace) -> int:
         _check_empty_output(data, args.overwrite)
         _simulate(data, args, None)
     pattern = load_pattern(data / "pattern.yaml")
-    _run_pipeline(list_frames([data / "sharp"]), list_frames([data / "blurry"]), pattern,
-                  out / "calibration", args)
+    report = _run_pipeline(list_frames([data / "sharp"]), list_frames([data / "blurry"]), pattern,
+                           out / "calibration", args)
     truth = load_ground_truth(data)
     table = read_feature_table(out / "calibration" / "features.csv")
     acc = evaluate_features(table, truth, pattern)
@@ -299,6 +300,8 @@ def cmd_demo(args: argparse.Namespace) -> int:
               f"median over {count(len(acc), 'frame')} {med:.4f} px "
               f"(per frame {min(a.median for a in acc):.4f} to {max(a.median for a in acc):.4f} px)")
     _print_camera_accuracy(out / "calibration", truth)
+    for line in shutter_effect_lines(out / "calibration", report, truth, pattern, _pipeline_settings(args)):
+        print(line)
     return 0
 
 
@@ -523,8 +526,8 @@ def _add_pipeline_options(p: argparse.ArgumentParser) -> None:
                    metavar="off|auto|R",
                    help="the rolling shutter in the generic fit: off (a global shutter; a warning when the "
                         "blurry frames' features say otherwise), auto (estimate the readout ratio and model "
-                        "it when significant) or the known readout time in exposure times R; with demo, "
-                        "a number R also simulates that rolling shutter (%(default)s; "
+                        "it when significant) or a number R: model it whatever the test says (the ratio "
+                        "is still estimated); with demo, R also simulates that rolling shutter (%(default)s; "
                         "docs/rolling-shutter.md)")
     p.add_argument("--folds", type=positive_int, default=ValidationSettings.folds,
                    help="number of folds of the validation (%(default)s; needs at least "

@@ -223,7 +223,8 @@ class CalibrationRun:
 def calibrate_features(sharp: FeatureTable, sharp_blocks: BlockTable | None, blurry: Sequence[BlurryFrame],
                        pattern: StarPattern, image_size: tuple[int, int],
                        settings: SequenceSettings | None = None,
-                       on_stage: Callable[[Stage], bool] | None = None) -> CalibrationRun:
+                       on_stage: Callable[[Stage], bool] | None = None,
+                       assess: bool = True) -> CalibrationRun:
     """Run the calibration sequence (module docstring).
 
     Args:
@@ -235,6 +236,7 @@ def calibrate_features(sharp: FeatureTable, sharp_blocks: BlockTable | None, blu
         image_size: ``(width, height)`` px.
         settings: the sequence's settings.
         on_stage: called before each :class:`Stage`; returning False stops the sequence.
+        assess: run stage 5 (False: the cameras only, without ``generic_sharp`` and ``trust``).
 
     Raises:
         CalibrationError: too few usable frames for the parametric camera.
@@ -261,6 +263,8 @@ def calibrate_features(sharp: FeatureTable, sharp_blocks: BlockTable | None, blu
     announce(Stage.GENERIC)
     run.generic, run.rolling_shutter = _fit_generic(sharp, outcomes, calibration, pattern, image_size, s)
     run.seconds["generic"] = time.perf_counter() - t1
+    if not assess:
+        return run
     announce(Stage.ASSESSMENT)
     _assess(run, pattern, image_size, s)
     return run
