@@ -37,6 +37,7 @@ from blurcalib.calib.sequence import MODELS, SequenceSettings
 from blurcalib.calib.validation import ValidationMethod, ValidationSettings
 from blurcalib.extract.quality import LossMode, QualitySettings
 from blurcalib.growth.settings import FinalFitFrames, GrowSettings
+from blurcalib.growth.window import SHARP_START, WindowPolicy
 from blurcalib.io.atomic import OutputError, output_lock, storage_error
 from blurcalib.io.text import count
 from blurcalib.pipeline.cluster import ClusterError
@@ -618,7 +619,7 @@ def build_parser() -> argparse.ArgumentParser:
                         "fits the blur (%(default)s)")
     p.add_argument("--sharp", action="store_true", help="the same as --kind sharp")
     p.add_argument("--psf-size", type=int, default=0,
-                   help="PSF window side, odd px (17 for blurry frames, 7 for sharp ones)")
+                   help=f"PSF window side, odd px ({WindowPolicy.start} blurry frames, {SHARP_START} sharp)")
     p.add_argument("--local-alignment", action="store_true",
                    help="move star centres by the local-alignment translations")
     _add_fit_options(p, "")

@@ -54,7 +54,8 @@ def experiment_simulator(sharp: int, blurry: int, blur_px: tuple[float, float], 
     return Simulator(config, camera=experiment_camera(seed, scale, deviation_px))
 
 
-def extract_settings(kernel_size: int = 17, max_blocks: int = 5000, device: str = "cpu") -> ExtractSettings:
+def extract_settings(kernel_size: int = WindowPolicy.start, max_blocks: int = 5000,
+                     device: str = "cpu") -> ExtractSettings:
     """Blurry-frame extraction settings: ``K x K`` PSF window (px), growth capped at about
     ``max_blocks`` attempted blocks, solve on the torch ``device``."""
     return ExtractSettings(window=WindowPolicy(start=kernel_size), deconv=DeconvSettings(device=device),
@@ -89,7 +90,7 @@ class BlurryFrameSettings:
     blur_max_px: float = 20.0
     scale: float = 0.5
     deviation_px: float = 0.01
-    kernel_size: int = 17
+    kernel_size: int = WindowPolicy.start
     max_blocks: int = 5000
     device: str = "cpu"
 
