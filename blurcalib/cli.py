@@ -277,7 +277,6 @@ def cmd_demo(args: argparse.Namespace) -> int:
     from blurcalib.io.frames import list_frames
     from blurcalib.io.results import read_feature_table
     from blurcalib.sim.evaluate import evaluate_features
-    from blurcalib.sim.shutter_effect import shutter_effect_lines
     from blurcalib.sim.truth import GROUND_TRUTH_FILE, load_ground_truth
 
     out = Path(args.out)
@@ -288,8 +287,8 @@ def cmd_demo(args: argparse.Namespace) -> int:
         _check_empty_output(data, args.overwrite)
         _simulate(data, args, None)
     pattern = load_pattern(data / "pattern.yaml")
-    report = _run_pipeline(list_frames([data / "sharp"]), list_frames([data / "blurry"]), pattern,
-                           out / "calibration", args)
+    _run_pipeline(list_frames([data / "sharp"]), list_frames([data / "blurry"]), pattern,
+                  out / "calibration", args)
     truth = load_ground_truth(data)
     table = read_feature_table(out / "calibration" / "features.csv")
     acc = evaluate_features(table, truth, pattern)
@@ -301,8 +300,6 @@ def cmd_demo(args: argparse.Namespace) -> int:
               f"median over {count(len(acc), 'frame')} {med:.4f} px "
               f"(per frame {min(a.median for a in acc):.4f} to {max(a.median for a in acc):.4f} px)")
     _print_camera_accuracy(out / "calibration", truth)
-    for line in shutter_effect_lines(out / "calibration", report, truth, pattern, _pipeline_settings(args)):
-        print(line)
     return 0
 
 
@@ -318,7 +315,7 @@ def _print_camera_accuracy(out: Path, truth) -> None:
     from blurcalib.calib.sharp import load_calibration
     from blurcalib.calib.trust import UNCERTAINTY_NPZ
     from blurcalib.camera.files import read_generic_yaml
-    from blurcalib.pipeline.run import SHARP_ONLY_DIR
+    from blurcalib.pipeline.run import GLOBAL_SHUTTER_DIR, SHARP_ONLY_DIR
     from blurcalib.sim.evaluate import camera_accuracy, projection_errors
 
     folder = out / "calibration"
@@ -331,6 +328,9 @@ def _print_camera_accuracy(out: Path, truth) -> None:
     if (folder / "intrinsics0.yaml").is_file():
         label = "generic, sharp + blurry frames" if len(cameras) > 1 else "generic, sharp frames"
         cameras.append((label, read_generic_yaml(folder / "intrinsics0.yaml"), "sigma_px"))
+    if (folder / GLOBAL_SHUTTER_DIR / "intrinsics0.yaml").is_file():
+        cameras.append(("  the same, rolling shutter off", read_generic_yaml(folder / GLOBAL_SHUTTER_DIR
+                                                                          / "intrinsics0.yaml"), None))
     print("camera against the true camera over the image (px, after the best-fit rotation; shape: after "
           "the best-fit focal lengths and principal point too, docs/generic.md):")
     for label, camera, key in cameras:

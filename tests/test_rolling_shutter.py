@@ -25,11 +25,10 @@ from blurcalib.camera.files import read_generic_yaml
 from blurcalib.camera.parametric import BrownConrady
 from blurcalib.geometry.pose import Pose
 from blurcalib.io.results import FeatureFlags, FeatureTable
-from blurcalib.pipeline.run import PipelineSettings, run_pipeline
+from blurcalib.pipeline.run import GLOBAL_SHUTTER_DIR, PipelineSettings, run_pipeline
 from blurcalib.sim.evaluate import camera_accuracy
 from blurcalib.sim.render import Renderer, dot_texture
 from blurcalib.sim.shutter import row_time
-from blurcalib.sim.shutter_effect import camera_without_model, shutter_effect_lines
 from blurcalib.sim.synth import Simulator, SynthConfig, frame_truth, sample_motion, sample_pose, write_dataset
 from blurcalib.sim.truth import FrameTruth, Motion, TrueCamera, d435i_like_camera, row_window_track
 from blurcalib.target.pattern import layout_pattern
@@ -210,25 +209,30 @@ def test_parse_rolling_shutter() -> None:
 
 
 @pytest.mark.slow
-def test_demo_recalibrates_the_run_without_the_model(tmp_path) -> None:
-    """The demo's camera without the model (:mod:`blurcalib.sim.shutter_effect`) is the run's own
-    generic camera when the run is ``off``: the run's inputs are rebuilt from its extraction
-    exactly; and the demo prints nothing for it then (the run did not model the shutter)."""
+def test_modelled_run_keeps_the_camera_without_the_model(tmp_path) -> None:
+    """A run that applies the model writes the generic camera of the same features without it
+    (``calibration/global_shutter/``): the camera an ``off`` run of the same extraction publishes;
+    an ``off`` run writes none."""
     model = BrownConrady(fx=420.0, fy=420.0, cx=239.6, cy=179.3, k1=0.02, k2=-0.03, p1=0.0003, p2=-0.0002,
                          k3=0.0, width=480, height=360)
     config = SynthConfig(sharp=6, blurry=3, square_px=(24.0, 30.0), max_tilt_deg=45.0, blur_min_px=4.0,
                          blur_max_px=6.0, seed=5, rolling_shutter=2.0)
-    truth = write_dataset(tmp_path / "data", config, camera=TrueCamera(model))
+    write_dataset(tmp_path / "data", config, camera=TrueCamera(model))
     pattern = layout_pattern()
-    settings = PipelineSettings(calibration=SequenceSettings(
-        trust=TrustSettings(validation=ValidationSettings(method="none"), cross_validation=False)))
+    sharp = sorted((tmp_path / "data" / "sharp").glob("*.png"))
+    blurry = sorted((tmp_path / "data" / "blurry").glob("*.png"))
+    trust = TrustSettings(validation=ValidationSettings(method="none"), cross_validation=False)
     out = tmp_path / "run"
-    report = run_pipeline(sorted((tmp_path / "data" / "sharp").glob("*.png")),
-                          sorted((tmp_path / "data" / "blurry").glob("*.png")), pattern, out, settings)
+    off = SequenceSettings(trust=trust)
+    report = run_pipeline(sharp, blurry, pattern, out, PipelineSettings(calibration=off))
     assert report.generic["blurry_frames"] >= 1
-    without = camera_without_model(out, report.frames, pattern, (480, 360), settings)
-    published = read_generic_yaml(out / "calibration" / "intrinsics0.yaml")
+    assert not (out / "calibration" / GLOBAL_SHUTTER_DIR).exists()
+    published_off = read_generic_yaml(out / "calibration" / "intrinsics0.yaml")
+    forced = SequenceSettings(trust=trust, rolling_shutter=RollingShutterSettings(2.0))
+    report = run_pipeline(sharp, blurry, pattern, out, PipelineSettings(calibration=forced))
+    assert report.rolling_shutter["applied"]
+    without = read_generic_yaml(out / "calibration" / GLOBAL_SHUTTER_DIR / "intrinsics0.yaml")
     px = np.column_stack([np.linspace(40.0, 440.0, 50), np.linspace(30.0, 330.0, 50)])
-    assert len(without.blurry_frames) == report.generic["blurry_frames"]
-    assert np.allclose(without.model.pixel_to_ray(px), published.pixel_to_ray(px), atol=1e-9)
-    assert shutter_effect_lines(out, report, truth, pattern, settings) == []
+    assert np.allclose(without.pixel_to_ray(px), published_off.pixel_to_ray(px), atol=1e-9)
+    assert not np.allclose(read_generic_yaml(out / "calibration" / "intrinsics0.yaml").pixel_to_ray(px),
+                           without.pixel_to_ray(px), atol=1e-9)

@@ -385,6 +385,10 @@ class RollingShutterResult:
         message: one line for the user ("" with ``off`` when nothing was found).
         corrected: the blurry features the returned camera was fitted to (the raw ones minus
             their frame's rolling displacement), or None when not applied.
+        global_shutter: when applied, the camera of the same features without the model (the
+            global-shutter fit the step started from); else None.
+        sharp_only: when applied, the generic camera of the sharp frames alone that held the
+            corrections; else None.
     """
 
     mode: str | float
@@ -400,6 +404,8 @@ class RollingShutterResult:
     rms_correction_px: float = math.nan
     message: str = ""
     corrected: FeatureTable | None = field(default=None, repr=False)
+    global_shutter: GenericCalibration | None = field(default=None, repr=False)
+    sharp_only: GenericCalibration | None = field(default=None, repr=False)
 
     def to_dict(self) -> dict:
         def num(x: float) -> float | None:
@@ -482,6 +488,7 @@ def calibrate_rolling_shutter(sharp: FeatureTable, blurry: FeatureTable, paramet
     """
     height = size[1]
     calib = first or calibrate_generic(sharp, blurry, parametric, pattern, size, joint)
+    global_shutter = calib
     fit, frame, moving = _fit(calib, blurry, height)
     result = _assess(calib, fit, frame, moving, settings, velocities)
     if not result.applied:
@@ -492,7 +499,7 @@ def calibrate_rolling_shutter(sharp: FeatureTable, blurry: FeatureTable, paramet
         fit = _fallback(fit, _fit(calib, blurry, height, None, settings.correction_twist_sigma)[0], frame)
         corrected = _corrected(blurry, calib, fit, frame, height, sharp_only)
         calib = calibrate_generic(sharp, corrected, parametric, pattern, size, joint)
-    return calib, replace(result, corrected=corrected)
+    return calib, replace(result, corrected=corrected, global_shutter=global_shutter, sharp_only=sharp_only)
 
 
 def _fallback(fit: RollingFit, other: RollingFit, frame: np.ndarray, share: float = 0.8) -> RollingFit:

@@ -100,6 +100,9 @@ STAGING_DIR = ".staging"
 """Where the top-level outputs are written before :func:`_publish` moves them into place."""
 SHARP_ONLY_DIR = "sharp_only"
 """``OUT/calibration/sharp_only/intrinsics0.yaml``: the generic camera of the sharp frames alone."""
+GLOBAL_SHUTTER_DIR = "global_shutter"
+"""``OUT/calibration/global_shutter/intrinsics0.yaml``: with the rolling-shutter model applied, the
+generic camera of the same features without it."""
 PUBLISHED: tuple[str, ...] = ("features.csv", "features.bin", "frames.csv",
                               "error_directions_blurry.png", "error_directions_sharp.png",
                               "error_directions_generic.png", "frame_errors.png", CALIBRATION_DIR,
@@ -437,6 +440,9 @@ def _stage_run(out: Path, staging: Path, pattern: StarPattern, size: tuple[int, 
     if run.generic_sharp is not None:
         write_generic_yaml(ensure_writable_dir(staging / CALIBRATION_DIR / SHARP_ONLY_DIR) / INTRINSICS_FILE,
                            run.generic_sharp.model)
+    if run.rolling_shutter is not None and run.rolling_shutter.global_shutter is not None:
+        folder = ensure_writable_dir(staging / CALIBRATION_DIR / GLOBAL_SHUTTER_DIR)
+        write_generic_yaml(folder / INTRINSICS_FILE, run.rolling_shutter.global_shutter.model)
     if run.trust is not None:
         trust_files = save_trust(staging / CALIBRATION_DIR, run.trust, size)
     staged = _write_outputs(staging, pattern, size, rows, run)
