@@ -71,6 +71,16 @@ def test_features_csv_needs_the_image_size(features_csv) -> None:
     assert size == (1280, 720) and int(((table.flags & BLURRY) == BLURRY).sum()) > 0
 
 
+def test_features_outside_the_image_size(features_csv, tmp_path) -> None:
+    """A wrong --image-size is named before any calibration runs, and nothing is written."""
+    with pytest.raises(PipelineError, match="outside the 640 x 480 image"):
+        read_feature_input(features_csv, layout_pattern(), (640, 480))
+    out = tmp_path / "out"
+    code = main(["calibrate", "--features", str(features_csv), "--image-size", "640x480",
+                 "--pattern", str(FIXTURE_YAML), "--out", str(out)])
+    assert code == 2 and not (out / "report.json").exists()
+
+
 def test_unknown_feature_file(tmp_path) -> None:
     path = tmp_path / "f.txt"
     path.write_text("x")

@@ -346,21 +346,37 @@ def read_feature_input(path: str | os.PathLike, pattern: StarPattern,
     try:
         if p.suffix.lower() == ".bin":
             dataset = read_ref_dataset(p)
-            table = ref_feature_table(dataset, pattern)
-            return table, image_size or dataset.image_size
-        if p.suffix.lower() == ".csv":
+            table, size = ref_feature_table(dataset, pattern), image_size or dataset.image_size
+        elif p.suffix.lower() == ".csv":
             if image_size is None:
                 raise PipelineError(f"{p}: a features.csv does not hold the image size: give "
                                     f"--image-size WxH")
-            table = read_feature_table(p)
+            table, size = read_feature_table(p), image_size
             table = table.select((table.flags & int(FeatureFlags.FILTERED_OUT)) == 0)
             if len(table) and int(table.feature_id.max()) >= pattern.num_features:
                 raise PipelineError(f"{p}: feature id {int(table.feature_id.max())} is not one of the "
                                     f"pattern's {pattern.num_features} features")
-            return table, image_size
+        else:
+            raise PipelineError(f"{p}: features must be a reference dataset (.bin) or a blurcalib "
+                                f"features.csv")
     except (OSError, RefFormatError, ResultsFileError, ValueError) as exc:
         raise PipelineError(f"{p}: {exc}") from None
-    raise PipelineError(f"{p}: features must be a reference dataset (.bin) or a blurcalib features.csv")
+    _check_inside(p, table, size)
+    return table, size
+
+
+def _check_inside(path: Path, table: FeatureTable, size: tuple[int, int]) -> None:
+    """Raise :class:`PipelineError` when a feature lies outside the image ``size`` (px, OpenCV
+    convention: the image spans ``[-0.5, W - 0.5] x [-0.5, H - 0.5]``): a wrong ``--image-size``."""
+    if not len(table):
+        return
+    width, height = size
+    x_max, y_max = float(table.x.max()), float(table.y.max())
+    x_min, y_min = float(table.x.min()), float(table.y.min())
+    if x_min < -0.5 or y_min < -0.5 or x_max > width - 0.5 or y_max > height - 0.5:
+        raise PipelineError(f"{path}: features span x {x_min:.1f} to {x_max:.1f} px, y {y_min:.1f} to "
+                            f"{y_max:.1f} px, outside the {width} x {height} image: is the image size right "
+                            f"(--image-size WxH)?")
 
 
 def run_from_features(path: str | os.PathLike, pattern: StarPattern, out_dir: str | os.PathLike,
