@@ -133,6 +133,28 @@ def test_robust_fit_flags_gross_outliers(pattern: StarPattern, true_camera: Brow
     assert calib.rms_error < 1.5 * NOISE_PX
 
 
+def test_warm_start_from_a_calibration_of_more_frames(pattern: StarPattern,
+                                                     true_camera: BrownConrady) -> None:
+    """A fit of some frames started from the calibration of all of them (as the held-out folds
+    are) reaches the cold start's camera and keeps the same gross outliers out; a frame the start
+    has not seen makes it start cold."""
+    table, _ = simulate(pattern, true_camera, 12, seed=3)
+    rng = np.random.default_rng(7)
+    bad = rng.choice(len(table), 10, replace=False)
+    table.x[bad] += 6.0
+    full = calibrate_sharp(table, pattern, IMAGE_SIZE)
+    part = table.select(~np.isin(table.frame, ["sharp/0000.png", "sharp/0001.png", "sharp/0002.png"]))
+    cold = calibrate_sharp(part, pattern, IMAGE_SIZE, refine_points=False)
+    warm = calibrate_sharp(part, pattern, IMAGE_SIZE, refine_points=False, start=full)
+    u, v = np.meshgrid(np.linspace(0, 1279, 9), np.linspace(0, 719, 6))
+    px = np.column_stack([u.ravel(), v.ravel()])
+    assert np.abs(warm.camera.pixel_to_ray(px) - cold.camera.pixel_to_ray(px)).max() < 1e-7
+    assert np.array_equal(warm.inlier, cold.inlier) and (~warm.inlier).sum() >= 9
+    other, _ = simulate(pattern, true_camera, 1, seed=4)
+    unseen = FeatureTable.concat([part, replace(other, frame=np.full(len(other), "sharp/new.png"))])
+    assert calibrate_sharp(unseen, pattern, IMAGE_SIZE, start=full).num_frames == 10
+
+
 def test_refining_points_absorbs_a_bent_target(pattern: StarPattern, true_camera: BrownConrady) -> None:
     nominal = pattern.points_3d()
     centre = nominal[:, :2].mean(axis=0)

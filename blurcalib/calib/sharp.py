@@ -365,6 +365,24 @@ def _initialise(obj: list[np.ndarray], img: list[np.ndarray], image_size: tuple[
     return intr, rvecs, tvecs, np.concatenate(keep)
 
 
+def _warm_start(start: Calibration, frames: list[str], table: FeatureTable
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None:
+    """:func:`_initialise`'s outputs from ``start``: its intrinsics ``(9,)``, the poses ``(F, 3)``
+    rvecs and tvecs of ``frames`` and the inlier mask of ``table``'s observations (an observation
+    ``start`` did not fit counts as an inlier); None when ``start`` lacks a frame's pose."""
+    if any(f not in start.poses for f in frames):
+        return None
+    c = start.camera
+    intr = np.array([c.fx, c.fy, c.cx, c.cy, c.k1, c.k2, c.p1, c.p2, c.k3])
+    rvecs = np.stack([start.poses[f].rvec for f in frames])
+    tvecs = np.stack([start.poses[f].t for f in frames])
+    known = dict(zip(zip(start.frame.tolist(), start.feature_id.tolist(), strict=True),
+                     start.inlier.tolist(), strict=True))
+    inlier = np.array([known.get(k, True) for k in zip(table.frame.tolist(), table.feature_id.tolist(),
+                                                        strict=True)], dtype=bool)
+    return intr, rvecs, tvecs, inlier
+
+
 def calibrate_pinhole(points: Sequence[np.ndarray], pixels: Sequence[np.ndarray],
                       image_size: tuple[int, int]) -> tuple[BrownConrady, list[Pose]]:
     """A rough camera and poses from frames of any quality: one focal length, the principal point
@@ -398,7 +416,8 @@ def calibrate_pinhole(points: Sequence[np.ndarray], pixels: Sequence[np.ndarray]
 def calibrate_sharp(observations: FeatureTable | Sequence[FeatureObservation], pattern: StarPattern,
                     image_size: tuple[int, int], refine_points: bool = True, loss: str = "huber",
                     huber_px: float = 1.0, min_frames: int = 5, *, min_features: int = 20,
-                    outlier_sigmas: float = 5.0, point_sigma_m: float = 1e-3) -> Calibration:
+                    outlier_sigmas: float = 5.0, point_sigma_m: float = 1e-3,
+                    start: Calibration | None = None) -> Calibration:
     """Calibrate ``pi_d`` (Brown-Conrady) and the target points ``P`` from sharp-frame features.
 
     See the module docstring for the model, the gauge and the outlier rule.
@@ -416,6 +435,10 @@ def calibrate_sharp(observations: FeatureTable | Sequence[FeatureObservation], p
         min_features: a frame is usable with at least this many observations.
         outlier_sigmas: an observation whose error exceeds this many robust sigmas is an outlier.
         point_sigma_m: standard deviation (m) of the weak prior holding points near nominal.
+        start: a calibration of the same camera that saw every usable frame (e.g. of more frames):
+            its intrinsics, poses and inlier set start the fit instead of OpenCV's
+            (:func:`_initialise`), which saves the start and most outlier rounds. Frames it has not
+            seen make the fit start cold.
 
     Returns:
         The :class:`Calibration`.
@@ -463,9 +486,10 @@ def calibrate_sharp(observations: FeatureTable | Sequence[FeatureObservation], p
     obs_points = nominal_all[table.feature_id]
     point_ids, point_idx = np.unique(table.feature_id, return_inverse=True)
     spans = list(itertools.pairwise(np.searchsorted(frame_idx, np.arange(len(usable) + 1))))
-    intr, rvecs, tvecs, inlier = _initialise([obs_points[a:b] for a, b in spans],
-                                             [observed[a:b] for a, b in spans],
-                                             (width, height), outlier_sigmas)
+    warm = _warm_start(start, usable, table) if start is not None else None
+    intr, rvecs, tvecs, inlier = warm or _initialise([obs_points[a:b] for a, b in spans],
+                                                     [observed[a:b] for a, b in spans],
+                                                     (width, height), outlier_sigmas)
     problem = _Problem(frame_idx=frame_idx, point_idx=point_idx, observed=observed,
                        nominal=nominal_all[point_ids], fixed_points=obs_points, num_frames=len(usable),
                        refine_points=refine_points, point_sigma=point_sigma_m)

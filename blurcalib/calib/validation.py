@@ -323,19 +323,21 @@ def leave_out_generic(fit: GenericCalibration, left_out: Sequence[np.ndarray],
 
 
 def half_split(generic: GenericCalibration, sharp_features: FeatureTable, pattern: StarPattern,
-               size: tuple[int, int]) -> tuple[list[np.ndarray], list[CentralGeneric]] | None:
+               size: tuple[int, int], start: Calibration | None = None
+               ) -> tuple[list[np.ndarray], list[CentralGeneric]] | None:
     """The two interleaved halves of ``generic.frames`` (:func:`assign_folds` with 2 folds) as
     frames to leave out, ``[half 0, half 1]`` ``(F,)`` bool, and the priors of the cameras of the
     other half: each the shape of that half's own parametric camera (target points refined, as
     the full calibration's: with half the frames the prior shapes much of the grid, and held
-    nominal it moves the halves' diff by half). None when a half has too few sharp frames for it."""
+    nominal it moves the halves' diff by half). None when a half has too few sharp frames for it.
+    ``start``: the calibration of all sharp frames, which starts the halves' parametric fits."""
     frames = np.array(generic.frames)
     half = assign_folds(frames.tolist(), np.isin(frames, generic.blurry_frames), 2)
     priors = []
     for h in (1, 0):
         train = sharp_features.select(np.isin(sharp_features.frame, frames[half == h]))
         try:
-            camera = calibrate_sharp(train, pattern, size).camera
+            camera = calibrate_sharp(train, pattern, size, start=start).camera
         except CalibrationError:
             return None
         priors.append(parametric_prior(camera, generic.model))
@@ -398,13 +400,14 @@ def kfold_validation(generic: GenericCalibration, generic_sharp: GenericCalibrat
     for k in range(K):
         train_sharp = sharp_features.select(~np.isin(sharp_features.frame, np.array(frames)[fold == k]))
         try:
-            params.append(calibrate_sharp(train_sharp, pattern, size, refine_points=False))
+            params.append(calibrate_sharp(train_sharp, pattern, size, refine_points=False,
+                                          start=calibration))
         except CalibrationError:  # too few sharp frames left: no parametric score for this fold
             params.append(None)
     shapes = [(param or calibration).camera for param in params]
     masks = [fold == k for k in range(K)]
     priors = [parametric_prior(c, generic.model) for c in shapes]
-    split = half_split(generic, sharp_features, pattern, size) if halves else None
+    split = half_split(generic, sharp_features, pattern, size, calibration) if halves else None
     if split is not None:
         masks += split[0]
         priors += split[1]

@@ -36,6 +36,7 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
+import scipy.linalg
 import torch
 from numpy.typing import ArrayLike
 
@@ -500,7 +501,7 @@ def fit_to_rays(pixel_to_ray: Callable[[np.ndarray], np.ndarray], width: int, he
     accumulate_blocks(BtB, ev.nodes, ev.weights[:, :, None] * ev.weights[:, None, :])
     Btr = torch.zeros(n, 3, dtype=torch.float64).index_add_(
         0, ev.nodes.reshape(-1), (ev.weights[:, :, None] * target[:, None, :]).reshape(-1, 3))
-    V = torch.linalg.solve(BtB + 1e-9 * torch.eye(n, dtype=torch.float64), Btr)
+    V = torch.as_tensor(_solve_banded_spd(BtB.numpy(), Btr.numpy(), bandwidth=3 * gw + 3, ridge=1e-9))
     grid = (V / V.norm(dim=1, keepdim=True)).reshape(gh, gw, 3)
     for _ in range(iterations):
         sp = sp.with_grid(grid)
@@ -521,6 +522,20 @@ def fit_to_rays(pixel_to_ray: Callable[[np.ndarray], np.ndarray], width: int, he
         if float(delta.abs().max()) < 1e-10:
             break
     return proto.with_grid(grid.numpy())
+
+
+def _solve_banded_spd(A: np.ndarray, b: np.ndarray, bandwidth: int, ridge: float) -> np.ndarray:
+    """``(A + ridge I)^-1 b`` for a symmetric positive (semi-)definite ``A (n, n)`` whose entries vanish
+    more than ``bandwidth`` off the diagonal (the B-spline normal matrix: nodes couple within 3
+    rows and columns of the grid, ``3 GW + 3``), by a banded Cholesky factorisation: ``O(n w^2)``
+    instead of a dense ``O(n^3)`` solve."""
+    n = len(A)
+    w = min(bandwidth, n - 1)
+    band = np.zeros((w + 1, n))
+    for k in range(w + 1):
+        band[k, :n - k] = np.diagonal(A, -k)
+    band[0] += ridge
+    return scipy.linalg.solveh_banded(band, b, lower=True)
 
 
 def undistortion_map(model: CentralGeneric, fx: float, fy: float, cx: float, cy: float,
