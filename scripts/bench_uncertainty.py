@@ -37,7 +37,7 @@ from blurcalib.sim.evaluate import camera_accuracy, projection_error_vectors
 from blurcalib.sim.truth import d435i_like_camera
 from blurcalib.target.pattern import layout_pattern
 
-PRIOR_SCALES = (1.0, 0.3, 0.1)
+PRIOR_SCALES = (1.0, 0.3, 0.15)
 """Other ``prior_scale`` values printed for comparison (``calibrate`` uses ``PRIOR_SCALE``)."""
 
 
