@@ -16,6 +16,7 @@ import numpy as np
 import viser
 from matplotlib.figure import Figure
 
+from blurcalib.calib.joint import GenericCalibration
 from blurcalib.calib.trust import gain_phrases
 from blurcalib.calib.uncertainty import CrossValidationDiff, cross_validation_figure, uncertainty_figure
 from blurcalib.io.text import count
@@ -27,7 +28,7 @@ from views.frame_view import DISPLAY_WIDTH
 
 SHARP_COLOUR = (60, 205, 60)
 BLURRY_COLOUR = (255, 150, 0)
-SCOPES = ("all frames", "current frame")
+SCOPES = ("all frames", "current frame", "all frames, rolling shutter off")
 GENERIC, GENERIC_BOTH, GENERIC_SHARP = "generic", "generic, sharp + blurry frames", "generic, sharp frames"
 """Names of the generic cameras in the assessment (as ``blurcalib calibrate`` prints them)."""
 
@@ -59,12 +60,15 @@ def draw_coverage(cov: Coverage, width: int = DISPLAY_WIDTH) -> np.ndarray:
     return np.concatenate([canvas, legend])
 
 
-def residual_image(result: AppCalibration, frame: str | None, image: np.ndarray | None) -> np.ndarray:
+def residual_image(result: AppCalibration, frame: str | None, image: np.ndarray | None,
+                   fit: GenericCalibration | None = None) -> np.ndarray:
     """The generic fit's residuals: over all frames, mean per cell in direction colours; for one
-    frame, arrows at its observations over the frame (full length at 2 x the fit's RMS)."""
-    g = result.generic
+    frame, arrows at its observations over the frame (full length at 2 x the fit's RMS).
+    ``fit``: another generic fit of the same frames to draw over all frames (the global-shutter
+    camera, before the rolling-shutter model), on the result's colour scale."""
+    full = max(2.0 * result.generic.rms_error, 1e-3)
+    g = fit or result.generic
     size = result.inputs.image_size
-    full = max(2.0 * g.rms_error, 1e-3)
     if frame is None:
         return draw_cells(size, g.observed, g.residuals, full, max(8, round(size[0] / 64)))
     xy, residuals = result.frame_residuals(frame)
@@ -242,7 +246,9 @@ class CalibrationPanel:
                                               label="Cross-validation diff (px)", format="png", visible=False)
         self.coverage = gui.add_image(placeholder("no observations yet"), label="Coverage (inputs now)",
                                       format="png")
-        self.scope = gui.add_dropdown("Residuals of", options=SCOPES)
+        self.scope = gui.add_dropdown("Residuals of", options=SCOPES,
+                                      hint="the last: the global-shutter camera's residuals, before the "
+                                           "rolling-shutter model (when it was modelled)")
         self.residuals = gui.add_image(placeholder("run the calibration"), label="Generic fit residuals",
                                        format="jpeg", jpeg_quality=90)
         self.difference = gui.add_image(placeholder("run the calibration"),
@@ -309,7 +315,13 @@ class CalibrationPanel:
             frame = None
             if self.scope.value == SCOPES[1] and view is not None and view.entry.name in result.generic.poses:
                 frame = view.entry.name
-            residuals = residual_image(result, frame, view.image if frame is not None else None)
+            before = result.rolling_shutter.global_shutter if result.rolling_shutter is not None else None
+            if self.scope.value != SCOPES[2]:
+                residuals = residual_image(result, frame, view.image if frame is not None else None)
+            elif before is not None:
+                residuals = residual_image(result, None, None, before)
+            else:
+                residuals = placeholder("the rolling shutter was not modelled: one field, all frames")
             difference = difference_image(result)
             mag = np.linalg.norm(result.difference[2], axis=2)
             diff_text = (f"generic minus parametric: median {np.nanmedian(mag):.3f} px, max "
