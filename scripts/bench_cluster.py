@@ -13,10 +13,9 @@ and of the client (scheduler, result transfer and writing). Then Dask's overhead
 round trip of no-op tasks, and the idle worker time per frame task (wall x N - task durations,
 from the scheduler's task stream). Wall times depend on the machine's load; CPU times much less.
 
-The workers run with ``WORKER_MALLOC`` (docs/cluster.md): Dask's default
-``MALLOC_TRIM_THRESHOLD_=65536`` turns glibc's dynamic mmap threshold off, and every large
-tensor is then mapped and unmapped (system time, about twice the CPU per blurry frame);
-``--dask-malloc`` keeps Dask's default to measure that.
+The workers start with ``WORKER_MALLOC`` in their environment; ``--dask-malloc`` keeps Dask's
+default ``MALLOC_TRIM_THRESHOLD_=65536`` instead. Either way every task sets glibc's thresholds
+itself (:func:`blurcalib.pipeline.runtime.keep_large_allocations`, docs/cluster.md).
 """
 
 from __future__ import annotations

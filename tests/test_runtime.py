@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import ctypes
+import platform
+
 import cv2
 import numpy as np
 import pytest
@@ -14,6 +17,7 @@ from blurcalib.pipeline.runtime import (
     check_device,
     configure_threads,
     default_workers,
+    keep_large_allocations,
 )
 from tests.conftest import FIXTURE_YAML
 
@@ -34,6 +38,28 @@ def test_default_workers_one_per_core_at_most_one_per_frame() -> None:
     assert default_workers(1) == 1
     assert default_workers(10_000) == cores
     assert default_workers(0) == 1
+
+
+class _MallInfo2(ctypes.Structure):
+    _fields_ = [(name, ctypes.c_size_t) for name in
+                ("arena", "ordblks", "smblks", "hblks", "hblkhd", "usmblks", "fsmblks", "uordblks",
+                 "fordblks", "keepcost")]
+
+
+@pytest.mark.skipif(platform.libc_ver()[0] != "glibc", reason="glibc's mallopt only")
+def test_large_allocations_stay_on_the_heap() -> None:
+    """After the setting, a freed 8 MiB tensor's memory stays in the heap for the next one
+    instead of going back to the system (glibc's mallinfo2: free heap bytes)."""
+    libc = ctypes.CDLL("libc.so.6")
+    if not hasattr(libc, "mallinfo2"):
+        pytest.skip("glibc older than 2.33 has no mallinfo2")
+    libc.mallinfo2.restype = _MallInfo2
+    assert keep_large_allocations()
+    block = torch.ones(1 << 20, dtype=torch.float64)  # 8 MiB
+    mapped = libc.mallinfo2().hblkhd
+    del block
+    info = libc.mallinfo2()
+    assert info.hblkhd == mapped and info.fordblks >= 8 << 20
 
 
 @pytest.mark.skipif(torch.cuda.is_available(), reason="this machine has CUDA")

@@ -9,6 +9,7 @@ thread by default and parallelism comes from worker processes, one per core.
 
 from __future__ import annotations
 
+import ctypes
 import multiprocessing
 import os
 import threading
@@ -49,6 +50,32 @@ def configure_threads(threads: int | None = None) -> int:
     torch.set_num_threads(n)
     cv2.setNumThreads(n)
     return n
+
+
+MMAP_THRESHOLD_BYTES = 32 << 20
+"""Allocations below this stay on glibc's heap (:func:`keep_large_allocations`)."""
+TRIM_THRESHOLD_BYTES = 1 << 30
+"""Free heap memory glibc keeps before returning it to the system."""
+
+
+def keep_large_allocations() -> bool:
+    """Let glibc keep freed tensors' memory for the next ones in this process; True when set.
+
+    ``mallopt(M_MMAP_THRESHOLD, 32 MiB)`` and ``mallopt(M_TRIM_THRESHOLD, 1 GiB)``: the block
+    solver allocates and frees tensors of a few MiB thousands of times per frame. Dask's
+    workers start with ``MALLOC_TRIM_THRESHOLD_=65536``, which turns off glibc's adaptive mmap
+    threshold, so each such tensor is mapped and unmapped again (measured: twice the CPU per
+    blurry frame, mostly system time; ``docs/cluster.md``). False where the C library is not
+    glibc (nothing changed).
+    """
+    try:
+        libc = ctypes.CDLL("libc.so.6")
+        mallopt = libc.mallopt
+    except (OSError, AttributeError):
+        return False
+    m_trim_threshold, m_mmap_threshold = -1, -3  # glibc's malloc.h
+    return bool(mallopt(m_mmap_threshold, MMAP_THRESHOLD_BYTES)) and bool(
+        mallopt(m_trim_threshold, TRIM_THRESHOLD_BYTES))
 
 
 def capped_count(value: int, what: str) -> tuple[int, str | None]:
