@@ -19,8 +19,9 @@ Method (:func:`calibrate_sharp`):
    method, whose start comes from the plane homographies ``H = K [r1 r2 t]`` (``eq:T``). If some
    observations are gross outliers of that fit (the rule below) it is run once more without them
    and the first adjustment round leaves them out.
-2. **Robust bundle adjustment** with ``scipy.optimize.least_squares`` (trust-region reflective,
-   sparse analytic Jacobian, ``x_scale='jac'``, LSMR) over the intrinsics
+2. **Robust bundle adjustment** by Levenberg-Marquardt with Huber weights (:func:`_minimise`:
+   sparse analytic Jacobian, Marquardt's damping, the poses eliminated by the Schur complement
+   and the rest solved directly) over the intrinsics
    ``(fx, fy, cx, cy, k1, k2, p1, p2, k3)``, the poses ``(rvec_f, tvec_f)`` and, with
    ``refine_points``, every observed 3D point ``P_j = (X, Y, Z)`` (``Z`` free: the printed target
    may be slightly non-flat). It minimises::
@@ -55,16 +56,16 @@ import itertools
 import json
 import math
 import os
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import cv2
 import numpy as np
+import scipy.linalg
 import scipy.sparse
 from numpy.typing import ArrayLike
-from scipy.optimize import least_squares
 
 from blurcalib.camera.parametric import (
     BrownConrady,
@@ -298,6 +299,80 @@ class _Problem:
         return jac
 
 
+def _solve_poses_eliminated(H: scipy.sparse.spmatrix, g: np.ndarray, frames: int) -> np.ndarray:
+    """``H^-1 g`` for the adjustment's symmetric positive definite normal matrix ``H (n, n)``
+    ordered as :class:`_Problem`'s parameters (9 intrinsics, ``6 F`` pose parameters, then the
+    points), by the Schur complement on the poses: their ``6 x 6`` blocks are independent, so::
+
+        S = H_oo - H_op H_pp^-1 H_po,   S x_o = g_o - H_op H_pp^-1 g_p,   x_p = H_pp^-1 (g_p - H_po x_o)
+
+    with ``o`` the intrinsics and points (``9 + 3 Q``, dense) and ``p`` the poses. Cost:
+    ``O(F (9 + 3 Q)^2)`` and one dense Cholesky solve of ``S``.
+    """
+    Hc = H.tocsr()
+    n = Hc.shape[0]
+    pose = np.arange(9, 9 + 6 * frames)
+    other = np.concatenate([np.arange(9), np.arange(9 + 6 * frames, n)])
+    blocks = pose.reshape(frames, 6)
+    Hpp = np.asarray(Hc[np.repeat(blocks, 6, axis=1).ravel(), np.tile(blocks, (1, 6)).ravel()]).reshape(
+        frames, 6, 6)
+    Hpp_inv = np.linalg.inv(Hpp)
+    H_op = Hc[other][:, pose].toarray()
+    Y = np.einsum("ofj,fji->ofi", H_op.reshape(len(other), frames, 6), Hpp_inv).reshape(len(other), -1)
+    S = Hc[other][:, other].toarray() - Y @ H_op.T
+    x = np.empty(n)
+    x[other] = scipy.linalg.cho_solve(scipy.linalg.cho_factor(S), g[other] - Y @ g[pose])
+    x[pose] = np.einsum("fij,fj->fi", Hpp_inv, (g[pose] - H_op.T @ x[other]).reshape(frames, 6)).ravel()
+    return x
+
+
+def _minimise(fun: Callable[[np.ndarray], np.ndarray], jac: Callable[[np.ndarray], scipy.sparse.spmatrix],
+              x: np.ndarray, huber: float, frames: int, max_jacobians: int = _MAX_NFEV, tol: float = 1e-10
+              ) -> tuple[np.ndarray, int]:
+    """``argmin_x sum_i rho(f_i(x))`` by Levenberg-Marquardt on the sparse normal equations; the
+    minimiser and the Jacobians evaluated.
+
+    ``rho`` is Huber's loss at ``huber`` per residual component (``f^2`` inside, ``2 h |f| - h^2``
+    beyond; ``huber = inf``: plain squares), by iteratively reweighted Gauss-Newton: weights
+    ``w_i = min(1, h / |f_i|)``, the step ``(J^T W J + lambda diag(J^T W J)) dx = -J^T W f``
+    (Marquardt's damping, which ``x_scale='jac'`` of ``scipy.optimize.least_squares`` also
+    amounts to), solved directly with the ``frames`` poses eliminated
+    (:func:`_solve_poses_eliminated`). ``lambda`` starts at 1e-6, /10 after
+    an accepted step, x10 after a rejected one. Stops when an accepted step lowers the cost by
+    less than ``tol`` of it or moves ``x`` by less than ``tol (tol + |x|)``, or after
+    ``max_jacobians``.
+    """
+    def cost(f: np.ndarray) -> float:
+        a = np.abs(f)
+        if not math.isfinite(huber):
+            return float(np.sum(a * a))
+        return float(np.sum(np.where(a <= huber, a * a, 2.0 * huber * a - huber * huber)))
+
+    f = fun(x)
+    c = cost(f)
+    lam = 1e-6
+    for njev in range(1, max_jacobians + 1):
+        J = jac(x).tocsr()
+        w = np.minimum(1.0, huber / np.maximum(np.abs(f), 1e-300))
+        H = (J.T @ J.multiply(w[:, None])).tocsr()
+        g = J.T @ (w * f)
+        diag = scipy.sparse.diags(np.maximum(H.diagonal(), 1e-12))
+        while True:
+            dx = -_solve_poses_eliminated(H + lam * diag, g, frames)
+            f_new = fun(x + dx)
+            c_new = cost(f_new)
+            if np.isfinite(c_new) and c_new <= c:
+                break
+            lam *= 10.0
+            if lam > 1e12:
+                return x, njev
+        x, f, c_old, c = x + dx, f_new, c, c_new
+        lam = max(lam / 10.0, 1e-12)
+        if c_old - c <= tol * c_old or np.linalg.norm(dx) <= tol * (tol + np.linalg.norm(x)):
+            return x, njev
+    return x, max_jacobians
+
+
 def _robust_threshold(errors: np.ndarray, sigmas: float, num_params: int) -> float:
     """Outlier threshold ``max(sigmas * sigma, 0.01 px)`` for inlier error norms ``errors (n,)``.
 
@@ -498,12 +573,9 @@ def calibrate_sharp(observations: FeatureTable | Sequence[FeatureObservation], p
     iterations = 0
     for rounds in range(1, _MAX_ROUNDS + 1):
         rows = np.flatnonzero(inlier)
-        result = least_squares(problem.residual_fn(rows), params, jac=problem.jacobian_fn(rows),
-                               method="trf", loss=loss, f_scale=huber_px, x_scale="jac", tr_solver="lsmr",
-                               tr_options={"atol": 1e-10, "btol": 1e-10}, ftol=1e-10, xtol=1e-10, gtol=1e-10,
-                               max_nfev=_MAX_NFEV)
-        params = result.x
-        iterations += int(result.njev)
+        params, njev = _minimise(problem.residual_fn(rows), problem.jacobian_fn(rows), params,
+                                 huber_px if loss == "huber" else math.inf, problem.num_frames)
+        iterations += njev
         errors = np.linalg.norm(problem.predict(params, np.arange(len(table))) - observed, axis=1)
         new_inlier = errors <= _robust_threshold(errors[inlier], outlier_sigmas, problem.num_params)
         if np.array_equal(new_inlier, inlier) or rounds == _MAX_ROUNDS:
