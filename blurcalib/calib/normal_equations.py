@@ -108,6 +108,19 @@ def normal_equations(result: BundleResult) -> NormalEquations:
                            int(st.inside.sum()))
 
 
+def _frames_problem(pb: BundleProblem, st: BundleState, frames: torch.Tensor, rows: torch.Tensor
+                    ) -> tuple[BundleProblem, BundleState]:
+    """The problem and state of the frames ``(F,)`` bool alone, with the observations ``rows (N,)``
+    bool (of those frames), the frames renumbered in order: their normal equations without the
+    ``(G, F, 8)`` blocks of the other frames."""
+    number = torch.cumsum(frames.to(torch.long), 0) - 1
+    sub = BundleProblem(pb.spline, number[pb.frame[rows]], pb.points[rows], pb.observed[rows],
+                        pb.weights[rows], pb.shift_free[frames], pb.settings)
+    sub.smooth_w = pb.smooth_w
+    return sub, replace(st, R=st.R[frames], t=st.t[frames], s=st.s[frames], u=st.u[rows],
+                        inside=st.inside[rows])
+
+
 def leave_out_models(result: BundleResult, left_out: Sequence[ArrayLike], priors: Sequence[CentralGeneric],
                      damping: float = 1e-6) -> list[CentralGeneric]:
     """The camera without each set of frames, one damped Gauss-Newton step from ``result``.
@@ -147,12 +160,14 @@ def leave_out_models(result: BundleResult, left_out: Sequence[ArrayLike], priors
     eye8 = torch.eye(8, **kw)
 
     def terms(frames: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """``S_L, c_L`` and the data diagonal of ``Hgg_L`` of the frames ``(F,)`` bool."""
-        if not bool((frames[pb.frame] & (w > 0)).any()):
+        """``S_L, c_L`` and the data diagonal of ``Hgg_L`` of the frames ``(F,)`` bool, from
+        those frames' observations and blocks alone (:func:`_frames_problem`)."""
+        rows = frames[pb.frame] & (w > 0)
+        if not bool(rows.any()):
             return torch.zeros(G, G, **kw), torch.zeros(G, **kw), torch.zeros(G, **kw)
-        Hgg, Hgp, Hpp, bg, bp, _ = data_equations(pb, st, torch.where(frames[pb.frame], w, 0.0), r)
-        add_shift_prior(pb, st, Hpp, bp, frames)
-        Hpp[~frames] = eye8
+        sub, sub_st = _frames_problem(pb, st, frames, rows)
+        Hgg, Hgp, Hpp, bg, bp, _ = data_equations(sub, sub_st, w[rows], r[rows])
+        add_shift_prior(sub, sub_st, Hpp, bp)
         Hpp = Hpp + damping * torch.diag_embed(torch.diagonal(Hpp, dim1=1, dim2=2)) + 1e-12 * eye8
         diag = torch.diagonal(Hgg).clone()
         Hpp_inv = torch.cholesky_inverse(torch.linalg.cholesky(Hpp))
