@@ -225,15 +225,17 @@ def fit_frames(projector: Projector, poses: Sequence[Pose], frame: np.ndarray, p
     The bundle adjustment's objective (:mod:`blurcalib.calib.bundle`) without the grid: per frame
     ``min sum_i rho(|p_i - pi_G(R P_i + t) - s|^2) + |s|^2 / sigma_s^2``, Huber ``rho`` by
     iteratively reweighted Gauss-Newton, all frames batched (``(F, 8, 8)`` normal equations,
-    columns ``omega (3), dt (3), s (2)``), with a step halving per frame when the cost rises.
+    columns ``omega (3), dt (3), s (2)``), with a step halving per frame when the cost rises. A
+    frame stops when no component of its step exceeds ``tol`` or when halving finds no lower
+    cost; the next iterations project the other frames' observations only.
 
     Args:
         projector: the camera held (:func:`generic_projector`, :func:`parametric_projector`).
         poses: ``(F,)`` initial poses in the camera's frame.
         frame: ``(N,)`` frame index; points ``(N, 3)`` m; observed ``(N, 2)`` px (OpenCV).
         shift_free: ``(F,)`` bool.
-        iterations: Gauss-Newton iterations at most; tol: stop when no step component (rad, m,
-            px) exceeds it.
+        iterations: Gauss-Newton iterations at most; tol: a frame stops when no component of
+            its step (rad, m, px) exceeds it.
         huber_px, shift_sigma_px: as :class:`blurcalib.calib.bundle.BundleSettings`.
     """
     kw = {"dtype": torch.float64}
@@ -248,21 +250,27 @@ def fit_frames(projector: Projector, poses: Sequence[Pose], frame: np.ndarray, p
     shift_w = 1.0 / shift_sigma_px**2
     eye2 = torch.eye(2, **kw)
 
-    def evaluate(R: torch.Tensor, t: torch.Tensor, s: torch.Tensor, init: torch.Tensor | None):
-        X = torch.einsum("nij,nj->ni", R[fr], P) + t[fr]
+    def evaluate(R: torch.Tensor, t: torch.Tensor, s: torch.Tensor, rows: torch.Tensor,
+                 init: torch.Tensor | None):
+        """Points, projections, their derivatives, inside, residuals of the observations ``rows``
+        and the cost ``(F,)`` of their frames (0 for the others)."""
+        f = fr[rows]
+        X = torch.einsum("nij,nj->ni", R[f], P[rows]) + t[f]
         u, J_p, inside = projector(X, init)
-        r = p - u - s[fr]
+        r = p[rows] - u - s[f]
         e = torch.where(inside, r.norm(dim=-1), 0.0)
         rho = torch.where(e <= huber_px, e * e, 2 * huber_px * e - huber_px**2)
-        cost = torch.zeros(F, **kw).index_add_(0, fr, rho) + shift_w * (free[:, None] * s * s).sum(-1)
+        cost = torch.zeros(F, **kw).index_add_(0, f, rho) + shift_w * (free[:, None] * s * s).sum(-1)
         return X, u, J_p, inside, r, cost
 
-    X, u, J_p, inside, r, cost = evaluate(R, t, s, p.clone())  # projections start where observed
+    every = torch.arange(len(fr))
+    X, u, J_p, inside, r, cost = evaluate(R, t, s, every, p.clone())  # projections start where observed
+    active = torch.ones(F, dtype=torch.bool)
     for _ in range(iterations):
-        sel = torch.nonzero(inside).squeeze(1)
+        rows = every[active[fr]]
+        sel = rows[inside[rows]]
         f = fr[sel]
-        Jp = J_p[sel]
-        J = frame_jacobian(Jp, X[sel] - t[f])
+        J = frame_jacobian(J_p[sel], X[sel] - t[f])
         e = r[sel].norm(dim=-1)
         w = torch.where(e <= huber_px, torch.ones_like(e), huber_px / e.clamp_min(1e-300))[:, None, None]
         H = torch.zeros(F, 8, 8, **kw).index_add_(0, f, J.transpose(1, 2) @ (w * J))
@@ -275,22 +283,26 @@ def fit_frames(projector: Projector, poses: Sequence[Pose], frame: np.ndarray, p
         H[~free, 6:, 6:] = eye2
         b[~free, 6:] = 0.0
         H = H + 1e-9 * torch.diag_embed(torch.diagonal(H, dim1=1, dim2=2).clamp_min(1e-12))
-        dp = torch.linalg.solve(H, b)
+        dp = torch.where(active[:, None], torch.linalg.solve(H, b), 0.0)
         step = torch.ones(F, **kw)
         for _half in range(6):
             d = dp * step[:, None]
             R_n = exp_so3(d[:, :3]) @ R
-            trial = evaluate(R_n, t + d[:, 3:6], s + d[:, 6:], u)
-            worse = trial[-1] > cost * (1 + COST_NOISE)
+            trial = evaluate(R_n, t + d[:, 3:6], s + d[:, 6:], rows, u[rows])
+            worse = active & (trial[-1] > cost * (1 + COST_NOISE))
             if not bool(worse.any()):
                 break
             step = torch.where(worse, step * 0.5, step)
-        better = ~worse
+        better = active & ~worse
         R = torch.where(better[:, None, None], R_n, R)
         t = torch.where(better[:, None], t + d[:, 3:6], t)
         s = torch.where(better[:, None], s + d[:, 6:], s)
-        X, u, J_p, inside, r, cost = trial if bool(better.all()) else evaluate(R, t, s, u)
-        if float(dp.abs().max()) < tol:
+        moved = rows[better[fr[rows]]]
+        keep = better[fr[rows]]
+        X[moved], u[moved], J_p[moved], inside[moved], r[moved] = (v[keep] for v in trial[:5])
+        cost = torch.where(better, trial[-1], cost)
+        active &= better & (dp.abs().amax(dim=1) >= tol)
+        if not bool(active.any()):
             break
     res = torch.where(inside[:, None], r, torch.nan).numpy()
     Rn, tn = R.numpy(), t.numpy()
