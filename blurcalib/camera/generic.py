@@ -63,6 +63,10 @@ PIXEL_CORNER_OFFSET = 0.5
 """Reference-tool (pixel-corner) coordinate minus OpenCV coordinate (px)."""
 
 _EDGE_ITERATIONS = 6
+_WARM_DAMPING = 1e-6
+"""Initial Levenberg-Marquardt damping of a warm-started projection, relative to the normal
+matrix's diagonal: from a previous iterate's pixel the first steps are Gauss-Newton's (the
+lattice start far from the solution uses 0.005)."""
 """A projection held at the area's edge for this many iterations is given up (outside the area)."""
 
 _AREA_EDGE = 0.999
@@ -232,8 +236,9 @@ class GridSpline:
                 iterations: int = 100, tol_px: float = 1e-8) -> tuple[torch.Tensor, torch.Tensor]:
         """Project camera-frame points ``(N, 3)`` to OpenCV pixels ``(N, 2)``.
 
-        Levenberg-Marquardt on ``|d(u) - p / |p||^2`` per point (initial lambda 1 % of the mean
-        diagonal, /2 on success, x4 on failure), clamped to the calibrated area (a point held at
+        Levenberg-Marquardt on ``|d(u) - p / |p||^2`` per point (initial lambda 0.5 % of the
+        diagonal from the lattice start, :data:`_WARM_DAMPING` from ``init``; /2 on success, x4 on
+        failure), clamped to the calibrated area (a point held at
         its edge for several iterations is given up), started from
         ``init`` ``(N, 2)`` (a previous projection) or from the best pixel of a lattice.
         Returns the pixels and ``inside (N,)``: converged strictly inside the area (a clamped
@@ -245,7 +250,7 @@ class GridSpline:
         D = ev.dd_du
         r = ev.d - p
         cost = (r * r).sum(-1)
-        lam_all = 0.005 * (D * D).sum(dim=(1, 2))
+        lam_all = (0.005 if init is None else _WARM_DAMPING) * (D * D).sum(dim=(1, 2))
         active = torch.ones(len(u), dtype=torch.bool, device=u.device)
         on_edge = torch.zeros(len(u), dtype=torch.long, device=u.device)
         for _ in range(iterations):
