@@ -10,6 +10,7 @@ import pytest
 import torch
 from scipy.ndimage import convolve
 
+from blurcalib.deconv import lm
 from blurcalib.deconv.blocks import fit_blocks, fit_blocks_fixed, fit_blocks_hinted, render_model
 from blurcalib.deconv.convolution import DIRECT_PER_FFT_POINT, fft_size
 from blurcalib.deconv.problem import BlockProblem
@@ -17,7 +18,14 @@ from blurcalib.deconv.result import BlockFit
 from blurcalib.deconv.settings import DeconvSettings
 from blurcalib.geometry.homography import translation
 from blurcalib.io.results import BlockStatus
-from blurcalib.psf.kernel import boundary_energy, psf_centroid, psf_moments, recentre, shift_pair
+from blurcalib.psf.kernel import (
+    boundary_energy,
+    psf_centroid,
+    psf_moments,
+    recentre,
+    resize_kernels,
+    shift_pair,
+)
 from blurcalib.sim.blocks import SimulatedBlocks, simulate_blocks
 from blurcalib.target.pattern import layout_pattern, star_signed_distance, star_signed_distance_normal
 
@@ -203,6 +211,30 @@ def test_batch_equals_one_by_one(sim: SimulatedBlocks, fit: BlockFit) -> None:
 def test_float64_agrees_with_float32(sim: SimulatedBlocks, fit: BlockFit) -> None:
     fit64 = fit_blocks(sim.image, sim.H0[:2], SEGMENTS, K, dataclasses.replace(SETTINGS, dtype="float64"))
     assert np.abs(fit64.centre - fit.centre[:2]).max() < 2e-3
+
+
+@pytest.mark.parametrize("kernel_size", [K, 41])  # direct and FFT convolutions
+def test_fixed_fit_takes_trial_jacobians_only_where_accepted(sim: SimulatedBlocks, kernel_size: int,
+                                                             monkeypatch: pytest.MonkeyPatch) -> None:
+    """With given PSFs the later LM steps compute a trial point's Jacobian only for the blocks
+    that accept it (and the kernels' transform once per stage): the fit is the one that computes
+    every trial's Jacobian, to float rounding, and some trials were rejected."""
+    psfs = resize_kernels(_centred_truth(sim.psf_true, K), kernel_size)
+    accepted: list[float] = []
+    jacobian_where = lm._jacobian_where
+
+    def counted(prob, cur, best, accept, *args):
+        accepted.append(float(accept.double().mean()))
+        return jacobian_where(prob, cur, best, accept, *args)
+
+    monkeypatch.setattr(lm, "_jacobian_where", counted)
+    split = fit_blocks_fixed(sim.image, sim.H0, SEGMENTS, psfs, SETTINGS)
+    assert accepted and min(accepted) < 1.0
+    monkeypatch.setattr(lm, "SPLIT_FROM_STEP", SETTINGS.fixed_steps)
+    every = fit_blocks_fixed(sim.image, sim.H0, SEGMENTS, psfs, SETTINGS)
+    assert split.status == every.status
+    np.testing.assert_allclose(split.centre, every.centre, atol=1e-5)
+    np.testing.assert_allclose(split.loss, every.loss, rtol=1e-4)
 
 
 @pytest.mark.parametrize(("kernel_size", "side", "by_fft"),

@@ -373,9 +373,14 @@ def blurry_frame(sim: Simulator):
 @pytest.mark.slow
 def test_auto_kind_classifies_each_frame_by_its_blur(sim: Simulator, sharp_frame, blurry_frame) -> None:
     auto = ExtractSettings.auto()
-    sharp = extract_frame(sharp_frame.image, sim.pattern, "s.png", auto)
+    events: list = []
+    sharp = extract_frame(sharp_frame.image, sim.pattern, "s.png", auto, on_event=events.append)
     blurry = extract_frame(blurry_frame.image, sim.pattern, "b.png", auto)
     assert sharp.kind == "sharp" and sharp.blur_px < SHARP_BELOW_PX
+    # the blurry settings grew the sharp frame's first front alone, which measured it sharp
+    with_blurry_window = [ev for ev in events if ev.psf.shape[-1] == auto.window.start]
+    assert {ev.front for ev in with_blurry_window} == {0}
+    assert len(with_blurry_window) == int((sharp.growth.front == 0).sum())
     assert blurry.kind == "blurry" and blurry.blur_px > SHARP_BELOW_PX
     assert sharp.summary()["kind"] == "sharp" and sharp.summary()["blur_px"] == round(sharp.blur_px, 3)
     # a frame found sharp ends as the sharp settings extract it, with the sharp-frame flag

@@ -28,17 +28,34 @@ def fft_size(n: int) -> int:
     return best
 
 
-def valid_convolution(L: torch.Tensor, k: torch.Tensor) -> torch.Tensor:
+def fft_grid(latent: tuple[int, int], K: int) -> tuple[int, int] | None:
+    """The FFT grid ``(rows, cols)`` of a valid convolution of ``latent = (Hl, Wl)`` px channels
+    with ``K x K`` kernels, or None where the direct convolution is cheaper: its ``h w K^2``
+    multiply-adds per channel (``h = Hl - K + 1``, ``w`` alike) cost less than the FFT's grid
+    (:data:`DIRECT_PER_FFT_POINT`)."""
+    Hl, Wl = latent
+    size = (fft_size(Hl), fft_size(Wl))
+    direct = (Hl - K + 1) * (Wl - K + 1) * K * K <= DIRECT_PER_FFT_POINT * size[0] * size[1]
+    return None if direct else size
+
+
+def kernel_spectrum(k: torch.Tensor, grid: tuple[int, int]) -> torch.Tensor:
+    """The transform of kernels ``k (b, K, K)`` or ``(b, C, K, K)`` on an FFT ``grid``
+    (:func:`fft_grid`), ``(b, 1 or C, rows, cols // 2 + 1)``, for :func:`valid_convolution`."""
+    return torch.fft.rfft2(k[:, None] if k.ndim == 3 else k, s=grid)
+
+
+def valid_convolution(L: torch.Tensor, k: torch.Tensor, spectrum: torch.Tensor | None = None) -> torch.Tensor:
     """Valid convolution ``(k * L)`` of latent channels ``L (b, C, Hl, Wl)`` -> ``(b, C, h, w)``,
     ``h = Hl - 2c``, ``w = Wl - 2c`` (``c`` the kernel radius).
 
     ``k`` is ``(b, K, K)`` (one kernel for every channel of a block) or ``(b, C, K, K)`` (one
-    per channel; ``L`` may then have one channel, shared). Direct when its ``h w K^2``
-    multiply-adds per channel cost less than the FFT's grid (:data:`DIRECT_PER_FFT_POINT`):
-    one depthwise ``conv2d`` over the ``b C`` channels (a correlation, so with the kernel
-    flipped). Otherwise circular FFT convolution on a grid of at least ``(Hl, Wl)`` (5-smooth
-    sides, the fast FFT sizes): the wrap-around only reaches the first ``2c`` rows and
-    columns, outside the output.
+    per channel; ``L`` may then have one channel, shared); ``spectrum`` its
+    :func:`kernel_spectrum` when computed already (kernels held through several convolutions).
+    Direct where :func:`fft_grid` says so: one depthwise ``conv2d`` over the ``b C`` channels (a
+    correlation, so with the kernel flipped). Otherwise circular FFT convolution on a grid of at
+    least ``(Hl, Wl)`` (5-smooth sides, the fast FFT sizes): the wrap-around only reaches the
+    first ``2c`` rows and columns, outside the output.
     """
     k = k[:, None] if k.ndim == 3 else k
     b, C = L.shape[0], max(L.shape[1], k.shape[1])
@@ -46,12 +63,12 @@ def valid_convolution(L: torch.Tensor, k: torch.Tensor) -> torch.Tensor:
     K = k.shape[-1]
     r2 = K - 1
     h, w = Hl - r2, Wl - r2
-    size = (fft_size(Hl), fft_size(Wl))
-    if h * w * K * K <= DIRECT_PER_FFT_POINT * size[0] * size[1]:
+    grid = fft_grid((Hl, Wl), K)
+    if grid is None:
         weight = k.flip(-2, -1).expand(b, C, K, K).reshape(b * C, 1, K, K)
         L = L.expand(b, C, Hl, Wl)
         out = nnf.conv2d(L.reshape(1, b * C, Hl, Wl), weight, groups=b * C)
         return out.reshape(b, C, h, w)
-    kf = torch.fft.rfft2(k, s=size)
-    out = torch.fft.irfft2(torch.fft.rfft2(L, s=size) * kf, s=size)
+    kf = kernel_spectrum(k, grid) if spectrum is None else spectrum
+    out = torch.fft.irfft2(torch.fft.rfft2(L, s=grid) * kf, s=grid)
     return out[..., r2:r2 + h, r2:r2 + w]

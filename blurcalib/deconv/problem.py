@@ -18,7 +18,7 @@ import numpy as np
 import torch
 import torch.nn.functional as nnf
 
-from blurcalib.deconv.convolution import valid_convolution
+from blurcalib.deconv.convolution import fft_grid, kernel_spectrum, valid_convolution
 from blurcalib.deconv.latent import latent_pattern
 from blurcalib.deconv.linear import kernel_support, solve_nonnegative
 from blurcalib.deconv.settings import DeconvSettings, check_kernel_size
@@ -45,6 +45,8 @@ class Design:
         fixed: ``(b, K, K)`` given kernels, or None. With them the kernel has one unknown, its
             scale ``a3`` (``m = 1``; ``patch``, ``taps_w``, ``kernel_index`` and ``rho`` are
             empty): the design row is the convolution ``k * S`` at the pixels.
+        spectrum: the given kernels' transform for :meth:`BlockProblem.conv` (computed once per
+            stage), or None (no given kernels, or direct convolution).
         u, v: ``(b, n)`` normalised coordinates at the pixels.
         U: ``(b, 3, n)`` the offset's design rows ``(u, v, 1)`` (0 on padding).
         img: ``(b, n)`` observed grey levels (0 on padding).
@@ -59,10 +61,20 @@ class Design:
     rho: torch.Tensor
     coarse: bool
     fixed: torch.Tensor | None
+    spectrum: torch.Tensor | None
     u: torch.Tensor
     v: torch.Tensor
     U: torch.Tensor
     img: torch.Tensor
+
+    def take(self, rows: torch.Tensor) -> Design:
+        """The design of blocks ``rows`` (indices), padded as this one (the pixel and kernel-entry
+        lists keep their length, so a block's solve is the same in either)."""
+        values = {}
+        for f in fields(self):
+            value = getattr(self, f.name)
+            values[f.name] = value[rows] if isinstance(value, torch.Tensor) else value
+        return Design(**values)
 
 
 @dataclass
@@ -179,10 +191,11 @@ class BlockProblem:
         return latent_pattern(H_loc, (self.Hl, self.Wl), self.N, self.s.tau, self.s.supersample, self.dt,
                               with_jac)
 
-    def conv(self, L: torch.Tensor, k: torch.Tensor) -> torch.Tensor:
+    def conv(self, L: torch.Tensor, k: torch.Tensor, spectrum: torch.Tensor | None = None) -> torch.Tensor:
         """Valid convolution ``(k * L)`` of latent channels ``(b, C, Hl, Wl)`` -> ``(b, C, h, w)``
-        (:func:`blurcalib.deconv.convolution.valid_convolution`)."""
-        return valid_convolution(L, k)
+        (:func:`blurcalib.deconv.convolution.valid_convolution`; ``spectrum`` the kernels'
+        transform when known)."""
+        return valid_convolution(L, k, spectrum)
 
     def square_mask(self, H_loc: torch.Tensor) -> torch.Tensor:
         """Observed pixels of the loss, ``|q|_inf <= e`` (the block's square for ``e = 1``; ``e``
@@ -220,8 +233,11 @@ class BlockProblem:
         img = torch.gather(self.img.reshape(b, -1), 1, pix) * pix_w
         if fixed is not None:
             none = torch.zeros((b, 0), dtype=torch.int64, device=dev)
+            kernels = fixed.to(self.dt)
+            grid = fft_grid((self.Hl, self.Wl), K)
             return Design(mask=mask, pix=pix, pix_w=pix_w, patch=none, taps_w=none.to(self.dt),
-                          kernel_index=none, rho=self.rho[none], coarse=False, fixed=fixed.to(self.dt),
+                          kernel_index=none, rho=self.rho[none], coarse=False, fixed=kernels,
+                          spectrum=None if grid is None else kernel_spectrum(kernels, grid),
                           u=u, v=v, U=U, img=img)
         if support is None:
             rc = (r - 1) // 2  # taps at 2 px spacing whose tents stay inside the window
@@ -242,7 +258,8 @@ class BlockProblem:
         base = torch.where(pix_w > 0, base, size)
         patch = (base[:, None, :] + taps[:, :, None]).reshape(b, -1)
         return Design(mask=mask, pix=pix, pix_w=pix_w, patch=patch, taps_w=taps_w, kernel_index=kidx,
-                      rho=self.rho[kidx], coarse=support is None, fixed=None, u=u, v=v, U=U, img=img)
+                      rho=self.rho[kidx], coarse=support is None, fixed=None, spectrum=None, u=u, v=v, U=U,
+                      img=img)
 
     def _patch_source(self, S: torch.Tensor, alpha: torch.Tensor, des: Design
                       ) -> tuple[torch.Tensor, torch.Tensor]:
@@ -302,7 +319,7 @@ class BlockProblem:
         D = torch.empty((b, m + 3, n), dtype=self.dt, device=src.device)
         if fixed:
             chans = torch.cat([S[:, None], dS], dim=1) if with_jac else S[:, None]
-            conv = torch.gather(self.conv(chans, des.fixed).reshape(b, chans.shape[1], -1), 2,
+            conv = torch.gather(self.conv(chans, des.fixed, des.spectrum).reshape(b, chans.shape[1], -1), 2,
                                 des.pix[:, None, :].expand(-1, chans.shape[1], -1))
             D[:, :1] = conv[:, :1]
         else:

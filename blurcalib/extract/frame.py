@@ -113,7 +113,10 @@ class ExtractSettings:
         kind: ``"blurry"``, ``"sharp"`` (recorded in the feature flags) or ``"auto"``: each frame
             is classified from its own measured blur (:func:`ring_blur`), ``sharp`` below
             ``sharp_below_px``; it is grown with these (blurry) settings, and a frame found sharp
-            is grown again from the same seed with :meth:`for_kind` ``("sharp")``.
+            is grown again from the same seed with :meth:`for_kind` ``("sharp")``. A frame whose
+            first front already measures sharp is not grown further with the blurry settings
+            (the measure is the first front's, so it is known there; the later fronts of a sharp
+            frame are grown once, with the sharp settings).
         scales: tag detection scales.
         sharp_below_px: the classification threshold of ``kind="auto"`` (px of blur extent).
     """
@@ -257,9 +260,15 @@ def grow_frame(image: np.ndarray, pattern: StarPattern, frame: str, seed: Seed,
     kind = "blurry" if settings.kind == "auto" else settings.kind
     used = settings.for_kind(kind) if settings.kind == "auto" else settings
     noise = frame_noise(image)
-    growth = grow(image, pattern, seed, used.window, used.deconv, used.grow, on_event, should_stop, noise)
+    auto = settings.kind == "auto"
+
+    def blurry(first: Growth) -> bool:  # a sharp first front ends the blurry growth there
+        return not ring_blur(first) < settings.sharp_below_px
+
+    growth = grow(image, pattern, seed, used.window, used.deconv, used.grow, on_event, should_stop, noise,
+                  blurry if auto else None)
     blur = ring_blur(growth)
-    if settings.kind == "auto" and blur < settings.sharp_below_px:
+    if auto and blur < settings.sharp_below_px:
         kind, used = "sharp", settings.for_kind("sharp")
         growth = grow(image, pattern, seed, used.window, used.deconv, used.grow, on_event, should_stop, noise)
     t2 = time.perf_counter()

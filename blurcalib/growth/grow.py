@@ -52,7 +52,8 @@ from blurcalib.target.pattern import StarPattern
 def grow(image: np.ndarray, pattern: StarPattern, seed: Seed, window: WindowPolicy | None = None,
          deconv: DeconvSettings | None = None, settings: GrowSettings | None = None,
          on_event: Callable[[GrowthEvent], None] | None = None,
-         should_stop: Callable[[], bool] | None = None, noise: NoiseModel | None = None) -> Growth | None:
+         should_stop: Callable[[], bool] | None = None, noise: NoiseModel | None = None,
+         go_on: Callable[[Growth], bool] | None = None) -> Growth | None:
     """Grow from ``seed`` over the frame ``image`` ``(H, W)`` (grey levels).
 
     Args:
@@ -68,6 +69,9 @@ def grow(image: np.ndarray, pattern: StarPattern, seed: Seed, window: WindowPoli
         noise: the frame's noise (:func:`blurcalib.extract.noise.estimate_noise`): the loss limit
             :attr:`GrowSettings.max_loss` grows with its variance at the frame's level above the
             reference (:func:`blurcalib.extract.quality.noise_scale`); None keeps it as given.
+        go_on: called once with the growth of the first front; when it returns False the growth
+            ends there and is returned as it is (no field, final fit or second judgement), e.g.
+            once the first front shows a sharp frame that is to be grown with other settings.
     Returns:
         The growth, or None when not a single block could be attempted.
     """
@@ -117,6 +121,8 @@ def grow(image: np.ndarray, pattern: StarPattern, seed: Seed, window: WindowPoli
         ledger.add_fits(fit)
         front_ids, front_H, front_src = next_front(pattern, ledger.accepted_H, ledger.row, newly_accepted)
         front_index += 1
+        if front_index == 1 and go_on is not None and not go_on(ledger.growth()):
+            return ledger.growth()
         if state.adaptive:
             state.size = window.choose(fit.sigma_major[accepted_rows])
     if ledger.fit is None:
