@@ -19,9 +19,9 @@ Method (:func:`calibrate_sharp`):
    method, whose start comes from the plane homographies ``H = K [r1 r2 t]`` (``eq:T``). If some
    observations are gross outliers of that fit (the rule below) it is run once more without them
    and the first adjustment round leaves them out.
-2. **Robust bundle adjustment** by Levenberg-Marquardt with Huber weights (:func:`_minimise`:
-   sparse analytic Jacobian, Marquardt's damping, the poses eliminated by the Schur complement
-   and the rest solved directly) over the intrinsics
+2. **Robust bundle adjustment** by Levenberg-Marquardt with Huber weights
+   (:mod:`blurcalib.calib.parametric_adjustment`: sparse analytic Jacobian, Marquardt's damping,
+   the poses eliminated by the Schur complement and the rest solved directly) over the intrinsics
    ``(fx, fy, cx, cy, k1, k2, p1, p2, k3)``, the poses ``(rvec_f, tvec_f)`` and, with
    ``refine_points``, every observed 3D point ``P_j = (X, Y, Z)`` (``Z`` free: the printed target
    may be slightly non-flat). It minimises::
@@ -56,17 +56,16 @@ import itertools
 import json
 import math
 import os
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import cv2
 import numpy as np
-import scipy.linalg
-import scipy.sparse
 from numpy.typing import ArrayLike
 
+from blurcalib.calib.parametric_adjustment import ParametricProblem, minimise
 from blurcalib.camera.parametric import (
     BrownConrady,
     CameraFileError,
@@ -108,9 +107,8 @@ _MEDIAN_TO_SIGMA = 1.0 / math.sqrt(2.0 * math.log(2.0))
 _MIN_OUTLIER_PX = 0.01
 """The outlier threshold never drops below this (px), so noise-free data keeps its points."""
 _MAX_ROUNDS = 10
-_MAX_NFEV = 100
-"""Iterations per round: TRF converges in a few when no residual sits in Huber's linear part,
-and creeps (linear convergence) when some do; such rounds are cut short and refitted."""
+"""Outlier rounds at most (each a :func:`blurcalib.calib.parametric_adjustment.minimise` of at most
+100 Jacobians)."""
 _POINT_COLUMNS = ("feature_id", "X", "Y", "Z", "refined")
 _RESIDUAL_COLUMNS = ("frame", "feature_id", "x", "y", "dx", "dy", "inlier")
 
@@ -223,154 +221,6 @@ class Calibration:
             "frames": per_frame,
             "skipped_frames": dict(self.skipped_frames),
         }
-
-
-# ------------------------------------------------------------------------------------ projection
-# ------------------------------------------------------------------------------ the adjustment
-@dataclass
-class _Problem:
-    """Index structure of one bundle adjustment (observations of the calibrated frames)."""
-
-    frame_idx: np.ndarray  # (N,) frame index
-    point_idx: np.ndarray  # (N,) index of each observation's point into ``nominal``
-    observed: np.ndarray  # (N, 2) px
-    nominal: np.ndarray  # (Q, 3) m, nominal point of each parameter point
-    fixed_points: np.ndarray  # (N, 3) m, used when points are not refined
-    num_frames: int
-    refine_points: bool
-    point_sigma: float
-
-    @property
-    def num_params(self) -> int:
-        return 9 + 6 * self.num_frames + (3 * len(self.nominal) if self.refine_points else 0)
-
-    def unpack(self, params: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """``params`` -> intrinsics (9,), rvecs (F, 3), tvecs (F, 3), free points (Q, 3)."""
-        poses = params[9:9 + 6 * self.num_frames].reshape(-1, 6)
-        pts = params[9 + 6 * self.num_frames:].reshape(-1, 3) if self.refine_points else self.nominal
-        return params[:9], poses[:, :3], poses[:, 3:], pts
-
-    def obs_points(self, pts: np.ndarray, rows: np.ndarray) -> np.ndarray:
-        return pts[self.point_idx[rows]] if self.refine_points else self.fixed_points[rows]
-
-    def predict(self, params: np.ndarray, rows: np.ndarray) -> np.ndarray:
-        intr, rvecs, tvecs, pts = self.unpack(params)
-        return project_poses(intr, rvecs, tvecs, self.obs_points(pts, rows), self.frame_idx[rows]).pixels
-
-    def residual_fn(self, rows: np.ndarray):
-        """Residuals ``(2 n + 3 Q,)``: ``pi_d - p`` of the rows (px), then the point prior."""
-        def fun(params: np.ndarray) -> np.ndarray:
-            res = (self.predict(params, rows) - self.observed[rows]).ravel()
-            if not self.refine_points:
-                return res
-            pts = self.unpack(params)[3]
-            return np.concatenate([res, ((pts - self.nominal) / self.point_sigma).ravel()])
-        return fun
-
-    def jacobian_fn(self, rows: np.ndarray):
-        """Sparse Jacobian of :meth:`residual_fn` (CSR): 9 + 6 (+ 3) non-zeros per data row."""
-        n = len(rows)
-        fi = self.frame_idx[rows]
-        cols = [np.broadcast_to(np.arange(9), (n, 9)),
-                9 + 6 * fi[:, None] + np.arange(6)]
-        if self.refine_points:
-            cols.append(9 + 6 * self.num_frames + 3 * self.point_idx[rows][:, None] + np.arange(3))
-        col = np.concatenate(cols, axis=1)
-        data_cols = np.repeat(col[:, None, :], 2, axis=1).ravel()
-        width = col.shape[1]
-        data_rows = np.repeat(np.arange(2 * n), width)
-        num_rows = 2 * n
-        if self.refine_points:
-            q = len(self.nominal)
-            prior_cols = 9 + 6 * self.num_frames + np.arange(3 * q)
-            data_rows = np.concatenate([data_rows, 2 * n + np.arange(3 * q)])
-            data_cols = np.concatenate([data_cols, prior_cols])
-            num_rows += 3 * q
-        shape = (num_rows, self.num_params)
-
-        def jac(params: np.ndarray) -> scipy.sparse.csr_matrix:
-            intr, rvecs, tvecs, pts = self.unpack(params)
-            proj = project_poses(intr, rvecs, tvecs, self.obs_points(pts, rows), fi, jacobian=True)
-            parts = (proj.d_intrinsics, proj.d_pose, proj.d_point)
-            values = np.concatenate(parts if self.refine_points else parts[:2], axis=2).ravel()
-            if self.refine_points:
-                values = np.concatenate([values, np.full(3 * len(self.nominal), 1.0 / self.point_sigma)])
-            return scipy.sparse.csr_matrix((values, (data_rows, data_cols)), shape=shape)
-        return jac
-
-
-def _solve_poses_eliminated(H: scipy.sparse.spmatrix, g: np.ndarray, frames: int) -> np.ndarray:
-    """``H^-1 g`` for the adjustment's symmetric positive definite normal matrix ``H (n, n)``
-    ordered as :class:`_Problem`'s parameters (9 intrinsics, ``6 F`` pose parameters, then the
-    points), by the Schur complement on the poses: their ``6 x 6`` blocks are independent, so::
-
-        S = H_oo - H_op H_pp^-1 H_po,   S x_o = g_o - H_op H_pp^-1 g_p,   x_p = H_pp^-1 (g_p - H_po x_o)
-
-    with ``o`` the intrinsics and points (``9 + 3 Q``, dense) and ``p`` the poses. Cost:
-    ``O(F (9 + 3 Q)^2)`` and one dense Cholesky solve of ``S``.
-    """
-    Hc = H.tocsr()
-    n = Hc.shape[0]
-    pose = np.arange(9, 9 + 6 * frames)
-    other = np.concatenate([np.arange(9), np.arange(9 + 6 * frames, n)])
-    blocks = pose.reshape(frames, 6)
-    Hpp = np.asarray(Hc[np.repeat(blocks, 6, axis=1).ravel(), np.tile(blocks, (1, 6)).ravel()]).reshape(
-        frames, 6, 6)
-    Hpp_inv = np.linalg.inv(Hpp)
-    H_op = Hc[other][:, pose].toarray()
-    Y = np.einsum("ofj,fji->ofi", H_op.reshape(len(other), frames, 6), Hpp_inv).reshape(len(other), -1)
-    S = Hc[other][:, other].toarray() - Y @ H_op.T
-    x = np.empty(n)
-    x[other] = scipy.linalg.cho_solve(scipy.linalg.cho_factor(S), g[other] - Y @ g[pose])
-    x[pose] = np.einsum("fij,fj->fi", Hpp_inv, (g[pose] - H_op.T @ x[other]).reshape(frames, 6)).ravel()
-    return x
-
-
-def _minimise(fun: Callable[[np.ndarray], np.ndarray], jac: Callable[[np.ndarray], scipy.sparse.spmatrix],
-              x: np.ndarray, huber: float, frames: int, max_jacobians: int = _MAX_NFEV, tol: float = 1e-10
-              ) -> tuple[np.ndarray, int]:
-    """``argmin_x sum_i rho(f_i(x))`` by Levenberg-Marquardt on the sparse normal equations; the
-    minimiser and the Jacobians evaluated.
-
-    ``rho`` is Huber's loss at ``huber`` per residual component (``f^2`` inside, ``2 h |f| - h^2``
-    beyond; ``huber = inf``: plain squares), by iteratively reweighted Gauss-Newton: weights
-    ``w_i = min(1, h / |f_i|)``, the step ``(J^T W J + lambda diag(J^T W J)) dx = -J^T W f``
-    (Marquardt's damping, which ``x_scale='jac'`` of ``scipy.optimize.least_squares`` also
-    amounts to), solved directly with the ``frames`` poses eliminated
-    (:func:`_solve_poses_eliminated`). ``lambda`` starts at 1e-6, /10 after
-    an accepted step, x10 after a rejected one. Stops when an accepted step lowers the cost by
-    less than ``tol`` of it or moves ``x`` by less than ``tol (tol + |x|)``, or after
-    ``max_jacobians``.
-    """
-    def cost(f: np.ndarray) -> float:
-        a = np.abs(f)
-        if not math.isfinite(huber):
-            return float(np.sum(a * a))
-        return float(np.sum(np.where(a <= huber, a * a, 2.0 * huber * a - huber * huber)))
-
-    f = fun(x)
-    c = cost(f)
-    lam = 1e-6
-    for njev in range(1, max_jacobians + 1):
-        J = jac(x).tocsr()
-        w = np.minimum(1.0, huber / np.maximum(np.abs(f), 1e-300))
-        H = (J.T @ J.multiply(w[:, None])).tocsr()
-        g = J.T @ (w * f)
-        diag = scipy.sparse.diags(np.maximum(H.diagonal(), 1e-12))
-        while True:
-            dx = -_solve_poses_eliminated(H + lam * diag, g, frames)
-            f_new = fun(x + dx)
-            c_new = cost(f_new)
-            if np.isfinite(c_new) and c_new <= c:
-                break
-            lam *= 10.0
-            if lam > 1e12:
-                return x, njev
-        x, f, c_old, c = x + dx, f_new, c, c_new
-        lam = max(lam / 10.0, 1e-12)
-        if c_old - c <= tol * c_old or np.linalg.norm(dx) <= tol * (tol + np.linalg.norm(x)):
-            return x, njev
-    return x, max_jacobians
 
 
 def _robust_threshold(errors: np.ndarray, sigmas: float, num_params: int) -> float:
@@ -565,7 +415,7 @@ def calibrate_sharp(observations: FeatureTable | Sequence[FeatureObservation], p
     intr, rvecs, tvecs, inlier = warm or _initialise([obs_points[a:b] for a, b in spans],
                                                      [observed[a:b] for a, b in spans],
                                                      (width, height), outlier_sigmas)
-    problem = _Problem(frame_idx=frame_idx, point_idx=point_idx, observed=observed,
+    problem = ParametricProblem(frame_idx=frame_idx, point_idx=point_idx, observed=observed,
                        nominal=nominal_all[point_ids], fixed_points=obs_points, num_frames=len(usable),
                        refine_points=refine_points, point_sigma=point_sigma_m)
     params = np.concatenate([intr, np.column_stack([rvecs, tvecs]).ravel()]
@@ -573,7 +423,7 @@ def calibrate_sharp(observations: FeatureTable | Sequence[FeatureObservation], p
     iterations = 0
     for rounds in range(1, _MAX_ROUNDS + 1):
         rows = np.flatnonzero(inlier)
-        params, njev = _minimise(problem.residual_fn(rows), problem.jacobian_fn(rows), params,
+        params, njev = minimise(problem.residual_fn(rows), problem.jacobian_fn(rows), params,
                                  huber_px if loss == "huber" else math.inf, problem.num_frames)
         iterations += njev
         errors = np.linalg.norm(problem.predict(params, np.arange(len(table))) - observed, axis=1)
