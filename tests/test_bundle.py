@@ -8,12 +8,8 @@ import numpy as np
 import pytest
 import torch
 
-from blurcalib.calib.bundle import (
-    BundleSettings,
-    bundle_adjust,
-    coverage_warnings,
-    reduce_frames,
-)
+from blurcalib.calib.bundle import BundleSettings, bundle_adjust, reduce_frames
+from blurcalib.calib.coverage import coverage_warnings
 from blurcalib.calib.normal_equations import leave_out_models
 from blurcalib.camera.generic import CentralGeneric, fit_to_rays
 from blurcalib.camera.parametric import BrownConrady

@@ -3,6 +3,9 @@ geometry, the readout ratio, and auto on global-shutter data."""
 
 from __future__ import annotations
 
+import csv
+from dataclasses import replace
+
 import numpy as np
 import pytest
 import torch
@@ -16,15 +19,17 @@ from blurcalib.calib.rolling_shutter import (
     estimate_ratio,
     fit_rolling_frames,
     parse_rolling_shutter,
+    rolling_evidence,
 )
-from blurcalib.calib.sequence import SequenceSettings
+from blurcalib.calib.sequence import BlurryFrame, BlurryOutcome, SequenceSettings
 from blurcalib.calib.sharp import calibrate_sharp
 from blurcalib.calib.trust import TrustSettings
 from blurcalib.calib.validation import ValidationSettings, parametric_projector
 from blurcalib.camera.files import read_generic_yaml
 from blurcalib.camera.parametric import BrownConrady
 from blurcalib.geometry.pose import Pose
-from blurcalib.io.results import FeatureFlags, FeatureTable
+from blurcalib.io.results import FEATURE_COLUMNS, FeatureFlags, FeatureTable
+from blurcalib.pipeline.frames import blurry_row, write_frames
 from blurcalib.pipeline.run import GLOBAL_SHUTTER_DIR, PipelineSettings, run_pipeline
 from blurcalib.sim.evaluate import camera_accuracy
 from blurcalib.sim.render import Renderer, dot_texture
@@ -170,13 +175,57 @@ def test_frame_fit_and_ratio(ratio: float) -> None:
         assert ratio_hat < 3 * sigma + 0.05
 
 
+def _structured(table: FeatureTable, amplitude_px: float, seed: int) -> FeatureTable:
+    """``table`` with a smooth error field per frame (sine waves of 380 px in x and y, as a
+    deconvolution's errors are larger than a sharp frame's noise and correlated)."""
+    rng = np.random.default_rng(seed)
+    x, y = table.x.copy(), table.y.copy()
+    for name in dict.fromkeys(table.frame.tolist()):
+        m = table.frame == name
+        a, ph = rng.normal(0.0, amplitude_px, 4), rng.uniform(0.0, 2 * np.pi, 4)
+        x[m] += a[0] * np.sin(table.x[m] / 60 + ph[0]) + a[1] * np.sin(table.y[m] / 60 + ph[1])
+        y[m] += a[2] * np.sin(table.x[m] / 60 + ph[2]) + a[3] * np.sin(table.y[m] / 60 + ph[3])
+    return replace(table, x=x, y=y)
+
+
+@pytest.mark.parametrize("ratio", [2.0, 0.0])
+def test_evidence_against_structured_errors(ratio: float) -> None:
+    """4 sharp frames (noise 0.03 px) and 8 blurry ones with a structured 0.1 px error field each,
+    the true camera held. The chi-square of the rolling parameters against the pooled noise level
+    fires on the global shutter too; the evidence (the displacement the rolling parameters explain
+    net of a pose change, against the residual they leave) finds the readout of 2 exposure times
+    (measured 0.98 px explained against 0.12 px left) and nothing on the global shutter (0.09 against
+    0.12 px)."""
+    camera = TrueCamera(d435i_like_camera(0).model)
+    sharp, sharp_truth, _ = _frames(0.0, 4, 7, camera, prefix="s", blurry=False)
+    blurry, blurry_truth, _ = _frames(ratio, 8, 5, camera)
+    blurry = _structured(blurry, 0.1, 3)
+    table = FeatureTable(**{k: np.concatenate([getattr(sharp, k), getattr(blurry, k)])
+                            for k in FEATURE_COLUMNS})
+    names = list(dict.fromkeys(table.frame.tolist()))
+    frame = np.array([names.index(f) for f in table.frame])
+    moving = np.array([n.startswith("b") for n in names])
+    P = np.column_stack([table.X, table.Y, np.zeros(len(table))])
+    args = (parametric_projector(camera.model), [t.pose for t in sharp_truth + blurry_truth], frame, P,
+            np.column_stack([table.x, table.y]), moving)
+    fit = fit_rolling_frames(*args, moving, 720)
+    rigid = fit_rolling_frames(*args, np.zeros(len(names), bool), 720)
+    evidence = rolling_evidence(fit, rigid, frame, moving, 1e-4)
+    assert evidence.statistic > evidence.threshold
+    assert float(np.nansum(fit.z)) > chi2.isf(1e-4, 12 * 8)
+    if ratio > 0:
+        assert evidence.found() and evidence.explained_px > 5 * evidence.residual_px
+    else:
+        assert not evidence.found() and evidence.explained_px < evidence.residual_px
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("ratio", [2.0, 0.0])
 def test_auto_calibration(ratio: float) -> None:
     """Truth features of 8 static sharp and 10 blurry frames: with a rolling shutter ``auto``
-    gives a camera far closer to the truth than ``off`` (measured 0.045 against 0.79 px) and the
-    ratio within 25% (measured 2.4: the global-shutter camera it is fitted with has absorbed part
-    of the rolling geometry); with a global shutter it finds nothing and returns ``off``'s camera."""
+    gives a camera far closer to the truth than ``off`` (measured 0.046 against 0.79 px) and the
+    ratio within 10% (measured 1.96, with the camera fitted together with the rolling parameters
+    held); with a global shutter it finds nothing and returns ``off``'s camera."""
     truth_camera = d435i_like_camera(0, 0.3)
     pattern = layout_pattern()
     sharp, _, _ = _frames(0.0, 8, 11, truth_camera, prefix="s", blurry=False)
@@ -190,7 +239,7 @@ def test_auto_calibration(ratio: float) -> None:
     err_auto = camera_accuracy(truth_camera, auto.model, step=16.0).median
     if ratio > 0:
         assert result.applied and result.significant
-        assert result.ratio == pytest.approx(ratio, rel=0.25)
+        assert result.ratio == pytest.approx(ratio, rel=0.1)
         assert err_auto < 0.1 and err_off > 0.5
         assert result.corrected is not None and len(result.corrected) == len(blurry)
     else:
@@ -236,3 +285,17 @@ def test_modelled_run_keeps_the_camera_without_the_model(tmp_path) -> None:
     assert np.allclose(without.pixel_to_ray(px), published_off.pixel_to_ray(px), atol=1e-9)
     assert not np.allclose(read_generic_yaml(out / "calibration" / "intrinsics0.yaml").pixel_to_ray(px),
                            without.pixel_to_ray(px), atol=1e-9)
+
+
+def test_frames_csv_holds_the_blur_velocity(tmp_path) -> None:
+    """A blurry frame's row carries the rolling-shutter step's median blur velocity, by the frame's
+    name in the calibration; a frame it did not measure has the column empty."""
+    outcome = BlurryOutcome(BlurryFrame("blurry/a.png"), entered=True, shift=np.array([0.5, -0.25]))
+    other = BlurryOutcome(BlurryFrame("blurry/b.png"), entered=True, shift=np.array([0.0, 0.0]))
+    velocity = {"blurry/a.png": 7.2549}
+    rows = [blurry_row({"frame": name, "status": "ok"}, o, SequenceSettings(), velocity)
+            for name, o in (("a.png", outcome), ("b.png", other))]
+    assert rows[0].used and rows[0].velocity_px == 7.255 and rows[1].velocity_px is None
+    with open(write_frames(tmp_path / "frames.csv", rows), newline="", encoding="utf-8") as fh:
+        table = list(csv.DictReader(fh))
+    assert [r["velocity_px"] for r in table] == ["7.255", ""]

@@ -31,6 +31,17 @@ changes nothing). As the reference tool does, after every accepted step the grid
 so that the image centre looks along +z and the centre of the right edge lies in the x-z plane
 (x > 0), and the poses are rotated with it.
 
+Rolling shutter (optional, :class:`RollingRows`). A moving frame read row by row is seen from
+its pose moved by the motion over its row's instant (``docs/rolling-shutter.md``); with
+``y_i`` the observation's row as a share of the readout, its camera point becomes::
+
+    X_i = exp([y_i a_w + y_i^2 b_w]_x) (R_f P_i + t_f) + y_i a_v + y_i^2 b_v
+
+with the frame's rolling parameters ``theta_f = (a_w rad, a_v m, b_w rad, b_v m)`` (12 values,
+zero-mean Gaussian prior of ``twist_sigma`` rad and ``twist_sigma`` times the frame's distance
+m). The per-frame blocks then hold ``omega, dt, s, theta`` (20 columns) and are eliminated by
+the same Schur complement; without rolling rows they hold 8 columns and nothing changes.
+
 Outliers: once, after ``outlier_iteration`` iterations (or at convergence if that comes first),
 observations with an error above ``Q3 + 6 (Q3 - Q1)`` (quartiles of the error norms) are removed,
 as the reference tool does.
@@ -52,6 +63,14 @@ import numpy as np
 import torch
 from numpy.typing import ArrayLike
 
+from blurcalib.calib.coverage import cell_coverage, coverage_warnings
+from blurcalib.calib.frame_block import (
+    RollingRows,
+    checked_rolling_rows,
+    frame_jacobian,
+    rolling_frame_jacobian,
+    rolling_points,
+)
 from blurcalib.camera.generic import (
     CentralGeneric,
     GridSpline,
@@ -61,9 +80,8 @@ from blurcalib.camera.generic import (
     projection_jacobians,
     tangent_basis,
 )
-from blurcalib.geometry.lie import exp_so3, orthonormal, skew
+from blurcalib.geometry.lie import exp_so3, orthonormal
 from blurcalib.geometry.pose import Pose
-from blurcalib.io.text import count
 
 __all__ = [
     "BundleData",
@@ -75,9 +93,7 @@ __all__ = [
     "add_shift_prior",
     "add_smoothness_prior",
     "bundle_adjust",
-    "coverage_warnings",
     "data_equations",
-    "frame_jacobian",
     "gauge_rotation",
     "reduce_frames",
     "robust_weights",
@@ -164,6 +180,7 @@ class BundleResult:
         coverage: ``(GH - 3, GW - 3)`` observation count per grid cell of the calibrated area.
         data: the observations and options (what
             :func:`blurcalib.calib.normal_equations.normal_equations` needs).
+        theta: ``(F, 12)`` rolling parameters (0 for frames without), or None without rolling rows.
     """
 
     model: CentralGeneric
@@ -180,45 +197,7 @@ class BundleResult:
     warnings: list[str]
     coverage: np.ndarray = field(repr=False)
     data: BundleData = field(repr=False)
-
-
-def frame_jacobian(J_p: torch.Tensor, RX: torch.Tensor) -> torch.Tensor:
-    """``(N, 2, 8)`` derivatives of the projections in their frames' block, columns ``omega (3),
-    dt (3), s (2)`` (``R <- exp([omega]_x) R``, ``t <- t + dt``, shift ``s``), from ``J_p = du/dX
-    (N, 2, 3)`` and the rotated target points ``RX = R P (N, 3)`` (m)."""
-    eye2 = torch.eye(2, dtype=J_p.dtype, device=J_p.device).expand(len(J_p), 2, 2)
-    return torch.cat([-J_p @ skew(RX), J_p, eye2], dim=2)
-
-
-def coverage_warnings(model: CentralGeneric, coverage: np.ndarray) -> list[str]:
-    """One line per image region (3 x 3 split) holding grid cells without observations."""
-    ch, cw = coverage.shape
-    x0, y0, x1, y1 = model.area_opencv
-    cell_w = (x1 - x0) / cw
-    cell_h = (y1 - y0) / ch
-    names_y = ("top", "middle", "bottom")
-    names_x = ("left", "centre", "right")
-    out = []
-    rows, cols = np.nonzero(coverage == 0)
-    if len(rows) == 0:
-        return out
-    ry = np.minimum(rows * 3 // ch, 2)
-    rx = np.minimum(cols * 3 // cw, 2)
-    for by in range(3):
-        for bx in range(3):
-            sel = (ry == by) & (rx == bx)
-            if not sel.any():
-                continue
-            name = "centre" if (by, bx) == (1, 1) else f"{names_y[by]}-{names_x[bx]}"
-            xa = x0 + cols[sel].min() * cell_w
-            xb = x0 + (cols[sel].max() + 1) * cell_w
-            ya = y0 + rows[sel].min() * cell_h
-            yb = y0 + (rows[sel].max() + 1) * cell_h
-            out.append(f"{count(int(sel.sum()), 'grid cell')} without observations in the {name} of the "
-                       f"image (x {max(xa, 0):.0f}-{xb:.0f} px, y {max(ya, 0):.0f}-{yb:.0f} px): the model "
-                       "there follows the "
-                       "initial camera (smoothness prior)")
-    return out
+    theta: np.ndarray | None = field(default=None, repr=False)
 
 
 @dataclass
@@ -232,6 +211,7 @@ class BundleState:
     s: torch.Tensor  # (F, 2)
     u: torch.Tensor  # (N, 2) current projections (warm starts)
     inside: torch.Tensor  # (N,) bool
+    theta: torch.Tensor | None = None  # (F, 12) rolling parameters
 
 
 class BundleProblem:
@@ -239,7 +219,7 @@ class BundleProblem:
 
     def __init__(self, spline: GridSpline, frame: torch.Tensor, points: torch.Tensor,
                  observed: torch.Tensor, weights: torch.Tensor, shift_free: torch.Tensor,
-                 settings: BundleSettings) -> None:
+                 settings: BundleSettings, rolling: RollingRows | None = None) -> None:
         self.spline = spline
         self.frame = frame
         self.points = points
@@ -254,15 +234,43 @@ class BundleProblem:
         self.smooth_w = 1.0 / (settings.smoothness_px * self.pitch) ** 2
         self.shift_w = 1.0 / settings.shift_sigma_px ** 2
         self.triples = _second_difference_triples(gh, gw, spline.grid.device)
+        self.block = 8 if rolling is None else 20
+        self.row: torch.Tensor | None = None
+        self.moving: torch.Tensor | None = None
+        self.theta_w: torch.Tensor | None = None
+        if rolling is not None:
+            self.row = torch.as_tensor(rolling.row, dtype=points.dtype, device=points.device)
+            self.moving = torch.as_tensor(rolling.moving, device=points.device)
+            self.twist_sigma = rolling.twist_sigma
+
+    def set_distance(self, t: torch.Tensor) -> None:
+        """The rolling parameters' prior weights ``(F, 12)`` from the frames' distances ``|t_f|``."""
+        sig = torch.full_like(t, self.twist_sigma)
+        sig_v = self.twist_sigma * t.norm(dim=1, keepdim=True).expand(-1, 3)
+        self.theta_w = 1.0 / torch.cat([sig, sig_v, sig, sig_v], dim=1) ** 2
+
+    def rolling_camera_points(self, R: torch.Tensor, t: torch.Tensor, theta: torch.Tensor | None,
+                              sel: torch.Tensor | None = None
+                              ) -> tuple[torch.Tensor, torch.Tensor | None, torch.Tensor]:
+        """``X (N, 3)``, the rolling rotations (None without rolling rows) and ``R P`` of the
+        observations ``sel`` (default all)."""
+        fr = self.frame if sel is None else self.frame[sel]
+        P = self.points if sel is None else self.points[sel]
+        if self.row is None or theta is None:
+            RP = torch.einsum("nij,nj->ni", R[fr], P)
+            return RP + t[fr], None, RP
+        y = self.row if sel is None else self.row[sel]
+        return rolling_points(R, t, theta, fr, P, y)
 
     def camera_points(self, st: BundleState) -> torch.Tensor:
         """``R_f P_i + t_f`` of every observation, ``(N, 3)`` m."""
         return torch.einsum("nij,nj->ni", st.R[self.frame], self.points) + st.t[self.frame]
 
     def project(self, grid: torch.Tensor, R: torch.Tensor, t: torch.Tensor,
-                s: torch.Tensor, init: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+                s: torch.Tensor, init: torch.Tensor, theta: torch.Tensor | None = None
+                ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Projections ``(N, 2)``, inside ``(N,)`` and residuals ``(N, 2)`` for trial values."""
-        X = torch.einsum("nij,nj->ni", R[self.frame], self.points) + t[self.frame]
+        X = self.rolling_camera_points(R, t, theta)[0]
         u, inside = self.spline.with_grid(grid).project(X, init)
         inside = inside & (X[:, 2] > 0)
         r = self.observed - u - s[self.frame]
@@ -275,17 +283,22 @@ class BundleProblem:
         rho = torch.where(e <= d, e * e, 2 * d * e - d * d)
         return (w * rho).sum()
 
-    def prior_cost(self, grid: torch.Tensor, grid0: torch.Tensor, s: torch.Tensor) -> torch.Tensor:
-        """Smoothness prior on the grid's second differences plus the free shifts' prior (px^2)."""
+    def prior_cost(self, grid: torch.Tensor, grid0: torch.Tensor, s: torch.Tensor,
+                   theta: torch.Tensor | None = None) -> torch.Tensor:
+        """Smoothness prior on the grid's second differences plus the free shifts' prior and,
+        with rolling rows, the moving frames' rolling parameters' prior (px^2)."""
         i, j, k = self.triples
         g, g0 = grid.reshape(-1, 3), grid0.reshape(-1, 3)
         d2 = (g[i] - 2 * g[j] + g[k]) - (g0[i] - 2 * g0[j] + g0[k])
         free = self.shift_free.to(s.dtype)[:, None]
-        return self.smooth_w * (d2 * d2).sum() + self.shift_w * (free * s * s).sum()
+        cost = self.smooth_w * (d2 * d2).sum() + self.shift_w * (free * s * s).sum()
+        if theta is not None and self.theta_w is not None and self.moving is not None:
+            cost = cost + (self.moving.to(s.dtype)[:, None] * self.theta_w * theta * theta).sum()
+        return cost
 
     def cost(self, st: BundleState, r: torch.Tensor, w: torch.Tensor) -> float:
         """The objective: data cost plus priors (px^2)."""
-        return float(self.data_cost(r, w) + self.prior_cost(st.grid, st.grid0, st.s))
+        return float(self.data_cost(r, w) + self.prior_cost(st.grid, st.grid0, st.s, st.theta))
 
 
 def _angular_pitch(spline: GridSpline) -> float:
@@ -313,9 +326,10 @@ def robust_weights(r: torch.Tensor, huber_px: float) -> torch.Tensor:
 def _normal_equations(pb: BundleProblem, st: BundleState, w: torch.Tensor, r: torch.Tensor
                       ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor,
                                  torch.Tensor]:
-    """Gauss-Newton blocks: ``Hgg (G, G)``, ``Hgp (G, F, 8)``, ``Hpp (F, 8, 8)``, ``bg``, ``bp``.
+    """Gauss-Newton blocks: ``Hgg (G, G)``, ``Hgp (G, F, K)``, ``Hpp (F, K, K)``, ``bg``, ``bp``.
 
-    Per-frame block columns: ``omega (3), dt (3), s (2)``. Also returns the grid's node tangents.
+    Per-frame block columns: ``omega (3), dt (3), s (2)`` and, with rolling rows, ``theta (12)``
+    (``K = pb.block``). Also returns the grid's node tangents.
     """
     Hgg, Hgp, Hpp, bg, bp, tang = data_equations(pb, st, w, r)
     add_priors(pb, st, tang, Hgg, bg, Hpp, bp)
@@ -332,25 +346,29 @@ def data_equations(pb: BundleProblem, st: BundleState, w: torch.Tensor, r: torch
     """
     G = 2 * pb.gh * pb.gw
     F = pb.num_frames
+    K = pb.block
     dt, dev = pb.points.dtype, pb.points.device
     n_nodes = pb.gh * pb.gw
     spline = pb.spline.with_grid(st.grid)
     Hcell = torch.zeros(n_nodes, 32, 32, dtype=dt, device=dev)
-    Hgp = torch.zeros(G * F * 8, dtype=dt, device=dev)
-    Hpp = torch.zeros(F, 8, 8, dtype=dt, device=dev)
-    bp = torch.zeros(F, 8, dtype=dt, device=dev)
+    Hgp = torch.zeros(G * F * K, dtype=dt, device=dev)
+    Hpp = torch.zeros(F, K, K, dtype=dt, device=dev)
+    bp = torch.zeros(F, K, dtype=dt, device=dev)
     bg = torch.zeros(G, dtype=dt, device=dev)
-    lanes = torch.arange(8, device=dev)
+    lanes = torch.arange(K, device=dev)
     for sel in torch.nonzero(w > 0).squeeze(1).split(OBSERVATION_CHUNK):
         fr = pb.frame[sel]
-        X = torch.einsum("nij,nj->ni", st.R[fr], pb.points[sel]) + st.t[fr]
+        X, Ri, RP = pb.rolling_camera_points(st.R, st.t, st.theta, sel)
         J_p, J_g, nodes = projection_jacobians(spline, st.u[sel], X)
-        J_pose = frame_jacobian(J_p, X - st.t[fr])
+        if Ri is None or pb.row is None:
+            J_pose = frame_jacobian(J_p, X - st.t[fr])
+        else:
+            J_pose = rolling_frame_jacobian(J_p, Ri, RP, X, pb.row[sel])
         wJg = w[sel][:, None, None] * J_g
         rs = r[sel][:, :, None]
         Hcell.index_add_(0, nodes[:, 0], wJg.transpose(1, 2) @ J_g)
         cols = param_columns(nodes)
-        flat = cols[:, :, None] * (F * 8) + fr[:, None, None] * 8 + lanes
+        flat = cols[:, :, None] * (F * K) + fr[:, None, None] * K + lanes
         Hgp.index_add_(0, flat.reshape(-1), (wJg.transpose(1, 2) @ J_pose).reshape(-1))
         wJp = w[sel][:, None, None] * J_pose
         Hpp.index_add_(0, fr, wJp.transpose(1, 2) @ J_pose)
@@ -359,8 +377,10 @@ def data_equations(pb: BundleProblem, st: BundleState, w: torch.Tensor, r: torch
     used = torch.nonzero(Hcell.abs().sum((1, 2)) > 0).squeeze(1)
     Hgg = torch.zeros(G, G, dtype=dt, device=dev)
     accumulate_blocks(Hgg, param_columns(_cell_nodes(used, pb.gw)), Hcell[used])
-    Hgp = Hgp.reshape(G, F, 8)
-    Hgp[:, ~pb.shift_free, 6:] = 0.0
+    Hgp = Hgp.reshape(G, F, K)
+    Hgp[:, ~pb.shift_free, 6:8] = 0.0
+    if pb.moving is not None:
+        Hgp[:, ~pb.moving, 8:] = 0.0
     tang = tangent_basis(st.grid.reshape(-1, 3))
     return Hgg, Hgp, Hpp, bg, bp, tang
 
@@ -373,9 +393,11 @@ def _cell_nodes(first: torch.Tensor, gw: int) -> torch.Tensor:
 
 def add_priors(pb: BundleProblem, st: BundleState, tang: torch.Tensor, Hgg: torch.Tensor, bg: torch.Tensor,
                 Hpp: torch.Tensor, bp: torch.Tensor) -> None:
-    """Add the smoothness prior (grid) and the shift prior (frames) to the normal equations."""
+    """Add the smoothness prior (grid), the shift prior and, with rolling rows, the rolling
+    parameters' prior (frames) to the normal equations."""
     add_smoothness_prior(pb, st, tang, Hgg, bg)
     add_shift_prior(pb, st, Hpp, bp)
+    add_rolling_prior(pb, st, Hpp, bp)
 
 
 def add_smoothness_prior(pb: BundleProblem, st: BundleState, tang: torch.Tensor, Hgg: torch.Tensor | None,
@@ -400,13 +422,27 @@ def add_shift_prior(pb: BundleProblem, st: BundleState, Hpp: torch.Tensor, bp: t
     free = pb.shift_free if frames is None else pb.shift_free & frames
     Hpp[free, 6, 6] += pb.shift_w
     Hpp[free, 7, 7] += pb.shift_w
-    bp[free, 6:] -= pb.shift_w * st.s[free]
+    bp[free, 6:8] -= pb.shift_w * st.s[free]
     fixed = ~pb.shift_free if frames is None else ~pb.shift_free & frames
-    Hpp[fixed, 6:, :] = 0.0
-    Hpp[fixed, :, 6:] = 0.0
+    Hpp[fixed, 6:8, :] = 0.0
+    Hpp[fixed, :, 6:8] = 0.0
     Hpp[fixed, 6, 6] = 1.0
     Hpp[fixed, 7, 7] = 1.0
-    bp[fixed, 6:] = 0.0
+    bp[fixed, 6:8] = 0.0
+
+
+def add_rolling_prior(pb: BundleProblem, st: BundleState, Hpp: torch.Tensor, bp: torch.Tensor) -> None:
+    """With rolling rows: add the moving frames' rolling parameters' prior and decouple the other
+    frames' (identity block, zero gradient); without, nothing."""
+    if pb.moving is None or pb.theta_w is None or st.theta is None:
+        return
+    m, still = pb.moving, ~pb.moving
+    Hpp[m, 8:, 8:] += torch.diag_embed(pb.theta_w[m])
+    bp[m, 8:] -= pb.theta_w[m] * st.theta[m]
+    Hpp[still, 8:, :] = 0.0
+    Hpp[still, :, 8:] = 0.0
+    Hpp[still, 8:, 8:] = torch.eye(12, dtype=Hpp.dtype, device=Hpp.device)
+    bp[still, 8:] = 0.0
 
 
 def reduce_frames(Hgg: torch.Tensor, Hgp: torch.Tensor, Hpp_inv: torch.Tensor, bg: torch.Tensor | None = None,
@@ -452,9 +488,9 @@ def reduce_frames(Hgg: torch.Tensor, Hgp: torch.Tensor, Hpp_inv: torch.Tensor, b
 
 def _solve(Hgg: torch.Tensor, Hgp: torch.Tensor, Hpp: torch.Tensor, bg: torch.Tensor,
            bp: torch.Tensor, lam: float) -> tuple[torch.Tensor, torch.Tensor] | None:
-    """Damped step ``(dg (G,), dp (F, 8))`` by the Schur complement; None if not positive definite."""
-    eye8 = torch.eye(8, dtype=Hpp.dtype, device=Hpp.device)
-    Hpp_d = Hpp + lam * torch.diag_embed(torch.diagonal(Hpp, dim1=1, dim2=2)) + 1e-12 * eye8
+    """Damped step ``(dg (G,), dp (F, K))`` by the Schur complement; None if not positive definite."""
+    eye = torch.eye(Hpp.shape[1], dtype=Hpp.dtype, device=Hpp.device)
+    Hpp_d = Hpp + lam * torch.diag_embed(torch.diagonal(Hpp, dim1=1, dim2=2)) + 1e-12 * eye
     try:
         Lp = torch.linalg.cholesky(Hpp_d)
     except torch.linalg.LinAlgError:
@@ -510,10 +546,33 @@ def _checked_inputs(F: int, frame: ArrayLike, points: ArrayLike, observed: Array
     return fr_np, P, p, w_np, free_np
 
 
+def _remove_outliers(pb: BundleProblem, st: BundleState, r: torch.Tensor, use: torch.Tensor
+                     ) -> tuple[torch.Tensor, float]:
+    """Give the observations with an error above ``Q3 + k (Q3 - Q1)`` (over those in use) weight 0
+    in ``pb``; the new use weights ``(N,)`` and cost."""
+    e = r.norm(dim=-1)[use > 0]
+    q1, q3 = torch.quantile(e, 0.25), torch.quantile(e, 0.75)
+    thresh = float(q3 + pb.settings.outlier_iqr * (q3 - q1))
+    outlier = r.norm(dim=-1) > thresh
+    pb.weights = torch.where(outlier, 0.0, pb.weights)
+    use = pb.weights * st.inside.to(torch.float64)
+    log.info("outlier removal: %d observations above %.3f px", int(outlier.sum()), thresh)
+    return use, pb.cost(st, torch.where(st.inside[:, None], r, 0.0), use)
+
+
+def _regauged(spline: GridSpline, st: BundleState) -> BundleState:
+    """``st`` rotated into the gauge (module docstring): grid, initial grid, poses and rolling
+    parameters by the rotation :func:`gauge_rotation` gives for its grid."""
+    Q = gauge_rotation(spline, st.grid)
+    theta = None if st.theta is None else (st.theta.reshape(-1, 4, 3) @ Q.T).reshape(-1, 12)
+    return BundleState(st.grid @ Q.T, st.grid0 @ Q.T, Q @ st.R, st.t @ Q.T, st.s, st.u, st.inside, theta)
+
+
 def bundle_adjust(model: CentralGeneric, poses: Sequence[Pose], frame: ArrayLike, points: ArrayLike,
                   observed: ArrayLike, weights: ArrayLike | None = None,
                   shift_free: ArrayLike | None = None, settings: BundleSettings | None = None,
-                  progress: bool = False, prior: CentralGeneric | None = None) -> BundleResult:
+                  progress: bool = False, prior: CentralGeneric | None = None,
+                  rolling: RollingRows | None = None) -> BundleResult:
     """Fit the generic camera's grid, every frame's pose and the free per-frame shifts.
 
     Args:
@@ -531,6 +590,8 @@ def bundle_adjust(model: CentralGeneric, poses: Sequence[Pose], frame: ArrayLike
             differences; same grid as ``model``, each in its own gauge). Default ``model``: a
             warm start from another fit's camera passes the initial camera of a cold start here,
             so that cells without observations follow it and not the warm start.
+        rolling: the rows and the moving frames of the rolling-shutter geometry (module
+            docstring); None: the global shutter.
 
     Raises:
         ValueError: inconsistent shapes or a frame without observations.
@@ -545,7 +606,8 @@ def bundle_adjust(model: CentralGeneric, poses: Sequence[Pose], frame: ArrayLike
     spline = model.spline(dev)
     pb = BundleProblem(spline, torch.as_tensor(fr_np, device=dev), torch.as_tensor(P, **kw),
                        torch.as_tensor(p, **kw), torch.as_tensor(w_np, **kw),
-                       torch.as_tensor(free_np, device=dev), settings)
+                       torch.as_tensor(free_np, device=dev), settings,
+                       checked_rolling_rows(rolling, len(P), F))
     Q = gauge_rotation(spline, spline.grid)
     grid = spline.grid @ Q.T
     grid0 = grid.clone()
@@ -558,8 +620,12 @@ def bundle_adjust(model: CentralGeneric, poses: Sequence[Pose], frame: ArrayLike
     R = Q @ torch.as_tensor(np.stack([q.R for q in poses]), **kw)
     t = torch.as_tensor(np.stack([q.t for q in poses]), **kw) @ Q.T
     s = torch.zeros(F, 2, **kw)
-    u, inside, r = pb.project(grid, R, t, s, None)
-    st = BundleState(grid, grid0, R, t, s, u, inside)
+    theta = None
+    if rolling is not None:
+        theta = torch.zeros(F, 12, **kw)
+        pb.set_distance(t)
+    u, inside, r = pb.project(grid, R, t, s, None, theta)
+    st = BundleState(grid, grid0, R, t, s, u, inside, theta)
     use = pb.weights * inside.to(torch.float64)
     cost = pb.cost(st, torch.where(inside[:, None], r, 0.0), use)
     lam = 1e-6
@@ -569,14 +635,7 @@ def bundle_adjust(model: CentralGeneric, poses: Sequence[Pose], frame: ArrayLike
     for it in range(1, settings.max_iterations + 1):
         if not removed and it > remove_after:
             removed = True
-            e = r.norm(dim=-1)[use > 0]
-            q1, q3 = torch.quantile(e, 0.25), torch.quantile(e, 0.75)
-            thresh = float(q3 + settings.outlier_iqr * (q3 - q1))
-            outlier = r.norm(dim=-1) > thresh
-            pb.weights = torch.where(outlier, 0.0, pb.weights)
-            use = pb.weights * st.inside.to(torch.float64)
-            cost = pb.cost(st, torch.where(st.inside[:, None], r, 0.0), use)
-            log.info("outlier removal: %d observations above %.3f px", int(outlier.sum()), thresh)
+            use, cost = _remove_outliers(pb, st, r, use)
         w = use * robust_weights(r, settings.huber_px)
         Hgg, Hgp, Hpp, bg, bp, _tang = _normal_equations(pb, st, w, r)
         accepted = False
@@ -590,18 +649,14 @@ def bundle_adjust(model: CentralGeneric, poses: Sequence[Pose], frame: ArrayLike
             R_n = exp_so3(dp[:, :3]) @ st.R
             t_n = st.t + dp[:, 3:6]
             s_n = st.s + dp[:, 6:8]
-            u_n, in_n, r_n = pb.project(grid_n, R_n, t_n, s_n, st.u)
+            theta_n = None if st.theta is None else st.theta + dp[:, 8:]
+            u_n, in_n, r_n = pb.project(grid_n, R_n, t_n, s_n, st.u, theta_n)
             use_n = pb.weights * in_n.to(torch.float64)
-            trial = BundleState(grid_n, st.grid0, R_n, t_n, s_n, u_n, in_n)
+            trial = BundleState(grid_n, st.grid0, R_n, t_n, s_n, u_n, in_n, theta_n)
             cost_n = pb.cost(trial, torch.where(in_n[:, None], r_n, 0.0), use_n)
             if cost_n < cost:
-                Qg = gauge_rotation(spline, grid_n)
-                trial.grid = grid_n @ Qg.T
-                trial.grid0 = st.grid0 @ Qg.T
-                trial.R = Qg @ R_n
-                trial.t = t_n @ Qg.T
                 rel = (cost - cost_n) / max(cost, 1e-300)
-                st, r, use, cost = trial, r_n, use_n, cost_n
+                st, r, use, cost = _regauged(spline, trial), r_n, use_n, cost_n
                 lam = max(lam * 0.2, 1e-12)
                 accepted = True
                 break
@@ -616,7 +671,7 @@ def bundle_adjust(model: CentralGeneric, poses: Sequence[Pose], frame: ArrayLike
     res = torch.where(st.inside[:, None], r, torch.nan)
     e = r.norm(dim=-1)[inlier]
     out_model = model.with_grid(st.grid.cpu().numpy())
-    coverage = _coverage(out_model, st.u[inlier].cpu().numpy())
+    coverage = cell_coverage(out_model, st.u[inlier].cpu().numpy())
     warnings = coverage_warnings(out_model, coverage)
     for line in warnings:
         log.info(line)
@@ -629,13 +684,5 @@ def bundle_adjust(model: CentralGeneric, poses: Sequence[Pose], frame: ArrayLike
         rms_error=float(torch.sqrt(torch.mean(e * e))) if len(e) else math.nan,
         iterations=it, cost=cost, seconds=time.perf_counter() - t_wall,
         cpu_seconds=time.process_time() - t_cpu, warnings=warnings, coverage=coverage,
-        data=BundleData(fr_np, P, p, pb.weights.cpu().numpy(), free_np, settings, pb.pitch))
-
-
-def _coverage(model: CentralGeneric, px: np.ndarray) -> np.ndarray:
-    """Observation count per grid cell of the calibrated area, ``(GH - 3, GW - 3)``."""
-    g = model.to_grid(px)
-    cw, ch = model.grid_width - 3, model.grid_height - 3
-    cx = np.clip(np.floor(g[:, 0]).astype(int) - 1, 0, cw - 1)
-    cy = np.clip(np.floor(g[:, 1]).astype(int) - 1, 0, ch - 1)
-    return np.bincount(cy * cw + cx, minlength=cw * ch).reshape(ch, cw)
+        data=BundleData(fr_np, P, p, pb.weights.cpu().numpy(), free_np, settings, pb.pitch),
+        theta=None if st.theta is None else st.theta.cpu().numpy())

@@ -37,6 +37,7 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
 from blurcalib.calib.bundle import BundleResult, BundleSettings, bundle_adjust
+from blurcalib.calib.frame_block import RollingRows
 from blurcalib.calib.sharp import Calibration, solve_pose
 from blurcalib.camera.files import write_generic_yaml
 from blurcalib.camera.generic import (
@@ -52,6 +53,7 @@ from blurcalib.camera.parametric import BrownConrady
 from blurcalib.geometry.pose import Pose
 from blurcalib.io.atomic import atomic_path, atomic_write_csv, ensure_writable_dir
 from blurcalib.io.results import FeatureFlags, FeatureTable
+from blurcalib.sim.shutter import row_time
 from blurcalib.target.pattern import StarPattern
 
 __all__ = [
@@ -121,6 +123,9 @@ class GenericCalibration:
         skipped_frames: frame -> usable feature count of frames left out.
         route: the route used.
         bundle: the bundle adjustment's full result (coverage, warnings, timing).
+        rolling: frame -> ``(12,)`` rolling parameters ``theta`` (rad, m per unit row ``y`` and
+            ``y^2``, :mod:`blurcalib.calib.bundle`) of the blurry frames, when the rolling shutter
+            was fitted with the camera (``rolling_twist_sigma``); else empty.
     """
 
     model: CentralGeneric
@@ -143,6 +148,7 @@ class GenericCalibration:
     skipped_frames: dict[str, int]
     route: str
     bundle: BundleResult = field(repr=False)
+    rolling: dict[str, np.ndarray] = field(default_factory=dict, repr=False)
 
 
 def _usable(table: FeatureTable) -> FeatureTable:
@@ -153,7 +159,8 @@ def _usable(table: FeatureTable) -> FeatureTable:
 
 def calibrate_generic(sharp_features: FeatureTable, blurry_features: FeatureTable | None,
                       parametric: Calibration, pattern: StarPattern, size: tuple[int, int],
-                      settings: JointSettings | None = None) -> GenericCalibration:
+                      settings: JointSettings | None = None, rolling_twist_sigma: float | None = None
+                      ) -> GenericCalibration:
     """Fit the generic camera to the sharp and (optionally) blurry features (module docstring).
 
     Args:
@@ -164,6 +171,9 @@ def calibrate_generic(sharp_features: FeatureTable, blurry_features: FeatureTabl
         pattern: the target.
         size: ``(width, height)`` of the images (px).
         settings: options.
+        rolling_twist_sigma: when given, every blurry frame also gets its rolling-shutter
+            parameters, fitted with the camera (:class:`blurcalib.calib.frame_block.RollingRows`, this
+            their prior in rad and times the frame's distance in m; rows of ``size[1]``).
 
     Raises:
         ValueError: no frame with enough usable features.
@@ -210,8 +220,11 @@ def calibrate_generic(sharp_features: FeatureTable, blurry_features: FeatureTabl
     check_grid_size(area[2] + 1 - area[0], area[3] + 1 - area[1], settings.cell_px)
     initial = fit_to_rays(camera.pixel_to_ray, width, height, area=area, cell_px=settings.cell_px)
     shift_free = np.array([k == "blurry" and settings.route == "joint" for k in kinds])
+    moving = np.array([k == "blurry" for k in kinds])
+    rolling = None if rolling_twist_sigma is None else \
+        RollingRows(row_time(obs[:, 1], height, 1.0), moving, rolling_twist_sigma)
     res = bundle_adjust(initial, poses, index, pts, obs, weights=weight, shift_free=shift_free,
-                        settings=settings.bundle)
+                        settings=settings.bundle, rolling=rolling)
     blurry_row = np.array([kinds[i] == "blurry" for i in index])
     errors = np.linalg.norm(res.residuals, axis=1)
 
@@ -227,7 +240,8 @@ def calibrate_generic(sharp_features: FeatureTable, blurry_features: FeatureTabl
         residuals=res.residuals,
         inlier=res.inlier, median_error=res.median_error, rms_error=res.rms_error,
         sharp_median_error=median(~blurry_row), blurry_median_error=median(blurry_row),
-        skipped_frames=skipped, route=settings.route, bundle=res)
+        skipped_frames=skipped, route=settings.route, bundle=res,
+        rolling={} if res.theta is None else {f: res.theta[i] for i, f in enumerate(frames) if moving[i]})
 
 
 def difference_field(model: CentralGeneric, camera: BrownConrady, step: float = 8.0

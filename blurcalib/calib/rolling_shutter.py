@@ -23,12 +23,19 @@ optics) along ``d_i`` (``orientation``; its sign is unknown). Per frame
 ``r_f = sum_i |g_i . d_i| L_i / sum_i L_i^2``; the camera's ``r`` is their mean weighted by
 ``sum_i L_i^2``, with the standard error of that mean.
 
-Significance. With the frame fitted, ``z_f = theta_f^T Cov(theta_f)^-1 theta_f`` (``theta =
-(alpha, beta)``, ``Cov = sigma^2 H^-1``, ``sigma`` the residuals' robust scale) is chi-square
-with 12 degrees of freedom when the frame has no rolling-shutter geometry. The capture has a
-rolling shutter when ``sum_f z_f`` exceeds its ``1 - alpha`` quantile under that null *and*,
+Significance. Each moving frame is fitted with and without its rolling parameters (the camera
+held). Its ``z_f = (RSS_rigid - RSS_rolling) / s_f^2``, ``s_f^2 = RSS_rolling / (2 n_f - 20)`` its
+own residual level, is chi-square with 12 degrees of freedom when the frame has no rolling-shutter
+geometry and its errors are noise. Blurry features' errors are larger and correlated (the
+deconvolution's), so 12 parameters always explain part of them: the capture has a rolling
+shutter when ``sum_f z_f`` exceeds its ``1 - alpha`` quantile *and* the displacement the rolling
+parameters explain net of a pose change, ``sqrt(sum_f (RSS_rigid - RSS_rolling) / N)``, exceeds
+the residual they leave, ``sqrt(sum_f RSS_rolling / N)`` (:class:`RollingEvidence`), *and*,
 where the blur is measured, ``r`` exceeds 3 standard errors (the blur confirms that the
 row-dependent geometry follows the motion).
+
+Calibration. When the model applies, the moving frames' rolling parameters are fitted together
+with the camera in the bundle adjustment (:class:`blurcalib.calib.frame_block.RollingRows`).
 """
 
 from __future__ import annotations
@@ -41,7 +48,7 @@ import numpy as np
 import torch
 from scipy.stats import chi2
 
-from blurcalib.calib.bundle import frame_jacobian
+from blurcalib.calib.frame_block import frame_jacobian, rolling_points
 from blurcalib.calib.joint import GenericCalibration, JointSettings, calibrate_generic
 from blurcalib.calib.sharp import Calibration
 from blurcalib.calib.validation import Projector, generic_projector
@@ -51,9 +58,9 @@ from blurcalib.io.results import BlockTable, FeatureTable
 from blurcalib.sim.shutter import row_time
 from blurcalib.target.pattern import StarPattern
 
-__all__ = ["BlurVelocity", "RollingFit", "RollingShutterResult", "RollingShutterSettings",
+__all__ = ["BlurVelocity", "RollingEvidence", "RollingFit", "RollingShutterResult", "RollingShutterSettings",
            "blur_velocities", "calibrate_rolling_shutter", "estimate_ratio", "fit_rolling_frames",
-           "parse_rolling_shutter", "rolling_displacement", "row_coordinate"]
+           "parse_rolling_shutter", "rolling_displacement", "rolling_evidence", "row_coordinate"]
 
 _PARAMS = 20  # omega (3), dt (3), s (2), alpha (6), beta (6)
 
@@ -88,24 +95,23 @@ class RollingShutterSettings:
         mode: ``"off"`` (the global-shutter model; the detector still runs), ``"auto"`` (estimate
             ``r``; correct the frames only when the rolling-shutter geometry is significant) or a
             known readout ratio ``R`` (correct the frames whatever the test says).
-        rounds: camera / frames alternations.
         alpha: false-alarm probability of the chi-square test.
-        correction_twist_sigma: the rolling parameters' prior (:func:`fit_rolling_frames`) of the
-            fits that correct the features: weaker than that of the test and the ratio (0.3), whose
-            estimates it steadies; measured, the camera comes out closer to the truth with the
-            weaker prior (``scripts/bench_rolling_shutter.py``: 0.145 against 0.46 px).
+        effect: the displacement the rolling geometry explains must exceed this times the
+            residual it leaves (:meth:`RollingEvidence.found`).
+        correction_twist_sigma: the rolling parameters' prior in the bundle adjustment that fits
+            them with the camera (:class:`blurcalib.calib.frame_block.RollingRows`), rad and times the
+            frame's distance in m: weaker than that of the frame fits of the test and the ratio
+            (0.3, :func:`fit_rolling_frames`), whose estimates it steadies.
     """
 
     mode: str | float = "off"
-    rounds: int = 1
     alpha: float = 1e-4
     correction_twist_sigma: float = 3.0
+    effect: float = 1.0
 
     def __post_init__(self) -> None:
         if isinstance(self.mode, str) and self.mode not in ("off", "auto"):
             raise ValueError(f"rolling shutter mode must be off, auto or a ratio, got {self.mode!r}")
-        if self.rounds < 1:
-            raise ValueError(f"rolling shutter rounds must be >= 1, got {self.rounds}")
 
 
 @dataclass(frozen=True)
@@ -167,18 +173,6 @@ class RollingFit:
     theta_cov: np.ndarray
 
 
-def _motion_points(R: torch.Tensor, t: torch.Tensor, theta: torch.Tensor, fr: torch.Tensor,
-                   P: torch.Tensor, y: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Camera points of the rolling model ``(N, 3)``, their rotation ``(N, 3, 3)`` and ``R P``."""
-    RP = torch.einsum("nij,nj->ni", R[fr], P)
-    X0 = RP + t[fr]
-    th = theta[fr]
-    w = y[:, None] * th[:, 0:3] + (y * y)[:, None] * th[:, 6:9]
-    v = y[:, None] * th[:, 3:6] + (y * y)[:, None] * th[:, 9:12]
-    Ri = exp_so3(w)
-    return torch.einsum("nij,nj->ni", Ri, X0) + v, Ri, RP
-
-
 def fit_rolling_frames(projector: Projector, poses: Sequence[Pose], frame: np.ndarray, points: np.ndarray,
                        observed: np.ndarray, shift_free: np.ndarray, rolling: np.ndarray, height: int, *,
                        iterations: int = 30, huber_px: float = 1.0, shift_sigma_px: float = 20.0,
@@ -220,7 +214,7 @@ def fit_rolling_frames(projector: Projector, poses: Sequence[Pose], frame: np.nd
                                dim=1) ** 2
 
     def evaluate(R, t, s, theta, init):
-        X, Ri, RP = _motion_points(R, t, theta, fr, P, y)
+        X, Ri, RP = rolling_points(R, t, theta, fr, P, y)
         u, J_p, inside = projector(X, init)
         r = p - u - s[fr]
         e = torch.where(inside, r.norm(dim=-1), 0.0)
@@ -309,17 +303,18 @@ def _finish(projector: Projector, state, R, t, s, theta, free: np.ndarray, fr: t
                       covs)
 
 
-def rolling_displacement(projector: Projector, fit: RollingFit, frame: np.ndarray, points: np.ndarray,
-                         observed: np.ndarray, height: int) -> np.ndarray:
+def rolling_displacement(projector: Projector, poses: Sequence[Pose], theta: np.ndarray, frame: np.ndarray,
+                         points: np.ndarray, observed: np.ndarray, height: int) -> np.ndarray:
     """``(N, 2)`` px: ``pi(rolling pose) - pi(rigid pose)`` of each observation under ``projector``
-    with the fit's poses and rolling parameters (NaN where either projection leaves the area)."""
+    with the frames' poses ``(F,)`` and rolling parameters ``theta (F, 12)`` (NaN where either
+    projection leaves the area)."""
     kw = {"dtype": torch.float64}
     fr = torch.as_tensor(np.asarray(frame, dtype=np.int64))
     P = torch.as_tensor(np.asarray(points, dtype=np.float64))
     y = torch.as_tensor(row_coordinate(np.asarray(observed)[:, 1], height))
-    R = torch.as_tensor(np.stack([q.R for q in fit.poses]), **kw)
-    t = torch.as_tensor(np.stack([q.t for q in fit.poses]), **kw)
-    X, _, RP = _motion_points(R, t, torch.as_tensor(fit.theta, **kw), fr, P, y)
+    R = torch.as_tensor(np.stack([q.R for q in poses]), **kw)
+    t = torch.as_tensor(np.stack([q.t for q in poses]), **kw)
+    X, _, RP = rolling_points(R, t, torch.as_tensor(theta, **kw), fr, P, y)
     u, _, inside = projector(X, None)
     u_rigid, _, inside_rigid = projector(RP + t[fr], u)
     ok = (inside & inside_rigid)[:, None]
@@ -380,15 +375,13 @@ class RollingShutterResult:
         frames: the moving frames fitted.
         velocity_px: frame -> median blur velocity ``|u|`` (px per exposure time).
         frame_ratio: frame -> ``r_f``.
-        rms_correction_px: RMS of the fitted rolling-shutter displacement over the moving frames'
-            features (``pi(rolling pose) - pi(rigid pose)``, the pose held).
+        rms_correction_px: the RMS displacement the moving frames' rolling parameters explain net
+            of a change of pose (:attr:`RollingEvidence.explained_px`, px).
         message: one line for the user ("" with ``off`` when nothing was found).
         corrected: the blurry features the returned camera was fitted to (the raw ones minus
             their frame's rolling displacement), or None when not applied.
         global_shutter: when applied, the camera of the same features without the model (the
             global-shutter fit the step started from); else None.
-        sharp_only: when applied, the generic camera of the sharp frames alone that held the
-            corrections; else None.
     """
 
     mode: str | float
@@ -405,7 +398,6 @@ class RollingShutterResult:
     message: str = ""
     corrected: FeatureTable | None = field(default=None, repr=False)
     global_shutter: GenericCalibration | None = field(default=None, repr=False)
-    sharp_only: GenericCalibration | None = field(default=None, repr=False)
 
     def to_dict(self) -> dict:
         def num(x: float) -> float | None:
@@ -449,22 +441,79 @@ def _raw_observed(calib: GenericCalibration, blurry: FeatureTable) -> np.ndarray
     return observed
 
 
-def _fit(calib: GenericCalibration, blurry: FeatureTable, height: int,
-         camera: GenericCalibration | None = None, twist_sigma: float = 0.3
+def _fit(calib: GenericCalibration, blurry: FeatureTable, height: int, rolling: bool = True
          ) -> tuple[RollingFit, np.ndarray, list[str]]:
-    """Fit every frame of a generic calibration with its camera (or ``camera``'s) held, with
-    rolling parameters for its blurry frames, to the blurry frames' raw observations (``blurry``,
-    uncorrected)."""
+    """Fit every frame of a generic calibration with its camera held, with rolling parameters for
+    its blurry frames (none when not ``rolling``), to the blurry frames' raw observations
+    (``blurry``, uncorrected)."""
     names = calib.frames
     index = {f: k for k, f in enumerate(names)}
     frame = np.array([index[f] for f in calib.frame])
     moving = np.array([f in calib.blurry_frames for f in names])
     shifts = np.array([f in calib.shifts for f in names])
     observed = _raw_observed(calib, blurry)
-    model = calib.model if camera is None else camera.model
-    fit = fit_rolling_frames(generic_projector(model), [calib.poses[f] for f in names], frame,
-                             calib.points, observed, shifts, moving, height, twist_sigma=twist_sigma)
+    fit = fit_rolling_frames(generic_projector(calib.model), [calib.poses[f] for f in names], frame,
+                             calib.points, observed, shifts, moving & rolling, height)
     return fit, frame, [f for f, m in zip(names, moving, strict=True) if m]
+
+
+@dataclass(frozen=True)
+class RollingEvidence:
+    """What the moving frames' rolling parameters explain beyond a rigid pose (module docstring,
+    *Significance*).
+
+    Attributes:
+        statistic, threshold: ``sum_f z_f`` over the moving frames and its null quantile.
+        explained_px: ``sqrt(sum (RSS_rigid - RSS_rolling) / N)``, the RMS displacement the rolling
+            geometry explains net of what a change of pose absorbs (px).
+        residual_px: ``sqrt(sum RSS_rolling / N)``, the RMS residual left with it (px).
+    """
+
+    statistic: float
+    threshold: float
+    explained_px: float
+    residual_px: float
+
+    def found(self, effect: float = 1.0) -> bool:
+        """Whether the frames show a rolling shutter: the statistic above its threshold *and* the
+        explained displacement above ``effect`` times the residual (errors of the features that
+        are not noise, such as a deconvolution's, pass the first test but not the second)."""
+        return bool(self.statistic > self.threshold and self.explained_px > effect * self.residual_px)
+
+
+def rolling_evidence(rolling: RollingFit, rigid: RollingFit, frame: np.ndarray, moving: np.ndarray,
+                     alpha: float, outlier_factor: float = 5.0) -> RollingEvidence:
+    """The extra-sum-of-squares test of each moving frame's rolling parameters against its own
+    residual level.
+
+    Per moving frame ``f`` with ``n_f`` observations inside both fits (those whose rigid residual is
+    within ``outlier_factor`` times the frame's median, or 1 px, kept), ``z_f = (RSS_rigid -
+    RSS_rolling) / s_f^2`` with ``s_f^2 = RSS_rolling / (2 n_f - 20)``: chi-square with 12 degrees
+    of freedom when the frame has no rolling geometry and its residuals are noise of its own level.
+
+    Args:
+        rolling, rigid: the frames fitted with and without rolling parameters, the camera held.
+        frame: ``(N,)`` the observations' frames; moving ``(F,)`` bool.
+        alpha: false-alarm probability of the test.
+    """
+    stats, gained, left, count = [], 0.0, 0.0, 0
+    for f in np.flatnonzero(moving):
+        a, b = rolling.residuals[frame == f], rigid.residuals[frame == f]
+        ok = np.all(np.isfinite(a), axis=1) & np.all(np.isfinite(b), axis=1)
+        eb = np.linalg.norm(b[ok], axis=1)
+        keep = eb < max(outlier_factor * float(np.median(eb)), 1.0) if len(eb) else eb > 0
+        n = int(keep.sum())
+        if n < 12:
+            continue
+        rss_a, rss_b = float((a[ok][keep] ** 2).sum()), float((b[ok][keep] ** 2).sum())
+        stats.append(max(rss_b - rss_a, 0.0) * (2 * n - 20) / max(rss_a, 1e-300))
+        gained += max(rss_b - rss_a, 0.0)
+        left += rss_a
+        count += n
+    if not stats:
+        return RollingEvidence(math.nan, math.nan, math.nan, math.nan)
+    return RollingEvidence(float(sum(stats)), float(chi2.isf(alpha, 12 * len(stats))),
+                           math.sqrt(gained / count), math.sqrt(left / count))
 
 
 def calibrate_rolling_shutter(sharp: FeatureTable, blurry: FeatureTable, parametric: Calibration,
@@ -476,54 +525,54 @@ def calibrate_rolling_shutter(sharp: FeatureTable, blurry: FeatureTable, paramet
 
     Starts from the global-shutter calibration (``first``, or :func:`calibrate_generic` of the
     features), fits the moving frames' rolling geometry with that camera held, tests it and
-    estimates ``r``; then, when the mode asks for it (``auto`` and significant, or a known
-    ratio), alternates ``rounds`` times: correct the blurry observations by the fitted
-    displacement, recalibrate, refit. The corrections are fitted with the camera of the sharp
-    frames alone held (the global-shutter camera of sharp and blurry frames has absorbed part of
-    the rolling-shutter geometry that all frames share), except for frames of which more than a
-    fifth lies outside that camera's calibrated area, fitted with the current camera. The test and
-    ``r`` are those of the first fit, with the global-shutter camera held (measured closest to the
-    truth: ``docs/rolling-shutter.md``). With ``off``
-    or a non-significant ``auto`` the returned camera is the global-shutter one, unchanged.
+    estimates ``r``. When the mode asks for it (``auto`` and significant, or a known ratio), the
+    camera is fitted again together with every blurry frame's rolling parameters (the bundle
+    adjustment's per-frame blocks grow to pose, shift and ``theta``); the blurry observations are
+    corrected by their frame's fitted displacement under that camera, the generic camera of the
+    corrected features is the one returned (so that what follows it sees a global-shutter fit),
+    and ``r`` is estimated again with it held. With ``off`` or a non-significant ``auto`` the
+    returned camera is the global-shutter one, unchanged.
     """
     height = size[1]
     calib = first or calibrate_generic(sharp, blurry, parametric, pattern, size, joint)
-    global_shutter = calib
     fit, frame, moving = _fit(calib, blurry, height)
-    result = _assess(calib, fit, frame, moving, settings, velocities)
+    result = _assess(calib, fit, _fit(calib, blurry, height, rolling=False)[0], frame, moving, settings,
+                     velocities)
     if not result.applied:
         return calib, result
-    sharp_only = calibrate_generic(sharp, None, parametric, pattern, size, joint)
-    for _ in range(settings.rounds):
-        fit, frame, _ = _fit(calib, blurry, height, sharp_only, settings.correction_twist_sigma)
-        fit = _fallback(fit, _fit(calib, blurry, height, None, settings.correction_twist_sigma)[0], frame)
-        corrected = _corrected(blurry, calib, fit, frame, height, sharp_only)
-        calib = calibrate_generic(sharp, corrected, parametric, pattern, size, joint)
-    return calib, replace(result, corrected=corrected, global_shutter=global_shutter, sharp_only=sharp_only)
+    rolling = calibrate_generic(sharp, blurry, parametric, pattern, size, joint,
+                                rolling_twist_sigma=settings.correction_twist_sigma)
+    corrected = _corrected(blurry, rolling, height)
+    final = calibrate_generic(sharp, corrected, parametric, pattern, size, joint)
+    refit, frame, moving = _fit(final, blurry, height)
+    ratio, sigma, r_f = estimate_ratio(refit, frame, _moving_blur(final, frame, moving, velocities),
+                                       _blur_columns(final, velocities)[1])
+    names = final.frames
+    frame_ratio = {names[f]: float(r_f[f]) for f in range(len(r_f)) if np.isfinite(r_f[f])}
+    out = replace(result, ratio=ratio, sigma=sigma, frame_ratio=frame_ratio, corrected=corrected,
+                  global_shutter=calib)
+    return final, replace(out, message=_message(out, True))
 
 
-def _fallback(fit: RollingFit, other: RollingFit, frame: np.ndarray, share: float = 0.8) -> RollingFit:
-    """``fit`` with the poses and rolling parameters of ``other`` for the frames of which fewer than
-    ``share`` of the observations were inside ``fit``'s camera's calibrated area."""
-    inside = np.all(np.isfinite(fit.residuals), axis=1)
-    counts = np.bincount(frame, minlength=len(fit.poses))
-    kept = np.bincount(frame, weights=inside, minlength=len(fit.poses)) >= share * np.maximum(counts, 1)
-    return replace(fit, poses=[p if k else q for p, q, k in zip(fit.poses, other.poses, kept, strict=True)],
-                   theta=np.where(kept[:, None], fit.theta, other.theta))
+def _moving_blur(calib: GenericCalibration, frame: np.ndarray, moving: list[str],
+                 velocities: BlurVelocity | None) -> np.ndarray:
+    """``(N,)`` blur lengths of the moving frames' observations (NaN elsewhere)."""
+    on_moving = np.isin(frame, [calib.frames.index(f) for f in moving])
+    blur = _blur_columns(calib, velocities)[0]
+    return np.where(on_moving & np.isfinite(blur), blur, math.nan)
 
 
-def _corrected(blurry: FeatureTable, calib: GenericCalibration, fit: RollingFit, frame: np.ndarray,
-               height: int, camera: GenericCalibration) -> FeatureTable:
-    """The raw blurry features minus their frames' rolling displacement, fitted with ``camera``
-    held and evaluated under it, or under ``calib``'s camera (which covers every feature it was
-    fitted to) where ``camera``'s calibrated area ends."""
-    observed = _raw_observed(calib, blurry)
-    shift = rolling_displacement(generic_projector(camera.model), fit, frame, calib.points, observed, height)
-    outside = ~np.all(np.isfinite(shift), axis=1)
-    if outside.any():
-        shift[outside] = rolling_displacement(generic_projector(calib.model), fit, frame, calib.points,
-                                              observed, height)[outside]
-    shift = np.nan_to_num(shift)
+def _corrected(blurry: FeatureTable, calib: GenericCalibration, height: int) -> FeatureTable:
+    """The raw blurry features minus their frame's rolling displacement ``pi(rolling pose) -
+    pi(rigid pose)`` under the camera, poses and rolling parameters fitted together (``calib``,
+    a :func:`calibrate_generic` with rolling parameters); 0 where a projection leaves the area."""
+    names = calib.frames
+    frame = np.array([names.index(f) for f in calib.frame])
+    theta = np.stack([calib.rolling.get(f, np.zeros(12)) for f in names])
+    poses = [calib.poses[f] for f in names]
+    projector = generic_projector(calib.model)
+    shift = np.nan_to_num(rolling_displacement(projector, poses, theta, frame, calib.points, calib.observed,
+                                               height))
     key = {(str(f), int(i)): k for k, (f, i) in enumerate(zip(calib.frame, calib.feature_id, strict=True))}
     x, y = blurry.x.copy(), blurry.y.copy()
     for row, (f, i) in enumerate(zip(blurry.frame, blurry.feature_id, strict=True)):
@@ -534,26 +583,23 @@ def _corrected(blurry: FeatureTable, calib: GenericCalibration, fit: RollingFit,
     return replace(blurry, x=x, y=y)
 
 
-def _assess(calib: GenericCalibration, fit: RollingFit, frame: np.ndarray, moving: list[str],
-            settings: RollingShutterSettings, velocities: BlurVelocity | None) -> RollingShutterResult:
+def _assess(calib: GenericCalibration, fit: RollingFit, rigid: RollingFit, frame: np.ndarray,
+            moving: list[str], settings: RollingShutterSettings, velocities: BlurVelocity | None
+            ) -> RollingShutterResult:
     names = calib.frames
-    z = fit.z[np.isfinite(fit.z)]
-    statistic = float(z.sum()) if len(z) else math.nan
-    threshold = float(chi2.isf(settings.alpha, 12 * len(z))) if len(z) else math.nan
     on_moving = np.isin(frame, [names.index(f) for f in moving])
-    corr = fit.correction[on_moving]
-    rms_corr = float(np.sqrt((corr**2).sum(axis=1).mean())) if len(corr) else math.nan
+    ev = rolling_evidence(fit, rigid, frame, np.isin(names, moving), settings.alpha)
     blur, direction = _blur_columns(calib, velocities)
     sel = on_moving & np.isfinite(blur)
     ratio, sigma, r_f = estimate_ratio(fit, frame, np.where(sel, blur, math.nan), direction)
     confirmed = not math.isfinite(ratio) or not math.isfinite(sigma) or ratio > 3.0 * sigma
-    significant = bool(len(z) and statistic > threshold and confirmed)
+    significant = ev.found(settings.effect) and confirmed
     velocity = {names[f]: float(np.median(blur[frame == f][np.isfinite(blur[frame == f])]))
                 for f in np.unique(frame[sel])}
     frame_ratio = {names[f]: float(r_f[f]) for f in range(len(r_f)) if np.isfinite(r_f[f])}
     applied = isinstance(settings.mode, float) or (settings.mode == "auto" and significant)
-    out = RollingShutterResult(settings.mode, ratio, sigma, applied, significant, statistic, threshold,
-                               moving, velocity, frame_ratio, rms_corr)
+    out = RollingShutterResult(settings.mode, ratio, sigma, applied, significant, ev.statistic, ev.threshold,
+                               moving, velocity, frame_ratio, ev.explained_px)
     return replace(out, message=_message(out, applied))
 
 
@@ -563,7 +609,7 @@ def _message(res: RollingShutterResult, applied: bool) -> str:
     if res.mode == "off":
         if res.significant:
             return (f"warning: the blurry frames' features fit no rigid pose in the way a rolling shutter "
-                    f"explains ({est}, RMS displacement {res.rms_correction_px:.2f} px); "
+                    f"explains ({est}, {res.rms_correction_px:.2f} px RMS beyond a pose change); "
                     f"try --rolling-shutter auto")
         return ""
     if applied:

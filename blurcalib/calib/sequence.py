@@ -392,9 +392,7 @@ def _assess(run: CalibrationRun, pattern: StarPattern, size: tuple[int, int], s:
     without its assessment, and when only the sharp-only camera's part fails, the generic camera
     is assessed alone and the sharp-only camera keeps its uncertainty map."""
     t0 = time.perf_counter()
-    if run.rolling_shutter is not None and run.rolling_shutter.sharp_only is not None:
-        run.generic_sharp = run.rolling_shutter.sharp_only
-    elif run.generic.blurry_frames:
+    if run.generic.blurry_frames:
         try:
             run.generic_sharp = calibrate_generic(run.sharp, None, run.calibration, pattern, size, s.generic)
         except ValueError as exc:  # CalibrationError too

@@ -44,7 +44,8 @@ import cv2
 import numpy as np
 import torch
 
-from blurcalib.calib.bundle import BundleSettings, frame_jacobian
+from blurcalib.calib.bundle import BundleSettings
+from blurcalib.calib.frame_block import frame_jacobian
 from blurcalib.calib.joint import GenericCalibration
 from blurcalib.calib.normal_equations import leave_out_models
 from blurcalib.calib.sharp import Calibration, CalibrationError, calibrate_sharp, solve_pose
