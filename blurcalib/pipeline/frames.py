@@ -48,7 +48,7 @@ class RowStatus(str, Enum):
 FRAMES_COLUMNS: tuple[str, ...] = (
     "frame", "kind", "blur_px", "noise_dn", "status", "reason", "extraction", "seeded_by", "psf",
     "features", "blocks", "kept", "centre_sigma_major", "alignment", "median_error", "mean_error",
-    "angle_deg")
+    "angle_deg", "velocity_px")
 """The columns of ``frames.csv``."""
 
 
@@ -70,6 +70,8 @@ class FrameRow:
             ``median_error``, ``mean_error`` (px), ``angle_deg`` (optical axis to target normal) and
             ``translation`` (px).
         shift: the frame's image shift estimated by the generic fit on the joint route (px).
+        velocity_px: a blurry frame's median blur velocity ``|u|`` (px per exposure time) where the
+            rolling-shutter step measured it (:class:`blurcalib.calib.rolling_shutter.BlurVelocity`).
     """
 
     frame: str
@@ -93,6 +95,7 @@ class FrameRow:
     angle_deg: float | None = None
     translation: list[float] | None = None
     shift: list[float] | None = None
+    velocity_px: float | None = None
 
     @property
     def used(self) -> bool:
@@ -155,9 +158,12 @@ def sharp_row(extracted: dict, calibration: Calibration, generic: GenericCalibra
     return FrameRow(status=RowStatus.USED, calibration_median_error=median, **base)
 
 
-def blurry_row(extracted: dict, outcome: BlurryOutcome | None, settings: SequenceSettings) -> FrameRow:
+def blurry_row(extracted: dict, outcome: BlurryOutcome | None, settings: SequenceSettings,
+               velocity_px: dict[str, float] | None = None) -> FrameRow:
     """A blurry frame's row from what the calibration sequence made of it (None: a frame of a
-    feature file with the parametric model, which has no blocks to align).
+    feature file with the parametric model, which has no blocks to align); ``velocity_px``: the
+    rolling-shutter step's median blur velocity of each frame it measured, by the frame's name in
+    the calibration (``RollingShutterResult.velocity_px``).
 
     Its status is the generic fit's where the frame entered it (``used``, or
     ``too_few_features``), else the parametric route's (``used``, ``ill_conditioned``,
@@ -171,6 +177,9 @@ def blurry_row(extracted: dict, outcome: BlurryOutcome | None, settings: Sequenc
                         reason="a feature file holds no blocks to align to the parametric camera (the "
                                "generic model uses it)")
     flt, fields_ = outcome.filter, dict(base)
+    velocity = (velocity_px or {}).get(outcome.frame.name)
+    if velocity is not None and math.isfinite(velocity):
+        fields_.update(velocity_px=round(float(velocity), 3))
     if flt is not None:
         fields_.update(blocks=len(outcome.blocks), kept=int(flt.kept.sum()),
                        centre_sigma_major=round(flt.centre_sigma_major, 3), filter_counts=flt.counts())

@@ -315,8 +315,9 @@ def _extract(sharp: Sequence[Path], blurry: Sequence[Path], mixed: Sequence[Fram
 def _rows(sharp: list[dict], blurry: list[dict], outcomes: dict[str, BlurryOutcome | None],
           run: CalibrationRun, s: SequenceSettings) -> list[FrameRow]:
     """Every frame's row, sharp frames first, each decided once from what the run made of it."""
+    velocity = None if run.rolling_shutter is None else run.rolling_shutter.velocity_px
     return ([sharp_row(r, run.calibration, run.generic) for r in sharp]
-            + [blurry_row(r, outcomes.get(r["frame"]), s) for r in blurry])
+            + [blurry_row(r, outcomes.get(r["frame"]), s, velocity) for r in blurry])
 
 
 def _calibration_seconds(run: CalibrationRun) -> dict[str, float]:
