@@ -179,7 +179,9 @@ def fit_rolling_frames(projector: Projector, poses: Sequence[Pose], frame: np.nd
                        twist_sigma: float = 0.3) -> RollingFit:
     """Fit every frame's pose, free shift and (where ``rolling``) rolling twist and curvature
     with the camera held (module docstring), Huber ``rho`` by iteratively reweighted
-    Levenberg-Marquardt (``lambda diag(H)`` per frame, /10 on success, x10 on failure).
+    Levenberg-Marquardt (``lambda diag(H)`` per frame, /10 on success, x10 on failure). A frame
+    stops when its step falls below 1e-10 or no damping lowers its cost; the next iterations
+    project the other frames' observations only.
 
     Args:
         projector: the camera held (:func:`blurcalib.calib.validation.generic_projector`).
@@ -213,22 +215,29 @@ def fit_rolling_frames(projector: Projector, poses: Sequence[Pose], frame: np.nd
     theta_w = 1.0 / torch.cat([torch.full((F, 3), twist_sigma, **kw), (twist_sigma * depth).expand(F, 3)] * 2,
                                dim=1) ** 2
 
-    def evaluate(R, t, s, theta, init):
-        X, Ri, RP = rolling_points(R, t, theta, fr, P, y)
+    every = torch.arange(len(fr))
+
+    def evaluate(R, t, s, theta, rows, init):
+        """The state of the observations ``rows`` and the cost ``(F,)`` of their frames."""
+        f = fr[rows]
+        X, Ri, RP = rolling_points(R, t, theta, f, P[rows], y[rows])
         u, J_p, inside = projector(X, init)
-        r = p - u - s[fr]
+        r = p[rows] - u - s[f]
         e = torch.where(inside, r.norm(dim=-1), 0.0)
         rho = torch.where(e <= huber_px, e * e, 2 * huber_px * e - huber_px**2)
-        cost = torch.zeros(F, **kw).index_add_(0, fr, rho) + shift_w * (s * s).sum(-1) \
+        cost = torch.zeros(F, **kw).index_add_(0, f, rho) + shift_w * (s * s).sum(-1) \
             + (theta_w * theta * theta).sum(-1)
-        return (X, Ri, RP, u, J_p, inside, r), cost
+        return [X, Ri, RP, u, J_p, inside, r], cost
 
-    state, cost = evaluate(R, t, s, theta, None)
+    state, cost = evaluate(R, t, s, theta, every, p.clone())  # projections start where observed
     lam = torch.full((F,), 1e-4, **kw)
+    H_data = torch.zeros(F, _PARAMS, _PARAMS, **kw)
+    active = torch.ones(F, dtype=torch.bool)
     for _ in range(iterations):
-        J, sel, w = _jacobian(state, fr, y, huber_px)
-        f = fr[sel]
-        r = state[6][sel]
+        rows = every[active[fr]]
+        J, sel, w = _jacobian([v[rows] for v in state], fr[rows], y[rows], huber_px)
+        f = fr[rows][sel]
+        r = state[6][rows][sel]
         H = torch.zeros(F, _PARAMS, _PARAMS, **kw).index_add_(0, f, J.transpose(1, 2) @ (w * J))
         b = torch.zeros(F, _PARAMS, **kw).index_add_(0, f, (J.transpose(1, 2) @ (w * r[:, :, None]))[..., 0])
         H[:, 6, 6] += shift_w
@@ -236,26 +245,30 @@ def fit_rolling_frames(projector: Projector, poses: Sequence[Pose], frame: np.nd
         b[:, 6:8] -= shift_w * s
         H = torch.where(free_t[:, :, None] & free_t[:, None, :], H, 0.0)
         H = H + torch.diag_embed((~free_t).to(H.dtype))
-        H_data = H.clone()
+        H_data = torch.where(active[:, None, None], H, H_data)
         H[:, 8:, 8:] += torch.diag_embed(theta_w)
         b[:, 8:] -= theta_w * theta
-        b = torch.where(free_t, b, 0.0)
+        b = torch.where(free_t & active[:, None], b, 0.0)
         diag = torch.diag_embed(torch.diagonal(H, dim1=1, dim2=2).clamp_min(1e-12))
         for _try in range(8):
             dp = torch.linalg.solve(H + lam[:, None, None] * diag, b)
             trial = (exp_so3(dp[:, :3]) @ R, t + dp[:, 3:6], s + dp[:, 6:8], theta + dp[:, 8:])
-            trial_state, trial_cost = evaluate(*trial, state[3])
-            worse = trial_cost > cost * (1 + 1e-12)
+            trial_state, trial_cost = evaluate(*trial, rows, state[3][rows])
+            worse = active & (trial_cost > cost * (1 + 1e-12))
             lam = torch.where(worse, lam * 10.0, (lam / 10.0).clamp_min(1e-9))
             if not bool(worse.any()):
                 break
-        better = ~worse
+        better = active & ~worse
         R = torch.where(better[:, None, None], trial[0], R)
         t = torch.where(better[:, None], trial[1], t)
         s = torch.where(better[:, None], trial[2], s)
         theta = torch.where(better[:, None], trial[3], theta)
-        state, cost = (trial_state, trial_cost) if bool(better.all()) else evaluate(R, t, s, theta, state[3])
-        if float((dp * better[:, None]).abs().max()) < 1e-10:
+        keep = better[fr[rows]]
+        for k, v in enumerate(trial_state):
+            state[k][rows[keep]] = v[keep]
+        cost = torch.where(better, trial_cost, cost)
+        active &= better & ((dp * better[:, None]).abs().amax(dim=1) >= 1e-10)
+        if not bool(active.any()):
             break
     return _finish(projector, state, R, t, s, theta, free, fr, y, p, huber_px, H_data)
 
