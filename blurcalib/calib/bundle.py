@@ -19,7 +19,9 @@ translation ``s_f`` (the deconvolution's translational ambiguity, paper ``eq:glo
   reported in :attr:`BundleResult.warnings` by image region.
 
 Solver: Levenberg-Marquardt (Marquardt's ``lambda diag(H)`` damping, starting at 1e-6, divided by 5 on
-success, x4 on failure). The per-frame blocks (pose: rotation increment ``omega`` with
+success, x4 on failure; a step that raises the cost by less than ``tol`` of it ends the
+iterations as converged: the projections are solved to 1e-8 px, which makes a converged cost
+that uncertain). The per-frame blocks (pose: rotation increment ``omega`` with
 ``R <- exp(omega) R`` and ``t <- t + dt``; plus ``s_f``) are eliminated by the Schur complement;
 the reduced system on the ``2 GW GH`` grid parameters is dense (formed frame chunk by frame
 chunk, :func:`reduce_frames`) and solved by Cholesky in torch float64. Projections are
@@ -659,6 +661,8 @@ def bundle_adjust(model: CentralGeneric, poses: Sequence[Pose], frame: ArrayLike
                 st, r, use, cost = _regauged(spline, trial), r_n, use_n, cost_n
                 lam = max(lam * 0.2, 1e-12)
                 accepted = True
+                break
+            if cost_n - cost <= settings.tol * cost:  # within the projections' noise: converged
                 break
             lam *= 4
         if progress:
