@@ -48,7 +48,8 @@ import numpy as np
 import torch
 from scipy.stats import chi2
 
-from blurcalib.calib.frame_block import frame_jacobian, rolling_points
+from blurcalib.calib.bundle import robust_weights
+from blurcalib.calib.frame_block import rolling_frame_jacobian, rolling_points
 from blurcalib.calib.joint import GenericCalibration, JointSettings, calibrate_generic
 from blurcalib.calib.sharp import Calibration
 from blurcalib.calib.validation import Projector, generic_projector
@@ -235,7 +236,7 @@ def fit_rolling_frames(projector: Projector, poses: Sequence[Pose], frame: np.nd
     active = torch.ones(F, dtype=torch.bool)
     for _ in range(iterations):
         rows = every[active[fr]]
-        J, sel, w = _jacobian([v[rows] for v in state], fr[rows], y[rows], huber_px)
+        J, sel, w = _jacobian([v[rows] for v in state], y[rows], huber_px)
         f = fr[rows][sel]
         r = state[6][rows][sel]
         H = torch.zeros(F, _PARAMS, _PARAMS, **kw).index_add_(0, f, J.transpose(1, 2) @ (w * J))
@@ -273,20 +274,14 @@ def fit_rolling_frames(projector: Projector, poses: Sequence[Pose], frame: np.nd
     return _finish(projector, state, R, t, s, theta, free, fr, y, p, huber_px, H_data)
 
 
-def _jacobian(state, fr: torch.Tensor, y: torch.Tensor, huber_px: float
+def _jacobian(state, y: torch.Tensor, huber_px: float
               ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """``(N', 2, 20)`` Jacobian of the projected observations inside the area, their indices and
     Huber weights ``(N', 1, 1)``."""
     X, Ri, RP, _, J_p, inside, r = state
     sel = torch.nonzero(inside).squeeze(1)
-    Jp = J_p[sel]
-    rigid = frame_jacobian(Jp @ Ri[sel], RP[sel])
-    ys = y[sel][:, None, None]
-    twist = torch.cat([-Jp @ skew(X[sel]), Jp], dim=2)
-    J = torch.cat([rigid, ys * twist, ys * ys * twist], dim=2)
-    e = r[sel].norm(dim=-1)
-    w = torch.where(e <= huber_px, torch.ones_like(e), huber_px / e.clamp_min(1e-300))[:, None, None]
-    return J, sel, w
+    J = rolling_frame_jacobian(J_p[sel], Ri[sel], RP[sel], X[sel], y[sel])
+    return J, sel, robust_weights(r[sel], huber_px)[:, None, None]
 
 
 def _finish(projector: Projector, state, R, t, s, theta, free: np.ndarray, fr: torch.Tensor,

@@ -44,7 +44,7 @@ import cv2
 import numpy as np
 import torch
 
-from blurcalib.calib.bundle import BundleSettings
+from blurcalib.calib.bundle import BundleSettings, robust_weights
 from blurcalib.calib.frame_block import frame_jacobian
 from blurcalib.calib.joint import GenericCalibration
 from blurcalib.calib.normal_equations import leave_out_models
@@ -272,8 +272,7 @@ def fit_frames(projector: Projector, poses: Sequence[Pose], frame: np.ndarray, p
         sel = rows[inside[rows]]
         f = fr[sel]
         J = frame_jacobian(J_p[sel], X[sel] - t[f])
-        e = r[sel].norm(dim=-1)
-        w = torch.where(e <= huber_px, torch.ones_like(e), huber_px / e.clamp_min(1e-300))[:, None, None]
+        w = robust_weights(r[sel], huber_px)[:, None, None]
         H = torch.zeros(F, 8, 8, **kw).index_add_(0, f, J.transpose(1, 2) @ (w * J))
         b = torch.zeros(F, 8, **kw).index_add_(0, f, (J.transpose(1, 2) @ (w * r[sel][:, :, None]))[..., 0])
         H[:, 6, 6] += shift_w
