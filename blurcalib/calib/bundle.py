@@ -417,15 +417,13 @@ def add_smoothness_prior(pb: BundleProblem, st: BundleState, tang: torch.Tensor,
     bg.index_add_(0, cols.reshape(-1), -pb.smooth_w * (Jm.transpose(1, 2) @ res[:, :, None]).reshape(-1))
 
 
-def add_shift_prior(pb: BundleProblem, st: BundleState, Hpp: torch.Tensor, bp: torch.Tensor,
-                     frames: torch.Tensor | None = None) -> None:
-    """Add the free shifts' prior; decouple the fixed shifts (identity block, zero gradient).
-    ``frames (F,)`` bool: only these frames' blocks (default all)."""
-    free = pb.shift_free if frames is None else pb.shift_free & frames
+def add_shift_prior(pb: BundleProblem, st: BundleState, Hpp: torch.Tensor, bp: torch.Tensor) -> None:
+    """Add the free shifts' prior; decouple the fixed shifts (identity block, zero gradient)."""
+    free = pb.shift_free
     Hpp[free, 6, 6] += pb.shift_w
     Hpp[free, 7, 7] += pb.shift_w
     bp[free, 6:8] -= pb.shift_w * st.s[free]
-    fixed = ~pb.shift_free if frames is None else ~pb.shift_free & frames
+    fixed = ~pb.shift_free
     Hpp[fixed, 6:8, :] = 0.0
     Hpp[fixed, :, 6:8] = 0.0
     Hpp[fixed, 6, 6] = 1.0
