@@ -149,20 +149,24 @@ def cmd_synth(args: argparse.Namespace) -> int:
 
 def _pipeline_settings(args: argparse.Namespace):
     """The pipeline's settings from the options of ``calibrate`` and ``demo``."""
+    from blurcalib.calib.bundle import BundleSettings
     from blurcalib.calib.trust import TrustSettings
     from blurcalib.extract.frame import ExtractSettings
     from blurcalib.pipeline.run import PipelineSettings
 
     try:
+        device = check_device(args.device)
         base = ExtractSettings(local_alignment=args.local_alignment,
                                sharp_below_px=getattr(args, "sharp_below", ExtractSettings.sharp_below_px))
         extraction = replace(base, grow=replace(base.grow, final_fit_frames=args.final_fit,
-                                                psf_field=not args.no_psf_field))
+                                                psf_field=not args.no_psf_field),
+                             deconv=replace(base.deconv, device=device))
         calibration = SequenceSettings(
             quality=QualitySettings(tau_be=args.tau_be, tau_loss=args.tau_loss,
                                     min_sigma_major=args.min_sigma_major, loss_mode=args.loss_threshold),
             alignment=AlignmentSettings(loss=args.loss, bias=args.bias), model=args.model,
-            generic=JointSettings(cell_px=args.cell_px, route=args.route),
+            generic=JointSettings(cell_px=args.cell_px, route=args.route,
+                                  bundle=BundleSettings(device=device)),
             lens_correction=not args.no_lens_correction,
             trust=TrustSettings(validation=ValidationSettings(method=args.validation, folds=args.folds)),
             rolling_shutter=RollingShutterSettings(args.rolling_shutter))
@@ -299,54 +303,10 @@ def cmd_demo(args: argparse.Namespace) -> int:
         print(f"accuracy of the aligned blurry features against the true camera (pose refitted): "
               f"median over {count(len(acc), 'frame')} {med:.4f} px "
               f"(per frame {min(a.median for a in acc):.4f} to {max(a.median for a in acc):.4f} px)")
-    _print_camera_accuracy(out / "calibration", truth)
+    from blurcalib.pipeline.accuracy import camera_accuracy_lines
+
+    print("\n".join(camera_accuracy_lines(out / "calibration", truth.camera)))
     return 0
-
-
-def _print_camera_accuracy(out: Path, truth) -> None:
-    """The demo's answer to "is the camera better because of the blurry frames": each camera's
-    projection error against the true camera over the image (after the best-fit rotation), for
-    the parametric camera, the generic camera of the sharp frames alone, and the generic camera
-    of sharp and blurry frames together; and whether each generic camera's predicted uncertainty
-    matches its true error (RMS true error over RMS predicted sigma on the uncertainty lattice,
-    calibrated when near 1)."""
-    import numpy as np
-
-    from blurcalib.calib.sharp import load_calibration
-    from blurcalib.calib.trust import UNCERTAINTY_NPZ
-    from blurcalib.camera.files import read_generic_yaml
-    from blurcalib.pipeline.run import GLOBAL_SHUTTER_DIR, SHARP_ONLY_DIR
-    from blurcalib.sim.evaluate import camera_accuracy, projection_errors
-
-    folder = out / "calibration"
-    calibration = load_calibration(folder)
-    cameras = [("parametric, sharp frames", calibration.camera, None)]
-    unc = np.load(folder / UNCERTAINTY_NPZ) if (folder / UNCERTAINTY_NPZ).is_file() else None
-    sharp_only = folder / SHARP_ONLY_DIR / "intrinsics0.yaml"
-    if sharp_only.is_file():
-        cameras.append(("generic, sharp frames", read_generic_yaml(sharp_only), "sigma_px_sharp"))
-    if (folder / "intrinsics0.yaml").is_file():
-        label = "generic, sharp + blurry frames" if len(cameras) > 1 else "generic, sharp frames"
-        cameras.append((label, read_generic_yaml(folder / "intrinsics0.yaml"), "sigma_px"))
-    if (folder / GLOBAL_SHUTTER_DIR / "intrinsics0.yaml").is_file():
-        cameras.append(("  the same, rolling shutter off", read_generic_yaml(folder / GLOBAL_SHUTTER_DIR
-                                                                          / "intrinsics0.yaml"), None))
-    print("camera against the true camera over the image (px, after the best-fit rotation; shape: after "
-          "the best-fit focal lengths and principal point too, docs/generic.md):")
-    for label, camera, key in cameras:
-        a = camera_accuracy(truth.camera, camera)
-        line = (f"  {label:<32} median {a.median:.4f}, p95 {a.p95:.4f}, max {a.max:.4f} "
-                f"({100 * a.defined:.0f}% of the image calibrated); shape median {a.shape_median:.4f}, "
-                f"focal scale {a.scale_px:+.4f} at the corners")
-        if unc is not None and key in unc:
-            sigma = unc[key].reshape(-1)
-            px = np.column_stack([unc["x"].reshape(-1), unc["y"].reshape(-1)])
-            ok = np.isfinite(sigma) & camera.in_area(px)
-            err = projection_errors(truth.camera, camera, px[ok])
-            fine = np.isfinite(err)
-            ratio = np.sqrt(np.mean(err[fine] ** 2)) / np.sqrt(np.mean(sigma[ok][fine] ** 2))
-            line += f"; true error / predicted uncertainty (RMS) {ratio:.2f}"
-        print(line)
 
 
 def cmd_extract(args: argparse.Namespace) -> int:
@@ -475,6 +435,8 @@ def _add_run_options(p: argparse.ArgumentParser, workers: bool = True) -> None:
                         "worker processes use one (%(default)s; more only helps on an idle machine)")
     p.add_argument("--cluster", metavar="ADDRESS", type=cluster_address,
                    help="run frames as tasks on this Dask scheduler (tcp://host:8786; docs/cluster.md)")
+    p.add_argument("--device", default="cpu",
+                   help="torch device of the block solver and the bundle adjustment (cpu, cuda, cuda:N)")
 
 
 def _add_fit_options(p: argparse.ArgumentParser, which: str) -> None:
@@ -624,7 +586,6 @@ def build_parser() -> argparse.ArgumentParser:
                    help="move star centres by the local-alignment translations")
     _add_fit_options(p, "")
     _add_run_options(p)
-    p.add_argument("--device", default="cpu", help="torch device for the block solver (cpu, cuda)")
     p.add_argument("--overwrite", action="store_true",
                    help="write into a non-empty folder that is not an extract output")
     p.set_defaults(func=cmd_extract)

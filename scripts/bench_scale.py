@@ -1,7 +1,7 @@
 """Calibration at scale from features, printed: time (wall and CPU) per stage, peak memory,
 the generic camera's error to the truth and the yield, at several frame counts.
 
-    python scripts/bench_scale.py [--frames 200 1000 2000] [--blurry-share 0.7] [--seed 3]
+    python scripts/bench_scale.py [--frames 200 1000 2000] [--blurry-share 0.7] [--seed 3] [--device cpu]
 
 Simulation (features, not images): a 1280 x 720 lens the project's other benchmarks do not use
 (:func:`blurcalib.sim.truth.d435i_like_camera` of ``--seed`` with its 0.3 px non-parametric
@@ -78,11 +78,13 @@ def simulate(frames: int, blurry_share: float, noise_px: float, seed: int):
     return truth, pattern, (W, H), table.select(~is_blurry), table.select(is_blurry)
 
 
-def run_size(frames: int, blurry_share: float, noise_px: float, seed: int) -> dict:
-    """One size, in this process: the stages' figures as a dict."""
+def run_size(frames: int, blurry_share: float, noise_px: float, seed: int, device: str) -> dict:
+    """One size, in this process: the stages' figures as a dict (the bundle adjustments, the
+    validation and the uncertainty on torch ``device``; the parametric camera on the CPU)."""
     import torch
 
-    from blurcalib.calib.joint import calibrate_generic
+    from blurcalib.calib.bundle import BundleSettings
+    from blurcalib.calib.joint import JointSettings, calibrate_generic
     from blurcalib.calib.sharp import calibrate_sharp
     from blurcalib.calib.trust import assess_calibration
     from blurcalib.sim.evaluate import camera_accuracy
@@ -90,6 +92,8 @@ def run_size(frames: int, blurry_share: float, noise_px: float, seed: int) -> di
     torch.set_num_threads(1)
     truth, pattern, size, sharp, blurry = simulate(frames, blurry_share, noise_px, seed)
     out: dict = {"frames": frames, "observations": len(sharp) + len(blurry), "seconds": {}, "cpu": {}}
+    bundle = BundleSettings(device=device)
+    joint_settings = JointSettings(bundle=bundle)
 
     def stage(name: str, fn):
         t0, c0 = time.perf_counter(), time.process_time()
@@ -99,9 +103,10 @@ def run_size(frames: int, blurry_share: float, noise_px: float, seed: int) -> di
         return value
 
     cal = stage("parametric", lambda: calibrate_sharp(sharp, pattern, size))
-    joint = stage("generic", lambda: calibrate_generic(sharp, blurry, cal, pattern, size))
-    alone = stage("generic_sharp", lambda: calibrate_generic(sharp, None, cal, pattern, size))
-    trust = stage("assessment", lambda: assess_calibration(joint, alone, cal, sharp, pattern, size))
+    joint = stage("generic", lambda: calibrate_generic(sharp, blurry, cal, pattern, size, joint_settings))
+    alone = stage("generic_sharp", lambda: calibrate_generic(sharp, None, cal, pattern, size, joint_settings))
+    trust = stage("assessment", lambda: assess_calibration(joint, alone, cal, sharp, pattern, size,
+                                                           bundle=bundle))
     out["assessment_parts"] = {k: round(v, 1) for k, v in trust.seconds.items()}
     out["peak_gb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e6
     out["error_px"] = camera_accuracy(truth, joint.model).median
@@ -120,17 +125,20 @@ def main() -> None:
     parser.add_argument("--blurry-share", type=float, default=0.7)
     parser.add_argument("--noise", type=float, default=0.02, help="feature noise per axis (px)")
     parser.add_argument("--seed", type=int, default=3)
+    parser.add_argument("--device", default="cpu", help="torch device of the bundle adjustments (cpu, cuda)")
     parser.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.child:
-        print(json.dumps(run_size(args.frames[0], args.blurry_share, args.noise, args.seed)))
+        print(json.dumps(run_size(args.frames[0], args.blurry_share, args.noise, args.seed, args.device)))
         return
     env = {**os.environ, "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
     print(f"simulated features: {args.blurry_share:.0%} blurry frames (free shift each), noise "
-          f"{args.noise} px, lens seed {args.seed}; one torch thread; timings depend on the machine's load")
+          f"{args.noise} px, lens seed {args.seed}; one torch thread; device {args.device}; timings depend "
+          "on the machine's load")
     for n in args.frames:
         proc = subprocess.run([sys.executable, __file__, "--child", "--frames", str(n), "--blurry-share",
-                               str(args.blurry_share), "--noise", str(args.noise), "--seed", str(args.seed)],
+                               str(args.blurry_share), "--noise", str(args.noise), "--seed", str(args.seed),
+                               "--device", args.device],
                               env=env, capture_output=True, text=True)
         if proc.returncode != 0:
             print(f"{n} frames: failed (exit {proc.returncode}):\n{proc.stderr.strip()[-3000:]}")

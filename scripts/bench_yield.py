@@ -1,6 +1,6 @@
 """Benchmark of frame yield under heavy blur: seeding, the adaptive PSF window, accuracy, speed.
 
-    python scripts/bench_yield.py [--heavy 12] [--light 6] [--cache DIR] [--part I/N]
+    python scripts/bench_yield.py [--heavy 12] [--light 6] [--cache DIR] [--part I/N] [--device cpu]
 
 1. Simulated frames with 12 to 25 px of blur (1280x720, noise sigma 2, seed 11): per frame how it
    was seeded, whether its blocks were fitted with the frame's path-PSF field (``field``,
@@ -32,6 +32,8 @@
 Times are wall and process CPU seconds per frame, torch single-threaded. ``--cache`` keeps the
 simulated frames (pickled) so that a re-run skips the simulation; ``--part I/N`` runs every N-th
 frame from the I-th (to spread a run over processes; the figures are then per part).
+``--device cuda`` runs the block solves of parts 1 and 2 on the GPU (the first frame then also
+pays for CUDA's start: compare the medians).
 """
 
 from __future__ import annotations
@@ -47,6 +49,7 @@ import numpy as np
 import torch
 
 from blurcalib.calib.alignment import MIN_BLOCKS
+from blurcalib.deconv.settings import DeconvSettings
 from blurcalib.extract.frame import ExtractSettings, extract_frame
 from blurcalib.extract.quality import QualitySettings, filter_frame
 from blurcalib.geometry.homography import apply_homography
@@ -182,7 +185,8 @@ def run(title: str, sim: Simulator, simulated: list[SimulatedFrame], settings: E
         print(f"  {lo:.2f}-{hi:.2f}: {int(sel.sum()):5d} visible, {share:5.1f}% returned, median "
               f"{np.median(e) if e.size else np.nan:.4f} px, p90 "
               f"{np.percentile(e, 90) if e.size else np.nan:.4f} px")
-    print(f"time: {np.mean(walls):.1f} s wall, {np.mean(cpus):.1f} s CPU per frame")
+    print(f"time: {np.mean(walls):.1f} s wall, {np.mean(cpus):.1f} s CPU per frame (median "
+          f"{np.median(walls):.1f} s wall, {np.median(cpus):.1f} s CPU)")
 
 
 def photometric_frame(sim: Simulator, index: int, white: float, electrons_per_level: float,
@@ -245,19 +249,21 @@ def main() -> None:
     parser.add_argument("--demo", type=int, default=4, help="frames of the demo set for the loss threshold")
     parser.add_argument("--cache", type=Path, default=None, help="folder for simulated frames")
     parser.add_argument("--part", default="0/1", help="I/N: every N-th frame from the I-th")
+    parser.add_argument("--device", default="cpu", help="torch device of the block solves (cpu, cuda)")
     args = parser.parse_args()
+    deconv = DeconvSettings(device=args.device)
     first, step = (int(v) for v in args.part.split("/"))
     torch.set_num_threads(1)
     if args.heavy:
         sim, heavy = frames((12.0, 25.0), args.heavy, 11, args.cache)
         heavy = heavy[first::step]
-        run("12-25 px blur, adaptive window (default)", sim, heavy, ExtractSettings())
+        run("12-25 px blur, adaptive window (default)", sim, heavy, ExtractSettings(deconv=deconv))
     if args.light:
         sim, light = frames((4.0, 15.0), args.light, 7, args.cache)
         light = light[first::step]
         run("4-15 px blur, fixed 17 px window (before)", sim, light,
-            ExtractSettings(window=WindowPolicy(largest=17)))
-        run("4-15 px blur, adaptive window (default)", sim, light, ExtractSettings())
+            ExtractSettings(window=WindowPolicy(largest=17), deconv=deconv))
+        run("4-15 px blur, adaptive window (default)", sim, light, ExtractSettings(deconv=deconv))
     if args.photometry:
         sim = Simulator(SynthConfig(sharp=0, blurry=args.photometry, blur_min_px=4.0, blur_max_px=15.0,
                                     seed=23))

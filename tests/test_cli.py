@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import json
 import subprocess
 import sys
@@ -11,7 +12,7 @@ import numpy as np
 import pytest
 import torch
 
-from blurcalib.cli import main
+from blurcalib.cli import _pipeline_settings, build_parser, main
 from blurcalib.target.pattern import layout_pattern
 from tests.conftest import FIXTURE_YAML
 
@@ -80,14 +81,28 @@ def _inputs(tmp_path):
 def test_unavailable_device_is_one_line(tmp_path, capsys, monkeypatch) -> None:
     pattern = _inputs(tmp_path)
     monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
-    for device, needle in (("cuda", "--device 'cuda': CUDA is not available"),
-                           ("cuda:1", "--device 'cuda:1': CUDA is not available"),
-                           ("gpu", "--device 'gpu': not a torch device")):
-        code = main(["extract", str(tmp_path / "sharp"), "--pattern", str(pattern), "--out",
+    for command, (device, needle) in itertools.product(
+            ("extract", "calibrate"), (("cuda", "--device 'cuda': CUDA is not available"),
+                                       ("cuda:1", "--device 'cuda:1': CUDA is not available"),
+                                       ("gpu", "--device 'gpu': not a torch device"))):
+        code = main([command, str(tmp_path / "sharp"), "--pattern", str(pattern), "--out",
                      str(tmp_path / "out"), "--device", device])
         err = capsys.readouterr().err
         assert code == 2 and err.startswith("blurcalib: error: ") and needle in err
         assert err.count("\n") == 1 and not (tmp_path / "out").exists()
+
+
+def test_device_reaches_the_block_solver_and_the_bundle_adjustment(tmp_path, monkeypatch) -> None:
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+    monkeypatch.setattr(torch.cuda, "device_count", lambda: 1)
+    pattern = _inputs(tmp_path)
+    for command in ("calibrate", "demo"):
+        where = [str(tmp_path / "sharp"), "--pattern", str(pattern)] if command == "calibrate" else []
+        args = build_parser().parse_args([command, *where, "--out", str(tmp_path / "o"),
+                                          "--device", "cuda:0"])
+        s = _pipeline_settings(args)
+        assert s.extraction.deconv.device == "cuda:0" and s.calibration.generic.bundle.device == "cuda:0"
+    assert not (tmp_path / "o").exists()
 
 
 @pytest.mark.slow

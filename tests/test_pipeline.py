@@ -24,6 +24,7 @@ from blurcalib.cli import main
 from blurcalib.extract.quality import QualitySettings
 from blurcalib.io.atomic import OutputError
 from blurcalib.io.results import FeatureFlags, read_feature_table
+from blurcalib.pipeline.accuracy import camera_accuracy_lines
 from blurcalib.pipeline.run import PUBLISHED, PipelineError, PipelineSettings, run_pipeline
 from blurcalib.sim.evaluate import camera_accuracy, evaluate_features
 from blurcalib.sim.synth import SynthConfig, write_dataset
@@ -95,6 +96,21 @@ def test_pipeline_end_to_end(finished, dataset) -> None:
     assert np.all(table.flags & int(FeatureFlags.LENS_CORRECTED))  # every centre, sharp and blurry
     acc = evaluate_features(table, load_ground_truth(dataset), pattern, skip_flags=0)
     assert acc and max(a.median for a in acc) < 0.1
+
+
+@pytest.mark.slow
+def test_demo_accuracy_lines_name_each_camera(finished, dataset) -> None:
+    """The demo's report against the truth: a line per camera of the run with its own median,
+    and the generic cameras' true error over their predicted uncertainty."""
+    out, _ = finished
+    truth = load_ground_truth(dataset)
+    lines = camera_accuracy_lines(out, truth.camera)
+    assert [line.split(" median ")[0].strip() for line in lines[1:]] == [
+        "parametric, sharp frames", "generic, sharp frames", "generic, sharp + blurry frames"]
+    assert f"median {camera_accuracy(truth.camera, report_camera(out)).median:.4f}," in lines[1]
+    joint = read_generic_yaml(out / "calibration" / "intrinsics0.yaml")
+    assert f"median {camera_accuracy(truth.camera, joint).median:.4f}," in lines[3]
+    assert all(0.25 < float(line.rsplit("(RMS) ", 1)[1]) < 4.0 for line in lines[2:])
 
 
 @pytest.mark.slow

@@ -122,7 +122,8 @@ class PipelineSettings:
         extraction: how blurry frames are extracted (PSF window, the growth's final fit and
             path-PSF field, local alignment), and mixed frames (``run_pipeline(mixed=...)``),
             classified sharp below its ``sharp_below_px``; sharp frames get
-            :meth:`blurcalib.extract.frame.ExtractSettings.sharp`.
+            :meth:`blurcalib.extract.frame.ExtractSettings.sharp` with these deconvolution
+            settings (the torch device).
         calibration: the calibration sequence: block filter, global alignment, camera model,
             generic fit, lens-bias correction and assessment.
         workers: frames extracted in parallel.
@@ -304,7 +305,7 @@ def _extract(sharp: Sequence[Path], blurry: Sequence[Path], mixed: Sequence[Fram
         return _Extracted({"sharp": [r for r in rows if r.get("kind") == "sharp"],
                            "blurry": [r for r in rows if r.get("kind") != "sharp"]},
                           features, blocks.select(is_sharp), blocks.select(~is_sharp))
-    rows = {"sharp": extract(sharp, "sharp", ExtractSettings.sharp()),
+    rows = {"sharp": extract(sharp, "sharp", ExtractSettings.sharp(deconv=s.extraction.deconv)),
             "blurry": extract(blurry, "blurry", s.extraction)}
     features = FeatureTable.concat([_with_kind(read_feature_table(out / kind / FEATURES_FILE), kind)
                                     for kind in KINDS])
