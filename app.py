@@ -23,7 +23,7 @@ from typing import Protocol
 import viser
 
 from blurcalib.argtypes import positive_int
-from blurcalib.pipeline.runtime import capped_count, configure_threads
+from blurcalib.pipeline.runtime import capped_count, configure_threads, keep_large_allocations
 from state import AppState, RunSettings, default_dataset
 from state.alignment import AlignmentCache
 from state.calibration import CalibrationRunner, CalibrationSettings
@@ -166,6 +166,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     if note is not None:
         print(f"app.py: note: {note}", file=sys.stderr)
     configure_threads(threads)
+    keep_large_allocations()
     try:
         server, app = serve(args.folder, args.pattern, args.port, host=args.host)
     except ServeError as exc:

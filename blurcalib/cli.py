@@ -47,6 +47,7 @@ from blurcalib.pipeline.runtime import (
     capped_count,
     check_device,
     configure_threads,
+    keep_large_allocations,
 )
 from blurcalib.target.pattern import (
     PAGE_SIZES_MM,
@@ -641,6 +642,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                 print(f"blurcalib: note: {note}", file=sys.stderr)
     try:
         configure_threads(getattr(args, "threads", None))
+        keep_large_allocations()
         with _output_lock(args):
             return int(args.func(args))
     except (CliError, PatternFileError, OutputError, ClusterError, DeviceError) as exc:

@@ -87,9 +87,11 @@ def run_size(frames: int, blurry_share: float, noise_px: float, seed: int, devic
     from blurcalib.calib.joint import JointSettings, calibrate_generic
     from blurcalib.calib.sharp import calibrate_sharp
     from blurcalib.calib.trust import assess_calibration
+    from blurcalib.pipeline.runtime import keep_large_allocations
     from blurcalib.sim.evaluate import camera_accuracy
 
     torch.set_num_threads(1)
+    keep_large_allocations()  # as the command line does
     truth, pattern, size, sharp, blurry = simulate(frames, blurry_share, noise_px, seed)
     out: dict = {"frames": frames, "observations": len(sharp) + len(blurry), "seconds": {}, "cpu": {}}
     bundle = BundleSettings(device=device)
