@@ -24,7 +24,8 @@ iterations as converged: the projections are solved to 1e-8 px, which makes a co
 that uncertain). The per-frame blocks (pose: rotation increment ``omega`` with
 ``R <- exp(omega) R`` and ``t <- t + dt``; plus ``s_f``) are eliminated by the Schur complement;
 the reduced system on the ``2 GW GH`` grid parameters is dense (formed frame chunk by frame
-chunk, :func:`reduce_frames`) and solved by Cholesky in torch float64. Projections are
+chunk, :func:`reduce_frames`) and solved to float64 accuracy (on a CPU by a float32 Cholesky
+factor refined in float64: :func:`blurcalib.calib.spd_solve.solve_lower`). Projections are
 warm-started from the previous iteration's pixels; an observation whose ray leaves the
 calibrated area gets weight 0 (a clamped projection carries no gradient).
 
@@ -73,6 +74,7 @@ from blurcalib.calib.frame_block import (
     rolling_frame_jacobian,
     rolling_points,
 )
+from blurcalib.calib.spd_solve import solve_lower
 from blurcalib.camera.generic import (
     CentralGeneric,
     GridSpline,
@@ -446,7 +448,7 @@ def add_rolling_prior(pb: BundleProblem, st: BundleState, Hpp: torch.Tensor, bp:
 
 
 def reduce_frames(Hgg: torch.Tensor, Hgp: torch.Tensor, Hpp_inv: torch.Tensor, bg: torch.Tensor | None = None,
-                  bp: torch.Tensor | None = None, lower: bool = False
+                  bp: torch.Tensor | None = None, lower: bool = False, overwrite: bool = False
                   ) -> tuple[torch.Tensor, torch.Tensor | None]:
     """The reduced camera system: the per-frame blocks eliminated by the Schur complement::
 
@@ -459,10 +461,11 @@ def reduce_frames(Hgg: torch.Tensor, Hgp: torch.Tensor, Hpp_inv: torch.Tensor, b
     half the products. A frame's rows of ``Hgp`` are zero outside the grid parameters its
     observations touch, which lie within one span of rows (the target's footprint); frames are
     sorted by that span and taken :data:`FRAME_CHUNK` at a time, each chunk's product restricted
-    to the union of its spans. Memory: ``S`` and one chunk.
+    to the union of its spans. Memory: ``S`` and one chunk; with ``overwrite``, ``S`` is formed in
+    ``Hgg``'s storage (``Hgg`` is lost).
     """
     G = Hgp.shape[0]
-    S = Hgg.clone()
+    S = Hgg if overwrite else Hgg.clone()
     c = None if bg is None else bg.clone()
     touched = (Hgp != 0).any(2)
     rows = torch.arange(G, device=Hgp.device)[:, None]
@@ -500,10 +503,9 @@ def _solve(Hgg: torch.Tensor, Hgp: torch.Tensor, Hpp: torch.Tensor, bg: torch.Te
     diag = torch.diagonal(Hgg)
     S.diagonal().add_(lam * diag + 1e-12 * float(diag.mean()))
     try:
-        L = torch.linalg.cholesky(S)
+        dg = solve_lower(S, rhs)
     except torch.linalg.LinAlgError:
         return None
-    dg = torch.cholesky_solve(rhs[:, None], L)[:, 0]
     dp = torch.einsum("fij,fj->fi", Hpp_inv, bp - torch.einsum("gfi,g->fi", Hgp, dg))
     return dg, dp
 

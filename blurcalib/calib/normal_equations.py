@@ -30,6 +30,7 @@ from blurcalib.calib.bundle import (
     reduce_frames,
     robust_weights,
 )
+from blurcalib.calib.spd_solve import solve_lower
 from blurcalib.camera.generic import CentralGeneric, apply_update, tangent_basis
 
 __all__ = ["NormalEquations", "leave_out_models", "normal_equations"]
@@ -121,6 +122,19 @@ def _frames_problem(pb: BundleProblem, st: BundleState, frames: torch.Tensor, ro
                         inside=st.inside[rows])
 
 
+def _leading_partition(sets: Sequence[np.ndarray]) -> int:
+    """The number of leading sets ``(F,)`` bool that partition the frames (pairwise disjoint,
+    together all frames): the folds; 0 when they do not."""
+    seen = np.zeros_like(sets[0]) if sets else np.zeros(0, dtype=bool)
+    for k, m in enumerate(sets):
+        if (seen & m).any():
+            return 0
+        seen |= m
+        if seen.all():
+            return k + 1
+    return 0
+
+
 def leave_out_models(result: BundleResult, left_out: Sequence[ArrayLike], priors: Sequence[CentralGeneric],
                      damping: float = 1e-6) -> list[CentralGeneric]:
     """The camera without each set of frames, one damped Gauss-Newton step from ``result``.
@@ -140,8 +154,10 @@ def leave_out_models(result: BundleResult, left_out: Sequence[ArrayLike], priors
 
     with Marquardt's damping ``lambda = damping`` on the kept data's diagonal (as the first step of
     :func:`bundle_adjust`, no acceptance test). The grid is updated in its tangent parameters
-    and re-gauged as :func:`bundle_adjust` does. The cost: one pass over all observations, one
-    over each set's and one ``(G, G)`` Cholesky per camera, instead of a refit each.
+    and re-gauged as :func:`bundle_adjust` does. The cost: one pass over each set's observations
+    (the sums of the leading sets' terms give all frames' when those sets partition the frames,
+    as k folds do; else one more pass over all observations) and one ``(G, G)`` solve per camera
+    (:func:`blurcalib.calib.spd_solve.solve_lower`), instead of a refit each.
 
     Raises:
         ValueError: a set not of shape ``(F,)``, not one prior per set, or a prior on another grid.
@@ -171,25 +187,36 @@ def leave_out_models(result: BundleResult, left_out: Sequence[ArrayLike], priors
         Hpp = Hpp + damping * torch.diag_embed(torch.diagonal(Hpp, dim1=1, dim2=2)) + 1e-12 * eye8
         diag = torch.diagonal(Hgg).clone()
         Hpp_inv = torch.cholesky_inverse(torch.linalg.cholesky(Hpp))
-        S, c = reduce_frames(Hgg, Hgp, Hpp_inv, bg, bp, lower=True)
+        S, c = reduce_frames(Hgg, Hgp, Hpp_inv, bg, bp, lower=True, overwrite=True)
         return S, c, diag
 
-    S_all, c_all, d_all = terms(torch.ones(F, dtype=torch.bool, device=dev))
+    parts: list[tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None] = [
+        terms(torch.as_tensor(m, device=dev)) for m in sets[:_leading_partition(sets)]]
+    if parts:  # the folds partition the frames: all frames' terms are their sums
+        S_all, c_all, d_all = (v.clone() for v in parts[0])
+        for S_k, c_k, d_k in parts[1:]:
+            S_all += S_k
+            c_all += c_k
+            d_all += d_k
+    else:
+        S_all, c_all, d_all = terms(torch.ones(F, dtype=torch.bool, device=dev))
     tang = tangent_basis(st.grid.reshape(-1, 3))
     before = torch.diagonal(S_all).clone()
     add_smoothness_prior(pb, st, tang, S_all, torch.zeros(G, **kw))
     d_all += torch.diagonal(S_all) - before  # the prior's diagonal
     models = []
-    for mask, prior in zip(sets, priors, strict=True):
-        S, c, d = terms(torch.as_tensor(mask, device=dev))
-        S = S_all - S
+    for k, (mask, prior) in enumerate(zip(sets, priors, strict=True)):
+        S, c, d = parts[k] if k < len(parts) else terms(torch.as_tensor(mask, device=dev))
+        if k < len(parts):
+            parts[k] = None
+        S = torch.sub(S_all, S, out=S)
         diag = d_all - d
         S.diagonal().add_(damping * diag + 1e-12 * float(diag.mean()))
         prior_grid = prior.spline(dev).grid
         grid0 = prior_grid @ gauge_rotation(pb.spline, prior_grid).T
         rhs = c_all - c
         add_smoothness_prior(pb, replace(st, grid0=grid0), tang, None, rhs)
-        dg = torch.cholesky_solve(rhs[:, None], torch.linalg.cholesky(S))[:, 0]
+        dg = solve_lower(S, rhs)
         del S
         grid = apply_update(st.grid, dg.reshape(pb.gh, pb.gw, 2))
         grid = grid @ gauge_rotation(pb.spline, grid).T

@@ -195,13 +195,13 @@ def _grid_information(ne: NormalEquations, prior: torch.Tensor, noise_sq: float)
     Hff = ne.hff_data + noise_sq * ne.hff_prior + 1e-12 * eye8  # a frame without inliers stays regular
     A, _ = reduce_frames(ne.hgg_data, ne.hgf_data, torch.cholesky_inverse(torch.linalg.cholesky(Hff)),
                          lower=True)
-    return A / noise_sq + prior
+    return A.div_(noise_sq).add_(prior)
 
 
 def _gauge_marginalised(A: torch.Tensor, prior: torch.Tensor, g: torch.Tensor
                         ) -> tuple[torch.Tensor, torch.Tensor]:
     """``Sigma = (A_m + k g g^T)^-1`` and the prior with the rotation marginalised, ``H_m`` (module
-    docstring); ``g (G, 3)`` orthonormal, ``A``'s lower triangle read."""
+    docstring; formed in ``prior``'s storage); ``g (G, 3)`` orthonormal, ``A``'s lower triangle read."""
     C = prior @ g
     B = g.T @ C
     evals, evecs = torch.linalg.eigh(0.5 * (B + B.T))
@@ -209,10 +209,11 @@ def _gauge_marginalised(A: torch.Tensor, prior: torch.Tensor, g: torch.Tensor
     B_pinv = (evecs[:, keep] / evals[keep]) @ evecs[:, keep].T
     coupling = C @ B_pinv @ C.T
     k = float(torch.diagonal(A).mean())
-    Am = A - coupling + k * (g @ g.T)
+    Am = torch.sub(A, coupling).addmm_(g, g.T, alpha=k)
     Am.diagonal().add_(1e-12 * k)  # as the bundle adjustment's solver
     Sigma = torch.cholesky_inverse(torch.linalg.cholesky(Am))
-    return Sigma, prior - coupling
+    del Am
+    return Sigma, prior.sub_(coupling)
 
 
 def projection_uncertainty(result: BundleResult, step_px: float = 16.0, noise_px: float | None = None,
@@ -261,7 +262,7 @@ def projection_uncertainty(result: BundleResult, step_px: float = 16.0, noise_px
     p_eff = fixed_p + G - 3 - float((prior_m * Sigma).sum())
     if noise_px is None:
         new_sq = ne.weighted_sq / max(residuals - p_eff, 1.0)
-        Sigma = Sigma * (new_sq / noise_sq)
+        Sigma.mul_(new_sq / noise_sq)
         noise_sq = new_sq
     x, y, shape = _lattice(*model.area_opencv, step_px)
     corner = np.array([model.width - 1, model.height - 1]) / 2.0
