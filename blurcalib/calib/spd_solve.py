@@ -12,12 +12,15 @@ mixed-precision iterative refinement recovers float64's solution::
 with the residual ``b - S x_k`` in float64 (BLAS ``dsymv`` on the lower triangle). Each step
 shrinks the error by about ``cond(S) eps_32``; the loop ends when a correction is below
 :data:`REFINE_RTOL` of the solution. When the float32 factor fails (not positive definite in
-single precision) or the refinement does not converge in :data:`MAX_REFINEMENTS` steps (``cond(S)``
-near ``1 / eps_32``), the float64 factorisation solves the system as before. On other devices
+single precision), or the refinement does not converge in :data:`MAX_REFINEMENTS` steps or a
+correction is not below half the previous one (``cond(S)`` near ``1 / eps_32``), the float64
+factorisation solves the system. On other devices
 (CUDA) the float64 factorisation is used directly.
 """
 
 from __future__ import annotations
+
+import math
 
 import torch
 from scipy.linalg.blas import dsymv
@@ -51,12 +54,15 @@ def _refined(S: torch.Tensor, L32: torch.Tensor, b: torch.Tensor) -> torch.Tenso
     a = S.numpy().T  # Fortran order without a copy: S's lower triangle is its upper one
     x = torch.zeros_like(b)
     r = b
+    last = math.inf
     for _ in range(MAX_REFINEMENTS):
         dx = torch.cholesky_solve(r[:, None].to(torch.float32), L32)[:, 0].to(torch.float64)
-        if not bool(torch.isfinite(dx).all()):
+        size = float(dx.abs().max())
+        if not math.isfinite(size) or size > 0.5 * last:  # diverging, or too slow to pay
             return None
         x += dx
-        if float(dx.abs().max()) <= REFINE_RTOL * float(x.abs().max()):
+        if size <= REFINE_RTOL * float(x.abs().max()):
             return x
+        last = size
         r = b - torch.from_numpy(dsymv(1.0, a, x.numpy(), lower=0))
     return None
