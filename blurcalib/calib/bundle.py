@@ -73,6 +73,7 @@ from blurcalib.calib.frame_block import (
     frame_jacobian,
     rolling_frame_jacobian,
     rolling_points,
+    rolling_prior_weights,
 )
 from blurcalib.calib.spd_solve import solve_lower
 from blurcalib.camera.generic import (
@@ -248,10 +249,9 @@ class BundleProblem:
             self.twist_sigma = rolling.twist_sigma
 
     def set_distance(self, t: torch.Tensor) -> None:
-        """The rolling parameters' prior weights ``(F, 12)`` from the frames' distances ``|t_f|``."""
-        sig = torch.full_like(t, self.twist_sigma)
-        sig_v = self.twist_sigma * t.norm(dim=1, keepdim=True).expand(-1, 3)
-        self.theta_w = 1.0 / torch.cat([sig, sig_v, sig, sig_v], dim=1) ** 2
+        """The rolling parameters' prior weights ``(F, 12)`` from the frames' distances ``|t_f|``
+        (:func:`blurcalib.calib.frame_block.rolling_prior_weights`)."""
+        self.theta_w = rolling_prior_weights(t, self.twist_sigma)
 
     def rolling_camera_points(self, R: torch.Tensor, t: torch.Tensor, theta: torch.Tensor | None,
                               sel: torch.Tensor | None = None
@@ -265,10 +265,6 @@ class BundleProblem:
             return RP + t[fr], None, RP
         y = self.row if sel is None else self.row[sel]
         return rolling_points(R, t, theta, fr, P, y)
-
-    def camera_points(self, st: BundleState) -> torch.Tensor:
-        """``R_f P_i + t_f`` of every observation, ``(N, 3)`` m."""
-        return torch.einsum("nij,nj->ni", st.R[self.frame], self.points) + st.t[self.frame]
 
     def project(self, grid: torch.Tensor, R: torch.Tensor, t: torch.Tensor,
                 s: torch.Tensor, init: torch.Tensor, theta: torch.Tensor | None = None

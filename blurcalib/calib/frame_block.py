@@ -26,6 +26,7 @@ __all__ = [
     "frame_jacobian",
     "rolling_frame_jacobian",
     "rolling_points",
+    "rolling_prior_weights",
 ]
 
 
@@ -56,6 +57,15 @@ def rolling_points(R: torch.Tensor, t: torch.Tensor, theta: torch.Tensor, fr: to
     v = y[:, None] * th[:, 3:6] + (y * y)[:, None] * th[:, 9:12]
     Ri = exp_so3(w)
     return torch.einsum("nij,nj->ni", Ri, X0) + v, Ri, RP
+
+
+def rolling_prior_weights(t: torch.Tensor, twist_sigma: float) -> torch.Tensor:
+    """``(F, 12)`` weights ``1 / sigma^2`` of the rolling parameters' zero-mean prior: ``sigma``
+    is ``twist_sigma`` rad for ``a_w, b_w`` and ``twist_sigma |t_f|`` m for ``a_v, b_v``, from the
+    frames' translations ``t (F, 3)`` m."""
+    sig = torch.full_like(t, twist_sigma)
+    sig_v = twist_sigma * t.norm(dim=1, keepdim=True).expand(-1, 3)
+    return 1.0 / torch.cat([sig, sig_v, sig, sig_v], dim=1) ** 2
 
 
 def rolling_frame_jacobian(J_p: torch.Tensor, Ri: torch.Tensor, RP: torch.Tensor, X: torch.Tensor,

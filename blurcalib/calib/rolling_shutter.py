@@ -49,7 +49,7 @@ import torch
 from scipy.stats import chi2
 
 from blurcalib.calib.bundle import robust_weights
-from blurcalib.calib.frame_block import rolling_frame_jacobian, rolling_points
+from blurcalib.calib.frame_block import rolling_frame_jacobian, rolling_points, rolling_prior_weights
 from blurcalib.calib.joint import GenericCalibration, JointSettings, calibrate_generic
 from blurcalib.calib.sharp import Calibration
 from blurcalib.calib.validation import Projector, generic_projector
@@ -212,9 +212,7 @@ def fit_rolling_frames(projector: Projector, poses: Sequence[Pose], frame: np.nd
     s = torch.zeros(F, 2, **kw)
     theta = torch.zeros(F, 12, **kw)
     shift_w = 1.0 / shift_sigma_px**2
-    depth = t.norm(dim=1, keepdim=True)
-    theta_w = 1.0 / torch.cat([torch.full((F, 3), twist_sigma, **kw), (twist_sigma * depth).expand(F, 3)] * 2,
-                               dim=1) ** 2
+    theta_w = rolling_prior_weights(t, twist_sigma)
 
     every = torch.arange(len(fr))
 

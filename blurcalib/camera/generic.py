@@ -63,11 +63,11 @@ PIXEL_CORNER_OFFSET = 0.5
 """Reference-tool (pixel-corner) coordinate minus OpenCV coordinate (px)."""
 
 _EDGE_ITERATIONS = 6
+"""A projection held at the area's edge for this many iterations is given up (outside the area)."""
 _WARM_DAMPING = 1e-6
 """Initial Levenberg-Marquardt damping of a warm-started projection, relative to the normal
 matrix's diagonal: from a previous iterate's pixel the first steps are Gauss-Newton's (the
 lattice start far from the solution uses 0.005)."""
-"""A projection held at the area's edge for this many iterations is given up (outside the area)."""
 
 _AREA_EDGE = 0.999
 """Projections are clamped to ``[min, max + 0.999]`` (pixel-corner), as the reference does."""
