@@ -12,11 +12,9 @@ from blurcalib.calib.bundle import BundleSettings, bundle_adjust, reduce_frames
 from blurcalib.calib.coverage import coverage_warnings
 from blurcalib.calib.normal_equations import leave_out_models
 from blurcalib.camera.generic import CentralGeneric, fit_to_rays
-from blurcalib.camera.parametric import BrownConrady
 from blurcalib.geometry.pose import Pose
+from tests.bundle_scene import TARGET, TRUE_CAM, bumped_truth, random_pose
 
-TRUE_CAM = BrownConrady(fx=300.0, fy=298.0, cx=160.4, cy=119.7, k1=-0.12, k2=0.03, p1=0.0005,
-                        p2=-0.0003, k3=0.0, width=320, height=240)
 START_CAM = TRUE_CAM.with_params(fx=303.0, fy=296.0, cx=162.0, k1=-0.10, k2=0.0)
 
 
@@ -29,19 +27,14 @@ def _scene(truth: CentralGeneric, frames: int, seed: int
            ) -> tuple[list[Pose], np.ndarray, np.ndarray, np.ndarray]:
     """A 12 x 9 planar target (2 cm) seen from ``frames`` poses; exact generic projections."""
     rng = np.random.default_rng(seed)
-    gx, gy = np.meshgrid(np.arange(12) * 0.02, np.arange(9) * 0.02)
-    target = np.column_stack([gx.ravel() - 0.11, gy.ravel() - 0.08, np.zeros(gx.size)])
     poses, index, points, observed = [], [], [], []
     while len(poses) < frames:
-        rvec = rng.normal(size=3) * [0.35, 0.35, 0.2]
-        centre_px = rng.uniform([40, 30], [280, 210])
-        ray = TRUE_CAM.pixel_to_ray(centre_px[None])[0]
-        pose = Pose.from_rvec_tvec(rvec, ray / ray[2] * rng.uniform(0.35, 0.5))
-        px, inside = truth.project(pose.transform(target))
+        pose = random_pose(rng, (40, 30), (280, 210))
+        px, inside = truth.project(pose.transform(TARGET))
         if inside.sum() < 40:
             continue
         index.append(np.full(int(inside.sum()), len(poses)))
-        points.append(target[inside])
+        points.append(TARGET[inside])
         observed.append(px[inside])
         poses.append(pose)
     return poses, np.concatenate(index), np.concatenate(points), np.concatenate(observed)
@@ -49,10 +42,7 @@ def _scene(truth: CentralGeneric, frames: int, seed: int
 
 @pytest.fixture(scope="module")
 def truth() -> CentralGeneric:
-    base = fit_to_rays(TRUE_CAM.pixel_to_ray, 320, 240, cell_px=40.0)
-    rng = np.random.default_rng(7)
-    bumped = base.grid + 4e-4 * rng.normal(size=base.grid.shape)
-    return base.with_grid(bumped)
+    return bumped_truth()
 
 
 @pytest.mark.slow

@@ -10,14 +10,12 @@ import torch
 from blurcalib.calib.bundle import BundleSettings, bundle_adjust
 from blurcalib.calib.frame_block import RollingRows, rolling_points
 from blurcalib.camera.generic import CentralGeneric, fit_to_rays
-from blurcalib.camera.parametric import BrownConrady
 from blurcalib.geometry.pose import Pose
 from blurcalib.sim.shutter import row_time
+from tests.bundle_scene import TARGET, TRUE_CAM, bumped_truth, random_pose
 
 torch.set_num_threads(1)
 
-TRUE_CAM = BrownConrady(fx=300.0, fy=298.0, cx=160.4, cy=119.7, k1=-0.12, k2=0.03, p1=0.0005,
-                        p2=-0.0003, k3=0.0, width=320, height=240)
 SETTINGS = BundleSettings(smoothness_px=1e4, outlier_iteration=0, max_iterations=40, tol=1e-14)
 
 
@@ -41,23 +39,18 @@ def _scene(truth: CentralGeneric, frames: int, moving: int, seed: int):
     """A 12 x 9 planar target (2 cm) seen from ``frames`` poses, the last ``moving`` of them read
     by a rolling shutter with a random twist and curvature; exact projections."""
     rng = np.random.default_rng(seed)
-    gx, gy = np.meshgrid(np.arange(12) * 0.02, np.arange(9) * 0.02)
-    target = np.column_stack([gx.ravel() - 0.11, gy.ravel() - 0.08, np.zeros(gx.size)])
     poses, thetas, index, points, observed = [], [], [], [], []
     while len(poses) < frames:
-        rvec = rng.normal(size=3) * [0.35, 0.35, 0.2]
-        centre_px = rng.uniform([60, 50], [260, 190])
-        ray = TRUE_CAM.pixel_to_ray(centre_px[None])[0]
-        pose = Pose.from_rvec_tvec(rvec, ray / ray[2] * rng.uniform(0.35, 0.5))
+        pose = random_pose(rng, (60, 50), (260, 190))
         theta = np.zeros(12)
         if len(poses) >= frames - moving:
             theta = np.concatenate([rng.normal(0, 0.04, 3), rng.normal(0, 0.015, 3),
                                     rng.normal(0, 0.02, 3), rng.normal(0, 0.005, 3)])
-        px, inside = _rolling_projection(truth, pose, theta, target)
+        px, inside = _rolling_projection(truth, pose, theta, TARGET)
         if inside.sum() < 40:
             continue
         index.append(np.full(int(inside.sum()), len(poses)))
-        points.append(target[inside])
+        points.append(TARGET[inside])
         observed.append(px[inside])
         poses.append(pose)
         thetas.append(theta)
@@ -66,9 +59,7 @@ def _scene(truth: CentralGeneric, frames: int, moving: int, seed: int):
 
 @pytest.fixture(scope="module")
 def truth() -> CentralGeneric:
-    base = fit_to_rays(TRUE_CAM.pixel_to_ray, 320, 240, cell_px=40.0)
-    rng = np.random.default_rng(7)
-    return base.with_grid(base.grid + 4e-4 * rng.normal(size=base.grid.shape))
+    return bumped_truth()
 
 
 def _camera_error(truth: CentralGeneric, model: CentralGeneric) -> float:
