@@ -3,6 +3,9 @@ deviation, a 12 x 9 planar target (2 cm) and random poses from which it is seen.
 
 from __future__ import annotations
 
+from collections.abc import Callable
+from typing import Any
+
 import numpy as np
 
 from blurcalib.camera.generic import CentralGeneric, fit_to_rays
@@ -32,3 +35,25 @@ def bumped_truth() -> CentralGeneric:
     base = fit_to_rays(TRUE_CAM.pixel_to_ray, 320, 240, cell_px=40.0)
     rng = np.random.default_rng(7)
     return base.with_grid(base.grid + 4e-4 * rng.normal(size=base.grid.shape))
+
+
+def observed_scene(rng: np.random.Generator, frames: int, low_px: tuple[float, float],
+                   high_px: tuple[float, float],
+                   view: Callable[[Pose, int], tuple[np.ndarray, np.ndarray, Any]]
+                   ) -> tuple[list[Pose], list[Any], np.ndarray, np.ndarray, np.ndarray]:
+    """``frames`` random poses (:func:`random_pose`) that see at least 40 of the target's points:
+    ``view(pose, k)`` gives frame ``k``'s projections of :data:`TARGET` ``(108, 2)`` px, which are
+    inside and anything else to keep per frame. Returns the poses, those extras and the
+    observations' frame index ``(N,)``, target points ``(N, 3)`` m and pixels ``(N, 2)``."""
+    poses, extras, index, points, observed = [], [], [], [], []
+    while len(poses) < frames:
+        pose = random_pose(rng, low_px, high_px)
+        px, inside, extra = view(pose, len(poses))
+        if inside.sum() < 40:
+            continue
+        index.append(np.full(int(inside.sum()), len(poses)))
+        points.append(TARGET[inside])
+        observed.append(px[inside])
+        poses.append(pose)
+        extras.append(extra)
+    return poses, extras, np.concatenate(index), np.concatenate(points), np.concatenate(observed)

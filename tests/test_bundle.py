@@ -13,7 +13,7 @@ from blurcalib.calib.coverage import coverage_warnings
 from blurcalib.calib.normal_equations import leave_out_models
 from blurcalib.camera.generic import CentralGeneric, fit_to_rays
 from blurcalib.geometry.pose import Pose
-from tests.bundle_scene import TARGET, TRUE_CAM, bumped_truth, random_pose
+from tests.bundle_scene import TARGET, TRUE_CAM, bumped_truth, observed_scene
 
 START_CAM = TRUE_CAM.with_params(fx=303.0, fy=296.0, cx=162.0, k1=-0.10, k2=0.0)
 
@@ -26,18 +26,10 @@ def _kabsch(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 def _scene(truth: CentralGeneric, frames: int, seed: int
            ) -> tuple[list[Pose], np.ndarray, np.ndarray, np.ndarray]:
     """A 12 x 9 planar target (2 cm) seen from ``frames`` poses; exact generic projections."""
-    rng = np.random.default_rng(seed)
-    poses, index, points, observed = [], [], [], []
-    while len(poses) < frames:
-        pose = random_pose(rng, (40, 30), (280, 210))
-        px, inside = truth.project(pose.transform(TARGET))
-        if inside.sum() < 40:
-            continue
-        index.append(np.full(int(inside.sum()), len(poses)))
-        points.append(TARGET[inside])
-        observed.append(px[inside])
-        poses.append(pose)
-    return poses, np.concatenate(index), np.concatenate(points), np.concatenate(observed)
+    poses, _, index, points, observed = observed_scene(
+        np.random.default_rng(seed), frames, (40, 30), (280, 210),
+        lambda pose, _k: (*truth.project(pose.transform(TARGET)), None))
+    return poses, index, points, observed
 
 
 @pytest.fixture(scope="module")

@@ -12,7 +12,7 @@ from blurcalib.calib.frame_block import RollingRows, rolling_points
 from blurcalib.camera.generic import CentralGeneric, fit_to_rays
 from blurcalib.geometry.pose import Pose
 from blurcalib.sim.shutter import row_time
-from tests.bundle_scene import TARGET, TRUE_CAM, bumped_truth, random_pose
+from tests.bundle_scene import TARGET, TRUE_CAM, bumped_truth, observed_scene
 
 torch.set_num_threads(1)
 
@@ -39,22 +39,16 @@ def _scene(truth: CentralGeneric, frames: int, moving: int, seed: int):
     """A 12 x 9 planar target (2 cm) seen from ``frames`` poses, the last ``moving`` of them read
     by a rolling shutter with a random twist and curvature; exact projections."""
     rng = np.random.default_rng(seed)
-    poses, thetas, index, points, observed = [], [], [], [], []
-    while len(poses) < frames:
-        pose = random_pose(rng, (60, 50), (260, 190))
+
+    def view(pose: Pose, k: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         theta = np.zeros(12)
-        if len(poses) >= frames - moving:
+        if k >= frames - moving:
             theta = np.concatenate([rng.normal(0, 0.04, 3), rng.normal(0, 0.015, 3),
                                     rng.normal(0, 0.02, 3), rng.normal(0, 0.005, 3)])
-        px, inside = _rolling_projection(truth, pose, theta, TARGET)
-        if inside.sum() < 40:
-            continue
-        index.append(np.full(int(inside.sum()), len(poses)))
-        points.append(TARGET[inside])
-        observed.append(px[inside])
-        poses.append(pose)
-        thetas.append(theta)
-    return poses, np.array(thetas), np.concatenate(index), np.concatenate(points), np.concatenate(observed)
+        return (*_rolling_projection(truth, pose, theta, TARGET), theta)
+
+    poses, thetas, index, points, observed = observed_scene(rng, frames, (60, 50), (260, 190), view)
+    return poses, np.array(thetas), index, points, observed
 
 
 @pytest.fixture(scope="module")
