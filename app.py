@@ -16,6 +16,7 @@ import argparse
 import os
 import signal
 import sys
+import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Protocol
@@ -139,6 +140,12 @@ def _port(text: str) -> int:
     return value
 
 
+SIGNAL_POLL_S = 0.5
+"""The main thread's longest sleep (s). The kernel may deliver SIGTERM (or SIGINT) to any of the
+app's threads; Python then runs the handler in the main thread only once that thread runs again,
+so a main thread asleep for an hour (viser's ``sleep_forever``) would ignore the signal."""
+
+
 def _stop(signum: int, frame: object) -> None:
     """SIGTERM ends the app as Ctrl+C does: its clean-up runs (uploads deleted, runs cancelled)."""
     raise KeyboardInterrupt
@@ -178,7 +185,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             print(f"{notice.title}: {notice.text}", file=sys.stderr)
     print(f"blurcalib app: http://{args.host}:{server.get_port()}/  (Ctrl+C to stop)", flush=True)
     try:
-        server.sleep_forever()
+        while True:  # short sleeps: see SIGNAL_POLL_S
+            time.sleep(SIGNAL_POLL_S)
     except KeyboardInterrupt:
         signal.signal(signal.SIGINT, signal.SIG_IGN)  # a second Ctrl+C must not cut the clean-up short
     finally:
