@@ -180,11 +180,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"app.py: error: {exc}", file=sys.stderr)
         return 2
     signal.signal(signal.SIGTERM, _stop)
-    for notice in app.state.notices:
-        if notice.level == "error":
-            print(f"{notice.title}: {notice.text}", file=sys.stderr)
-    print(f"blurcalib app: http://{args.host}:{server.get_port()}/  (Ctrl+C to stop)", flush=True)
-    try:
+    try:  # from here a signal, even one that comes while the address is printed, runs the clean-up
+        for notice in app.state.notices:
+            if notice.level == "error":
+                print(f"{notice.title}: {notice.text}", file=sys.stderr)
+        print(f"blurcalib app: http://{args.host}:{server.get_port()}/  (Ctrl+C to stop)", flush=True)
         while True:  # short sleeps: see SIGNAL_POLL_S
             time.sleep(SIGNAL_POLL_S)
     except KeyboardInterrupt:
