@@ -70,21 +70,30 @@ def _latent_at(H_loc: torch.Tensor, grid: tuple[int, int], num_segments: int, ta
     nq = nx * qx + ny * qy
     jx = nx * M[:, 0, 0, None, None] + ny * M[:, 1, 0, None, None] - nq * M[:, 2, 0, None, None]
     jy = nx * M[:, 0, 1, None, None] + ny * M[:, 1, 1, None, None] - nq * M[:, 2, 1, None, None]
-    scale = (torch.sqrt(jx * jx + jy * jy) * inv_w).clamp_min(1e-9) * tau
+    jj = jx * jx + jy * jy
+    scale = (torch.sqrt(jj) * inv_w).clamp_min(1e-9) * tau
     S = torch.sigmoid(dist / scale)
     if not with_jac:
         return S, None
-    g = S * (1.0 - S) / scale  # dS/dq = g n, the normaliser held fixed
-    gx, gy = g * nx, g * ny
-    # dq/d delta at delta = 0: -(Delta q~)_xy + q (Delta q~)_w with q~ = (q_x, q_y, 1)
+    # dq/d delta at delta = 0: -(Delta q~)_xy + q (Delta q~)_w with q~ = (q_x, q_y, 1); dS/dq = g n
+    # at a fixed normaliser. The normaliser |J^T n| (J = dq/dx) changes too: the update maps q by
+    # I - A with A = Delta_2x2 - (Delta q~)_w I - q Delta_w, so |J^T n| changes by -|J^T n| n^T A p,
+    # p = J J^T n / |J^T n|^2 (w cancels; n^T p = 1), and S by h n^T A p with h = g dist
+    g = S * (1.0 - S) / scale
+    h = g * dist
+    c = jx * M[:, 2, 0, None, None] + jy * M[:, 2, 1, None, None]
+    inv_jj = 1.0 / jj.clamp_min(1e-30)
+    px = (jx * M[:, 0, 0, None, None] + jy * M[:, 0, 1, None, None] - qx * c) * inv_jj
+    py = (jx * M[:, 1, 0, None, None] + jy * M[:, 1, 1, None, None] - qy * c) * inv_jj
+    a = h * px - g * qx  # dS = n_x a d1 + n_x b d2 + n_y a d4 + n_y b d5 + ...
+    b = h * py - g * qy
     dS = torch.empty((H_loc.shape[0], 8, *S.shape[1:]), dtype=S.dtype, device=dev)
-    torch.neg(gx, out=dS[:, 2])
-    torch.neg(gy, out=dS[:, 5])
-    torch.mul(dS[:, 2], qx, out=dS[:, 0])
-    torch.mul(dS[:, 2], qy, out=dS[:, 1])
-    torch.mul(dS[:, 5], qx, out=dS[:, 3])
-    torch.mul(dS[:, 5], qy, out=dS[:, 4])
-    radial = -(dS[:, 0] + dS[:, 4])
-    torch.mul(radial, qx, out=dS[:, 6])
-    torch.mul(radial, qy, out=dS[:, 7])
+    torch.mul(nx, a, out=dS[:, 0])
+    torch.mul(nx, b, out=dS[:, 1])
+    torch.mul(g, nx, out=dS[:, 2]).neg_()
+    torch.mul(ny, a, out=dS[:, 3])
+    torch.mul(ny, b, out=dS[:, 4])
+    torch.mul(g, ny, out=dS[:, 5]).neg_()
+    torch.mul(nq, a, out=dS[:, 6]).addcmul_(h, qx).neg_()
+    torch.mul(nq, b, out=dS[:, 7]).addcmul_(h, qy).neg_()
     return S, dS
