@@ -40,10 +40,13 @@ def lm_stage(prob: BlockProblem, H_loc: torch.Tensor, alpha: torch.Tensor, des: 
     """Levenberg-Marquardt on ``(H, alpha)`` with ``(k~, b)`` projected out (variable projection).
 
     Each step costs one kernel solve (:meth:`BlockProblem.evaluate`); a step that does not lower
-    the objective is undone and retried from the best point with a larger damping. With given
-    kernels (``des.fixed``), from the second step on, a trial point's Jacobian is computed only
-    for the blocks that accept it (:func:`_jacobian_where`): there most blocks have settled at the
-    noise and reject their later steps, and the Jacobian's 8 convolutions are most of a solve.
+    the objective is undone and retried from the best point with a larger damping. A block stops
+    once its step's predicted decrease ``delta^T (2 g - N delta)`` is below
+    :attr:`DeconvSettings.stop_decrease` times its residual variance ``sse / n`` (the step is a
+    small fraction of the fit's own standard deviation); the later steps solve only the blocks
+    still going. With given kernels (``des.fixed``), from the second step on, a trial point's
+    Jacobian is computed only for the blocks that accept it (:func:`_jacobian_where`): most
+    blocks reject their later steps, and the Jacobian's 8 convolutions are most of a solve.
     """
     b = H_loc.shape[0]
     dev = H_loc.device
@@ -52,25 +55,37 @@ def lm_stage(prob: BlockProblem, H_loc: torch.Tensor, alpha: torch.Tensor, des: 
     c_best = prob.centre_estimate(H_best, best.x, des)
     move = torch.zeros(b, dtype=torch.float64, device=dev)
     mu = torch.full((b,), 1e-3, device=dev, dtype=torch.float64)
+    going = torch.ones(b, dtype=torch.bool, device=dev)
+    rejected = torch.zeros(b, dtype=torch.int64, device=dev)  # steps rejected in a row
+    npix = des.pix_w.sum(dim=1).double().clamp_min(1.0)
     for it in range(steps):
         diag = best.N.diagonal(dim1=1, dim2=2)
         A = best.N + torch.diag_embed(mu[:, None] * diag + 1e-12 * diag.mean(1, keepdim=True) + 1e-30)
         delta = torch.nan_to_num(torch.linalg.solve_ex(A, best.g[..., None])[0][..., 0])
-        H_try = update_homography(H_best, delta[:, :8])
-        a_try = a_best + delta[:, 8:10]
+        decrease = (delta * (2.0 * best.g - (best.N @ delta[..., None])[..., 0])).sum(dim=1)
+        going &= (decrease > prob.s.stop_decrease * best.sse / npix) & (rejected < prob.s.stop_rejections)
+        rows = torch.nonzero(going)[:, 0]
+        if rows.numel() == 0:
+            break
+        sub = des if rows.numel() == b else des.take(rows)
+        H_try = update_homography(H_best[rows], delta[rows, :8])
+        a_try = a_best[rows] + delta[rows, 8:10]
         jac = it < steps - 1
         split = jac and it >= SPLIT_FROM_STEP and des.fixed is not None
-        cur = prob.evaluate(H_try, a_try, des, best.lam, with_jac=jac and not split)
-        accept = torch.isfinite(cur.obj) & (cur.obj < best.obj)
+        prev = best.take(rows)
+        cur = prob.evaluate(H_try, a_try, sub, prev.lam, with_jac=jac and not split)
+        accept = torch.isfinite(cur.obj) & (cur.obj < prev.obj)
         if split:
-            cur = _jacobian_where(prob, cur, best, accept, H_try, a_try, des)
-        H_best = torch.where(accept[:, None, None], H_try, H_best)
-        a_best = torch.where(accept[:, None], a_try, a_best)
-        c_try = prob.centre_estimate(H_try, cur.x, des)
-        move = torch.where(accept, torch.linalg.norm(c_try - c_best, dim=1), move)
-        c_best = torch.where(accept[:, None], c_try, c_best)
-        best = best.where(accept, cur)
-        mu = torch.where(accept, mu / 3.0, mu * 4.0)
+            cur = _jacobian_where(prob, cur, prev, accept, H_try, a_try, sub)
+        c_try = prob.centre_estimate(H_try, cur.x, sub)
+        won = rows[accept]
+        H_best, a_best = H_best.clone(), a_best.clone()
+        H_best[won], a_best[won] = H_try[accept], a_try[accept]
+        move[won] = torch.linalg.norm(c_try[accept] - c_best[won], dim=1)
+        c_best[won] = c_try[accept]
+        best = best.put(won, cur.take(torch.nonzero(accept)[:, 0]))
+        mu[rows] = torch.where(accept, mu[rows] / 3.0, mu[rows] * 4.0)
+        rejected[rows] = torch.where(accept, 0, rejected[rows] + 1)
     return LmStage(H_best, a_best, best, move)
 
 

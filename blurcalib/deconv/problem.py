@@ -98,16 +98,21 @@ class KernelSolve:
     N: torch.Tensor | None = None
     g: torch.Tensor | None = None
 
-    def where(self, accept: torch.Tensor, other: KernelSolve) -> KernelSolve:
-        """Per block, ``other``'s values where ``accept (b,)`` and these elsewhere (a field that
-        ``other`` lacks stays as it is)."""
+    def take(self, rows: torch.Tensor) -> KernelSolve:
+        """The solves of blocks ``rows`` (indices)."""
+        return KernelSolve(**{f.name: None if getattr(self, f.name) is None else getattr(self, f.name)[rows]
+                              for f in fields(self)})
+
+    def put(self, rows: torch.Tensor, other: KernelSolve) -> KernelSolve:
+        """These solves with blocks ``rows`` (indices) replaced by ``other``'s (one per row); a
+        field that ``other`` lacks stays as it is."""
         values = {}
         for f in fields(self):
             mine, theirs = getattr(self, f.name), getattr(other, f.name)
-            if theirs is None:
-                values[f.name] = mine
-            else:
-                values[f.name] = torch.where(accept.reshape(-1, *([1] * (mine.ndim - 1))), theirs, mine)
+            if theirs is not None and mine is not None:
+                mine = mine.clone()
+                mine[rows] = theirs
+            values[f.name] = mine
         return KernelSolve(**values)
 
 

@@ -49,6 +49,9 @@ class DeconvSettings:
             group (the results do not depend on it).
         converge_tol_px: a block has converged when the last accepted LM step moved its star
             centre by less than this (px).
+        stop_decrease: a block's LM steps stop once a step's predicted decrease of the objective
+            is below this multiple of the block's residual variance (``sse / n``): the step is
+            about ``sqrt(stop_decrease)`` of the fit's standard deviation (0: every step is taken).
         hinted_stages: stages of blocks given an expected PSF
             (:func:`blurcalib.deconv.blocks.fit_blocks_hinted`), which skip the coarse kernel and
             start from its support.
@@ -79,6 +82,8 @@ class DeconvSettings:
     batch_size: int = 64
     stage_batch_size: int = 16
     converge_tol_px: float = 0.05
+    stop_decrease: float = 0.01
+    stop_rejections: int = 2
     hinted_stages: int = 1
     fixed_steps: int = 6
     device: str = "cpu"
