@@ -42,6 +42,7 @@ from blurcalib.extract.frame import ExtractSettings, extract_frame
 from blurcalib.growth.settings import GrowSettings
 from blurcalib.io.frames import load_frame
 from blurcalib.io.refformat import read_ref_dataset
+from blurcalib.pipeline.runtime import keep_large_allocations
 from blurcalib.sim.truth import splat
 from blurcalib.target.pattern import load_pattern
 
@@ -108,6 +109,7 @@ def main() -> None:
                         help="comma-separated, of " + ", ".join(VARIANTS))
     args = parser.parse_args()
     torch.set_num_threads(1)
+    keep_large_allocations()  # as the command line and its workers do
     variants = args.variants.split(",")
     pattern = load_pattern(REAL / "pattern.yaml")
     refs = reference_features(pattern)

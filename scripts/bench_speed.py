@@ -39,6 +39,11 @@ def run(frames: int, seed: int, threads: int, device: str, quiet: bool) -> dict:
     import torch
 
     torch.set_num_threads(threads)  # (not blurcalib.pipeline.runtime: the script also times older checkouts)
+    try:  # glibc keeps freed tensors' memory, as the command line and its workers do
+        from blurcalib.pipeline.runtime import keep_large_allocations
+        keep_large_allocations()
+    except ImportError:  # an older checkout
+        pass
     from blurcalib.deconv.settings import DeconvSettings
     from blurcalib.extract.frame import ExtractSettings, extract_frame
 

@@ -54,6 +54,7 @@ from blurcalib.extract.frame import ExtractSettings, extract_frame
 from blurcalib.extract.quality import QualitySettings, filter_frame
 from blurcalib.geometry.homography import apply_homography
 from blurcalib.growth.window import WindowPolicy
+from blurcalib.pipeline.runtime import keep_large_allocations
 from blurcalib.sim import render, synth
 from blurcalib.sim.synth import SimulatedFrame, Simulator, SynthConfig
 
@@ -254,6 +255,7 @@ def main() -> None:
     deconv = DeconvSettings(device=args.device)
     first, step = (int(v) for v in args.part.split("/"))
     torch.set_num_threads(1)
+    keep_large_allocations()  # as the command line and its workers do
     if args.heavy:
         sim, heavy = frames((12.0, 25.0), args.heavy, 11, args.cache)
         heavy = heavy[first::step]

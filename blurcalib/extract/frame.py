@@ -69,7 +69,7 @@ from blurcalib.io.results import (
     write_frame_results,
 )
 from blurcalib.io.sources import FrameInput, in_sequences
-from blurcalib.pipeline.runtime import exit_with_parent
+from blurcalib.pipeline.runtime import exit_with_parent, keep_large_allocations
 from blurcalib.psf.kernel import blur_extent
 from blurcalib.target.pattern import StarPattern
 
@@ -385,7 +385,7 @@ def _init_worker(pattern: StarPattern, settings: ExtractSettings) -> None:
     import torch
 
     exit_with_parent()
-
+    keep_large_allocations()  # a spawned worker starts with glibc's defaults
     torch.set_num_threads(1)
     _WORKER_STATE = (pattern, settings)
 
