@@ -23,11 +23,13 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+import torch
 
 from blurcalib.deconv.settings import DeconvSettings
 from blurcalib.extract.frame import ExtractSettings, extract_frame
 from blurcalib.geometry.homography import homography_centre
 from blurcalib.io.frames import load_frame
+from blurcalib.pipeline.runtime import keep_large_allocations
 from blurcalib.sim.synth import Simulator, SynthConfig
 from blurcalib.sim.truth import splat
 from blurcalib.target.pattern import load_pattern
@@ -160,6 +162,8 @@ def main() -> None:
     parser.add_argument("--skip-semireal", action="store_true")
     parser.add_argument("--device", default="cpu")
     args = parser.parse_args()
+    torch.set_num_threads(1)  # per-process figures: torch's pool collapses when processes share the cores
+    keep_large_allocations()  # as the command line and its workers do
     simulated(args.frames, args.device)
     if not args.skip_semireal:
         semi_real(args.device)
