@@ -314,6 +314,10 @@ def test_bad_arguments_raise() -> None:
         fit_blocks(np.zeros((40, 40)), np.eye(3)[None], SEGMENTS, 12)
     with pytest.raises(ValueError, match="dtype"):
         DeconvSettings(dtype="float16")
+    with pytest.raises(ValueError, match="stop_rejections"):
+        DeconvSettings(stop_rejections=0)
+    with pytest.raises(ValueError, match="stop_decrease"):
+        DeconvSettings(stop_decrease=-1.0)
     with pytest.raises(ValueError, match=r"\(height, width\)"):
         fit_blocks(np.zeros((4, 4, 3)), np.eye(3)[None], SEGMENTS, K)
     with pytest.raises(ValueError, match="pixel_mask"):

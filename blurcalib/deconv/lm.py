@@ -51,7 +51,7 @@ def lm_stage(prob: BlockProblem, H_loc: torch.Tensor, alpha: torch.Tensor, des: 
     b = H_loc.shape[0]
     dev = H_loc.device
     best = prob.evaluate(H_loc, alpha, des, None, with_jac=steps > 0)
-    H_best, a_best = H_loc, alpha
+    H_best, a_best = H_loc.clone(), alpha.clone()  # updated in place, row by row
     c_best = prob.centre_estimate(H_best, best.x, des)
     move = torch.zeros(b, dtype=torch.float64, device=dev)
     mu = torch.full((b,), 1e-3, device=dev, dtype=torch.float64)
@@ -72,18 +72,17 @@ def lm_stage(prob: BlockProblem, H_loc: torch.Tensor, alpha: torch.Tensor, des: 
         a_try = a_best[rows] + delta[rows, 8:10]
         jac = it < steps - 1
         split = jac and it >= SPLIT_FROM_STEP and des.fixed is not None
-        prev = best.take(rows)
+        prev = best if rows.numel() == b else best.take(rows)
         cur = prob.evaluate(H_try, a_try, sub, prev.lam, with_jac=jac and not split)
         accept = torch.isfinite(cur.obj) & (cur.obj < prev.obj)
         if split:
             cur = _jacobian_where(prob, cur, prev, accept, H_try, a_try, sub)
         c_try = prob.centre_estimate(H_try, cur.x, sub)
         won = rows[accept]
-        H_best, a_best = H_best.clone(), a_best.clone()
         H_best[won], a_best[won] = H_try[accept], a_try[accept]
         move[won] = torch.linalg.norm(c_try[accept] - c_best[won], dim=1)
         c_best[won] = c_try[accept]
-        best = best.put(won, cur.take(torch.nonzero(accept)[:, 0]))
+        best.put(won, cur.take(accept))
         mu[rows] = torch.where(accept, mu[rows] / 3.0, mu[rows] * 4.0)
         rejected[rows] = torch.where(accept, 0, rejected[rows] + 1)
     return LmStage(H_best, a_best, best, move)

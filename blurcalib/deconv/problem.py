@@ -99,21 +99,17 @@ class KernelSolve:
     g: torch.Tensor | None = None
 
     def take(self, rows: torch.Tensor) -> KernelSolve:
-        """The solves of blocks ``rows`` (indices)."""
+        """The solves of blocks ``rows`` (indices or a ``(b,)`` bool mask), copied."""
         return KernelSolve(**{f.name: None if getattr(self, f.name) is None else getattr(self, f.name)[rows]
                               for f in fields(self)})
 
-    def put(self, rows: torch.Tensor, other: KernelSolve) -> KernelSolve:
-        """These solves with blocks ``rows`` (indices) replaced by ``other``'s (one per row); a
-        field that ``other`` lacks stays as it is."""
-        values = {}
+    def put(self, rows: torch.Tensor, other: KernelSolve) -> None:
+        """Replace blocks ``rows`` (indices) by ``other``'s solves (one per row), in place; a field
+        that ``other`` lacks stays as it is."""
         for f in fields(self):
             mine, theirs = getattr(self, f.name), getattr(other, f.name)
             if theirs is not None and mine is not None:
-                mine = mine.clone()
                 mine[rows] = theirs
-            values[f.name] = mine
-        return KernelSolve(**values)
 
 
 class BlockProblem:

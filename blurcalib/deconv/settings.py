@@ -52,6 +52,8 @@ class DeconvSettings:
         stop_decrease: a block's LM steps stop once a step's predicted decrease of the objective
             is below this multiple of the block's residual variance (``sse / n``): the step is
             about ``sqrt(stop_decrease)`` of the fit's standard deviation (0: every step is taken).
+        stop_rejections: a block's LM steps stop after this many rejected steps in a row (its
+            damping has grown 4x each time).
         hinted_stages: stages of blocks given an expected PSF
             (:func:`blurcalib.deconv.blocks.fit_blocks_hinted`), which skip the coarse kernel and
             start from its support.
@@ -98,6 +100,8 @@ class DeconvSettings:
                self.supersample, self.fixed_steps) < 1 or self.gn_steps < 0:
             raise ValueError("outer_iterations, hinted_stages, fixed_steps, batch_size, stage_batch_size and "
                              "supersample must be >= 1, gn_steps >= 0")
+        if not self.stop_decrease >= 0 or self.stop_rejections < 1:
+            raise ValueError("stop_decrease must be >= 0, stop_rejections >= 1")
         if not self.loss_extent > 0:
             raise ValueError(f"loss_extent must be positive, got {self.loss_extent}")
         if not 0.0 <= self.support_threshold < 1.0 or self.support_dilation < 0:
