@@ -229,6 +229,8 @@ def test_final_fit_over_a_larger_area_moves_inner_blocks_closer_to_the_truth() -
         GrowSettings(final_fit_frames="sharp")  # type: ignore[arg-type]
     with pytest.raises(ValueError, match="final_extent"):
         GrowSettings(final_extent=0.5)
+    with pytest.raises(ValueError, match="field_refit_px"):
+        GrowSettings(field_refit_px=-0.1)
 
 
 @pytest.mark.slow

@@ -67,6 +67,25 @@ def test_field_files_round_trip_and_degrees_extend() -> None:
     assert start.degree == 1 and np.linalg.norm(got - a) < 0.2 * np.linalg.norm(a)
 
 
+def test_path_change_is_the_largest_distance_between_the_sampled_paths() -> None:
+    field = PathField(np.array([[8.0, -3.0, 2.0, 1.0], [1.0, 0.5, 0.0, 0.0], [0.0, 0.0, -1.0, 0.5]]),
+                      math.log(0.7), (1280, 720))
+    xy = np.array([[100.0, 50.0], [640.0, 360.0], [1200.0, 700.0]])
+    np.testing.assert_allclose(field.path_change(field, xy), 0.0, atol=1e-12)
+    # the same kernels with the direction of time reversed: no change
+    reversed_time = PathField(field.coeffs * np.array([-1.0, -1.0, 1.0, 1.0]), field.log_sigma,
+                              field.image_size)
+    np.testing.assert_allclose(field.path_change(reversed_time, xy), 0.0, atol=1e-12)
+    # the curvature moved by (0.3, 0) px everywhere, the spread from 0.7 to 0.9 px
+    moved = field.coeffs.copy()
+    moved[0, 2] += 0.3
+    other = PathField(moved, math.log(0.9), field.image_size)
+    tau = (np.arange(48) + 0.5) / 48 - 0.5
+    expected = 0.3 * np.abs(tau**2 - np.mean(tau**2)).max() + 0.2
+    np.testing.assert_allclose(field.path_change(other, xy), expected, rtol=1e-9)
+    np.testing.assert_allclose(other.path_change(field, xy), expected, rtol=1e-9)
+
+
 def _long_blur_blocks(seed: int, field: PathField, count: int = 16, shift_px: float = 0.4):
     """Blocks of 24-28 px squares blurred by the field's PSF at their tiles' centres."""
     tile = 112

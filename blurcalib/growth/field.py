@@ -177,7 +177,8 @@ def field_growth(image: np.ndarray, pattern: StarPattern, growth: Growth, window
        :attr:`GrowSettings.field_loss_factor` x the median of step 2's) and by its neighbours
        (:func:`blurcalib.growth.judge.inconsistent`). Whenever the accepted
        blocks have doubled since the field was fitted, it is fitted again from them (warm
-       start); at the end the blocks fitted with an earlier field are fitted with the last.
+       start); at the end the blocks fitted with an earlier field are fitted with the last where
+       its paths moved by more than :attr:`GrowSettings.field_refit_px` at the block.
 
     ``on_event`` and ``should_stop`` are :func:`blurcalib.growth.grow.grow`'s (polled between
     fronts). Returns the growth unchanged when no field could be fitted; else a new growth (rows of
@@ -209,12 +210,20 @@ def field_growth(image: np.ndarray, pattern: StarPattern, growth: Growth, window
             ledger.restate(int(k), BlockStatus.NOT_CONVERGED, growth.fit, int(k))
     for k in ledger.accepted_rows:
         ledger.accept(ledger.ids[k], ledger.fit.H[k])
-    psf_field, stale = _grow_with_field(image, pattern, ledger, psf_field, max_loss, window, deconv, settings,
-                                        tag, should_stop)
-    # the blocks fitted with an earlier field, with the last one
-    rows = np.array([k for k in ledger.accepted_rows if ledger.ids[k] in stale], dtype=np.int64)
+    psf_field, field_of = _grow_with_field(image, pattern, ledger, psf_field, max_loss, window, deconv,
+                                              settings, tag, should_stop)
+    # the blocks fitted with an earlier field, with the last one where it moved
+    rows = np.array([k for k in ledger.accepted_rows if field_of[ledger.ids[k]] is not psf_field],
+                    dtype=np.int64)
     if rows.size:
         fit = ledger.fit
+        earlier = [field_of[ledger.ids[k]] for k in rows]
+        moved = np.zeros(rows.size)
+        for field in {id(f): f for f in earlier}.values():
+            sel = np.array([f is field for f in earlier])
+            moved[sel] = psf_field.path_change(field, fit.centre[rows[sel]])
+        rows = rows[~(moved <= settings.field_refit_px)]
+    if rows.size:
         last = fit_with_field(image, pattern, np.array(ledger.ids)[rows], fit.H[rows], psf_field, window,
                               deconv, settings, tag)
         keep = np.array([st is BlockStatus.ACCEPTED for st in last.status], dtype=bool)
@@ -254,16 +263,15 @@ def _field_seeds(image: np.ndarray, pattern: StarPattern, growth: Growth, window
 def _grow_with_field(image: np.ndarray, pattern: StarPattern, ledger: GrowthLedger, psf_field: PathField,
                      max_loss: float, window: WindowPolicy, deconv: DeconvSettings, settings: GrowSettings,
                      tag: np.ndarray | None, should_stop: Callable[[], bool] | None
-                     ) -> tuple[PathField, set[int]]:
+                     ) -> tuple[PathField, dict[int, PathField]]:
     """Step 3 of :func:`field_growth`, recorded in ``ledger`` (whose accepted blocks it starts
-    from). Returns the last field and the accepted blocks (feature ids) fitted with an earlier
-    one."""
+    from). Returns the last field and, by feature id, the field each accepted block was fitted
+    with."""
     h, w = image.shape
     accepted_H = ledger.accepted_H
     tried = dict.fromkeys(accepted_H, 0)
     new_ids = list(accepted_H)
-    generation = 0  # fits of the field so far, after the first
-    fitted_in = dict.fromkeys(accepted_H, generation)  # the field each accepted block was fitted with
+    field_of = dict.fromkeys(accepted_H, psf_field)  # the field each accepted block was fitted with
     fitted_with = len(accepted_H)  # accepted blocks when the field was last fitted
     front_index = max(ledger.front) + 1
     while new_ids and len(ledger) < settings.max_blocks:
@@ -276,7 +284,6 @@ def _grow_with_field(image: np.ndarray, pattern: StarPattern, ledger: GrowthLedg
             try:
                 psf_field, _ = fit_field(image, pattern, ids, H_acc, psf_field.with_degree(degree), window,
                                          deconv, settings, tag)
-                generation += 1
             except ValueError:
                 pass
             fitted_with = len(accepted_H)
@@ -300,7 +307,7 @@ def _grow_with_field(image: np.ndarray, pattern: StarPattern, ledger: GrowthLedg
         for k in decided:
             if statuses[k] is BlockStatus.ACCEPTED:
                 ledger.accept(fids[k], ffit.H[k])
-                fitted_in[fids[k]] = generation
+                field_of[fids[k]] = psf_field
         again_rows = np.array([ledger.row[fids[k]] for k in again], dtype=np.int64)
         for k in again + fresh:
             ledger.record(fids[k], statuses[k], front_index, H0[k], ffit, k)
@@ -309,4 +316,4 @@ def _grow_with_field(image: np.ndarray, pattern: StarPattern, ledger: GrowthLedg
         if fresh:
             ledger.add_fits(ffit.take(np.array(fresh)))
         front_index += 1
-    return psf_field, {fid for fid in accepted_H if fitted_in[fid] < generation}
+    return psf_field, field_of

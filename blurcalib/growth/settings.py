@@ -68,6 +68,10 @@ class GrowSettings:
         field_blocks: most blocks in the field's fit (spread over the accepted ones).
         field_loss_factor: a block fitted with the field is rejected when its loss exceeds
             this multiple of the median loss of the accepted blocks' field fits.
+        field_refit_px: when the field has been fitted again during the field growth, a block
+            accepted with an earlier field is fitted with the last one where the paths moved
+            by more than this at the block (px, :meth:`blurcalib.psf.field.PathField.path_change`;
+            0 fits every such block again).
     """
 
     max_loss: float = 400.0
@@ -90,6 +94,7 @@ class GrowSettings:
     field_min_blocks: int = 8
     field_blocks: int = 24
     field_loss_factor: float = 3.0
+    field_refit_px: float = 0.1
 
     def __post_init__(self) -> None:
         if self.final_fit_frames not in get_args(FinalFitFrames):
@@ -99,3 +104,5 @@ class GrowSettings:
             raise ValueError(f"final_extent must be >= 1, got {self.final_extent}")
         if self.field_min_blocks < 1 or self.field_blocks < self.field_min_blocks:
             raise ValueError("need 1 <= field_min_blocks <= field_blocks")
+        if not self.field_refit_px >= 0:
+            raise ValueError(f"field_refit_px must be >= 0, got {self.field_refit_px}")

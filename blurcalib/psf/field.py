@@ -70,6 +70,13 @@ def _basis_in_time(T: int, dtype: torch.dtype, device: torch.device) -> torch.Te
     return torch.stack([tau, tau * tau - (tau * tau).mean()], dim=1).to(dtype)
 
 
+def _path_points(theta: np.ndarray) -> np.ndarray:
+    """``(B, T, 2)`` px: the path ``p(tau_t)`` of ``eq:path_psf`` at its :data:`PATH_SAMPLES`
+    time samples for path parameters ``theta (B, 5)``."""
+    basis = _basis_in_time(PATH_SAMPLES, torch.float64, torch.device("cpu")).numpy()
+    return np.einsum("tj,bjc->btc", basis, np.asarray(theta, dtype=np.float64)[:, :4].reshape(-1, 2, 2))
+
+
 def path_kernels(theta: torch.Tensor, size: int, with_jac: bool = False, samples: int = PATH_SAMPLES
                  ) -> tuple[torch.Tensor, torch.Tensor | None]:
     """Path PSFs ``eq:path_psf`` and their derivatives.
@@ -141,10 +148,18 @@ class PathField:
     def reach(self, xy: np.ndarray) -> np.ndarray:
         """``(B,)`` px: the largest distance of the path from the star's time-averaged image,
         plus three Gaussian widths (what a window must hold)."""
-        th = torch.as_tensor(self.theta(xy))
-        p = torch.einsum("tj,bjc->btc", _basis_in_time(PATH_SAMPLES, th.dtype, th.device),
-                         th[:, :4].reshape(-1, 2, 2))
-        return p.abs().amax(dim=(1, 2)).numpy() + 3.0 * math.exp(self.log_sigma)
+        return np.abs(_path_points(self.theta(xy))).max(axis=(1, 2)) + 3.0 * math.exp(self.log_sigma)
+
+    def path_change(self, other: PathField, xy: np.ndarray) -> np.ndarray:
+        """``(B,)`` px: how far ``other``'s paths at image points ``xy (B, 2)`` px lie from this
+        field's (the largest distance over the time samples, in whichever direction of time
+        matches better: ``(a, b)`` and ``(-a, b)`` are the same kernel), plus the change of the
+        Gaussian spread."""
+        mine, theirs = self.theta(xy), other.theta(xy)
+        p, q = _path_points(mine), _path_points(theirs)
+        forward = np.linalg.norm(p - q, axis=2).max(axis=1)
+        backward = np.linalg.norm(p - q[:, ::-1], axis=2).max(axis=1)  # tau -> -tau: a -> -a
+        return np.minimum(forward, backward) + np.abs(np.exp(mine[:, 4]) - np.exp(theirs[:, 4]))
 
     def kernel_size(self, xy: np.ndarray, largest: int) -> int:
         """The odd window side (px) that holds the paths at ``xy``, at most ``largest``."""
