@@ -465,6 +465,48 @@ def test_folder_run_seeds_a_frame_from_its_neighbour(tmp_path, sim: Simulator, s
 
 
 @pytest.mark.slow
+def test_idle_workers_try_a_frames_next_neighbour_at_once(tmp_path, sim: Simulator, sharp_frame,
+                                                           monkeypatch) -> None:
+    """Frame 1 (no tag) between two extracted frames: with two workers and one frame to seed, both
+    neighbours are tried in one round and the nearest one's verified seed is kept, the same
+    features as the one-worker run that tries them in turn and stops at the first."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    frames = tmp_path / "seq"
+    frames.mkdir()
+    moved = np.clip(np.round(_shifted(sharp_frame.image, -5.0, 3.0)), 0, 255).astype(np.uint8)
+    further = np.clip(np.round(_shifted(sharp_frame.image, -10.0, 6.0)), 0, 255).astype(np.uint8)
+    for name, image in (("0.png", sharp_frame.image), ("1.png", moved), ("2.png", further)):
+        cv2.imwrite(str(frames / name), image)
+
+    def no_tag_in_moved(image, pattern, H_feature=None, *args, **kwargs):
+        if H_feature is None and np.array_equal(image, moved.astype(np.float32)):
+            raise SeedError("no AprilTag of the pattern found (test)")
+        return seed_frame(image, pattern, H_feature, *args, **kwargs)
+
+    def pool(workers, mp_context, initializer, initargs):  # threads: the patched seed holds in them
+        return ThreadPoolExecutor(workers)
+
+    monkeypatch.setattr(extract_module, "seed_frame", no_tag_in_moved)
+    monkeypatch.setattr(extract_module, "ProcessPoolExecutor", pool)
+    monkeypatch.setattr(extract_module, "_WORKER_STATE", (sim.pattern, ExtractSettings.auto()), raising=False)
+    paths = [frames / n for n in ("0.png", "1.png", "2.png")]
+    runs = {}
+    for workers in (1, 2):
+        summary = extract_to_folder(paths, sim.pattern, tmp_path / f"out{workers}", ExtractSettings.auto(),
+                                    workers=workers)
+        runs[workers] = {r["frame"]: r for r in summary.frames}
+    assert runs[1]["1.png"]["neighbours_tried"] == ["0.png"]
+    assert runs[2]["1.png"]["neighbours_tried"] == ["0.png", "2.png"]
+    for rows in runs.values():
+        assert rows["1.png"]["status"] == "ok" and "neighbour 0.png" in rows["1.png"]["message"]
+    one, two = (read_feature_table(tmp_path / f"out{w}" / "features.csv") for w in (1, 2))
+    a, b = (t.select(t.frame == "1.png") for t in (one, two))
+    assert len(a) > 100 and np.array_equal(a.feature_id, b.feature_id)
+    assert np.abs(a.x - b.x).max() < 1e-4 and np.abs(a.y - b.y).max() < 1e-4
+
+
+@pytest.mark.slow
 def test_video_extract_from_the_command_line(tmp_path, sim: Simulator, sharp_frame, blurry_frame) -> None:
     from blurcalib.cli import main
 

@@ -556,15 +556,17 @@ NEIGHBOUR_TRIES = 2
 """Neighbours tried per frame whose tag is not found."""
 
 
-def _neighbour_seeds(out: Path, frames: Sequence[FrameInput], summaries: dict[str, dict]
-                     ) -> list[tuple[FrameInput, NeighbourSeed]]:
-    """The frames ended ``not_seeded`` that have an extracted neighbour not tried yet, each with
-    the nearest one's seed (:data:`NEIGHBOUR_REACH`, :data:`NEIGHBOUR_TRIES`)."""
+def _neighbour_seeds(out: Path, frames: Sequence[FrameInput], summaries: dict[str, dict], slots: int
+                     ) -> list[tuple[FrameInput, list[NeighbourSeed]]]:
+    """The frames ended ``not_seeded`` that have an extracted neighbour not tried yet
+    (:data:`NEIGHBOUR_REACH`, :data:`NEIGHBOUR_TRIES`), each with the seeds of its untried
+    neighbours to try in this round, nearest first: every frame its nearest one's, and while
+    the round has fewer than ``slots`` attempts (idle workers), the frames their next ones'."""
     sequences: dict[str, list[FrameInput]] = {}
     for f in frames:
         if f.sequence:
             sequences.setdefault(f.sequence, []).append(f)
-    seeds = []
+    candidates: list[tuple[FrameInput, str, list[FrameInput], int]] = []
     for members in sequences.values():
         members = sorted(members, key=lambda f: f.order)
         for rank, f in enumerate(members):
@@ -574,17 +576,31 @@ def _neighbour_seeds(out: Path, frames: Sequence[FrameInput], summaries: dict[st
                 continue
             near = sorted((abs(r - rank), r) for r in range(max(0, rank - NEIGHBOUR_REACH),
                                                            min(len(members), rank + NEIGHBOUR_REACH + 1)))
-            for _, r in near:
-                g = members[r]
-                if summaries.get(g.name, {}).get("status") != FrameStatus.OK.value or g.name in tried:
-                    continue
-                table = read_feature_table(frame_result_paths(out, g.name).features)
-                H = homography_from_features(table.fx, table.fy, table.x, table.y)
-                if H is not None:
-                    message = status.get("message", "").split(_REFUSED)[0]
-                    seeds.append((f, NeighbourSeed(g.name, H, message)))
-                    break
-    return seeds
+            untried = [members[r] for _, r in near
+                       if summaries.get(members[r].name, {}).get("status") == FrameStatus.OK.value
+                       and members[r].name not in tried]
+            candidates.append((f, status.get("message", "").split(_REFUSED)[0], untried,
+                               NEIGHBOUR_TRIES - len(tried)))
+    rounds: dict[str, tuple[FrameInput, list[NeighbourSeed]]] = {}
+
+    def add(f: FrameInput, message: str, untried: list[FrameInput], room: int) -> bool:
+        """The seed of ``f``'s nearest untried neighbour whose features give a homography, while
+        ``f`` has ``room`` for more tries."""
+        while untried and len(rounds.get(f.name, (f, []))[1]) < room:
+            g = untried.pop(0)
+            table = read_feature_table(frame_result_paths(out, g.name).features)
+            H = homography_from_features(table.fx, table.fy, table.x, table.y)
+            if H is not None:
+                rounds.setdefault(f.name, (f, []))[1].append(NeighbourSeed(g.name, H, message))
+                return True
+        return False
+
+    for c in candidates:
+        add(*c)
+    attempts = len(rounds)
+    while attempts < slots and any(add(*c) for c in candidates if c[0].name in rounds):
+        attempts += 1
+    return list(rounds.values())
 
 
 def extract_to_folder(frames: Sequence[FrameInput | Path], pattern: StarPattern, out_dir: str | os.PathLike,
@@ -605,7 +621,9 @@ def extract_to_folder(frames: Sequence[FrameInput | Path], pattern: StarPattern,
 
     Once every frame has been tried from its own tag, the frames of a sequence (a video, a
     folder) whose tag was not found are seeded from their nearest extracted neighbour and
-    verified (:func:`seed_from_neighbour`), in rounds, so that a seeded frame can seed the next.
+    verified (:func:`seed_from_neighbour`), in rounds, so that a seeded frame can seed the next;
+    a round with fewer frames than workers tries a frame's next neighbour at once too (the
+    nearest verified seed is kept).
 
     Args:
         frames: :class:`blurcalib.io.sources.FrameInput` (:func:`blurcalib.io.sources.frame_inputs`),
@@ -659,32 +677,52 @@ def extract_to_folder(frames: Sequence[FrameInput | Path], pattern: StarPattern,
         if progress is not None:
             progress(len(summaries), len(names), summary)
 
-    def run(tasks: list[tuple[FrameInput, NeighbourSeed | None]]) -> None:
+    def run(tasks: list[tuple[FrameInput, NeighbourSeed | None]], done: Callable[[int, FrameResult], None]
+            ) -> None:
+        """Process ``tasks``, calling ``done(i, result)`` for each as it finishes."""
         if cluster is not None and tasks:
             from blurcalib.pipeline.cluster import run_on_cluster
 
-            for result in run_on_cluster(cluster, _process, tasks, (pattern, settings, size)):
-                finish(result)
+            for i, result in run_on_cluster(cluster, _process, tasks, (pattern, settings, size)):
+                done(i, result)
         elif workers > 1 and len(tasks) > 1:
             ctx = multiprocessing.get_context("spawn")
-            with ProcessPoolExecutor(workers, mp_context=ctx, initializer=_init_worker,
+            with ProcessPoolExecutor(min(workers, len(tasks)), mp_context=ctx, initializer=_init_worker,
                                      initargs=(pattern, settings)) as pool:
-                futures = {pool.submit(_process_in_worker, f, hint, size): f.name for f, hint in tasks}
+                futures = {pool.submit(_process_in_worker, f, hint, size): i
+                           for i, (f, hint) in enumerate(tasks)}
                 for future in as_completed(futures):
+                    i = futures[future]
                     try:
                         result = future.result()
                     except Exception as exc:  # a worker died (e.g. out of memory): the frame failed
-                        result = FrameResult(futures[future], FrameStatus.FAILED, _one_line(exc))
-                    finish(result)
+                        result = FrameResult(tasks[i][0].name, FrameStatus.FAILED, _one_line(exc))
+                    done(i, result)
         else:
-            for f, hint in tasks:
-                finish(_process(f, hint, pattern, settings, size))
+            for i, (f, hint) in enumerate(tasks):
+                done(i, _process(f, hint, pattern, settings, size))
 
-    run([(f, None) for f in inputs if f.name not in summaries])
-    while seeds := _neighbour_seeds(out, inputs, summaries):
-        for f, hint in seeds:
-            tried[f.name] = [*summaries[f.name].get("neighbours_tried", []), hint.neighbour]
-        run(list(seeds))
+    run([(f, None) for f in inputs if f.name not in summaries], lambda _, result: finish(result))
+    def attempts(rounds: list[tuple[FrameInput, list[NeighbourSeed]]]) -> Callable[[int, FrameResult], None]:
+        """``run``'s callback for a round of neighbour seeds: a frame's attempts, once all are
+        in, are finished as the first verified one (nearest neighbour first), else the last
+        refusal."""
+        expected = {f.name: len(hints) for f, hints in rounds}
+        got: dict[str, dict[int, FrameResult]] = {name: {} for name in expected}
+
+        def done(i: int, result: FrameResult) -> None:
+            mine = got[result.frame]
+            mine[i] = result
+            if len(mine) == expected[result.frame]:
+                ordered = [mine[k] for k in sorted(mine)]
+                finish(next((r for r in ordered if r.status is FrameStatus.OK), ordered[-1]))
+
+        return done
+
+    while rounds := _neighbour_seeds(out, inputs, summaries, workers if cluster is None else len(inputs)):
+        for f, hints in rounds:
+            tried[f.name] = [*summaries[f.name].get("neighbours_tried", []), *(h.neighbour for h in hints)]
+        run([(f, hint) for f, hints in rounds for hint in hints], attempts(rounds))
     outputs = collect_results(out, names)
     outputs["frames"] = write_frames_table(out, list(summaries.values()))
     return FolderSummary([summaries[n] for n in names], skipped, outputs)

@@ -68,7 +68,7 @@ def _single_threaded(fn: Callable[..., R], *args: Any) -> R:
 
 
 def run_on_cluster(address: str, fn: Callable[..., R], tasks: Sequence[tuple],
-                   shared: tuple = (), timeout_s: float = 30.0) -> Iterator[R]:
+                   shared: tuple = (), timeout_s: float = 30.0) -> Iterator[tuple[int, R]]:
     """Run ``fn(*task, *shared)`` for every task on the Dask scheduler at ``address``.
 
     Args:
@@ -78,7 +78,8 @@ def run_on_cluster(address: str, fn: Callable[..., R], tasks: Sequence[tuple],
         shared: trailing arguments common to all tasks, sent to the workers once.
         timeout_s: how long to wait for the scheduler.
     Yields:
-        The results in the order they finish.
+        ``(i, result)``: the index of the task in ``tasks`` and its result, in the order they
+        finish.
     Raises:
         ClusterError: ``distributed`` is not installed, the address is malformed
             (:func:`check_address`) or the scheduler does not answer.
@@ -94,6 +95,7 @@ def run_on_cluster(address: str, fn: Callable[..., R], tasks: Sequence[tuple],
         raise ClusterError(f"{address}: cannot reach the Dask scheduler ({exc})") from None
     with client:
         common = [client.scatter(arg, broadcast=True) for arg in shared]
-        futures = [client.submit(_single_threaded, fn, *task, *common, pure=False) for task in tasks]
-        for future in as_completed(futures, loop=client.loop):
-            yield future.result()
+        futures = {client.submit(_single_threaded, fn, *task, *common, pure=False): i
+                   for i, task in enumerate(tasks)}
+        for future in as_completed(list(futures), loop=client.loop):
+            yield futures[future], future.result()
