@@ -30,6 +30,8 @@ import os
 import time
 from collections.abc import Callable, Sequence
 from concurrent.futures import ProcessPoolExecutor, as_completed
+from concurrent.futures.process import BrokenProcessPool
+from contextlib import ExitStack
 from dataclasses import asdict, dataclass, field, replace
 from enum import Enum
 from pathlib import Path
@@ -561,7 +563,7 @@ def _neighbour_seeds(out: Path, frames: Sequence[FrameInput], summaries: dict[st
     """The frames ended ``not_seeded`` that have an extracted neighbour not tried yet
     (:data:`NEIGHBOUR_REACH`, :data:`NEIGHBOUR_TRIES`), each with the seeds of its untried
     neighbours to try in this round, nearest first: every frame its nearest one's, and while
-    the round has fewer than ``slots`` attempts (idle workers), the frames their next ones'."""
+    the round has fewer than ``slots`` attempts, the frames their next ones'."""
     sequences: dict[str, list[FrameInput]] = {}
     for f in frames:
         if f.sequence:
@@ -621,9 +623,11 @@ def extract_to_folder(frames: Sequence[FrameInput | Path], pattern: StarPattern,
 
     Once every frame has been tried from its own tag, the frames of a sequence (a video, a
     folder) whose tag was not found are seeded from their nearest extracted neighbour and
-    verified (:func:`seed_from_neighbour`), in rounds, so that a seeded frame can seed the next;
-    a round with fewer frames than workers tries a frame's next neighbour at once too (the
-    nearest verified seed is kept).
+    verified (:func:`seed_from_neighbour`), in rounds, so that a seeded frame can seed the next.
+    With several workers, while a round has fewer than :data:`NEIGHBOUR_TRIES` attempts per
+    worker, its frames try their next neighbours in it too, and the nearest verified seed is
+    kept: the round takes about as long as the rounds one neighbour at a time would, and ends
+    with the same result.
 
     Args:
         frames: :class:`blurcalib.io.sources.FrameInput` (:func:`blurcalib.io.sources.frame_inputs`),
@@ -677,36 +681,9 @@ def extract_to_folder(frames: Sequence[FrameInput | Path], pattern: StarPattern,
         if progress is not None:
             progress(len(summaries), len(names), summary)
 
-    def run(tasks: list[tuple[FrameInput, NeighbourSeed | None]], done: Callable[[int, FrameResult], None]
-            ) -> None:
-        """Process ``tasks``, calling ``done(i, result)`` for each as it finishes."""
-        if cluster is not None and tasks:
-            from blurcalib.pipeline.cluster import run_on_cluster
-
-            for i, result in run_on_cluster(cluster, _process, tasks, (pattern, settings, size)):
-                done(i, result)
-        elif workers > 1 and len(tasks) > 1:
-            ctx = multiprocessing.get_context("spawn")
-            with ProcessPoolExecutor(min(workers, len(tasks)), mp_context=ctx, initializer=_init_worker,
-                                     initargs=(pattern, settings)) as pool:
-                futures = {pool.submit(_process_in_worker, f, hint, size): i
-                           for i, (f, hint) in enumerate(tasks)}
-                for future in as_completed(futures):
-                    i = futures[future]
-                    try:
-                        result = future.result()
-                    except Exception as exc:  # a worker died (e.g. out of memory): the frame failed
-                        result = FrameResult(tasks[i][0].name, FrameStatus.FAILED, _one_line(exc))
-                    done(i, result)
-        else:
-            for i, (f, hint) in enumerate(tasks):
-                done(i, _process(f, hint, pattern, settings, size))
-
-    run([(f, None) for f in inputs if f.name not in summaries], lambda _, result: finish(result))
     def attempts(rounds: list[tuple[FrameInput, list[NeighbourSeed]]]) -> Callable[[int, FrameResult], None]:
-        """``run``'s callback for a round of neighbour seeds: a frame's attempts, once all are
-        in, are finished as the first verified one (nearest neighbour first), else the last
-        refusal."""
+        """The callback of a round of neighbour seeds: a frame's attempts, once all are in, are
+        finished as the first verified one (nearest neighbour first), else the last refusal."""
         expected = {f.name: len(hints) for f, hints in rounds}
         got: dict[str, dict[int, FrameResult]] = {name: {} for name in expected}
 
@@ -719,10 +696,45 @@ def extract_to_folder(frames: Sequence[FrameInput | Path], pattern: StarPattern,
 
         return done
 
-    while rounds := _neighbour_seeds(out, inputs, summaries, workers if cluster is None else len(inputs)):
-        for f, hints in rounds:
-            tried[f.name] = [*summaries[f.name].get("neighbours_tried", []), *(h.neighbour for h in hints)]
-        run([(f, hint) for f, hints in rounds for hint in hints], attempts(rounds))
+    with ExitStack() as stack:
+        pools: list[ProcessPoolExecutor] = []  # one pool of worker processes, started when needed
+
+        def run(tasks: list[tuple[FrameInput, NeighbourSeed | None]],
+                done: Callable[[int, FrameResult], None]) -> None:
+            """Process ``tasks``, calling ``done(i, result)`` for each as it finishes."""
+            if cluster is not None and tasks:
+                from blurcalib.pipeline.cluster import run_on_cluster
+
+                for i, result in run_on_cluster(cluster, _process, tasks, (pattern, settings, size)):
+                    done(i, result)
+            elif workers > 1 and len(tasks) > 1:
+                if not pools:
+                    pools.append(stack.enter_context(ProcessPoolExecutor(
+                        workers, mp_context=multiprocessing.get_context("spawn"), initializer=_init_worker,
+                        initargs=(pattern, settings))))
+                futures = {pools[0].submit(_process_in_worker, f, hint, size): i
+                           for i, (f, hint) in enumerate(tasks)}
+                for future in as_completed(futures):
+                    i = futures[future]
+                    try:
+                        result = future.result()
+                    except Exception as exc:  # a worker died (e.g. out of memory): the frame failed
+                        result = FrameResult(tasks[i][0].name, FrameStatus.FAILED, _one_line(exc))
+                        if isinstance(exc, BrokenProcessPool):  # the next tasks get a new pool
+                            pools.clear()
+                    done(i, result)
+            else:
+                for i, (f, hint) in enumerate(tasks):
+                    done(i, _process(f, hint, pattern, settings, size))
+
+        run([(f, None) for f in inputs if f.name not in summaries], lambda _, result: finish(result))
+        # more tries at once only where they run side by side (one process tries one at a time)
+        slots = NEIGHBOUR_TRIES * (len(inputs) if cluster is not None else workers if workers > 1 else 0)
+        while rounds := _neighbour_seeds(out, inputs, summaries, slots):
+            for f, hints in rounds:
+                before = summaries[f.name].get("neighbours_tried", [])
+                tried[f.name] = [*before, *(h.neighbour for h in hints)]
+            run([(f, hint) for f, hints in rounds for hint in hints], attempts(rounds))
     outputs = collect_results(out, names)
     outputs["frames"] = write_frames_table(out, list(summaries.values()))
     return FolderSummary([summaries[n] for n in names], skipped, outputs)
