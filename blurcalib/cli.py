@@ -430,7 +430,8 @@ def _add_synth_options(p: argparse.ArgumentParser, rolling_shutter: bool = True)
 def _add_run_options(p: argparse.ArgumentParser, workers: bool = True) -> None:
     if workers:
         p.add_argument("--workers", type=positive_int, default=available_cores(),
-                       help="frames processed in parallel, one process each (%(default)s: one per core)")
+                       help="frames processed in parallel, one process each (%(default)s: one per core); "
+                            "the calibration then computes with as many threads")
     p.add_argument("--threads", type=positive_int, default=1,
                    help="compute threads of this process, for frames it runs itself (--workers 1); "
                         "worker processes use one (%(default)s; more only helps on an idle machine)")

@@ -15,6 +15,7 @@ from blurcalib.pipeline.runtime import (
     DeviceError,
     available_cores,
     check_device,
+    compute_threads,
     configure_threads,
     default_workers,
     keep_large_allocations,
@@ -31,6 +32,20 @@ def test_configure_threads_sets_torch_threads() -> None:
         torch.set_num_threads(before)
     with pytest.raises(ValueError, match="threads must be >= 0"):
         configure_threads(-1)
+
+
+def test_compute_threads_sets_them_inside_the_block_only() -> None:
+    before = torch.get_num_threads()
+    try:
+        configure_threads(1)
+        with compute_threads(3) as n:
+            assert n == 3 and torch.get_num_threads() == 3 and cv2.getNumThreads() == 1
+        assert torch.get_num_threads() == 1
+        with pytest.raises(RuntimeError, match="inside"), compute_threads(2):
+            raise RuntimeError("inside")
+        assert torch.get_num_threads() == 1
+    finally:
+        torch.set_num_threads(before)
 
 
 def test_default_workers_one_per_core_at_most_one_per_frame() -> None:

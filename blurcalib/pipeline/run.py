@@ -86,6 +86,7 @@ from blurcalib.io.results import (
 )
 from blurcalib.io.sources import FrameInput
 from blurcalib.pipeline.frames import FrameRow, blurry_row, sharp_row, status_counts, write_frames
+from blurcalib.pipeline.runtime import compute_threads
 from blurcalib.target.pattern import StarPattern
 
 Table = TypeVar("Table", FeatureTable, BlockTable)
@@ -126,7 +127,7 @@ class PipelineSettings:
             settings (the torch device).
         calibration: the calibration sequence: block filter, global alignment, camera model,
             generic fit, lens-bias correction and assessment.
-        workers: frames extracted in parallel.
+        workers: frames extracted in parallel; the calibration computes with as many threads.
         cluster: a Dask scheduler address; frames are extracted as tasks there (``docs/cluster.md``).
     """
 
@@ -263,7 +264,8 @@ def run_pipeline(sharp: Sequence[Path], blurry: Sequence[Path], pattern: StarPat
     frames = [BlurryFrame(r["frame"], blocks=ex.blocks.select(ex.blocks.frame == r["frame"]), flags=flags)
               for r in ex.rows["blurry"] if r["status"] == "ok"]
     try:
-        run = calibrate_features(sharp_features, ex.sharp_blocks, frames, pattern, size, s.calibration)
+        with compute_threads(_calibration_threads(s)):
+            run = calibrate_features(sharp_features, ex.sharp_blocks, frames, pattern, size, s.calibration)
     except CalibrationError as exc:
         bad = [f"{r['frame']} ({r['status']})" for r in ex.rows["sharp"] if r["status"] != "ok"]
         hint = f"; sharp frames without features: {', '.join(bad[:10])}" if bad else ""
@@ -319,6 +321,14 @@ def _rows(sharp: list[dict], blurry: list[dict], outcomes: dict[str, BlurryOutco
     velocity = None if run.rolling_shutter is None else run.rolling_shutter.velocity_px
     return ([sharp_row(r, run.calibration, run.generic) for r in sharp]
             + [blurry_row(r, outcomes.get(r["frame"]), s, velocity) for r in blurry])
+
+
+def _calibration_threads(s: PipelineSettings) -> int:
+    """Compute threads of the calibration: one per worker (it runs once the workers are done,
+    :mod:`blurcalib.pipeline.runtime`), or this process's own when it has more."""
+    import torch
+
+    return max(s.workers, torch.get_num_threads())
 
 
 def _calibration_seconds(run: CalibrationRun) -> dict[str, float]:
@@ -409,7 +419,8 @@ def run_from_features(path: str | os.PathLike, pattern: StarPattern, out_dir: st
     frames = ([] if s.calibration.model == "parametric"
               else [BlurryFrame(f, features=blurry.select(blurry.frame == f)) for f in blurry_names])
     try:
-        run = calibrate_features(sharp, None, frames, pattern, size, s.calibration)
+        with compute_threads(_calibration_threads(s)):
+            run = calibrate_features(sharp, None, frames, pattern, size, s.calibration)
     except CalibrationError as exc:
         raise PipelineError(f"sharp-set calibration from {path}: {exc}") from None
     except ValueError as exc:
