@@ -42,6 +42,7 @@ from blurcalib.io.results import (
     frame_result_paths,
     read_feature_table,
     read_features,
+    read_frame_status,
 )
 from blurcalib.sim.synth import Simulator, SynthConfig
 from blurcalib.sim.truth import TrueCamera
@@ -504,6 +505,27 @@ def test_idle_workers_try_a_frames_next_neighbour_at_once(tmp_path, sim: Simulat
     a, b = (t.select(t.frame == "1.png") for t in (one, two))
     assert len(a) > 100 and np.array_equal(a.feature_id, b.feature_id)
     assert np.abs(a.x - b.x).max() < 1e-4 and np.abs(a.y - b.y).max() < 1e-4
+    # the sequence moves the target by about a fifth of a square per frame: with a limit below
+    # that, no neighbour is tried and the frame's message says why
+    monkeypatch.setattr(extract_module, "NEIGHBOUR_MOTION_SQUARES", 0.05)
+    summary = extract_to_folder(paths, sim.pattern, tmp_path / "still", ExtractSettings.auto(), workers=2)
+    row = {r["frame"]: r for r in summary.frames}["1.png"]
+    assert row["status"] == "not_seeded" and "neighbours_tried" not in row
+    note = "not seeded from its neighbours: its sequence moves the target by 0.2 squares per frame"
+    assert note in row["message"]
+    assert read_frame_status(tmp_path / "still", "1.png")["message"] == row["message"]
+
+
+def test_sequence_motion_is_the_median_step_in_squares_per_frame() -> None:
+    H = np.array([[30.0, 2.0, 100.0], [-1.0, 28.0, 80.0], [0.0, 0.0, 1.0]])  # ~29 px per square
+    side = np.sqrt(np.linalg.det(H[:2, :2]))
+    f = np.array([4.0, 3.0])
+    moved = [translation(np.array([side * k, 0.0])) @ H for k in (0.5, 2.0, 2.3)]
+    frames = [(0, H, f), (1, moved[0], f), (3, moved[1], f), (4, moved[2], f)]
+    # steps: 0.5 squares in 1 frame, 1.5 in 2 frames, 0.3 in 1 frame (the mean features of each
+    # frame are the same points here)
+    assert abs(extract_module.sequence_motion(frames) - 0.5) < 1e-9
+    assert np.isnan(extract_module.sequence_motion(frames[:1]))
 
 
 @pytest.mark.slow

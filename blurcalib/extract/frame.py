@@ -34,6 +34,7 @@ from concurrent.futures.process import BrokenProcessPool
 from contextlib import ExitStack
 from dataclasses import asdict, dataclass, field, replace
 from enum import Enum
+from itertools import pairwise
 from pathlib import Path
 
 import numpy as np
@@ -412,6 +413,9 @@ class NeighbourSeed:
     message: str
 
 
+_MOVING = "; not seeded from its neighbours: its sequence moves the target by "
+"""Starts the part of a ``not_seeded`` frame's message that says why no neighbour's seed was tried."""
+
 _REFUSED = "; the seed from neighbour "
 """Starts the part of a ``not_seeded`` frame's message that says why a neighbour's seed was refused."""
 
@@ -557,18 +561,65 @@ away in its sequence (:func:`seed_from_neighbour`)."""
 NEIGHBOUR_TRIES = 2
 """Neighbours tried per frame whose tag is not found."""
 
+NEIGHBOUR_MOTION_SQUARES = 1.0
+"""A frame is seeded from its neighbours only where its sequence moves the target by at most
+this many squares per frame (:func:`sequence_motion`): a neighbour's seed grows onto the right
+stars only when the frame moved less than about half a square from it, and a folder of frames
+taken from unrelated poses (stills, a simulated set) moves it by many squares."""
+
+
+def sequence_motion(frames: Sequence[tuple[int, np.ndarray, np.ndarray]]) -> float:
+    """The median motion of the target between frames of a sequence, in squares per frame.
+
+    Args:
+        frames: ``(rank, H, f)`` of extracted frames in sequence order: ``H (3, 3)`` feature
+            coordinates -> px (:func:`blurcalib.growth.seed.homography_from_features`) and
+            ``f (2,)`` the mean feature coordinates of the frame's star centres.
+    Returns:
+        Over consecutive pairs, how far (px) the first frame's mean feature point moved to the
+        second, per square side there (the square root of the first homography's Jacobian
+        determinant, px per feature unit) and per rank between them; NaN without a pair.
+    """
+    steps = []
+    for (r0, H0, f), (r1, H1, _) in pairwise(frames):
+        a, b = H0 @ np.array([f[0], f[1], 1.0]), H1 @ np.array([f[0], f[1], 1.0])
+        if not (a[2] > 0 and b[2] > 0):
+            continue
+        jac = (H0[:2, :2] * a[2] - np.outer(a[:2], H0[2, :2])) / a[2] ** 2  # d px / d feature
+        side = math.sqrt(abs(float(np.linalg.det(jac))))
+        if side > 0:
+            steps.append(float(np.linalg.norm(b[:2] / b[2] - a[:2] / a[2])) / side / max(r1 - r0, 1))
+    return float(np.median(steps)) if steps else math.nan
+
 
 def _neighbour_seeds(out: Path, frames: Sequence[FrameInput], summaries: dict[str, dict], slots: int
-                     ) -> list[tuple[FrameInput, list[NeighbourSeed]]]:
+                     ) -> tuple[list[tuple[FrameInput, list[NeighbourSeed]]], dict[str, float]]:
     """The frames ended ``not_seeded`` that have an extracted neighbour not tried yet
-    (:data:`NEIGHBOUR_REACH`, :data:`NEIGHBOUR_TRIES`), each with the seeds of its untried
-    neighbours to try in this round, nearest first: every frame its nearest one's, and while
-    the round has fewer than ``slots`` attempts, the frames their next ones'."""
+    (:data:`NEIGHBOUR_REACH`, :data:`NEIGHBOUR_TRIES`) and whose sequence moves slowly around
+    them (:data:`NEIGHBOUR_MOTION_SQUARES`, over the extracted frames within twice the reach),
+    each with the seeds of its untried neighbours to try in this round, nearest first: every
+    frame its nearest one's, and while the round has fewer than ``slots`` attempts, the frames
+    their next ones'. Also returns the frames passed over because their sequence moves faster,
+    with its motion (squares per frame)."""
     sequences: dict[str, list[FrameInput]] = {}
     for f in frames:
         if f.sequence:
             sequences.setdefault(f.sequence, []).append(f)
+    known: dict[str, tuple[np.ndarray, np.ndarray] | None] = {}
+
+    def homography(name: str) -> tuple[np.ndarray, np.ndarray] | None:
+        """An extracted frame's homography and mean feature coordinates (None: too few stars)."""
+        if name not in known:
+            table = read_feature_table(frame_result_paths(out, name).features)
+            H = homography_from_features(table.fx, table.fy, table.x, table.y)
+            known[name] = None if H is None else (H, np.array([table.fx.mean(), table.fy.mean()]))
+        return known[name]
+
+    def extracted(g: FrameInput) -> bool:
+        return summaries.get(g.name, {}).get("status") == FrameStatus.OK.value
+
     candidates: list[tuple[FrameInput, str, list[FrameInput], int]] = []
+    moving: dict[str, float] = {}
     for members in sequences.values():
         members = sorted(members, key=lambda f: f.order)
         for rank, f in enumerate(members):
@@ -576,12 +627,19 @@ def _neighbour_seeds(out: Path, frames: Sequence[FrameInput], summaries: dict[st
             tried = status.get("neighbours_tried", [])
             if status.get("status") != FrameStatus.NOT_SEEDED.value or len(tried) >= NEIGHBOUR_TRIES:
                 continue
+            reach = 2 * NEIGHBOUR_REACH
+            around = range(max(0, rank - reach), min(len(members), rank + reach + 1))
+            poses = [(r, *pose) for r in around if extracted(members[r])
+                     and (pose := homography(members[r].name)) is not None]
+            motion = sequence_motion(poses)
+            if motion > NEIGHBOUR_MOTION_SQUARES:
+                moving[f.name] = motion
+                continue
             near = sorted((abs(r - rank), r) for r in range(max(0, rank - NEIGHBOUR_REACH),
                                                            min(len(members), rank + NEIGHBOUR_REACH + 1)))
-            untried = [members[r] for _, r in near
-                       if summaries.get(members[r].name, {}).get("status") == FrameStatus.OK.value
-                       and members[r].name not in tried]
-            candidates.append((f, status.get("message", "").split(_REFUSED)[0], untried,
+            untried = [members[r] for _, r in near if extracted(members[r]) and members[r].name not in tried]
+            message = status.get("message", "").split(_REFUSED)[0].split(_MOVING)[0]
+            candidates.append((f, message, untried,
                                NEIGHBOUR_TRIES - len(tried)))
     rounds: dict[str, tuple[FrameInput, list[NeighbourSeed]]] = {}
 
@@ -590,10 +648,9 @@ def _neighbour_seeds(out: Path, frames: Sequence[FrameInput], summaries: dict[st
         ``f`` has ``room`` for more tries."""
         while untried and len(rounds.get(f.name, (f, []))[1]) < room:
             g = untried.pop(0)
-            table = read_feature_table(frame_result_paths(out, g.name).features)
-            H = homography_from_features(table.fx, table.fy, table.x, table.y)
-            if H is not None:
-                rounds.setdefault(f.name, (f, []))[1].append(NeighbourSeed(g.name, H, message))
+            pose = homography(g.name)
+            if pose is not None:
+                rounds.setdefault(f.name, (f, []))[1].append(NeighbourSeed(g.name, pose[0], message))
                 return True
         return False
 
@@ -602,7 +659,7 @@ def _neighbour_seeds(out: Path, frames: Sequence[FrameInput], summaries: dict[st
     attempts = len(rounds)
     while attempts < slots and any(add(*c) for c in candidates if c[0].name in rounds):
         attempts += 1
-    return list(rounds.values())
+    return list(rounds.values()), moving
 
 
 def extract_to_folder(frames: Sequence[FrameInput | Path], pattern: StarPattern, out_dir: str | os.PathLike,
@@ -627,7 +684,9 @@ def extract_to_folder(frames: Sequence[FrameInput | Path], pattern: StarPattern,
     With several workers, while a round has fewer than :data:`NEIGHBOUR_TRIES` attempts per
     worker, its frames try their next neighbours in it too, and the nearest verified seed is
     kept: the round takes about as long as the rounds one neighbour at a time would, and ends
-    with the same result.
+    with the same result. Where the sequence moves the target by more than
+    :data:`NEIGHBOUR_MOTION_SQUARES` squares per frame around a frame (frames of unrelated
+    poses), no neighbour's seed can be right and none is tried; the frame's message says so.
 
     Args:
         frames: :class:`blurcalib.io.sources.FrameInput` (:func:`blurcalib.io.sources.frame_inputs`),
@@ -730,11 +789,23 @@ def extract_to_folder(frames: Sequence[FrameInput | Path], pattern: StarPattern,
         run([(f, None) for f in inputs if f.name not in summaries], lambda _, result: finish(result))
         # more tries at once only where they run side by side (one process tries one at a time)
         slots = NEIGHBOUR_TRIES * (len(inputs) if cluster is not None else workers if workers > 1 else 0)
-        while rounds := _neighbour_seeds(out, inputs, summaries, slots):
+        while True:
+            rounds, moving = _neighbour_seeds(out, inputs, summaries, slots)
+            if not rounds:
+                break
             for f, hints in rounds:
                 before = summaries[f.name].get("neighbours_tried", [])
                 tried[f.name] = [*before, *(h.neighbour for h in hints)]
             run([(f, hint) for f, hints in rounds for hint in hints], attempts(rounds))
+    for name, motion in moving.items():  # say why these were not seeded from their neighbours
+        summary = summaries[name]
+        if _MOVING not in summary.get("message", ""):
+            limit = f"{NEIGHBOUR_MOTION_SQUARES:g}"
+            summary["message"] = (f"{summary.get('message', '')}{_MOVING}{motion:.1f} squares per frame "
+                                  f"around it (a neighbour's seed needs at most {limit})")
+            write_frame_results(out, name, FeatureTable.empty(), BlockTable.empty(), [], summary)
+    if moving:
+        write_frames_table(out, list(summaries.values()))
     outputs = collect_results(out, names)
     outputs["frames"] = write_frames_table(out, list(summaries.values()))
     return FolderSummary([summaries[n] for n in names], skipped, outputs)
