@@ -639,8 +639,7 @@ def _neighbour_seeds(out: Path, frames: Sequence[FrameInput], summaries: dict[st
                                                            min(len(members), rank + NEIGHBOUR_REACH + 1)))
             untried = [members[r] for _, r in near if extracted(members[r]) and members[r].name not in tried]
             message = status.get("message", "").split(_REFUSED)[0].split(_MOVING)[0]
-            candidates.append((f, message, untried,
-                               NEIGHBOUR_TRIES - len(tried)))
+            candidates.append((f, message, untried, NEIGHBOUR_TRIES - len(tried)))
     rounds: dict[str, tuple[FrameInput, list[NeighbourSeed]]] = {}
 
     def add(f: FrameInput, message: str, untried: list[FrameInput], room: int) -> bool:
@@ -804,8 +803,6 @@ def extract_to_folder(frames: Sequence[FrameInput | Path], pattern: StarPattern,
             summary["message"] = (f"{summary.get('message', '')}{_MOVING}{motion:.1f} squares per frame "
                                   f"around it (a neighbour's seed needs at most {limit})")
             write_frame_results(out, name, FeatureTable.empty(), BlockTable.empty(), [], summary)
-    if moving:
-        write_frames_table(out, list(summaries.values()))
     outputs = collect_results(out, names)
     outputs["frames"] = write_frames_table(out, list(summaries.values()))
     return FolderSummary([summaries[n] for n in names], skipped, outputs)
