@@ -34,7 +34,6 @@ from concurrent.futures.process import BrokenProcessPool
 from contextlib import ExitStack
 from dataclasses import asdict, dataclass, field, replace
 from enum import Enum
-from itertools import pairwise
 from pathlib import Path
 
 import numpy as np
@@ -42,7 +41,7 @@ import numpy as np
 from blurcalib.deconv.settings import DeconvSettings
 from blurcalib.extract.local_alignment import LocalAlignment, align_locally, shared_corners
 from blurcalib.extract.noise import NoiseModel, frame_noise
-from blurcalib.geometry.homography import homography_centre
+from blurcalib.geometry.homography import homography_centre, homography_scale, translation
 from blurcalib.growth.grow import grow
 from blurcalib.growth.ledger import Growth, GrowthEvent
 from blurcalib.growth.seed import (
@@ -577,19 +576,20 @@ def sequence_motion(frames: Sequence[tuple[int, np.ndarray, np.ndarray]]) -> flo
             ``f (2,)`` the mean feature coordinates of the frame's star centres.
     Returns:
         Over consecutive pairs, how far (px) the first frame's mean feature point moved to the
-        second, per square side there (the square root of the first homography's Jacobian
-        determinant, px per feature unit) and per rank between them; NaN without a pair.
+        second, per square side there (the first homography's local scale there,
+        :func:`blurcalib.geometry.homography.homography_scale`, px per feature unit) and per
+        rank between them; NaN without a pair.
     """
-    steps = []
-    for (r0, H0, f), (r1, H1, _) in pairwise(frames):
-        a, b = H0 @ np.array([f[0], f[1], 1.0]), H1 @ np.array([f[0], f[1], 1.0])
-        if not (a[2] > 0 and b[2] > 0):
-            continue
-        jac = (H0[:2, :2] * a[2] - np.outer(a[:2], H0[2, :2])) / a[2] ** 2  # d px / d feature
-        side = math.sqrt(abs(float(np.linalg.det(jac))))
-        if side > 0:
-            steps.append(float(np.linalg.norm(b[:2] / b[2] - a[:2] / a[2])) / side / max(r1 - r0, 1))
-    return float(np.median(steps)) if steps else math.nan
+    if len(frames) < 2:
+        return math.nan
+    rank = np.array([r for r, _, _ in frames])
+    H = np.stack([h for _, h, _ in frames])
+    at = translation(np.stack([f for _, _, f in frames[:-1]]))  # the origin moved to each first's point
+    first, second = H[:-1] @ at, H[1:] @ at
+    moved = np.linalg.norm(homography_centre(second) - homography_centre(first), axis=1)
+    steps = moved / homography_scale(first) / np.maximum(np.diff(rank), 1)
+    steps = steps[np.isfinite(steps)]
+    return float(np.median(steps)) if steps.size else math.nan
 
 
 def _neighbour_seeds(out: Path, frames: Sequence[FrameInput], summaries: dict[str, dict], slots: int
@@ -787,7 +787,8 @@ def extract_to_folder(frames: Sequence[FrameInput | Path], pattern: StarPattern,
 
         run([(f, None) for f in inputs if f.name not in summaries], lambda _, result: finish(result))
         # more tries at once only where they run side by side (one process tries one at a time)
-        slots = NEIGHBOUR_TRIES * (len(inputs) if cluster is not None else workers if workers > 1 else 0)
+        side_by_side = len(inputs) if cluster is not None else workers if workers > 1 else 0
+        slots = NEIGHBOUR_TRIES * side_by_side
         while True:
             rounds, moving = _neighbour_seeds(out, inputs, summaries, slots)
             if not rounds:
