@@ -485,12 +485,11 @@ def test_idle_workers_try_a_frames_next_neighbour_at_once(tmp_path, sim: Simulat
             raise SeedError("no AprilTag of the pattern found (test)")
         return seed_frame(image, pattern, H_feature, *args, **kwargs)
 
-    def pool(workers, mp_context, initializer, initargs):  # threads: the patched seed holds in them
+    def pool(workers, mp_context, initializer):  # threads: the patched seed holds in them
         return ThreadPoolExecutor(workers)
 
     monkeypatch.setattr(extract_module, "seed_frame", no_tag_in_moved)
     monkeypatch.setattr(extract_module, "ProcessPoolExecutor", pool)
-    monkeypatch.setattr(extract_module, "_WORKER_STATE", (sim.pattern, ExtractSettings.auto()), raising=False)
     paths = [frames / n for n in ("0.png", "1.png", "2.png")]
     runs = {}
     for workers in (1, 2):
@@ -514,6 +513,39 @@ def test_idle_workers_try_a_frames_next_neighbour_at_once(tmp_path, sim: Simulat
     note = "not seeded from its neighbours: its sequence moves the target by 0.2 squares per frame"
     assert note in row["message"]
     assert read_frame_status(tmp_path / "still", "1.png")["message"] == row["message"]
+
+
+def test_folders_with_other_settings_share_one_frame_pool(tmp_path, sim: Simulator, sharp_frame,
+                                                          monkeypatch) -> None:
+    """Two folders extracted through one :class:`FramePool` start its workers once, and each
+    frame is processed with its own call's settings (the sharp call's frames are recorded sharp
+    with the sharp window, the other's blurry), as each call alone would."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    started = []
+
+    def pool(workers, mp_context, initializer):  # threads stand in for the processes
+        started.append(workers)
+        return ThreadPoolExecutor(workers)
+
+    monkeypatch.setattr(extract_module, "ProcessPoolExecutor", pool)
+    folder = tmp_path / "frames"
+    folder.mkdir()
+    for name in ("0.png", "1.png"):
+        cv2.imwrite(str(folder / name), sharp_frame.image)
+    paths = [folder / "0.png", folder / "1.png"]
+    kinds = {"sharp": ExtractSettings.sharp(), "blurry": ExtractSettings()}
+    with extract_module.FramePool(2) as shared:
+        rows = {k: extract_to_folder(paths, sim.pattern, tmp_path / k, s, pool=shared).frames
+                for k, s in kinds.items()}
+    assert started == [2]
+    for kind, settings in kinds.items():
+        assert [r["kind"] for r in rows[kind]] == [kind, kind]
+        alone = extract_frame(sharp_frame.image.astype(np.float32), sim.pattern, "0.png", settings)
+        table = read_feature_table(tmp_path / kind / "features.csv")
+        first = table.select(table.frame == "0.png")
+        assert np.array_equal(first.feature_id, alone.features.feature_id)
+        assert np.abs(first.x - alone.features.x).max() < 1e-6
 
 
 def test_sequence_motion_is_the_median_step_in_squares_per_frame() -> None:

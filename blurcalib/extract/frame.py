@@ -29,7 +29,7 @@ import multiprocessing
 import os
 import time
 from collections.abc import Callable, Sequence
-from concurrent.futures import ProcessPoolExecutor, as_completed
+from concurrent.futures import Future, ProcessPoolExecutor, as_completed
 from concurrent.futures.process import BrokenProcessPool
 from contextlib import ExitStack
 from dataclasses import asdict, dataclass, field, replace
@@ -378,18 +378,48 @@ class FolderSummary:
     outputs: dict[str, Path]
 
 
-_WORKER_STATE: tuple[StarPattern, ExtractSettings] | None = None
-"""Pattern and settings of a worker process of :func:`extract_to_folder` (unset in the main one)."""
-
-
-def _init_worker(pattern: StarPattern, settings: ExtractSettings) -> None:
-    global _WORKER_STATE  # each worker process keeps its pattern and settings
+def _init_worker() -> None:
+    """A worker process of a :class:`FramePool`: one torch thread, glibc's allocations kept."""
     import torch
 
     exit_with_parent()
     keep_large_allocations()  # a spawned worker starts with glibc's defaults
     torch.set_num_threads(1)
-    _WORKER_STATE = (pattern, settings)
+
+
+class FramePool:
+    """Worker processes for :func:`extract_to_folder`, started on first use and kept for the
+    calls that share it (the sharp and blurry folders of a calibration: starting ``workers``
+    processes, each importing torch, takes about 2 s of wall time).
+
+    A context manager: the processes end with it. Tasks carry their pattern and settings, so
+    calls with different settings share the processes.
+    """
+
+    def __init__(self, workers: int) -> None:
+        self.workers = workers
+        self._executor: ProcessPoolExecutor | None = None
+
+    def __enter__(self) -> FramePool:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def submit(self, frame: FrameInput, hint: NeighbourSeed | None, pattern: StarPattern,
+               settings: ExtractSettings, expected_size: tuple[int, int] | None) -> Future:
+        """Process a frame (:func:`_process`) in a worker; the processes start on the first task."""
+        if self._executor is None:
+            spawn = multiprocessing.get_context("spawn")
+            self._executor = ProcessPoolExecutor(self.workers, mp_context=spawn, initializer=_init_worker)
+        return self._executor.submit(_process, frame, hint, pattern, settings, expected_size)
+
+    def close(self) -> None:
+        """End the worker processes (a later task starts new ones: after a broken pool, e.g. a
+        worker killed for memory)."""
+        if self._executor is not None:
+            self._executor.shutdown()
+            self._executor = None
 
 
 def _one_line(exc: BaseException) -> str:
@@ -492,13 +522,6 @@ def _process(frame: FrameInput, hint: NeighbourSeed | None, pattern: StarPattern
     except Exception as exc:  # any failure stays with its frame; the batch goes on
         return FrameResult(name, FrameStatus.FAILED, _one_line(exc),
                            seconds={"failed": time.perf_counter() - t0})
-
-
-def _process_in_worker(frame: FrameInput, hint: NeighbourSeed | None,
-                       expected_size: tuple[int, int] | None) -> FrameResult:
-    if _WORKER_STATE is None:
-        raise RuntimeError("worker process was not initialised")
-    return _process(frame, hint, *_WORKER_STATE, expected_size)
 
 
 def _settings_record(settings: ExtractSettings) -> dict:
@@ -665,7 +688,7 @@ def extract_to_folder(frames: Sequence[FrameInput | Path], pattern: StarPattern,
                       settings: ExtractSettings | None = None, workers: int = 1,
                       progress: Callable[[int, int, dict], None] | None = None,
                       expected_size: tuple[int, int] | None = None, overwrite: bool = False,
-                      cluster: str | None = None) -> FolderSummary:
+                      cluster: str | None = None, pool: FramePool | None = None) -> FolderSummary:
     """Extract every frame of ``frames`` into ``out_dir`` (resumable).
 
     Every frame ends with a status: an unreadable frame, one of another size, one that cannot
@@ -674,8 +697,9 @@ def extract_to_folder(frames: Sequence[FrameInput | Path], pattern: StarPattern,
     input file's size and modification time and a video frame's index) is unchanged and its
     status is final (:data:`FINAL_STATUSES`); otherwise it is redone. The top-level tables list
     exactly the frames of this run, by their names. With ``cluster`` (a Dask scheduler address)
-    the frames run as tasks there (:mod:`blurcalib.pipeline.cluster`), else in ``workers`` local
-    processes.
+    the frames run as tasks there (:mod:`blurcalib.pipeline.cluster`), else in the worker
+    processes of ``pool`` (:class:`FramePool`, shared between calls), or of ``workers`` processes
+    started for this call (one: this process).
 
     Once every frame has been tried from its own tag, the frames of a sequence (a video, a
     folder) whose tag was not found are seeded from their nearest extracted neighbour and
@@ -755,7 +779,9 @@ def extract_to_folder(frames: Sequence[FrameInput | Path], pattern: StarPattern,
         return done
 
     with ExitStack() as stack:
-        pools: list[ProcessPoolExecutor] = []  # one pool of worker processes, started when needed
+        if pool is None and cluster is None and workers > 1:
+            pool = stack.enter_context(FramePool(workers))
+        parallel = cluster is None and pool is not None and pool.workers > 1
 
         def run(tasks: list[tuple[FrameInput, NeighbourSeed | None]],
                 done: Callable[[int, FrameResult], None]) -> None:
@@ -765,12 +791,8 @@ def extract_to_folder(frames: Sequence[FrameInput | Path], pattern: StarPattern,
 
                 for i, result in run_on_cluster(cluster, _process, tasks, (pattern, settings, size)):
                     done(i, result)
-            elif workers > 1 and len(tasks) > 1:
-                if not pools:
-                    pools.append(stack.enter_context(ProcessPoolExecutor(
-                        workers, mp_context=multiprocessing.get_context("spawn"), initializer=_init_worker,
-                        initargs=(pattern, settings))))
-                futures = {pools[0].submit(_process_in_worker, f, hint, size): i
+            elif parallel and len(tasks) > 1:
+                futures = {pool.submit(f, hint, pattern, settings, size): i
                            for i, (f, hint) in enumerate(tasks)}
                 for future in as_completed(futures):
                     i = futures[future]
@@ -778,8 +800,8 @@ def extract_to_folder(frames: Sequence[FrameInput | Path], pattern: StarPattern,
                         result = future.result()
                     except Exception as exc:  # a worker died (e.g. out of memory): the frame failed
                         result = FrameResult(tasks[i][0].name, FrameStatus.FAILED, _one_line(exc))
-                        if isinstance(exc, BrokenProcessPool):  # the next tasks get a new pool
-                            pools.clear()
+                        if isinstance(exc, BrokenProcessPool):  # the next tasks get new processes
+                            pool.close()
                     done(i, result)
             else:
                 for i, (f, hint) in enumerate(tasks):
@@ -787,7 +809,7 @@ def extract_to_folder(frames: Sequence[FrameInput | Path], pattern: StarPattern,
 
         run([(f, None) for f in inputs if f.name not in summaries], lambda _, result: finish(result))
         # more tries at once only where they run side by side (one process tries one at a time)
-        side_by_side = len(inputs) if cluster is not None else workers if workers > 1 else 0
+        side_by_side = len(inputs) if cluster is not None else pool.workers if parallel else 0
         slots = NEIGHBOUR_TRIES * side_by_side
         while True:
             rounds, moving = _neighbour_seeds(out, inputs, summaries, slots)

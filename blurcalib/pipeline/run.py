@@ -66,7 +66,7 @@ from blurcalib.calib.sharp import CalibrationError, save_calibration
 from blurcalib.calib.trust import save_trust
 from blurcalib.camera.files import write_generic_yaml
 from blurcalib.extract.duplicates import mark_duplicates
-from blurcalib.extract.frame import ExtractSettings, extract_to_folder
+from blurcalib.extract.frame import ExtractSettings, FramePool, extract_to_folder
 from blurcalib.io.atomic import (
     atomic_path,
     atomic_write_json,
@@ -292,14 +292,21 @@ def _extract(sharp: Sequence[Path], blurry: Sequence[Path], mixed: Sequence[Fram
             return None
         return lambda done, total, row: progress(name, done, total, row)
 
+    pool = FramePool(s.workers)  # the sharp and blurry folders share the worker processes
+
     def extract(frames: Sequence, folder: str, settings: ExtractSettings) -> list[dict]:
         done = extract_to_folder(frames, pattern, out / folder, settings, workers=s.workers,
                                  progress=stage(folder), expected_size=size, overwrite=overwrite,
-                                 cluster=s.cluster)
+                                 cluster=s.cluster, pool=pool)
         return [{**r, "frame": f"{folder}/{r['frame']}"} for r in done.frames]
 
+    with pool:
+        if mixed:
+            rows = extract(mixed, MIXED, replace(s.extraction, kind="auto"))
+        else:
+            rows = {"sharp": extract(sharp, "sharp", ExtractSettings.sharp(deconv=s.extraction.deconv)),
+                    "blurry": extract(blurry, "blurry", s.extraction)}
     if mixed:
-        rows = extract(mixed, MIXED, replace(s.extraction, kind="auto"))
         features = _with_kind(read_feature_table(out / MIXED / FEATURES_FILE), MIXED)
         blocks = _with_kind(read_block_table(out / MIXED), MIXED)
         sharp_names = [r["frame"] for r in rows if r.get("kind") == "sharp"]
@@ -307,8 +314,6 @@ def _extract(sharp: Sequence[Path], blurry: Sequence[Path], mixed: Sequence[Fram
         return _Extracted({"sharp": [r for r in rows if r.get("kind") == "sharp"],
                            "blurry": [r for r in rows if r.get("kind") != "sharp"]},
                           features, blocks.select(is_sharp), blocks.select(~is_sharp))
-    rows = {"sharp": extract(sharp, "sharp", ExtractSettings.sharp(deconv=s.extraction.deconv)),
-            "blurry": extract(blurry, "blurry", s.extraction)}
     features = FeatureTable.concat([_with_kind(read_feature_table(out / kind / FEATURES_FILE), kind)
                                     for kind in KINDS])
     return _Extracted(rows, features, _with_kind(read_block_table(out / "sharp"), "sharp"),
