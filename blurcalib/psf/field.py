@@ -302,16 +302,17 @@ class _FieldProblem:
         self.one = torch.ones_like(self.prob.u_e)
 
     def evaluate(self, H_loc: torch.Tensor, bright: torch.Tensor | None, coeffs: torch.Tensor,
-                 log_sigma: torch.Tensor, with_jac: bool) -> dict[str, torch.Tensor]:
+                 log_sigma: torch.Tensor, with_jac: bool, with_h: bool = True) -> dict[str, torch.Tensor]:
         """Residuals ``(b, n)`` and, optionally, the Jacobians of the blocks' own parameters
-        ``Jl (b, 14, n)`` (8 of ``H``, 6 of the brightness) and of the shared ones
-        ``Js (b, 4 P + 1, n)``; ``bright`` None solves the brightness in closed form first."""
+        ``Jl (b, 14, n)`` (8 of ``H``, 6 of the brightness; the 6 alone without ``with_h``, while
+        the homographies are held) and of the shared ones ``Js (b, 4 P + 1, n)``; ``bright`` None
+        solves the brightness in closed form first."""
         pb, b = self.prob, H_loc.shape[0]
         dt = pb.dt
         theta = torch.cat([self.basis @ coeffs.to(dt), log_sigma.to(dt).expand(b, 1)], dim=1)
         k, dk = path_kernels(theta, pb.K, with_jac)
-        S, dS = pb.latent(H_loc, with_jac=with_jac)
-        conv = pb.conv(torch.cat([S[:, None], dS], dim=1), k) if with_jac else pb.conv(S[:, None], k)
+        S, dS = pb.latent(H_loc, with_jac=with_jac and with_h)
+        conv = pb.conv(S[:, None] if dS is None else torch.cat([S[:, None], dS], dim=1), k)
         C, u, v = conv[:, 0], pb.u_e, pb.v_e
         lin = torch.stack([u * C, v * C, C, u, v, self.one], dim=1) * self.mask[:, None]  # (b, 6, h, w)
         if bright is None:
@@ -327,7 +328,7 @@ class _FieldProblem:
         if with_jac:
             A = (p[:, 0, None, None] * u + p[:, 1, None, None] * v + p[:, 2, None, None]) * self.mask
             dC = pb.conv(S[:, None], dk) * A[:, None]  # (b, 5, h, w): d model / d theta
-            out["Jl"] = torch.cat([conv[:, 1:] * A[:, None], lin], dim=1).reshape(b, 14, -1)
+            out["Jl"] = torch.cat([conv[:, 1:] * A[:, None], lin], dim=1).flatten(2)
             Jt = dC.reshape(b, _NUM_THETA, -1)
             shared = (Jt[:, None, :4] * self.basis[:, :, None, None]).reshape(b, -1, Jt.shape[-1])
             out["Js"] = torch.cat([shared, Jt[:, 4:]], dim=1)
@@ -492,7 +493,7 @@ def fit_path_field(image: np.ndarray, H0: np.ndarray, num_segments: int, start: 
         tie = torch.as_tensor(_tied_map(_feature_blocks(features[fp.rows])), device=dev)
     nh = 8 if features is not None else 0  # shared homography parameters
     hold = 0 if features is not None else fs.hold_steps  # steps left with the blocks' H held
-    cur = fp.evaluate(H_loc, None, coeffs, log_sigma, with_jac=True)
+    cur = fp.evaluate(H_loc, None, coeffs, log_sigma, with_jac=True, with_h=not hold)
     npix = fp.mask.reshape(b, -1).sum(dim=1).double().clamp_min(1)
 
     def block_loss(r: torch.Tensor) -> torch.Tensor:
@@ -504,11 +505,12 @@ def fit_path_field(image: np.ndarray, H0: np.ndarray, num_segments: int, start: 
 
     def jacobians(cur: dict[str, torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]:
         """``(Jl (b, 14 or 6, n), Js (b, nh + 4 P + 1, n))``: the blocks' own and the shared
-        ones (each block's ``H`` is its own unless tied or held)."""
+        ones (each block's ``H`` is its own unless tied or held: while held, ``cur`` has no
+        Jacobian of ``H``)."""
         if nh:
             J_F = torch.einsum("bin,bij->bjn", cur["Jl"][:, :8], tie.to(cur["Jl"].dtype))
             return cur["Jl"][:, 8:], torch.cat([J_F, cur["Js"]], dim=1)
-        return (cur["Jl"][:, 8:] if hold else cur["Jl"]), cur["Js"]
+        return cur["Jl"], cur["Js"]
 
     w = weights(block_loss(cur["r"]))
     obj = float((w * block_loss(cur["r"]) * npix).sum())
@@ -516,6 +518,8 @@ def fit_path_field(image: np.ndarray, H0: np.ndarray, num_segments: int, start: 
     normal, held = None, bool(hold)  # of the current point, kept through rejected steps
     while steps < fs.iterations:
         steps += 1
+        if not hold and cur["Jl"].shape[1] < 14:  # the hold has ended: the Jacobian of H too
+            cur = fp.evaluate(H_loc, cur["bright"], coeffs, log_sigma, with_jac=True)
         if normal is None or held != bool(hold):
             normal, held = _normal_equations(*jacobians(cur), cur["r"], w), bool(hold)
         ds, dl = _schur_step(*normal, mu)
@@ -533,7 +537,7 @@ def fit_path_field(image: np.ndarray, H0: np.ndarray, num_segments: int, start: 
         accepted = math.isfinite(obj_try) and obj_try < obj
         converged = (not accepted and mu > 1e5) or (accepted and (obj - obj_try) < fs.tolerance * obj)
         if accepted:  # the Jacobians only where a step is taken
-            cur = fp.evaluate(H_try, bright_try, coeffs_try, sigma_try, with_jac=True)
+            cur = fp.evaluate(H_try, bright_try, coeffs_try, sigma_try, with_jac=True, with_h=not hold)
             H_loc, coeffs, log_sigma, normal = H_try, coeffs_try, sigma_try, None
             if nh:
                 H_F = H_F_try
