@@ -240,7 +240,10 @@ class GridSpline:
         diagonal from the lattice start, :data:`_WARM_DAMPING` from ``init``; /2 on success, x4 on
         failure), clamped to the calibrated area (a point held at
         its edge for several iterations is given up), started from
-        ``init`` ``(N, 2)`` (a previous projection) or from the best pixel of a lattice.
+        ``init`` ``(N, 2)`` (a previous projection) or from the best pixel of a lattice. A point
+        whose next step is below ``tol_px`` takes it and stops, its residual there linearised
+        (``r - D step``) instead of evaluated: a warm-started projection then costs two
+        evaluations instead of three.
         Returns the pixels and ``inside (N,)``: converged strictly inside the area (a clamped
         projection means the point is outside the calibrated field of view).
         """
@@ -265,6 +268,16 @@ class GridSpline:
             det = a00 * a11 - a01 * a01
             step = torch.stack([(a11 * b[:, 0] - a01 * b[:, 1]) / det,
                                 (a00 * b[:, 1] - a01 * b[:, 0]) / det], -1)
+            small = step.abs().amax(-1) < tol_px
+            if bool(small.any()):  # converged: the last step is taken without evaluating its end
+                done = idx[small]
+                u[done] = self.clamp(u[done] - step[small])
+                after = r[done] - (J[small] @ step[small, :, None])[..., 0]  # its residual, linearised
+                cost[done] = (after * after).sum(-1)
+                active[done] = False
+                idx, step, lm = idx[~small], step[~small], lm[~small]
+                if len(idx) == 0:
+                    break
             u_new = self.clamp(u[idx] - step)
             ev_new = self.evaluate(u_new)
             r_new = ev_new.d - p[idx]
