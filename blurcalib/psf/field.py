@@ -515,13 +515,13 @@ def fit_path_field(image: np.ndarray, H0: np.ndarray, num_segments: int, start: 
     w = weights(block_loss(cur["r"]))
     obj = float((w * block_loss(cur["r"]) * npix).sum())
     history, mu, steps = [obj], 1e-3, 0
-    normal, held = None, bool(hold)  # of the current point, kept through rejected steps
+    normal = None  # of the current point, kept through rejected steps
     while steps < fs.iterations:
         steps += 1
         if not hold and cur["Jl"].shape[1] < 14:  # the hold has ended: the Jacobian of H too
-            cur = fp.evaluate(H_loc, cur["bright"], coeffs, log_sigma, with_jac=True)
-        if normal is None or held != bool(hold):
-            normal, held = _normal_equations(*jacobians(cur), cur["r"], w), bool(hold)
+            cur, normal = fp.evaluate(H_loc, cur["bright"], coeffs, log_sigma, with_jac=True), None
+        if normal is None:
+            normal = _normal_equations(*jacobians(cur), cur["r"], w)
         ds, dl = _schur_step(*normal, mu)
         if nh:
             H_F_try = update_homography(H_F[None], ds[None, :8])[0]
