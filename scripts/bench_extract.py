@@ -10,7 +10,9 @@
    kernels: distance of the blurry-frame star centres to the same frames' sharp ones (after
    removing the mean offset). Target: median <= 0.08 px.
 3. Speed: seconds per frame and per block, split into seeding, fitting and alignment, peak
-   memory. Target: <= 10 s per 1280x720 frame with ~250 blocks and a 17x17 PSF, <= 3 GB.
+   memory; for the semi-real frames (sharp and blurred) process CPU per frame and the mean wall
+   time of each stage, the growth's split out (:meth:`FrameResult.stage_seconds`).
+   Target: <= 10 s per 1280x720 frame with ~250 blocks and a 17x17 PSF, <= 3 GB.
 """
 
 from __future__ import annotations
@@ -26,7 +28,7 @@ import numpy as np
 import torch
 
 from blurcalib.deconv.settings import DeconvSettings
-from blurcalib.extract.frame import ExtractSettings, extract_frame
+from blurcalib.extract.frame import ExtractSettings, extract_frame, mean_stage_seconds
 from blurcalib.geometry.homography import homography_centre
 from blurcalib.io.frames import load_frame
 from blurcalib.pipeline.runtime import keep_large_allocations
@@ -134,12 +136,21 @@ def semi_real(device: str) -> None:
     pattern = load_pattern(REAL / "pattern.yaml")
     rng = np.random.default_rng(0)
     meds = []
+    runs: dict[str, tuple[list, list[float]]] = {"sharp": ([], []), "blurred": ([], [])}
+
+    def timed(kind: str, image: np.ndarray, name: str, settings: ExtractSettings):
+        c0 = time.process_time()
+        result = extract_frame(image, pattern, name, settings)
+        runs[kind][0].append(result)
+        runs[kind][1].append(time.process_time() - c0)
+        return result
+
     for path in sorted((REAL / "images").glob("*.png")):
         image = load_frame(path)
-        sharp = extract_frame(image, pattern, path.name, ExtractSettings.sharp())
+        sharp = timed("sharp", image, path.name, ExtractSettings.sharp())
         blurred = blur_spatially_varying(image, rng) + rng.normal(0, 1.0, image.shape)
-        blurry = extract_frame(np.clip(blurred, 0, 255).astype(np.float32), pattern, path.name,
-                               ExtractSettings(deconv=DeconvSettings(device=device)))
+        blurry = timed("blurred", np.clip(blurred, 0, 255).astype(np.float32), path.name,
+                       ExtractSettings(deconv=DeconvSettings(device=device)))
         if sharp.status.value != "ok" or blurry.status.value != "ok":
             print(f"{path.name}: sharp {sharp.status.value}, blurry {blurry.status.value} "
                   f"{blurry.message}")
@@ -154,6 +165,9 @@ def semi_real(device: str) -> None:
     if meds:
         n = np.concatenate(meds)
         print(f"ALL: median {np.median(n):.4f} px, p90 {np.percentile(n, 90):.4f} px")
+    for kind, (results, cpus) in runs.items():
+        print(f"{kind} frames: CPU {np.mean(cpus):.2f} s per frame (median {np.median(cpus):.2f} s); stages, "
+              "mean s wall: " + ", ".join(f"{k} {v:.2f}" for k, v in mean_stage_seconds(results).items()))
 
 
 def main() -> None:

@@ -13,7 +13,8 @@ reference detector's features of the sharp frame (``features_10px.bin``, read wi
 
 Per variant: the yield (share of the reference features found within 1 px), the median distance of
 those to the reference, the block statuses and the process CPU time per frame (torch single-threaded;
-on a shared machine the CPU time is the figure to compare, taken back to back). Variants:
+on a shared machine the CPU time is the figure to compare, taken back to back), and the mean wall
+time of each stage (:meth:`blurcalib.extract.frame.FrameResult.stage_seconds`). Variants:
 
 * ``hints``: the defaults (neighbours' PSFs as hints; a hinted block left not converged whose
   blur is short for its square is accepted after a last step under 0.15 px, else re-fitted with
@@ -38,7 +39,7 @@ import cv2
 import numpy as np
 import torch
 
-from blurcalib.extract.frame import ExtractSettings, extract_frame
+from blurcalib.extract.frame import ExtractSettings, extract_frame, mean_stage_seconds
 from blurcalib.growth.settings import GrowSettings
 from blurcalib.io.frames import load_frame
 from blurcalib.io.refformat import read_ref_dataset
@@ -120,6 +121,7 @@ def main() -> None:
     errors: dict[str, list[np.ndarray]] = {v: [] for v in variants}
     cpus: dict[str, list[float]] = {v: [] for v in variants}
     statuses = {v: Counter() for v in variants}
+    results: dict[str, list] = {v: [] for v in variants}
     total = 0
     for i, n in enumerate(names):
         image = blur_field(load_frame(REAL / "images" / n), np.random.default_rng([5, i]))
@@ -129,6 +131,7 @@ def main() -> None:
             c0 = time.process_time()
             r = extract_frame(image, pattern, n, ExtractSettings(grow=VARIANTS[v]))
             cpus[v].append(time.process_time() - c0)
+            results[v].append(r)
             statuses[v].update(r.blocks.status.tolist())
             got = dict(zip(r.features.feature_id.tolist(), np.stack([r.features.x, r.features.y], axis=1),
                            strict=True))
@@ -144,6 +147,8 @@ def main() -> None:
         print(f"{v:15s} yield {100 * found[v] / max(total, 1):5.1f}% ({found[v]}/{total})  median "
               f"{median:.4f} px  p90 {p90:.4f} px  CPU {np.mean(cpus[v]):5.2f} s/frame  "
               f"blocks {dict(statuses[v])}")
+        print(f"{v:15s} stages, mean s wall per frame: "
+              + ", ".join(f"{k} {t:.2f}" for k, t in mean_stage_seconds(results[v]).items()))
 
 
 if __name__ == "__main__":

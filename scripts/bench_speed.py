@@ -5,7 +5,9 @@
 Simulated 1280x720 frames (blurcalib/sim/synth.py) with star squares of 30 to 47 px and blur of 4 to
 15 px, about 250 blocks each. Per frame: process CPU time (the primary figure on a shared
 machine) and wall time, split into seeding, fitting (region growing with the block solver) and
-alignment; the block count and the median star-centre error against the ground-truth
+alignment, and the mean wall time of each stage with the growth's split out
+(:meth:`blurcalib.extract.frame.FrameResult.stage_seconds`: free PSFs, path-PSF field, final
+fit, second judgement); the block count and the median star-centre error against the ground-truth
 time-averaged positions (each frame's median offset removed) and the features off by > 0.5 px;
 at the end the peak resident memory (``getrusage`` maxrss). ``--pair`` then runs the same
 frames in two processes at once and prints the ratio of their wall time to a single run's, and
@@ -63,8 +65,10 @@ def run(frames: int, seed: int, threads: int, device: str, quiet: bool) -> dict:
             d = xy - t.mean[ids]
             n = np.linalg.norm(d - np.median(d, axis=0), axis=1)
             err, far = float(np.median(n)), int(np.sum(n > 0.5))
+        # an older checkout has no growth stages
+        stages = result.stage_seconds() if hasattr(result, "stage_seconds") else result.seconds
         row = {"frame": t.name, "cpu": cpu, "wall": wall, "blocks": len(result.blocks),
-               "features": len(result.features), "median_px": err, "far": far,
+               "features": len(result.features), "median_px": err, "far": far, "stages": stages,
                **{k: result.seconds.get(k, 0.0) for k in ("seed", "fit", "align")}}
         rows.append(row)
         if not quiet:
@@ -111,6 +115,9 @@ def main() -> None:
     print(f"per frame ({n} seeded frames, {args.threads} thread(s), {blocks:.0f} blocks): "
           f"cpu {cpu:.2f} s, wall {wall:.2f} s; seeding {100 * split['seed'] / total:.0f}%, "
           f"fitting {100 * split['fit'] / total:.0f}%, alignment {100 * split['align'] / total:.0f}%")
+    names = list(dict.fromkeys(k for r in rows for k in r["stages"]))
+    print("stages, mean s wall per frame: "
+          + ", ".join(f"{k} {np.mean([r['stages'].get(k, 0.0) for r in rows]):.2f}" for k in names))
     print(f"median star-centre error: {np.nanmedian([r['median_px'] for r in rows]):.4f} px "
           "(median of the frames' medians), "
           f"{sum(r['far'] for r in rows)} features off by > 0.5 px")

@@ -29,7 +29,8 @@
    :data:`blurcalib.calib.alignment.MIN_BLOCKS` are kept. Target: >= 95% of the photometry
    frames used; the demo frames keep their blocks.
 
-Times are wall and process CPU seconds per frame, torch single-threaded. ``--cache`` keeps the
+Times are wall and process CPU seconds per frame, torch single-threaded, then the mean wall time
+of each stage (:meth:`blurcalib.extract.frame.FrameResult.stage_seconds`). ``--cache`` keeps the
 simulated frames (pickled) so that a re-run skips the simulation; ``--part I/N`` runs every N-th
 frame from the I-th (to spread a run over processes; the figures are then per part).
 ``--device cuda`` runs the block solves of parts 1 and 2 on the GPU (the first frame then also
@@ -50,7 +51,7 @@ import torch
 
 from blurcalib.calib.alignment import MIN_BLOCKS
 from blurcalib.deconv.settings import DeconvSettings
-from blurcalib.extract.frame import ExtractSettings, extract_frame
+from blurcalib.extract.frame import ExtractSettings, extract_frame, mean_stage_seconds
 from blurcalib.extract.quality import QualitySettings, filter_frame
 from blurcalib.geometry.homography import apply_homography
 from blurcalib.growth.window import WindowPolicy
@@ -121,7 +122,7 @@ def _summary(label: str, errors: list[np.ndarray], returned: list[float], extrac
 def run(title: str, sim: Simulator, simulated: list[SimulatedFrame], settings: ExtractSettings
         ) -> None:
     print(f"== {title} ==")
-    errors, returned, walls, cpus = [], [], [], []
+    errors, returned, walls, cpus, results = [], [], [], [], []
     errors_q, returned_q = [], []
     pose_q: list[np.ndarray] = []
     short_total = short_returned = 0  # blocks whose blur is shorter than their square
@@ -141,6 +142,7 @@ def run(title: str, sim: Simulator, simulated: list[SimulatedFrame], settings: E
         wall, cpu = time.perf_counter() - w0, time.process_time() - c0
         walls.append(wall)
         cpus.append(cpu)
+        results.append(r)
         if r.status.value != "ok" or not len(r.features):
             returned.append(0.0)
             returned_q.append(0.0)
@@ -188,6 +190,8 @@ def run(title: str, sim: Simulator, simulated: list[SimulatedFrame], settings: E
               f"{np.percentile(e, 90) if e.size else np.nan:.4f} px")
     print(f"time: {np.mean(walls):.1f} s wall, {np.mean(cpus):.1f} s CPU per frame (median "
           f"{np.median(walls):.1f} s wall, {np.median(cpus):.1f} s CPU)")
+    print("stages, mean s wall per frame: "
+          + ", ".join(f"{k} {v:.2f}" for k, v in mean_stage_seconds(results).items()))
 
 
 def photometric_frame(sim: Simulator, index: int, white: float, electrons_per_level: float,

@@ -127,6 +127,14 @@ def test_sharp_frame_features_match_truth(sim: Simulator, sharp_frame) -> None:
     f0 = result.features.to_observations()[0]
     assert (f0.X, f0.Y) == pytest.approx((f0.fx * sim.pattern.square_length_m,
                                           f0.fy * sim.pattern.square_length_m))
+    # The growth's stages split the fit's time: they add up to the frame's total, in run order.
+    stages = result.stage_seconds()
+    assert list(stages) == ["seed", "free", "fit_other", "align"]  # a sharp frame: no field, final fit
+    assert all(v >= 0 for v in stages.values())
+    assert sum(stages.values()) == pytest.approx(sum(result.seconds.values()))
+    row = result.summary()
+    assert row["seconds_fit_free"] == round(result.growth.seconds["free"], 3)
+    assert row["seconds_fit_free"] <= row["seconds_fit"]
 
 
 def test_local_alignment_recovers_block_translations() -> None:

@@ -257,6 +257,9 @@ def test_the_path_field_locates_stars_whose_blur_is_as_long_as_their_squares() -
     free = extract_frame(image, sim.pattern, truth.name, ExtractSettings(grow=GrowSettings(psf_field=False)))
     result = extract_frame(image, sim.pattern, truth.name, ExtractSettings())
     assert free.growth.psf_field is None and result.growth.psf_field is not None
+    # the stages each growth ran: free PSFs then the second judgement, or the field in between
+    assert list(free.growth.seconds) == ["free", "final", "judge"]
+    assert list(result.growth.seconds) == ["free", "field", "judge"]
     assert len(free.features) < 0.1 * visible and len(result.features) > 0.85 * visible
     ids = result.features.feature_id
     xy = np.stack([result.features.x, result.features.y], axis=1)

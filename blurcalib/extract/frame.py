@@ -172,7 +172,8 @@ class FrameResult:
         corners: the square corners shared by accepted neighbouring blocks, after local
             alignment (:func:`corner_rows`), one row each.
         seed, growth, local: the intermediate results (None where not reached).
-        seconds: time spent in ``seed``, ``fit`` (growth) and ``align``.
+        seconds: wall time (s) spent in ``seed``, ``fit`` (growth) and ``align``; the growth's
+            stages within ``fit`` are :attr:`Growth.seconds`.
         kind: ``sharp`` or ``blurry``, as extracted (empty when not known: not seeded).
         blur_px: the frame's measured blur (:func:`ring_blur`; NaN when not measured).
         noise: the frame's noise (:func:`blurcalib.extract.noise.estimate_noise`; None when not
@@ -193,12 +194,29 @@ class FrameResult:
     blur_px: float = math.nan
     noise: NoiseModel | None = None
 
+    def stage_seconds(self) -> dict[str, float]:
+        """Wall time (s) by stage, the growth's split out: ``seed``, then :attr:`Growth.seconds`
+        (``free``, ``field``, ``final``, ``judge``) and ``fit_other`` (the rest of ``fit``: the
+        frame's noise, a growth started again with a sharp frame's settings), then ``align``;
+        stages not run are absent."""
+        growth = self.growth.seconds if self.growth is not None else {}
+        out = {}
+        for k, v in self.seconds.items():
+            if k == "fit":
+                out.update(growth)
+                out["fit_other"] = v - sum(growth.values())
+            else:
+                out[k] = v
+        return out
+
     def summary(self) -> dict:
         """A JSON-serialisable one-line summary (the row of ``frames.csv``; ``psf`` says whether
         the blocks were fitted with the frame's path-PSF field, ``field``, or with free PSFs,
         ``free``, and ``psf_field`` holds the field, :meth:`blurcalib.psf.field.PathField.to_dict`;
         ``kind`` and ``blur_px`` the frame's kind and measured blur, ``noise_dn`` its noise
-        (:attr:`blurcalib.extract.noise.NoiseModel.sigma`, grey levels), empty when unknown)."""
+        (:attr:`blurcalib.extract.noise.NoiseModel.sigma`, grey levels), empty when unknown;
+        ``seconds`` the total and ``seconds_*`` each stage, ``seconds_fit_*`` the growth's within
+        ``seconds_fit``)."""
         accepted = int(self.blocks.accepted.sum())
         path_field = self.growth.psf_field if self.growth is not None else None
         psf = {"psf": "" if self.growth is None else "free" if path_field is None else "field"}
@@ -210,7 +228,19 @@ class FrameResult:
                 "noise_dn": round(self.noise.sigma, 3) if self.noise is not None else "",
                 "blocks": len(self.blocks), "accepted": accepted, "features": len(self.features),
                 "seconds": round(sum(self.seconds.values()), 3),
-                **{f"seconds_{k}": round(v, 3) for k, v in self.seconds.items()}}
+                **{f"seconds_{k}": round(v, 3) for k, v in self.seconds.items()},
+                **{f"seconds_fit_{k}": round(v, 3)
+                   for k, v in (self.growth.seconds if self.growth is not None else {}).items()}}
+
+
+def mean_stage_seconds(results: Sequence[FrameResult]) -> dict[str, float]:
+    """Mean wall time (s) per frame of each stage (:meth:`FrameResult.stage_seconds`) over
+    ``results``, a stage a frame did not run counting 0; in the order the stages run."""
+    order = ("seed", "neighbour", "free", "field", "final", "judge", "fit_other", "align")
+    stages = [r.stage_seconds() for r in results]
+    names = sorted({k for s in stages for k in s},
+                   key=lambda k: (order.index(k) if k in order else len(order), k))
+    return {k: float(np.mean([s.get(k, 0.0) for s in stages])) for k in names}
 
 
 def extract_frame(image: np.ndarray, pattern: StarPattern, frame: str,

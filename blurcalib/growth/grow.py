@@ -19,6 +19,7 @@ blocks may be fitted once more over a larger area (:mod:`blurcalib.growth.final`
 from __future__ import annotations
 
 import math
+import time
 from collections.abc import Callable
 from dataclasses import replace
 
@@ -73,7 +74,8 @@ def grow(image: np.ndarray, pattern: StarPattern, seed: Seed, window: WindowPoli
             ends there and is returned as it is (no field, final fit or second judgement), e.g.
             once the first front shows a sharp frame that is to be grown with other settings.
     Returns:
-        The growth, or None when not a single block could be attempted.
+        The growth, or None when not a single block could be attempted; its
+        :attr:`Growth.seconds` holds the stages' wall times.
     """
     window = window or WindowPolicy()
     deconv = deconv or DeconvSettings()
@@ -81,6 +83,7 @@ def grow(image: np.ndarray, pattern: StarPattern, seed: Seed, window: WindowPoli
     if noise is not None:
         scale = float(noise_scale(noise.variance(noise.level)))
         settings = replace(settings, max_loss=settings.max_loss * scale)
+    t0 = time.perf_counter()
     start = first_front(pattern, seed, image.shape)
     if start is None:
         return None
@@ -122,22 +125,32 @@ def grow(image: np.ndarray, pattern: StarPattern, seed: Seed, window: WindowPoli
         front_ids, front_H, front_src = next_front(pattern, ledger.accepted_H, ledger.row, newly_accepted)
         front_index += 1
         if front_index == 1 and go_on is not None and not go_on(ledger.growth()):
-            return ledger.growth()
+            growth = ledger.growth()
+            growth.seconds = {"free": time.perf_counter() - t0}
+            return growth
         if state.adaptive:
             state.size = window.choose(fit.sigma_major[accepted_rows])
     if ledger.fit is None:
         return None
     growth = ledger.growth()
+    seconds = {"free": time.perf_counter() - t0}
     stopped = should_stop is not None and should_stop()
     if not stopped and settings.psf_field and window.adapts and (
             state.adaptive or median_blur_per_square(growth.fit) >= settings.field_above_blur_per_square):
+        t0 = time.perf_counter()
         growth = field_growth(image, pattern, growth, window, deconv, settings, tag, on_event, should_stop)
+        seconds["field"] = time.perf_counter() - t0
     if growth.psf_field is None and (settings.final_fit_frames == "all"
                                      or (state.adaptive and settings.final_fit_frames == "adaptive")):
+        t0 = time.perf_counter()
         growth.fit = final_fit(image, pattern, growth.feature_id, growth.fit, growth.accepted, window, deconv,
                                settings, tag, state.footprint)
+        seconds["final"] = time.perf_counter() - t0
     if state.heavy or growth.psf_field is not None:  # every block now has neighbours on all sides
+        t0 = time.perf_counter()
         growth = judge_again(pattern, growth, settings, on_event)
+        seconds["judge"] = time.perf_counter() - t0
+    growth.seconds = seconds
     return growth
 
 

@@ -51,6 +51,9 @@ class Growth:
         events: every decision, in order (as reported to the callback).
         psf_field: the frame's path-PSF field when the growth used one
             (:func:`blurcalib.growth.field.field_growth`).
+        seconds: wall time (s) of the stages :func:`blurcalib.growth.grow.grow` ran: ``free``
+            (the fronts with free PSFs), ``field`` (the path-PSF field's fit and growth),
+            ``final`` (the final fit), ``judge`` (the second judgement); stages not run are absent.
     """
 
     fit: BlockFit
@@ -60,6 +63,7 @@ class Growth:
     predicted: np.ndarray
     events: list[GrowthEvent] = field(default_factory=list)
     psf_field: PathField | None = None
+    seconds: dict[str, float] = field(default_factory=dict)
 
     @property
     def accepted(self) -> np.ndarray:
