@@ -327,12 +327,17 @@ def test_views_draw_rgb_images(finished: tuple[AppState, list[Topic]]) -> None:
     from views.ambiguity import alignment_image, demo_image
     from views.errors import colour_wheel, direction_colours, draw_cells, draw_errors, draw_quiver
     from views.frame_view import draw_frame
+    from views.frames import stage_line
     from views.inspect import block_images, jump_target, scatter_plots
     from views.psf_field import psf_mosaic
     from views.tuning import alignment_lines
 
     finished.select_frame(1)
     view = finished.view()
+    # where the frame's time went: the growth's stages, in the order they ran
+    line = stage_line(view.result, least_s=0.0)
+    assert line.startswith("time by stage: seeding ") and line.index("free PSFs") < line.index("alignment")
+    assert stage_line(view.result, least_s=1e9) == ""
     worst = jump_target(view, "highest loss")
     loss = view.result.blocks.loss
     assert loss[worst] == loss[np.isfinite(loss)].max()

@@ -1,5 +1,6 @@
 """Frames panel: the folder and pattern fields, upload buttons (frames, pattern YAML), the frame list, the run
-controls (Run frame, Run all, Cancel, progress) and the status line with the latest message."""
+controls (Run frame, Run all, Cancel, progress) and the status line with the latest message and where the
+frame's time went."""
 
 from __future__ import annotations
 
@@ -8,6 +9,7 @@ from pathlib import Path
 
 import viser
 
+from blurcalib.extract.frame import FrameResult
 from blurcalib.io.frames import IMAGE_EXTENSIONS
 from blurcalib.io.text import count
 from state import AppState, FrameView, Notice, RunProgress, Topic
@@ -19,6 +21,17 @@ from views.security import safe_upload_name
 
 NOTICE_COLOURS = {"info": "blue", "warning": "yellow", "error": "red"}
 NO_FRAMES = "(no frames)"
+STAGE_NAMES = {"seed": "seeding", "neighbour": "seeding from a neighbour", "free": "free PSFs",
+               "field": "path-PSF field", "final": "final fit", "judge": "second judgement",
+               "fit_other": "other", "align": "alignment"}
+"""Names of :meth:`blurcalib.extract.frame.FrameResult.stage_seconds`'s stages."""
+
+
+def stage_line(result: FrameResult, least_s: float = 0.05) -> str:
+    """Markdown: where a frame's time went, the stages of at least ``least_s`` seconds in the
+    order they ran (:meth:`FrameResult.stage_seconds`); empty when none took that long."""
+    parts = [f"{STAGE_NAMES.get(k, k)} {v:.1f} s" for k, v in result.stage_seconds().items() if v >= least_s]
+    return "time by stage: " + ", ".join(parts) if parts else ""
 
 
 class FramesPanel:
@@ -172,6 +185,8 @@ class FramesPanel:
                 if growth is not None and growth.psf_field is not None:
                     lines.append("PSFs from the frame's **motion-path field** (its blur is long for "
                                  "its squares; docs/deconvolution.md)")
+                if view.result is not None and stage_line(view.result):
+                    lines.append(stage_line(view.result))
             elif e.status == "cancelled":
                 lines.append(f"**cancelled**: {e.accepted} of {count(e.blocks, 'block')} accepted "
                              f"({md(e.name)})")
