@@ -104,6 +104,7 @@ def test_run_tune_and_inspect_in_chromium(tmp_path: Path) -> None:
             assert frame_image.first.get_attribute("src") != before
             accepted = int(re.search(r"done: (\d+)", page.get_by_text(re.compile("done: ")).inner_text())[1])
             assert accepted == int(app.state.view().result.blocks.accepted.sum()) > 10
+            expect(page.get_by_text(re.compile(r"time by stage: .*free PSFs [\d.]+ s"))).to_be_visible()
 
             kept = _kept(page)
             assert kept > 0
