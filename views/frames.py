@@ -185,8 +185,9 @@ class FramesPanel:
                 if growth is not None and growth.psf_field is not None:
                     lines.append("PSFs from the frame's **motion-path field** (its blur is long for "
                                  "its squares; docs/deconvolution.md)")
-                if view.result is not None and stage_line(view.result):
-                    lines.append(stage_line(view.result))
+                stages = stage_line(view.result) if view.result is not None else ""
+                if stages:
+                    lines.append(stages)
             elif e.status == "cancelled":
                 lines.append(f"**cancelled**: {e.accepted} of {count(e.blocks, 'block')} accepted "
                              f"({md(e.name)})")
