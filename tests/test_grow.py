@@ -233,13 +233,47 @@ def test_final_fit_over_a_larger_area_moves_inner_blocks_closer_to_the_truth() -
         GrowSettings(field_refit_px=-0.1)
 
 
+def test_field_blocks_are_spread_over_those_whose_loss_area_lies_inside_the_image() -> None:
+    """The pattern overflows a 640 x 480 frame (30 px per feature): farthest-point sampling over
+    every block off the rim picks blocks at the image's border whose 1.5 x squares cross it,
+    which the field's fit would leave out; :func:`field_rows` spreads its 24 blocks over those
+    inside, as far apart as they reach."""
+    from blurcalib.deconv.windows import block_windows
+    from blurcalib.growth.field import field_rows, spread
+    from blurcalib.growth.final import inner
+    from blurcalib.growth.seed import block_homography
+
+    pattern = layout_pattern()
+    ids = np.arange(len(pattern.features))
+    H_feature = np.array([[30.0, 2.0, 60.0], [-1.5, 30.0, -20.0], [0.0, 0.0, 1.0]])
+    H = block_homography(H_feature, pattern.features[:, 0], pattern.features[:, 1])
+    shape, deconv, settings = (480, 640), DeconvSettings(), GrowSettings()
+    wide = DeconvSettings(loss_extent=settings.final_extent)
+
+    def inside(rows: np.ndarray) -> np.ndarray:
+        return np.array([st is BlockStatus.ACCEPTED for st in block_windows(H[rows], shape, wide)[3]])
+
+    off_rim = np.flatnonzero(inner(pattern, ids))
+    before = off_rim[spread(H[off_rim, :2, 2], settings.field_blocks)]
+    assert not inside(before).all()  # what the fit would have lost
+    rows = field_rows(pattern, ids, H, shape, deconv, settings)
+    assert len(rows) == settings.field_blocks and np.all(np.diff(rows) > 0)
+    assert inside(rows).all() and inner(pattern, ids[rows]).all()
+    pool = off_rim[inside(off_rim)]
+    span = np.ptp(H[pool, :2, 2], axis=0)
+    assert np.all(np.ptp(H[rows, :2, 2], axis=0) > 0.9 * span)
+    # too few blocks inside: spread over all of them off the rim, as the fit can use some
+    few = field_rows(pattern, ids, H, (60, 80), deconv, settings)
+    assert len(few) == settings.field_blocks and inner(pattern, ids[few]).all()
+
+
 @pytest.mark.slow
 def test_the_path_field_locates_stars_whose_blur_is_as_long_as_their_squares() -> None:
     """Frame 3 of ``scripts/bench_yield.py``'s heavy set: 22 px of blur on 20-24 px squares (three
     quarters of its visible features have blur longer than their square). Free PSFs settle px
     off around the tag and the growth dies there; the growth seeded from the tag ring tied to one
     homography and grown with the frame's path-PSF field returns most stars, each within a few
-    tenths of a px (measured: 10 -> 304-309 of 329 features, pose-consistent median 0.06 px, max
+    tenths of a px (measured: 10 -> 304-310 of 329 features, pose-consistent median 0.06 px, max
     0.65 px)."""
     import cv2
     import torch

@@ -16,6 +16,7 @@ import numpy as np
 from blurcalib.deconv.blocks import fit_blocks_fixed
 from blurcalib.deconv.result import BlockFit
 from blurcalib.deconv.settings import DeconvSettings
+from blurcalib.deconv.windows import block_windows
 from blurcalib.geometry.homography import homography_centre
 from blurcalib.growth.final import inner
 from blurcalib.growth.fronts import next_front, normalise
@@ -60,6 +61,27 @@ def spread(xy: np.ndarray, most: int) -> np.ndarray:
     return np.sort(np.array(chosen))
 
 
+def field_rows(pattern: StarPattern, ids: np.ndarray, H: np.ndarray, image_shape: tuple[int, int],
+               deconv: DeconvSettings, settings: GrowSettings) -> np.ndarray:
+    """Sorted rows of the blocks ``ids (B,)`` at ``H (B, 3, 3)`` that fit a path field: at most
+    :attr:`GrowSettings.field_blocks` of them spread over the frame (:func:`spread`).
+
+    None lies on the pattern's rim (:func:`blurcalib.growth.final.inner`: their loss area would
+    reach the paper beyond the stars; farthest-point sampling picked them first, and 7 of 40
+    blocks fitted at 50 x the noise's variance). Where at least
+    :attr:`GrowSettings.field_min_blocks` can, only blocks whose loss area
+    (:attr:`GrowSettings.final_extent` x the square, with ``deconv``'s margin) lies inside the
+    image are chosen: farthest-point sampling picks blocks at the image's border first, and the
+    field's fit leaves out one whose area crosses it, so the field lost the blocks that held its
+    extent (measured on the heavy frames of ``scripts/bench_yield.py``: 2 of 24 left out).
+    """
+    off_rim = np.flatnonzero(inner(pattern, ids))
+    status = block_windows(H[off_rim], image_shape, replace(deconv, loss_extent=settings.final_extent))[3]
+    inside = np.array([st is BlockStatus.ACCEPTED for st in status], dtype=bool)
+    pool = off_rim[inside] if inside.sum() >= settings.field_min_blocks else off_rim
+    return pool[spread(homography_centre(H[pool]), settings.field_blocks)]
+
+
 def fit_with_field(image: np.ndarray, pattern: StarPattern, ids: np.ndarray, H0: np.ndarray,
                    psf_field: PathField, window: WindowPolicy, deconv: DeconvSettings, settings: GrowSettings,
                    tag: np.ndarray | None) -> BlockFit:
@@ -89,16 +111,13 @@ def fit_with_field(image: np.ndarray, pattern: StarPattern, ids: np.ndarray, H0:
 def fit_field(image: np.ndarray, pattern: StarPattern, ids: np.ndarray, H: np.ndarray, start: PathField,
               window: WindowPolicy, deconv: DeconvSettings, settings: GrowSettings, tag: np.ndarray | None,
               tied: bool = False) -> tuple[PathField, np.ndarray]:
-    """:func:`blurcalib.psf.field.fit_path_field` on blocks ``ids (B,)`` from ``H (B, 3, 3)``,
-    at most :attr:`GrowSettings.field_blocks` of them spread over the frame (all when ``tied``),
-    none on the pattern's rim (:func:`blurcalib.growth.final.inner`: their loss area would reach
-    the paper beyond the stars; farthest-point sampling picked them first, and 7 of 40 blocks
-    fitted at 50 x the noise's variance); pixels seeing the tag through ``start``'s blur are left
-    out. Returns the field and the fitted blocks' homographies ``(B, 3, 3)`` (rows not in the
-    fit keep ``H``)."""
+    """:func:`blurcalib.psf.field.fit_path_field` on blocks ``ids (B,)`` from ``H (B, 3, 3)``:
+    those of :func:`field_rows`, or when ``tied`` all but those on the pattern's rim; pixels
+    seeing the tag through ``start``'s blur are left out. Returns the field and the fitted
+    blocks' homographies ``(B, 3, 3)`` (rows not in the fit keep ``H``)."""
     largest = window.field_largest
-    off_rim = np.flatnonzero(inner(pattern, ids))
-    rows = off_rim if tied else off_rim[spread(homography_centre(H[off_rim]), settings.field_blocks)]
+    rows = (np.flatnonzero(inner(pattern, ids)) if tied
+            else field_rows(pattern, ids, H, image.shape, deconv, settings))
     centre = tag_centre(tag)
     size = start.kernel_size(homography_centre(H[rows]), largest)
     mask = pixel_mask(tag, size, None if centre is None else start.footprint(centre, largest))
