@@ -1,6 +1,7 @@
 """Benchmark of frame yield under heavy blur: seeding, the adaptive PSF window, accuracy, speed.
 
-    python scripts/bench_yield.py [--heavy 12] [--light 6] [--cache DIR] [--part I/N] [--device cpu]
+    python scripts/bench_yield.py [--heavy 12] [--light 6] [--repeat 0] [--cache DIR] [--part I/N]
+                                  [--device cpu]
 
 1. Simulated frames with 12 to 25 px of blur (1280x720, noise sigma 2, seed 11): per frame how it
    was seeded, whether its blocks were fitted with the frame's path-PSF field (``field``,
@@ -28,6 +29,12 @@
    the paper's absolute one (``QualitySettings(loss_mode="absolute")``); a frame is used when at least
    :data:`blurcalib.calib.alignment.MIN_BLOCKS` are kept. Target: >= 95% of the photometry
    frames used; the demo frames keep their blocks.
+
+``--repeat N`` runs parts 1 and 2 (their default settings) N more times, each time with a
+different perturbation of 0.01 grey levels (Gaussian, 0.5 % of the frames' noise) added to every
+frame, and prints each run's figures and their range over the runs: the spread that a change of
+rounding alone makes (a variant whose figures stay inside it is no better and no worse on these
+frames).
 
 Times are wall and process CPU seconds per frame, torch single-threaded, then the mean wall time
 of each stage (:meth:`blurcalib.extract.frame.FrameResult.stage_seconds`). ``--cache`` keeps the
@@ -119,8 +126,72 @@ def _summary(label: str, errors: list[np.ndarray], returned: list[float], extrac
           f"{int((n > 1).sum())} off by > 1 px")
 
 
-def run(title: str, sim: Simulator, simulated: list[SimulatedFrame], settings: ExtractSettings
-        ) -> None:
+@dataclasses.dataclass(frozen=True)
+class SetFigures:
+    """One run's figures over a set: the share of visible features returned and the median and
+    90th percentile error (px; growth, each frame's mean offset removed), the pose-consistent
+    median after the block filter (px) and the mean CPU s per frame."""
+
+    returned: float
+    median: float
+    p90: float
+    pose_median: float
+    cpu: float
+
+    def line(self) -> str:
+        return (f"{100 * self.returned:.1f}% returned, median {self.median:.4f} px, p90 {self.p90:.4f} px, "
+                f"pose-consistent {self.pose_median:.4f} px, {self.cpu:.1f} s CPU per frame")
+
+
+def perturbed(simulated: list[SimulatedFrame], seed: int, sigma: float = 0.01) -> list[SimulatedFrame]:
+    """The frames with Gaussian noise of ``sigma`` grey levels added (``rng(seed)``), float32."""
+    rng = np.random.default_rng(seed)
+    return [dataclasses.replace(fr, image=fr.image.astype(np.float32)
+                                + rng.normal(0.0, sigma, fr.image.shape).astype(np.float32))
+            for fr in simulated]
+
+
+def spread(title: str, sim: Simulator, simulated: list[SimulatedFrame], settings: ExtractSettings,
+           first: SetFigures, repeats: int) -> None:
+    """:func:`run` again ``repeats`` times on :func:`perturbed` frames (seeds 1, 2, ...), one
+    line each, then the range of each figure over those runs and ``first`` (the frames as they
+    are). Nothing when ``repeats`` is 0."""
+    if repeats < 1:
+        return
+    runs = [first]
+    for k in range(1, repeats + 1):
+        runs.append(run(f"{title}, perturbed by 0.01 grey levels (seed {k})", sim, perturbed(simulated, k),
+                        settings, per_frame=False))
+    print(f"== {title}: spread over {len(runs)} runs (as they are, then {repeats} perturbed) ==")
+    for k, fig in enumerate(runs):
+        print(f"  run {k}: {fig.line()}")
+
+    def span(name: str, unit: str, scale: float = 1.0, digits: int = 4) -> str:
+        v = [scale * getattr(f, name) for f in runs]
+        return f"{min(v):.{digits}f}-{max(v):.{digits}f}{unit}"
+
+    print(f"  range: {span('returned', '%', 100.0, 1)} returned, median {span('median', ' px')}, "
+          f"p90 {span('p90', ' px')}, pose-consistent {span('pose_median', ' px')}, "
+          f"{span('cpu', ' s', digits=1)} CPU per frame")
+
+
+def _by_ratio(ratio_visible: list[np.ndarray], ratio_returned: list[np.ndarray],
+              ratio_error: list[np.ndarray]) -> None:
+    """Per class of blur length over square side: the visible features, the share returned and
+    their median and p90 error (one array per frame, per visible feature)."""
+    ratio, got, err = (np.concatenate(v) for v in (ratio_visible, ratio_returned, ratio_error))
+    print("by blur length / square side of the visible features (growth):")
+    for lo, hi in ((0.0, 0.6), (0.6, 0.8), (0.8, 1.0), (1.0, 1.25), (1.25, 1.5), (1.5, np.inf)):
+        sel = (ratio >= lo) & (ratio < hi)
+        e = err[sel & got]
+        share = 100 * got[sel].mean() if sel.any() else 0.0
+        print(f"  {lo:.2f}-{hi:.2f}: {int(sel.sum()):5d} visible, {share:5.1f}% returned, median "
+              f"{np.median(e) if e.size else np.nan:.4f} px, p90 "
+              f"{np.percentile(e, 90) if e.size else np.nan:.4f} px")
+
+
+def run(title: str, sim: Simulator, simulated: list[SimulatedFrame], settings: ExtractSettings,
+        per_frame: bool = True) -> SetFigures:
     print(f"== {title} ==")
     errors, returned, walls, cpus, results = [], [], [], [], []
     errors_q, returned_q = [], []
@@ -148,7 +219,8 @@ def run(title: str, sim: Simulator, simulated: list[SimulatedFrame], settings: E
             returned_q.append(0.0)
             ratio_returned.append(np.zeros(len(inside), dtype=bool))
             ratio_error.append(np.full(len(inside), np.nan))
-            print(f"{t.name}: blur {blur:5.1f} px  {r.status.value}: {r.message}  {wall:5.1f} s")
+            if per_frame:
+                print(f"{t.name}: blur {blur:5.1f} px  {r.status.value}: {r.message}  {wall:5.1f} s")
             continue
         extracted += 1
         ids = r.features.feature_id
@@ -167,6 +239,8 @@ def run(title: str, sim: Simulator, simulated: list[SimulatedFrame], settings: E
         errors_q.append(n_q)
         pose_q.append(_pose_consistent(xy_q, t.mean[ids_q]))
         returned_q.append(len(ids_q) / max(visible, 1))
+        if not per_frame:
+            continue
         field = "field" if r.growth.psf_field is not None else "free "
         print(f"{t.name}: blur {blur:5.1f} px  seeded by {r.seed.method:13s}  {field} window "
               f"{r.growth.fit.psf.shape[-1]:2d} px  {len(ids):3d}/{visible:3d} blocks  median "
@@ -179,19 +253,15 @@ def run(title: str, sim: Simulator, simulated: list[SimulatedFrame], settings: E
           f"of its mean offset): median {np.median(pose):.4f} px, p90 {np.percentile(pose, 90):.4f} px")
     print(f"visible features whose blur is shorter than their star square: {short_total}, of which "
           f"{100 * short_returned / max(short_total, 1):.1f}% returned")
-    ratio, got, err = (np.concatenate(v) for v in (ratio_visible, ratio_returned, ratio_error))
-    print("by blur length / square side of the visible features (growth):")
-    for lo, hi in ((0.0, 0.6), (0.6, 0.8), (0.8, 1.0), (1.0, 1.25), (1.25, 1.5), (1.5, np.inf)):
-        sel = (ratio >= lo) & (ratio < hi)
-        e = err[sel & got]
-        share = 100 * got[sel].mean() if sel.any() else 0.0
-        print(f"  {lo:.2f}-{hi:.2f}: {int(sel.sum()):5d} visible, {share:5.1f}% returned, median "
-              f"{np.median(e) if e.size else np.nan:.4f} px, p90 "
-              f"{np.percentile(e, 90) if e.size else np.nan:.4f} px")
+    if per_frame:
+        _by_ratio(ratio_visible, ratio_returned, ratio_error)
     print(f"time: {np.mean(walls):.1f} s wall, {np.mean(cpus):.1f} s CPU per frame (median "
           f"{np.median(walls):.1f} s wall, {np.median(cpus):.1f} s CPU)")
     print("stages, mean s wall per frame: "
           + ", ".join(f"{k} {v:.2f}" for k, v in mean_stage_seconds(results).items()))
+    growth = np.concatenate(errors) if errors else np.full(1, np.nan)
+    return SetFigures(float(np.mean(returned)), float(np.median(growth)), float(np.percentile(growth, 90)),
+                      float(np.median(pose)), float(np.mean(cpus)))
 
 
 def photometric_frame(sim: Simulator, index: int, white: float, electrons_per_level: float,
@@ -252,6 +322,8 @@ def main() -> None:
     parser.add_argument("--photometry", type=int, default=12,
                         help="frames with 150-250 grey levels of white and 5-20 electrons per level")
     parser.add_argument("--demo", type=int, default=4, help="frames of the demo set for the loss threshold")
+    parser.add_argument("--repeat", type=int, default=0,
+                        help="runs of parts 1 and 2 again, each on frames perturbed by 0.01 grey levels")
     parser.add_argument("--cache", type=Path, default=None, help="folder for simulated frames")
     parser.add_argument("--part", default="0/1", help="I/N: every N-th frame from the I-th")
     parser.add_argument("--device", default="cpu", help="torch device of the block solves (cpu, cuda)")
@@ -263,13 +335,15 @@ def main() -> None:
     if args.heavy:
         sim, heavy = frames((12.0, 25.0), args.heavy, 11, args.cache)
         heavy = heavy[first::step]
-        run("12-25 px blur, adaptive window (default)", sim, heavy, ExtractSettings(deconv=deconv))
+        title, settings = "12-25 px blur, adaptive window (default)", ExtractSettings(deconv=deconv)
+        spread(title, sim, heavy, settings, run(title, sim, heavy, settings), args.repeat)
     if args.light:
         sim, light = frames((4.0, 15.0), args.light, 7, args.cache)
         light = light[first::step]
         run("4-15 px blur, fixed 17 px window (before)", sim, light,
             ExtractSettings(window=WindowPolicy(largest=17), deconv=deconv))
-        run("4-15 px blur, adaptive window (default)", sim, light, ExtractSettings(deconv=deconv))
+        title, settings = "4-15 px blur, adaptive window (default)", ExtractSettings(deconv=deconv)
+        spread(title, sim, light, settings, run(title, sim, light, settings), args.repeat)
     if args.photometry:
         sim = Simulator(SynthConfig(sharp=0, blurry=args.photometry, blur_min_px=4.0, blur_max_px=15.0,
                                     seed=23))
