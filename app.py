@@ -147,7 +147,12 @@ so a main thread asleep for an hour (viser's ``sleep_forever``) would ignore the
 
 
 def _stop(signum: int, frame: object) -> None:
-    """SIGTERM ends the app as Ctrl+C does: its clean-up runs (uploads deleted, runs cancelled)."""
+    """SIGTERM or Ctrl+C ends the app: its clean-up runs (uploads deleted, runs cancelled), and a
+    later signal is ignored so that it cannot cut the clean-up short (``timeout`` and a process
+    group's kill each send one; a second raise inside the clean-up left a traceback and the
+    uploads behind)."""
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
     raise KeyboardInterrupt
 
 
@@ -180,6 +185,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"app.py: error: {exc}", file=sys.stderr)
         return 2
     signal.signal(signal.SIGTERM, _stop)
+    signal.signal(signal.SIGINT, _stop)
     try:  # from here a signal, even one that comes while the address is printed, runs the clean-up
         for notice in app.state.notices:
             if notice.level == "error":
@@ -188,7 +194,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         while True:  # short sleeps: see SIGNAL_POLL_S
             time.sleep(SIGNAL_POLL_S)
     except KeyboardInterrupt:
-        signal.signal(signal.SIGINT, signal.SIG_IGN)  # a second Ctrl+C must not cut the clean-up short
+        pass  # _stop: the clean-up below runs once, later signals ignored
     finally:
         app.close()
         server.stop()
