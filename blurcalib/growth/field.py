@@ -73,7 +73,8 @@ def field_rows(pattern: StarPattern, ids: np.ndarray, H: np.ndarray, image_shape
     (:attr:`GrowSettings.final_extent` x the square, with ``deconv``'s margin) lies inside the
     image are chosen: farthest-point sampling picks blocks at the image's border first, and the
     field's fit leaves out one whose area crosses it, so the field lost the blocks that held its
-    extent (measured on the heavy frames of ``scripts/bench_yield.py``: 2 of 24 left out).
+    extent (measured on the heavy frames of ``scripts/bench_yield.py``: 7 of 14 field fits lost
+    1-4 of their 24 blocks).
     """
     off_rim = np.flatnonzero(inner(pattern, ids))
     status = block_windows(H[off_rim], image_shape, replace(deconv, loss_extent=settings.final_extent))[3]
