@@ -231,6 +231,8 @@ def test_final_fit_over_a_larger_area_moves_inner_blocks_closer_to_the_truth() -
         GrowSettings(final_extent=0.5)
     with pytest.raises(ValueError, match="field_refit_px"):
         GrowSettings(field_refit_px=-0.1)
+    with pytest.raises(ValueError, match="ring_refit_noise"):
+        GrowSettings(ring_refit_noise=-1.0)
 
 
 def test_field_blocks_are_spread_over_those_whose_loss_area_lies_inside_the_image() -> None:
@@ -304,3 +306,44 @@ def test_the_path_field_locates_stars_whose_blur_is_as_long_as_their_squares() -
     assert field.degree == 2 and 0.4 < np.exp(field.log_sigma) < 1.5
     path = field.theta(truth.mean[ids[:1]])[0, :2]  # the straight part of the path: its length
     assert abs(np.linalg.norm(path) - np.median(truth.blur_length[ids])) < 0.25 * np.median(truth.blur_length)
+
+
+def test_a_tag_ring_fitted_far_above_the_noise_is_fitted_again_from_its_first_field() -> None:
+    """Twelve blocks of one plane under a 26 px blur on 24 px squares (noise variance 4), each
+    started 3 px off in its own direction (a tag ring's predictions under heavy blur), their
+    free PSFs truncated by a 17 px window. From one start the ring's tied field fit settles px
+    off at many times the noise's variance; :func:`ring_seed` given the noise fits it again from
+    the first fit's field and lands on the stars. From another start the second fit settles off
+    too (measured: 2.6 px), and the first is kept: the same result as without the noise."""
+    from blurcalib.geometry.homography import homography_centre, translation
+    from blurcalib.growth.field import ring_seed
+    from blurcalib.growth.ledger import Growth
+    from blurcalib.growth.seed import block_homography
+    from blurcalib.psf.field import PathField
+    from tests.test_psf_field import SEGMENTS, _render_plane
+
+    pattern = layout_pattern()
+    H = np.array([[24.0, 2.0, 40.0], [-1.5, 24.0, 30.0], [1e-4, 5e-5, 1.0]])
+    path = PathField(np.array([[24.0, 9.0, 2.0, -3.0]]), np.log(0.8), (360, 300))
+    image = _render_plane(pattern, H, path.image_size, path.kernels(np.zeros((1, 2)), 45)[0],
+                          np.random.default_rng(2))
+    fx, fy = np.meshgrid(np.arange(4, 8), np.arange(3, 6))
+    f = np.stack([fx.ravel(), fy.ravel()], axis=1).astype(float)
+    ids = np.array([np.flatnonzero(np.all(pattern.features == p, axis=1))[0] for p in f])
+    true = homography_centre(block_homography(H, f[:, 0], f[:, 1]))
+    args = (WindowPolicy(), DeconvSettings(), GrowSettings(), None)
+    for draw, lands in ((7, True), (3, False)):
+        off = np.random.default_rng(draw).normal(size=(len(f), 2))
+        off *= 3.0 / np.linalg.norm(off, axis=1, keepdims=True)
+        H0 = translation(off) @ block_homography(H, f[:, 0], f[:, 1])
+        growth = Growth(fit_blocks(image, H0, SEGMENTS, 17), ids, [BlockStatus.ACCEPTED] * len(ids),
+                        np.zeros(len(ids), dtype=np.int64), H0)
+        rows, H_once, _ = ring_seed(image, pattern, growth, *args)
+        assert np.array_equal(rows, np.arange(len(ids)))
+        assert np.median(np.linalg.norm(homography_centre(H_once) - true, axis=1)) > 1.0
+        _, H_ring, field = ring_seed(image, pattern, growth, *args, noise_var=4.0)
+        err = np.linalg.norm(homography_centre(H_ring) - true, axis=1)
+        if lands:
+            assert np.median(err) < 0.1 and err.max() < 0.2 and field.degree == 1, err
+        else:
+            np.testing.assert_array_equal(H_ring, H_once)

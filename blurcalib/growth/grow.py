@@ -138,7 +138,8 @@ def grow(image: np.ndarray, pattern: StarPattern, seed: Seed, window: WindowPoli
     if not stopped and settings.psf_field and window.adapts and (
             state.adaptive or median_blur_per_square(growth.fit) >= settings.field_above_blur_per_square):
         t0 = time.perf_counter()
-        growth = field_growth(image, pattern, growth, window, deconv, settings, tag, on_event, should_stop)
+        growth = field_growth(image, pattern, growth, window, deconv, settings, tag, on_event, should_stop,
+                              None if noise is None else float(noise.variance(noise.level)))
         seconds["field"] = time.perf_counter() - t0
     if growth.psf_field is None and (settings.final_fit_frames == "all"
                                      or (state.adaptive and settings.final_fit_frames == "adaptive")):

@@ -72,6 +72,10 @@ class GrowSettings:
             accepted with an earlier field is fitted with the last one where the paths moved
             by more than this at the block (px, :meth:`blurcalib.psf.field.PathField.path_change`;
             0 fits every such block again).
+        ring_refit_noise: a tag ring's field fit (:func:`blurcalib.growth.field.ring_seed`)
+            whose median block loss exceeds this multiple of the frame's noise variance is made
+            again from its first field, and the second is kept where its loss is within it (0:
+            never).
     """
 
     max_loss: float = 400.0
@@ -95,6 +99,7 @@ class GrowSettings:
     field_blocks: int = 24
     field_loss_factor: float = 3.0
     field_refit_px: float = 0.1
+    ring_refit_noise: float = 1.5
 
     def __post_init__(self) -> None:
         if self.final_fit_frames not in get_args(FinalFitFrames):
@@ -106,3 +111,5 @@ class GrowSettings:
             raise ValueError("need 1 <= field_min_blocks <= field_blocks")
         if not self.field_refit_px >= 0:
             raise ValueError(f"field_refit_px must be >= 0, got {self.field_refit_px}")
+        if not self.ring_refit_noise >= 0:
+            raise ValueError(f"ring_refit_noise must be >= 0, got {self.ring_refit_noise}")
