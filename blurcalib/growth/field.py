@@ -146,9 +146,9 @@ def ring_seed(image: np.ndarray, pattern: StarPattern, growth: Growth, window: W
     blur and settle there; started afresh with a field near the blur's, it does not. Measured
     on frame 3 of ``scripts/bench_yield.py`` (22 px of blur on 20-24 px squares) over 14
     perturbations of 0.01 grey levels: in 2 the ring ended 0.8 px off (median, after the mean
-    offset) at 2.1 and 3.4 x the noise's variance and the frame came out at 0.14 and 0.12 px;
-    made again, the ring ended at the noise's variance and the frame at 0.075 and 0.067 px
-    (the rings that land sit at 1.0-1.4 x the noise's variance on that frame and the demo's). The
+    offset) at 2.6 and 4.3 x the noise's variance and the frame came out at 0.14 and 0.12 px;
+    made again, the ring ended at 1.3 x, as the rings that land do on that frame and the
+    demo's (1.3-1.4 x), and the frame at 0.075 and 0.067 px. The
     second fit is not kept on a lower loss alone: on a frame of 7 px of blur on 8-9 px squares
     every tied fit of the ring stays at 10-60 x the noise's variance, and the lower of two was
     once 1.3 px off.

@@ -99,7 +99,7 @@ class GrowSettings:
     field_blocks: int = 24
     field_loss_factor: float = 3.0
     field_refit_px: float = 0.1
-    ring_refit_noise: float = 1.5
+    ring_refit_noise: float = 2.0
 
     def __post_init__(self) -> None:
         if self.final_fit_frames not in get_args(FinalFitFrames):
