@@ -148,10 +148,9 @@ def ring_seed(image: np.ndarray, pattern: StarPattern, growth: Growth, window: W
     perturbations of 0.01 grey levels: in 2 the ring ended 0.8 px off (median, after the mean
     offset) at 2.6 and 4.3 x the noise's variance and the frame came out at 0.14 and 0.12 px;
     made again, the ring ended at 1.3 x, as the rings that land do on that frame and the
-    demo's (1.3-1.4 x), and the frame at 0.075 and 0.067 px. The
-    second fit is not kept on a lower loss alone: on a frame of 7 px of blur on 8-9 px squares
-    every tied fit of the ring stays at 10-60 x the noise's variance, and the lower of two was
-    once 1.3 px off.
+    demo's (1.3-1.4 x), and the frame at 0.075 and 0.067 px. The second fit is not kept on a
+    lower loss alone: on a frame of 7 px of blur on 8-9 px squares every tied fit of the ring
+    stays at 13-60 x the noise's variance, and the lower of two was once 1.3 px off.
     """
     h, w = image.shape
     ring = np.flatnonzero(growth.front == 0)
