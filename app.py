@@ -150,10 +150,16 @@ def _stop(signum: int, frame: object) -> None:
     """SIGTERM or Ctrl+C ends the app: its clean-up runs (uploads deleted, runs cancelled), and a
     later signal is ignored so that it cannot cut the clean-up short (``timeout`` and a process
     group's kill each send one; a second raise inside the clean-up left a traceback and the
-    uploads behind)."""
-    signal.signal(signal.SIGTERM, signal.SIG_IGN)
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    uploads behind). Ignored by a handler that does nothing, not ``SIG_IGN``: a signal that has
+    arrived but whose handler has not run yet would then raise ``OSError`` ("ignored due to race
+    condition") inside the clean-up."""
+    signal.signal(signal.SIGTERM, _ignore)
+    signal.signal(signal.SIGINT, _ignore)
     raise KeyboardInterrupt
+
+
+def _ignore(signum: int, frame: object) -> None:
+    """A signal that comes while the app stops: nothing to do (:func:`_stop`)."""
 
 
 def build_parser() -> argparse.ArgumentParser:
