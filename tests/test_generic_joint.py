@@ -14,7 +14,7 @@ from blurcalib.sim.truth import d435i_like_camera
 from blurcalib.target.pattern import layout_pattern
 
 
-def _table(count: int, seed: int, flags: int, prefix: str, shift: float = 0.0) -> FeatureTable:
+def simulated_features(count: int, seed: int, flags: int, prefix: str, shift: float = 0.0) -> FeatureTable:
     pattern = layout_pattern()
     truth = d435i_like_camera(0, 0.3)
     rng = np.random.default_rng(seed)
@@ -45,8 +45,9 @@ def _table(count: int, seed: int, flags: int, prefix: str, shift: float = 0.0) -
 @pytest.fixture(scope="module")
 def fitted():
     pattern = layout_pattern()
-    sharp = _table(8, 1, int(FeatureFlags.STAR_CENTRE | FeatureFlags.SHARP_FRAME), "s")
-    blurry = _table(4, 2, int(FeatureFlags.STAR_CENTRE | FeatureFlags.BLURRY_FRAME), "b", shift=2.0)
+    sharp = simulated_features(8, 1, int(FeatureFlags.STAR_CENTRE | FeatureFlags.SHARP_FRAME), "s")
+    blurry = simulated_features(4, 2, int(FeatureFlags.STAR_CENTRE | FeatureFlags.BLURRY_FRAME), "b",
+                                shift=2.0)
     parametric = calibrate_sharp(sharp, pattern, (1280, 720), refine_points=False)
     settings = JointSettings(cell_px=80.0)
     return parametric, calibrate_generic(sharp, blurry, parametric, pattern, (1280, 720), settings)
