@@ -438,7 +438,9 @@ def _add_run_options(p: argparse.ArgumentParser, workers: bool = True) -> None:
     p.add_argument("--cluster", metavar="ADDRESS", type=cluster_address,
                    help="run frames as tasks on this Dask scheduler (tcp://host:8786; docs/cluster.md)")
     p.add_argument("--device", default="cpu",
-                   help="torch device of the block solver and the bundle adjustment (cpu, cuda, cuda:N)")
+                   help="torch device of the block solver and the bundle adjustment (cpu, cuda, cuda:N); "
+                        "workers share one GPU badly, so with many cores cpu extracts a folder faster "
+                        "(docs/calibration.md)")
 
 
 def _add_fit_options(p: argparse.ArgumentParser, which: str) -> None:
