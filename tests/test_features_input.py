@@ -17,7 +17,7 @@ from blurcalib.io.results import FeatureFlags, FeatureTable, write_features
 from blurcalib.pipeline.run import PipelineError, PipelineSettings, read_feature_input, run_from_features
 from blurcalib.target.pattern import layout_pattern, load_pattern
 from tests.conftest import FIXTURE_YAML
-from tests.test_generic_joint import _table
+from tests.test_generic_joint import simulated_features
 
 SHARP = int(FeatureFlags.STAR_CENTRE | FeatureFlags.SHARP_FRAME)
 BLURRY = int(FeatureFlags.STAR_CENTRE | FeatureFlags.BLURRY_FRAME)
@@ -27,8 +27,8 @@ BLURRY = int(FeatureFlags.STAR_CENTRE | FeatureFlags.BLURRY_FRAME)
 def features_csv(tmp_path_factory):
     """A features.csv of 8 sharp and 4 blurry simulated frames (blurry ones shifted by up to 2 px),
     with 0.03 px noise."""
-    sharp = _table(8, 1, SHARP, "sharp/s")
-    blurry = _table(4, 2, BLURRY, "blurry/b", shift=2.0)
+    sharp = simulated_features(8, 1, SHARP, "sharp/s")
+    blurry = simulated_features(4, 2, BLURRY, "blurry/b", shift=2.0)
     table = FeatureTable.concat([sharp, blurry])
     rng = np.random.default_rng(0)
     table.x += rng.normal(0, 0.03, len(table))

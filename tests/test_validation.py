@@ -22,7 +22,7 @@ from blurcalib.geometry.pose import Pose
 from blurcalib.io.results import FeatureFlags
 from blurcalib.sim.truth import d435i_like_camera
 from blurcalib.target.pattern import layout_pattern
-from tests.test_generic_joint import _table
+from tests.test_generic_joint import simulated_features
 
 SIZE = (1280, 720)
 SHARP = int(FeatureFlags.STAR_CENTRE | FeatureFlags.SHARP_FRAME)
@@ -62,8 +62,8 @@ def test_frame_fit_recovers_pose_and_shift() -> None:
 
 def _fits(cell_px: float, noise: float = 0.05):
     pattern = layout_pattern()
-    sharp = _table(8, 1, SHARP, "s")
-    blurry = _table(6, 2, BLURRY, "b", shift=2.0)
+    sharp = simulated_features(8, 1, SHARP, "s")
+    blurry = simulated_features(6, 2, BLURRY, "b", shift=2.0)
     rng = np.random.default_rng(3)
     for t in (sharp, blurry):
         t.x += rng.normal(0, noise, len(t))
@@ -153,9 +153,9 @@ def test_blurry_frames_widening_the_calibrated_area(coarse) -> None:
     """The sharp-only camera's area and grid are smaller than the joint camera's when blurry
     frames reach further; each refit keeps a prior on its own grid."""
     pattern = layout_pattern()
-    sharp = _table(8, 1, SHARP, "s")
+    sharp = simulated_features(8, 1, SHARP, "s")
     sharp = sharp.select((sharp.x > 200) & (sharp.x < 1080))
-    blurry = _table(6, 2, BLURRY, "b", shift=2.0)
+    blurry = simulated_features(6, 2, BLURRY, "b", shift=2.0)
     parametric = calibrate_sharp(sharp, pattern, SIZE)
     settings = JointSettings(cell_px=80.0)
     joint = calibrate_generic(sharp, blurry, parametric, pattern, SIZE, settings)
@@ -171,8 +171,8 @@ def test_halves_from_the_same_pass() -> None:
     """With enough sharp frames in each half, the validation also gives the cameras of two
     halves of the frames."""
     pattern = layout_pattern()
-    sharp = _table(12, 4, SHARP, "s")
-    blurry = _table(4, 5, BLURRY, "b", shift=2.0)
+    sharp = simulated_features(12, 4, SHARP, "s")
+    blurry = simulated_features(4, 5, BLURRY, "b", shift=2.0)
     rng = np.random.default_rng(6)
     for t in (sharp, blurry):
         t.x += rng.normal(0, 0.05, len(t))
