@@ -33,6 +33,7 @@ def _pose_consistent_errors(result, truth) -> np.ndarray:
     return np.linalg.norm(xy - apply_homography(H, truth.mean[ids]), axis=1)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(("blur", "square", "index", "min_share", "max_median"), [
     ((4.0, 15.0), (30.0, 47.0), 0, 0.9, 0.05),    # close-up, free PSFs
     ((12.0, 25.0), None, 3, 0.85, 0.1),           # 22 px on 20-24 px squares: tag ring and path field
