@@ -5,7 +5,6 @@ bundle adjustment (float64) to the CPU's camera. Skipped where torch sees no CUD
 
 from __future__ import annotations
 
-import cv2
 import numpy as np
 import pytest
 import torch
@@ -15,22 +14,13 @@ from blurcalib.calib.joint import JointSettings, calibrate_generic
 from blurcalib.calib.sharp import calibrate_sharp
 from blurcalib.deconv.settings import DeconvSettings
 from blurcalib.extract.frame import ExtractSettings, extract_frame
-from blurcalib.geometry.homography import apply_homography
 from blurcalib.io.results import FeatureFlags
 from blurcalib.sim.synth import Simulator, SynthConfig
 from blurcalib.target.pattern import layout_pattern
 from tests.test_generic_joint import simulated_features
+from tests.test_grow import pose_consistent_errors
 
 pytestmark = pytest.mark.skipif(not torch.cuda.is_available(), reason="torch sees no CUDA device here")
-
-
-def _pose_consistent_errors(result, truth) -> np.ndarray:
-    """px: each feature's distance to its true time-averaged centre after the frame's best-fit
-    homography (a pose change, which a calibration refits) is removed."""
-    ids = result.features.feature_id
-    xy = np.stack([result.features.x, result.features.y], axis=1)
-    H, _ = cv2.findHomography(truth.mean[ids], xy, cv2.LMEDS)
-    return np.linalg.norm(xy - apply_homography(H, truth.mean[ids]), axis=1)
 
 
 @pytest.mark.slow
@@ -52,7 +42,7 @@ def test_a_frame_extracted_on_cuda_is_as_accurate_as_on_the_cpu(blur, square, in
     cpu, gpu = runs["cpu"], runs["cuda"]
     assert (gpu.growth.psf_field is None) == (cpu.growth.psf_field is None)
     assert len(gpu.features) > min_share * visible, (len(gpu.features), len(cpu.features), visible)
-    err = _pose_consistent_errors(gpu, frame.truth)
+    err = pose_consistent_errors(gpu, frame.truth)
     assert np.median(err) < max_median and err.max() < 1.0, (np.median(err), err.max())
     assert abs(len(gpu.features) - len(cpu.features)) < 0.05 * visible
 
