@@ -52,7 +52,6 @@ import pickle
 import time
 from pathlib import Path
 
-import cv2
 import numpy as np
 import torch
 
@@ -60,10 +59,10 @@ from blurcalib.calib.alignment import MIN_BLOCKS
 from blurcalib.deconv.settings import DeconvSettings
 from blurcalib.extract.frame import ExtractSettings, extract_frame, mean_stage_seconds
 from blurcalib.extract.quality import QualitySettings, filter_frame
-from blurcalib.geometry.homography import apply_homography
 from blurcalib.growth.window import WindowPolicy
 from blurcalib.pipeline.runtime import keep_large_allocations
 from blurcalib.sim import render, synth
+from blurcalib.sim.evaluate import pose_consistent_errors
 from blurcalib.sim.synth import SimulatedFrame, Simulator, SynthConfig
 
 
@@ -97,18 +96,6 @@ def _square_px(pattern, truth, ids: np.ndarray) -> np.ndarray:
 
     a, b = step(1, 0), step(0, 1)
     return np.sqrt(np.abs(a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]))
-
-
-def _pose_consistent(xy: np.ndarray, truth_xy: np.ndarray) -> np.ndarray:
-    """``(B,)`` px: distances of the extracted centres ``xy (B, 2)`` to the true ones after the
-    frame's best-fit homography truth -> extracted (least median of squares): a pose change of the
-    planar target, which a calibration refits (to first order in the sub-pixel change, the lens
-    does not bend it)."""
-    if len(xy) < 8:
-        d = xy - truth_xy
-        return np.linalg.norm(d - d.mean(axis=0), axis=1)
-    H, _ = cv2.findHomography(truth_xy.astype(np.float64), xy.astype(np.float64), cv2.LMEDS)
-    return np.linalg.norm(xy - apply_homography(H, truth_xy), axis=1)
 
 
 def _filtered(result, image_size: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
@@ -237,7 +224,7 @@ def run(title: str, sim: Simulator, simulated: list[SimulatedFrame], settings: E
         d_q = xy_q - t.mean[ids_q]
         n_q = np.linalg.norm(d_q - d_q.mean(axis=0), axis=1) if len(ids_q) else np.zeros(0)
         errors_q.append(n_q)
-        pose_q.append(_pose_consistent(xy_q, t.mean[ids_q]))
+        pose_q.append(pose_consistent_errors(xy_q, t.mean[ids_q]))
         returned_q.append(len(ids_q) / max(visible, 1))
         if not per_frame:
             continue

@@ -11,14 +11,11 @@ import torch
 
 from blurcalib.calib.bundle import BundleSettings
 from blurcalib.calib.joint import JointSettings, calibrate_generic
-from blurcalib.calib.sharp import calibrate_sharp
 from blurcalib.deconv.settings import DeconvSettings
 from blurcalib.extract.frame import ExtractSettings, extract_frame
-from blurcalib.io.results import FeatureFlags
+from blurcalib.sim.evaluate import pose_consistent_errors
 from blurcalib.sim.synth import Simulator, SynthConfig
-from blurcalib.target.pattern import layout_pattern
-from tests.test_generic_joint import simulated_features
-from tests.test_grow import pose_consistent_errors
+from tests.test_generic_joint import joint_inputs
 
 pytestmark = pytest.mark.skipif(not torch.cuda.is_available(), reason="torch sees no CUDA device here")
 
@@ -42,17 +39,14 @@ def test_a_frame_extracted_on_cuda_is_as_accurate_as_on_the_cpu(blur, square, in
     cpu, gpu = runs["cpu"], runs["cuda"]
     assert (gpu.growth.psf_field is None) == (cpu.growth.psf_field is None)
     assert len(gpu.features) > min_share * visible, (len(gpu.features), len(cpu.features), visible)
-    err = pose_consistent_errors(gpu, frame.truth)
+    ids = gpu.features.feature_id
+    err = pose_consistent_errors(np.stack([gpu.features.x, gpu.features.y], axis=1), frame.truth.mean[ids])
     assert np.median(err) < max_median and err.max() < 1.0, (np.median(err), err.max())
     assert abs(len(gpu.features) - len(cpu.features)) < 0.05 * visible
 
 
 def test_the_generic_bundle_adjustment_on_cuda_gives_the_cpus_camera() -> None:
-    pattern = layout_pattern()
-    sharp = simulated_features(8, 1, int(FeatureFlags.STAR_CENTRE | FeatureFlags.SHARP_FRAME), "s")
-    blurry = simulated_features(4, 2, int(FeatureFlags.STAR_CENTRE | FeatureFlags.BLURRY_FRAME), "b",
-                                shift=2.0)
-    parametric = calibrate_sharp(sharp, pattern, (1280, 720), refine_points=False)
+    pattern, sharp, blurry, parametric = joint_inputs()
     fits = {device: calibrate_generic(sharp, blurry, parametric, pattern, (1280, 720),
                                       JointSettings(cell_px=80.0, bundle=BundleSettings(device=device)))
             for device in ("cpu", "cuda")}

@@ -6,12 +6,12 @@ import numpy as np
 import pytest
 
 from blurcalib.calib.joint import JointSettings, calibrate_generic, generic_report, save_generic_calibration
-from blurcalib.calib.sharp import calibrate_sharp
+from blurcalib.calib.sharp import Calibration, calibrate_sharp
 from blurcalib.camera.files import read_generic_yaml
 from blurcalib.io.results import FeatureFlags, FeatureTable
 from blurcalib.sim.synth import sample_pose
 from blurcalib.sim.truth import d435i_like_camera
-from blurcalib.target.pattern import layout_pattern
+from blurcalib.target.pattern import StarPattern, layout_pattern
 
 
 def simulated_features(count: int, seed: int, flags: int, prefix: str, shift: float = 0.0) -> FeatureTable:
@@ -42,13 +42,19 @@ def simulated_features(count: int, seed: int, flags: int, prefix: str, shift: fl
     return FeatureTable(**cols)
 
 
-@pytest.fixture(scope="module")
-def fitted():
+def joint_inputs() -> tuple[StarPattern, FeatureTable, FeatureTable, Calibration]:
+    """The pattern, 8 sharp and 4 blurry simulated frames' features (the blurry ones shifted by up
+    to 2 px, no noise) and the sharp frames' parametric camera."""
     pattern = layout_pattern()
     sharp = simulated_features(8, 1, int(FeatureFlags.STAR_CENTRE | FeatureFlags.SHARP_FRAME), "s")
     blurry = simulated_features(4, 2, int(FeatureFlags.STAR_CENTRE | FeatureFlags.BLURRY_FRAME), "b",
                                 shift=2.0)
-    parametric = calibrate_sharp(sharp, pattern, (1280, 720), refine_points=False)
+    return pattern, sharp, blurry, calibrate_sharp(sharp, pattern, (1280, 720), refine_points=False)
+
+
+@pytest.fixture(scope="module")
+def fitted():
+    pattern, sharp, blurry, parametric = joint_inputs()
     settings = JointSettings(cell_px=80.0)
     return parametric, calibrate_generic(sharp, blurry, parametric, pattern, (1280, 720), settings)
 

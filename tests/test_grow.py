@@ -2,13 +2,11 @@
 
 from __future__ import annotations
 
-import cv2
 import numpy as np
 import pytest
 
 from blurcalib.deconv.blocks import fit_blocks, fit_blocks_hinted
 from blurcalib.deconv.settings import DeconvSettings
-from blurcalib.extract.frame import FrameResult
 from blurcalib.geometry.homography import apply_homography
 from blurcalib.growth.final import final_fit
 from blurcalib.growth.fronts import fit_hinted
@@ -20,17 +18,8 @@ from blurcalib.growth.window import WindowPolicy, fit_front
 from blurcalib.io.results import BlockStatus
 from blurcalib.psf.kernel import blur_per_square, psf_moments
 from blurcalib.sim.blocks import simulate_blocks
-from blurcalib.sim.truth import FrameTruth
+from blurcalib.sim.evaluate import pose_consistent_errors
 from blurcalib.target.pattern import layout_pattern
-
-
-def pose_consistent_errors(result: FrameResult, truth: FrameTruth) -> np.ndarray:
-    """``(F,)`` px: each extracted feature's distance to its true time-averaged centre after the
-    frame's best-fit homography (a pose change, which a calibration refits) is removed."""
-    ids = result.features.feature_id
-    xy = np.stack([result.features.x, result.features.y], axis=1)
-    H, _ = cv2.findHomography(truth.mean[ids], xy, cv2.LMEDS)
-    return np.linalg.norm(xy - apply_homography(H, truth.mean[ids]), axis=1)
 
 
 def test_kernel_size_grows_with_the_blur() -> None:
@@ -309,7 +298,7 @@ def test_the_path_field_locates_stars_whose_blur_is_as_long_as_their_squares() -
     assert list(result.growth.seconds) == ["free", "field", "judge"]
     assert len(free.features) < 0.1 * visible and len(result.features) > 0.85 * visible
     ids = result.features.feature_id
-    err = pose_consistent_errors(result, truth)
+    err = pose_consistent_errors(np.stack([result.features.x, result.features.y], axis=1), truth.mean[ids])
     assert np.median(err) < 0.1 and err.max() < 1.0, (np.median(err), err.max())
     field = result.growth.psf_field
     assert field.degree == 2 and 0.4 < np.exp(field.log_sigma) < 1.5

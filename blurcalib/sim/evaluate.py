@@ -22,6 +22,7 @@ from scipy.optimize import least_squares
 
 from blurcalib.camera.generic import CentralGeneric, best_fit_rotation
 from blurcalib.camera.parametric import BrownConrady
+from blurcalib.geometry.homography import apply_homography
 from blurcalib.geometry.pose import Pose
 from blurcalib.io.results import FeatureFlags, FeatureTable
 from blurcalib.sim.truth import DatasetTruth, TrueCamera
@@ -46,6 +47,19 @@ class FrameAccuracy:
     p90: float
     max: float
     median_vs_mean: float
+
+
+def pose_consistent_errors(xy: np.ndarray, truth_xy: np.ndarray) -> np.ndarray:
+    """``(B,)`` px: distances of one frame's extracted star centres ``xy (B, 2)`` to their true
+    time-averaged positions ``truth_xy (B, 2)`` after the frame's best-fit homography truth ->
+    extracted (least median of squares): a pose change of the planar target, which a calibration
+    refits (to first order in the sub-pixel change, the lens does not bend it). With fewer than 8
+    features, after their mean offset instead."""
+    if len(xy) < 8:
+        d = xy - truth_xy
+        return np.linalg.norm(d - d.mean(axis=0), axis=1)
+    H, _ = cv2.findHomography(truth_xy.astype(np.float64), xy.astype(np.float64), cv2.LMEDS)
+    return np.linalg.norm(xy - apply_homography(H, truth_xy), axis=1)
 
 
 def refit_pose(camera: TrueCamera, points: np.ndarray, xy: np.ndarray, start: Pose) -> Pose:
