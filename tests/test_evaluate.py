@@ -45,9 +45,9 @@ def test_pose_consistent_errors_remove_a_pose_change_and_keep_a_features_own_err
     truth_xy = np.stack([100.0 + 40.0 * gx.ravel(), 80.0 + 40.0 * gy.ravel()], axis=1)
     H = np.array([[1.02, 0.03, 4.0], [-0.02, 0.99, -3.0], [2e-5, -1e-5, 1.0]])
     xy = apply_homography(H, truth_xy)
-    xy[7] += (0.18, 0.24)
+    xy[7] += np.array([0.18, 0.24])
     err = pose_consistent_errors(xy, truth_xy)
     assert abs(err[7] - 0.3) < 1e-3 and np.delete(err, 7).max() < 1e-3, err
-    few = truth_xy[:5] + (2.0, -1.0)
-    few[0] += (0.3, 0.0)
+    few = truth_xy[:5] + np.array([2.0, -1.0])
+    few[0, 0] += 0.3
     np.testing.assert_allclose(pose_consistent_errors(few, truth_xy[:5])[1:], 0.06, atol=1e-9)
