@@ -28,11 +28,17 @@ class LmStage:
     move: torch.Tensor
 
 
-SPLIT_FROM_STEP = 1
-"""First LM step whose trial Jacobian is computed only where the step is accepted (fits with
-given kernels). Measured on heavily blurred frames: 97 % of the blocks accept their first step,
-82 % the second, 58 % the third and 15-31 % the later ones; the split costs one more convolution
-per accepting block (of 9), so it pays from the second step."""
+CHORD_FROM_STEP = 1
+"""First LM step at which a fit with given kernels may take chord steps (:func:`_chord`): its
+trial point is evaluated without the Jacobian, the 8 convolutions that are most of a solve."""
+
+CHORD_WITHIN_PX = 0.02
+"""A block that accepts a chord-eligible step keeps the Jacobian of its last full evaluation
+while its star-centre estimate stays within this distance (px) of that evaluation's; farther,
+the Jacobian is evaluated at the new point. Measured on the heavily blurred frames of
+``scripts/bench_yield.py`` (4 runs, the frames as they are and perturbed): see docs/deconvolution.md
+("Speed"). Without the limit, blocks started 1.5 px off ended up to 0.05 px from the fit that
+evaluates every Jacobian, at up to 12 % more loss after 6 steps; with it, within 0.004 px."""
 
 
 def lm_stage(prob: BlockProblem, H_loc: torch.Tensor, alpha: torch.Tensor, des: Design, steps: int
@@ -44,15 +50,15 @@ def lm_stage(prob: BlockProblem, H_loc: torch.Tensor, alpha: torch.Tensor, des: 
     once its step's predicted decrease ``delta^T (2 g - N delta)`` is below
     :attr:`DeconvSettings.stop_decrease` times its residual variance ``sse / n`` (the step is a
     small fraction of the fit's own standard deviation); the later steps solve only the blocks
-    still going. With given kernels (``des.fixed``), from the second step on, a trial point's
-    Jacobian is computed only for the blocks that accept it (:func:`_jacobian_where`): most
-    blocks reject their later steps, and the Jacobian's 8 convolutions are most of a solve.
+    still going. With given kernels (``des.fixed``), from step :data:`CHORD_FROM_STEP` on, the
+    steps are chord steps (:func:`_chord`): the Jacobian's 8 convolutions are most of a solve.
     """
     b = H_loc.shape[0]
     dev = H_loc.device
     best = prob.evaluate(H_loc, alpha, des, None, with_jac=steps > 0)
     H_best, a_best = H_loc.clone(), alpha.clone()  # updated in place, row by row
     c_best = prob.centre_estimate(H_best, best.x, des)
+    c_jac = c_best.clone()  # where each block's Jacobian was last evaluated
     move = torch.zeros(b, dtype=torch.float64, device=dev)
     mu = torch.full((b,), 1e-3, device=dev, dtype=torch.float64)
     going = torch.ones(b, dtype=torch.bool, device=dev)
@@ -71,13 +77,16 @@ def lm_stage(prob: BlockProblem, H_loc: torch.Tensor, alpha: torch.Tensor, des: 
         H_try = update_homography(H_best[rows], delta[rows, :8])
         a_try = a_best[rows] + delta[rows, 8:10]
         jac = it < steps - 1
-        split = jac and it >= SPLIT_FROM_STEP and des.fixed is not None
+        chord = jac and it >= CHORD_FROM_STEP and des.fixed is not None
         prev = best if rows.numel() == b else best.take(rows)
-        cur = prob.evaluate(H_try, a_try, sub, prev.lam, with_jac=jac and not split)
+        cur = prob.evaluate(H_try, a_try, sub, prev.lam, with_jac=jac and not chord)
         accept = torch.isfinite(cur.obj) & (cur.obj < prev.obj)
-        if split:
-            cur = _jacobian_where(prob, cur, prev, accept, H_try, a_try, sub)
         c_try = prob.centre_estimate(H_try, cur.x, sub)
+        fresh = accept  # the accepted blocks whose Jacobian is evaluated at the trial point
+        if chord:
+            fresh = accept & (torch.linalg.norm(c_try - c_jac[rows], dim=1) > CHORD_WITHIN_PX)
+            cur = _chord(prob, cur, prev, accept, fresh, H_try, a_try, sub)
+        c_jac[rows[fresh]] = c_try[fresh]
         won = rows[accept]
         H_best[won], a_best[won] = H_try[accept], a_try[accept]
         move[won] = torch.linalg.norm(c_try[accept] - c_best[won], dim=1)
@@ -88,14 +97,23 @@ def lm_stage(prob: BlockProblem, H_loc: torch.Tensor, alpha: torch.Tensor, des: 
     return LmStage(H_best, a_best, best, move)
 
 
-def _jacobian_where(prob: BlockProblem, cur: KernelSolve, best: KernelSolve, accept: torch.Tensor,
-                    H_loc: torch.Tensor, alpha: torch.Tensor, des: Design) -> KernelSolve:
-    """``cur``, a trial point's solve without its Jacobian, with the Gauss-Newton system ``N, g``
-    of the blocks that accept it (``accept (b,)``) evaluated at ``(H_loc, alpha)`` for those
-    blocks alone; the other blocks keep ``best``'s, the point they step from again."""
-    rows = torch.nonzero(accept)[:, 0]
-    N, g = best.N.clone(), best.g.clone()
+def _chord(prob: BlockProblem, cur: KernelSolve, best: KernelSolve, accept: torch.Tensor, fresh: torch.Tensor,
+           H_loc: torch.Tensor, alpha: torch.Tensor, des: Design) -> KernelSolve:
+    """``cur``, a trial point's solve with given kernels evaluated without its Jacobian, given the
+    Gauss-Newton systems of the blocks that accept it (``accept (b,)``): for those in ``fresh``
+    evaluated at ``(H_loc, alpha)``; for the others a chord step's, ``best``'s Jacobian
+    ``J (b, 10, n)`` scaled by the ratio of their contrasts ``a3`` (the model is ``a3 (k * S)``),
+    so ``N`` by its square, and ``g = J r`` with the trial's residual ``r``. The blocks that
+    reject it keep ``best``'s system, the point they step from again."""
+    N, g, J = best.N.clone(), best.g.clone(), best.J.clone()
+    rows = torch.nonzero(accept & ~fresh)[:, 0]
+    if rows.numel():
+        scale = (cur.x[rows, :1] / best.x[rows, :1]).to(J.dtype)
+        J[rows] = J[rows] * scale[:, :, None]
+        N[rows] = N[rows] * (scale.double() ** 2)[:, :, None]
+        g[rows] = (J[rows] @ cur.res[rows][..., None]).double()[..., 0]
+    rows = torch.nonzero(fresh)[:, 0]
     if rows.numel():
         part = prob.evaluate(H_loc[rows], alpha[rows], des.take(rows), best.lam[rows], with_jac=True)
-        N[rows], g[rows] = part.N, part.g
-    return replace(cur, N=N, g=g)
+        N[rows], g[rows], J[rows] = part.N, part.g, part.J
+    return replace(cur, N=N, g=g, J=J)

@@ -89,6 +89,9 @@ class KernelSolve:
         lam: ``(b, m + 3)`` the ridge ``Lambda`` (diagonal).
         N: ``(b, 10, 10)`` float64 Gauss-Newton matrix of the reduced problem, or None.
         g: ``(b, 10)`` float64 its gradient, or None.
+        J: ``(b, 10, n)`` the Jacobian ``J`` of ``N`` and ``g`` (with given kernels), or None.
+        res: ``(b, n)`` the residual ``r = I - m`` on the loss's pixels (with given kernels), or
+            None.
     """
 
     x: torch.Tensor
@@ -97,6 +100,8 @@ class KernelSolve:
     lam: torch.Tensor
     N: torch.Tensor | None = None
     g: torch.Tensor | None = None
+    J: torch.Tensor | None = None
+    res: torch.Tensor | None = None
 
     def take(self, rows: torch.Tensor) -> KernelSolve:
         """The solves of blocks ``rows`` (indices or a ``(b,)`` bool mask), copied."""
@@ -304,7 +309,8 @@ class BlockProblem:
         it here, to be kept fixed through a stage so that objectives compare).
 
         With given kernels (``des.fixed``) ``D``'s kernel part is the one row ``(k * S) A / a3``
-        and ``x = (a3, b)``; the same Jacobian follows from the same convolutions.
+        and ``x = (a3, b)``; the same Jacobian follows from the same convolutions, and the solve
+        keeps ``J`` and ``r`` for the chord steps of :func:`blurcalib.deconv.lm.lm_stage`.
         """
         b = H_loc.shape[0]
         S, dS = self.latent(H_loc, with_jac=with_jac)
@@ -336,7 +342,8 @@ class BlockProblem:
         x, factor = solve_nonnegative(G, rhs, m, passes)
         res = des.img - (x.to(self.dt)[:, None, :] @ D)[:, 0]
         sse = (res * res).sum(dim=1).double()
-        out = KernelSolve(x=x, obj=sse + (x * x * lam).sum(dim=1), sse=sse, lam=lam)
+        out = KernelSolve(x=x, obj=sse + (x * x * lam).sum(dim=1), sse=sse, lam=lam,
+                          res=res if fixed else None)
         if not with_jac:
             return out
         if fixed:  # the model is a3 (k * S): its convolutions, scaled
@@ -350,6 +357,8 @@ class BlockProblem:
         Y, Z = factor.solve((J @ D.transpose(1, 2)).double().transpose(1, 2))  # (b, F, 10), free rows
         out.N = (J @ J.transpose(1, 2)).double() - Y.transpose(1, 2) @ Z
         out.g = (J @ res[..., None]).double()[..., 0]
+        if fixed:
+            out.J = J
         return out
 
     def model(self, H_loc: torch.Tensor, k: torch.Tensor, coeffs: torch.Tensor) -> torch.Tensor:
