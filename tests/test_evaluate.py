@@ -1,5 +1,6 @@
 """A calibrated camera against the true one: the total error and its split into the best-fit
-focal lengths and principal point (an affine image map) and the shape error that remains."""
+focal lengths and principal point (an affine image map) and the shape error that remains; and
+extracted star centres against their true ones after the frame's pose."""
 
 from __future__ import annotations
 
@@ -9,7 +10,8 @@ import numpy as np
 import pytest
 
 from blurcalib.camera.parametric import BrownConrady
-from blurcalib.sim.evaluate import camera_accuracy
+from blurcalib.geometry.homography import apply_homography
+from blurcalib.sim.evaluate import camera_accuracy, pose_consistent_errors
 from blurcalib.sim.truth import TrueCamera
 
 LENS = BrownConrady(fx=640.0, fy=641.0, cx=639.0, cy=361.0, k1=0.05, k2=-0.06, p1=0.001, p2=-0.0005,
@@ -38,9 +40,6 @@ def test_pose_consistent_errors_remove_a_pose_change_and_keep_a_features_own_err
     """A homography of the whole frame (the target's pose) is no error; one star centre moved by
     0.3 px is, and moves no other (least median of squares); with fewer than 8 features only the
     mean offset is removed."""
-    from blurcalib.geometry.homography import apply_homography
-    from blurcalib.sim.evaluate import pose_consistent_errors
-
     gy, gx = np.mgrid[0:6, 0:8]
     truth_xy = np.stack([100.0 + 40.0 * gx.ravel(), 80.0 + 40.0 * gy.ravel()], axis=1)
     H = np.array([[1.02, 0.03, 4.0], [-0.02, 0.99, -3.0], [2e-5, -1e-5, 1.0]])
