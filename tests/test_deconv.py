@@ -4,15 +4,16 @@ PSF re-centring, PSF figures, batching, and per-block flags for invalid input.""
 from __future__ import annotations
 
 import dataclasses
+import threading
 
 import numpy as np
 import pytest
 import torch
 from scipy.ndimage import convolve
 
-from blurcalib.deconv import lm
+from blurcalib.deconv import blocks, lm
 from blurcalib.deconv.blocks import fit_blocks, fit_blocks_fixed, fit_blocks_hinted, render_model
-from blurcalib.deconv.convolution import DIRECT_PER_FFT_POINT, fft_size
+from blurcalib.deconv.convolution import DIRECT_PER_FFT_POINT, fft_size, flush_denormals
 from blurcalib.deconv.latent import latent_pattern, update_homography
 from blurcalib.deconv.problem import BlockProblem
 from blurcalib.deconv.result import BlockFit
@@ -207,6 +208,35 @@ def test_batch_equals_one_by_one(sim: SimulatedBlocks, fit: BlockFit) -> None:
                              dataclasses.replace(SETTINGS, stage_batch_size=groups))
         assert np.abs(grouped.centre - fit.centre).max() < 2e-3
         assert [m.shape for m in grouped.masks] == [m.shape for m in fit.masks]
+
+
+def _in_thread(work):
+    """``work()``'s result, run in a new thread that starts with denormal floats kept."""
+    out = {}
+
+    def run() -> None:
+        torch.set_flush_denormal(False)
+        out["fit"] = work()
+        out["denormal"] = float(torch.tensor([1e-39], dtype=torch.float32)[0] * 1.0)
+
+    thread = threading.Thread(target=run)
+    thread.start()
+    thread.join()
+    return out
+
+
+def test_denormals_are_flushed_and_change_nothing(sim: SimulatedBlocks, fit: BlockFit,
+                                                  monkeypatch: pytest.MonkeyPatch) -> None:
+    if not flush_denormals():
+        pytest.skip("this CPU cannot flush denormal floats")
+    solved = _in_thread(lambda: fit_blocks(sim.image, sim.H0, SEGMENTS, K, SETTINGS))
+    assert solved["denormal"] == 0.0  # the solver flushed them in its thread
+    monkeypatch.setattr(blocks, "flush_denormals", lambda: False)
+    kept = _in_thread(lambda: fit_blocks(sim.image, sim.H0, SEGMENTS, K, SETTINGS))
+    assert kept["denormal"] > 0.0
+    for other in (solved["fit"], kept["fit"]):
+        assert np.abs(other.centre - fit.centre).max() < 1e-4
+        assert np.abs(other.psf - fit.psf).max() < 1e-5
 
 
 def test_float64_agrees_with_float32(sim: SimulatedBlocks, fit: BlockFit) -> None:

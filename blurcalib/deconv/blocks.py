@@ -73,6 +73,7 @@ from typing import Literal
 import numpy as np
 import torch
 
+from blurcalib.deconv.convolution import flush_denormals
 from blurcalib.deconv.problem import BlockProblem
 from blurcalib.deconv.result import BlockFit, BlockModel
 from blurcalib.deconv.schedule import BatchFit, fit_fixed_batch, fit_free_batch, fit_hinted_batch
@@ -163,6 +164,7 @@ def _fit(image: np.ndarray, H0: np.ndarray, num_segments: int, K: int, settings:
          pixel_mask: np.ndarray | None, start: PsfStart, kernels: np.ndarray | None) -> BlockFit:
     """The fit of :func:`fit_blocks` with its PSFs started as ``start`` says (``kernels (B, K, K)``
     the hints or the given PSFs)."""
+    flush_denormals()
     s = settings or DeconvSettings()
     img_np = np.asarray(image)
     if img_np.ndim != 2:
