@@ -223,7 +223,8 @@ def _run_pipeline(sharp: list[Path], blurry: list[Path], pattern: StarPattern, o
     for line in summary_lines(report.to_dict()):
         print(line)
     for kind in ("sharp", "blurry"):
-        print(f"{kind} frames: " + ", ".join(f"{v} {k}" for k, v in sorted(report.counts[kind].items())))
+        print(f"{kind} frames: " + (", ".join(f"{v} {k}" for k, v in sorted(report.counts[kind].items()))
+                                    or "none"))
     for kind, path in report.outputs.items():
         print(f"  {kind}: {path}")
     return report

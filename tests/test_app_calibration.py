@@ -198,7 +198,7 @@ def test_calibration_run_cancel_and_export(defaults: AppState, tmp_path: Path) -
     assert all(isinstance(g, str) and g.startswith("capture ") for g in trust.guidance)
     assert result.trust.to_dict()["blurry_frames_gain"]["uncertainty_median_px"][1] == pytest.approx(
         trust.uncertainty.median(), abs=1e-5)
-    text = trust_summary(result, 10, 0.05)
+    text = trust_summary(result, 0.05)
     assert "**Held-out reprojection error**: not measured: 4 frames in the generic fit, the k-fold " \
            "validation needs at least 10." in text
     assert f"| generic, sharp + blurry frames | {trust.uncertainty.median():.4f} |" in text
@@ -292,7 +292,7 @@ def test_sharp_frames_only_label_and_held_out_table(defaults: AppState) -> None:
     assert set(trust.validation.fold_of) == {"sharp/0000.png", "sharp/0001.png"}
     g = scores["generic"]
     assert g.frames == 2 and 0 < g.median_px < 0.1 and g.rms_px >= g.median_px / 2
-    text = trust_summary(result, 2, 0.05)
+    text = trust_summary(result, 0.05)
     assert f"| generic | {g.median_px:.4f} | {g.rms_px:.4f} | 2 |" in text
     assert "| parametric (Brown-Conrady) |" not in text
     assert "no blurry frame entered the generic fit" in text and "not measured (a half" in text

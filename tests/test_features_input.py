@@ -50,7 +50,7 @@ def test_features_csv_calibrates_with_shifts_and_trust(features_csv, tmp_path, c
     shifts = [r["shift"] for r in report["frames"] if r["kind"] == "blurry"]
     assert all(np.hypot(*s) < 2.9 for s in shifts)
     v = report["validation"]
-    assert v["method"] == "kfold" and v["folds"] == 5
+    assert v["method"] == "kfold" and v["folds"] == 5 and report["validation_skipped"] is None
     assert v["generic"]["frames"] == 12 and 0.02 < v["generic"]["median_px"] < 0.08
     assert set(v) >= {"generic", "generic_sharp", "parametric"}
     unc = np.load(out / "calibration" / "uncertainty.npz")

@@ -118,13 +118,12 @@ def _px(value: float | None) -> str:
     return "n/a" if value is None else f"{value:.4f}"
 
 
-def trust_summary(result: AppCalibration, min_frames: int, guidance_px: float) -> str:
+def trust_summary(result: AppCalibration, guidance_px: float) -> str:
     """The markdown of the assessment: held-out error per camera (or why it was not measured),
     projection uncertainty, cross-validation diff, what the blurry frames bought and the guidance.
 
     Args:
         result: the calibration.
-        min_frames: fewest frames the held-out validation needs.
         guidance_px: the guidance's uncertainty threshold (px).
     """
     if result.trust is None:
@@ -136,9 +135,7 @@ def trust_summary(result: AppCalibration, min_frames: int, guidance_px: float) -
     parts = ["**Trust without ground truth** (the figures of `blurcalib calibrate`'s report)"]
     v = doc["validation"]
     if v is None:
-        frames = len(result.generic.poses)
-        parts.append(f"**Held-out reprojection error**: not measured: {count(frames, 'frame')} in the "
-                     f"generic fit, the k-fold validation needs at least {min_frames}.")
+        parts.append(f"**Held-out reprojection error**: not measured: {doc['validation_skipped']}.")
     else:
         rows = [f"**Held-out reprojection error** ({v['folds']}-fold over frames: each frame scored by "
                 "cameras fitted without it, its pose, and a blurry frame's shift, fitted alone)", "",
@@ -293,7 +290,7 @@ class CalibrationPanel:
         text, unc, cv = "", None, None
         if result is not None:
             trust = self.runner.settings.sequence.trust
-            text = trust_summary(result, trust.validation.min_frames, trust.guidance_px)
+            text = trust_summary(result, trust.guidance_px)
             unc = uncertainty_image(result)
             diff = result.trust.cross_validation if result.trust is not None else None
             if diff is not None:

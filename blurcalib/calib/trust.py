@@ -103,6 +103,8 @@ class Trust:
         seconds: wall time (s) of each part: ``validation``, ``uncertainty``,
             ``cross_validation`` (the comparison alone when the validation ran: the halves'
             cameras come from its pass).
+        validation_skipped: why the validation did not run (too few frames, or turned off);
+            None when it ran.
     """
 
     validation: Validation | None
@@ -111,10 +113,11 @@ class Trust:
     cross_validation: CrossValidationDiff | None
     guidance: list[str]
     seconds: dict[str, float]
+    validation_skipped: str | None = None
 
     def to_dict(self) -> dict:
-        """The ``report.json`` sections ``validation``, ``uncertainty``, ``cross_validation``,
-        ``guidance`` and ``blurry_frames_gain``."""
+        """The ``report.json`` sections ``validation`` (and ``validation_skipped``),
+        ``uncertainty``, ``cross_validation``, ``guidance`` and ``blurry_frames_gain``."""
         def unc(u: ProjectionUncertainty | None) -> dict | None:
             if u is None:
                 return None
@@ -123,6 +126,7 @@ class Trust:
 
         out: dict = {
             "validation": None if self.validation is None else self.validation.to_dict(),
+            "validation_skipped": self.validation_skipped,
             "uncertainty": {"generic": unc(self.uncertainty), "generic_sharp": unc(self.uncertainty_sharp),
                             "step_px": float(self.uncertainty.x[1] - self.uncertainty.x[0])
                             if len(self.uncertainty.x) > 1 else None},
@@ -191,7 +195,13 @@ def assess_calibration(generic: GenericCalibration, generic_sharp: GenericCalibr
             cv = cross_validation_diff(*leave_out_generic(generic, *split))
     advice = guidance(unc, size[0], size[1], threshold_px=settings.guidance_px)
     seconds = {"validation": t1 - t0, "uncertainty": t2 - t1, "cross_validation": time.perf_counter() - t2}
-    return Trust(validation, unc, unc_sharp, cv, advice, seconds)
+    skipped = None
+    if validation is None:
+        vs = settings.validation
+        skipped = ("turned off (--validation none)" if vs.method == "none" else
+                   f"{count(len(generic.frames), 'frame')} in the generic fit, the k-fold validation "
+                   f"needs at least {vs.min_frames}")
+    return Trust(validation, unc, unc_sharp, cv, advice, seconds, skipped)
 
 
 def save_trust(folder: Path, trust: Trust, size: tuple[int, int]) -> dict[str, Path]:
@@ -220,8 +230,7 @@ def summary_lines(doc: dict) -> list[str]:
     lines = []
     v = doc.get("validation")
     if v is None:
-        lines.append("held-out error: not measured (fewer frames than the validation needs, or "
-                     "--validation none)")
+        lines.append(f"held-out error: not measured ({doc.get('validation_skipped') or 'no validation'})")
     else:
         lines.append(f"held-out reprojection error ({v['folds']}-fold over frames; each held-out frame's "
                      "pose, and a blurry frame's shift, fitted alone with the camera held):")
