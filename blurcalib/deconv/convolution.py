@@ -14,8 +14,8 @@ of 13-51 px, grids of 50-144 px)."""
 
 def flush_denormals() -> bool:
     """Flush denormal floats to zero in the calling thread (x86 FTZ/DAZ); False where the CPU
-    lacks them (nothing changes). The block solver and the field fit call it first, and the
-    setting stays with the thread (and the threads it starts).
+    lacks them (nothing changes). The block solver, the field fit and the extraction of a frame
+    call it first, and the setting stays with the thread (and the threads it starts).
 
     A float32 kernel cast from the float64 kernel solve holds entries below 1.2e-38 (5 % of the
     entries in heavy frame 4 of ``scripts/bench_yield.py``), and each multiply-add of the

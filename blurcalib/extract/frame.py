@@ -38,6 +38,7 @@ from pathlib import Path
 
 import numpy as np
 
+from blurcalib.deconv.convolution import flush_denormals
 from blurcalib.deconv.settings import DeconvSettings
 from blurcalib.extract.local_alignment import LocalAlignment, align_locally, shared_corners
 from blurcalib.extract.noise import NoiseModel, frame_noise
@@ -257,7 +258,12 @@ def extract_frame(image: np.ndarray, pattern: StarPattern, frame: str,
         H_feature: a seed homography (feature coordinates -> px) to use instead of the tag.
         on_event: per-block growth callback (for live display).
         should_stop: polled between growth fronts.
+
+    The frame is computed with denormal floats flushed to zero in the calling thread
+    (:func:`blurcalib.deconv.convolution.flush_denormals`), its seeding too, whichever frame of
+    the thread it is.
     """
+    flush_denormals()
     settings = settings or ExtractSettings()
     t0 = time.perf_counter()
     try:
