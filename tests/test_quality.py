@@ -52,6 +52,20 @@ def test_thresholds_then_connectivity() -> None:
     assert loose.kept.sum() == 7 * 7 - 1
 
 
+def test_the_largest_group_is_kept_not_an_island_at_the_centre() -> None:
+    t = _grid()
+    fx, fy = t.fx, t.fy
+    size = (2 * 100 + 30 * 6, 2 * 60 + 30 * 6)
+    # a ring of high-loss blocks around the centre block cuts it off; it has the lowest loss
+    ring = (np.abs(fx - 3) <= 1) & (np.abs(fy - 3) <= 1) & ~((fx == 3) & (fy == 3))
+    t.loss[ring] = 50.0
+    t.loss[(fx == 3) & (fy == 3)] = 1.0
+    res = filter_frame(t, size)
+    centre = np.flatnonzero((fx == 3) & (fy == 3))[0]
+    assert res.status[centre] == BlockStatus.DISCONNECTED.value
+    assert res.kept.sum() == 7 * 7 - 9 and res.kept[res.seed] and res.seed != centre
+
+
 def test_frame_prefilter_on_blur() -> None:
     t = _grid()
     size = (380, 300)
