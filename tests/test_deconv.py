@@ -13,7 +13,7 @@ from scipy.ndimage import convolve
 
 from blurcalib.deconv import blocks, lm
 from blurcalib.deconv.blocks import fit_blocks, fit_blocks_fixed, fit_blocks_hinted, render_model
-from blurcalib.deconv.convolution import DIRECT_PER_FFT_POINT, fft_size, flush_denormals
+from blurcalib.deconv.convolution import DIRECT_PER_FFT_POINT, fft_size, flushing_denormals
 from blurcalib.deconv.latent import latent_pattern, update_homography
 from blurcalib.deconv.problem import BlockProblem
 from blurcalib.deconv.result import BlockFit
@@ -211,13 +211,14 @@ def test_batch_equals_one_by_one(sim: SimulatedBlocks, fit: BlockFit) -> None:
 
 
 def _in_thread(work):
-    """``work()``'s result, run in a new thread that starts with denormal floats kept."""
+    """``work()``'s result, run in a new thread that keeps denormal floats, and whether the
+    thread still keeps them afterwards."""
     out = {}
 
     def run() -> None:
         torch.set_flush_denormal(False)
         out["fit"] = work()
-        out["denormal"] = float(torch.tensor([1e-39], dtype=torch.float32)[0] * 1.0)
+        out["kept_after"] = not flushing_denormals()
 
     thread = threading.Thread(target=run)
     thread.start()
@@ -225,15 +226,23 @@ def _in_thread(work):
     return out
 
 
-def test_denormals_are_flushed_and_change_nothing(sim: SimulatedBlocks, fit: BlockFit,
-                                                  monkeypatch: pytest.MonkeyPatch) -> None:
-    if not flush_denormals():
+def test_denormals_are_flushed_during_a_fit_alone_and_change_nothing(sim: SimulatedBlocks, fit: BlockFit,
+                                                                     monkeypatch: pytest.MonkeyPatch) -> None:
+    if not torch.set_flush_denormal(False):
         pytest.skip("this CPU cannot flush denormal floats")
+    during = []
+    batch = blocks.fit_free_batch
+
+    def recorded(*args, **kwargs):
+        during.append(flushing_denormals())
+        return batch(*args, **kwargs)
+
+    monkeypatch.setattr(blocks, "fit_free_batch", recorded)
     solved = _in_thread(lambda: fit_blocks(sim.image, sim.H0, SEGMENTS, K, SETTINGS))
-    assert solved["denormal"] == 0.0  # the solver flushed them in its thread
-    monkeypatch.setattr(blocks, "flush_denormals", lambda: False)
+    assert during and all(during) and solved["kept_after"]  # flushed inside, the thread's own after
+    monkeypatch.setattr(blocks, "_fit", blocks._fit.__wrapped__)  # the solver without flushing
     kept = _in_thread(lambda: fit_blocks(sim.image, sim.H0, SEGMENTS, K, SETTINGS))
-    assert kept["denormal"] > 0.0
+    assert not during[-1]
     for other in (solved["fit"], kept["fit"]):
         assert np.abs(other.centre - fit.centre).max() < 1e-4
         assert np.abs(other.psf - fit.psf).max() < 1e-5

@@ -73,7 +73,7 @@ from typing import Literal
 import numpy as np
 import torch
 
-from blurcalib.deconv.convolution import flush_denormals
+from blurcalib.deconv.convolution import denormals_flushed
 from blurcalib.deconv.problem import BlockProblem
 from blurcalib.deconv.result import BlockFit, BlockModel
 from blurcalib.deconv.schedule import BatchFit, fit_fixed_batch, fit_free_batch, fit_hinted_batch
@@ -160,11 +160,11 @@ def fit_blocks_fixed(image: np.ndarray, H0: np.ndarray, num_segments: int, psfs:
     return _fit(image, H0, num_segments, check_kernel_size(K), settings, pixel_mask, "fixed", psfs)
 
 
+@denormals_flushed
 def _fit(image: np.ndarray, H0: np.ndarray, num_segments: int, K: int, settings: DeconvSettings | None,
          pixel_mask: np.ndarray | None, start: PsfStart, kernels: np.ndarray | None) -> BlockFit:
     """The fit of :func:`fit_blocks` with its PSFs started as ``start`` says (``kernels (B, K, K)``
     the hints or the given PSFs)."""
-    flush_denormals()
     s = settings or DeconvSettings()
     img_np = np.asarray(image)
     if img_np.ndim != 2:

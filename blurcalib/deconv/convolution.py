@@ -2,6 +2,10 @@
 
 from __future__ import annotations
 
+import functools
+from collections.abc import Callable
+from typing import ParamSpec, TypeVar
+
 import torch
 import torch.nn.functional as nnf
 
@@ -12,18 +16,42 @@ multiply-add and the FFT at 7-10 ns per point of its grid (9 channels of 7-24 bl
 of 13-51 px, grids of 50-144 px)."""
 
 
-def flush_denormals() -> bool:
-    """Flush denormal floats to zero in the calling thread (x86 FTZ/DAZ); False where the CPU
-    lacks them (nothing changes). The block solver, the field fit and the extraction of a frame
-    call it first, and the setting stays with the thread (and the threads it starts).
+P = ParamSpec("P")
+R = TypeVar("R")
+
+
+def denormals_flushed(func: Callable[P, R]) -> Callable[P, R]:
+    """Run ``func`` with denormal floats flushed to zero in the calling thread (x86 FTZ/DAZ,
+    ``torch.set_flush_denormal``), and give the thread its own setting back after it. The block
+    solver, the field fit and the extraction of a frame run so.
 
     A float32 kernel cast from the float64 kernel solve holds entries below 1.2e-38 (5 % of the
     entries in heavy frame 4 of ``scripts/bench_yield.py``), and each multiply-add of the
     direct convolution with one runs through the CPU's slow path: that frame's direct
     convolutions took 2.9 s of CPU with them and 0.53 s flushed, with the same features. Values
-    that small are zero for grey levels.
+    that small are zero for grey levels; other code of the thread (a float64 round trip of the
+    smallest doubles) may need them, hence the restore.
     """
-    return torch.set_flush_denormal(True)
+    @functools.wraps(func)
+    def run(*args: P.args, **kwargs: P.kwargs) -> R:
+        if flushing_denormals():
+            return func(*args, **kwargs)
+        torch.set_flush_denormal(True)
+        try:
+            return func(*args, **kwargs)
+        finally:
+            torch.set_flush_denormal(False)
+
+    return run
+
+
+def flushing_denormals() -> bool:
+    """Whether the calling thread flushes denormal floats to zero."""
+    return float(torch.tensor([_DENORMAL], dtype=torch.float32)[0] * 1.0) == 0.0
+
+
+_DENORMAL = 1e-39
+"""A float32 denormal (below 1.18e-38)."""
 
 
 def fft_size(n: int) -> int:

@@ -38,7 +38,7 @@ from pathlib import Path
 
 import numpy as np
 
-from blurcalib.deconv.convolution import flush_denormals
+from blurcalib.deconv.convolution import denormals_flushed
 from blurcalib.deconv.settings import DeconvSettings
 from blurcalib.extract.local_alignment import LocalAlignment, align_locally, shared_corners
 from blurcalib.extract.noise import NoiseModel, frame_noise
@@ -244,6 +244,7 @@ def mean_stage_seconds(results: Sequence[FrameResult]) -> dict[str, float]:
     return {k: float(np.mean([s.get(k, 0.0) for s in stages])) for k in names}
 
 
+@denormals_flushed
 def extract_frame(image: np.ndarray, pattern: StarPattern, frame: str,
                   settings: ExtractSettings | None = None, H_feature: np.ndarray | None = None,
                   on_event: Callable[[GrowthEvent], None] | None = None,
@@ -259,11 +260,9 @@ def extract_frame(image: np.ndarray, pattern: StarPattern, frame: str,
         on_event: per-block growth callback (for live display).
         should_stop: polled between growth fronts.
 
-    The frame is computed with denormal floats flushed to zero in the calling thread
-    (:func:`blurcalib.deconv.convolution.flush_denormals`), its seeding too, whichever frame of
-    the thread it is.
+    The frame, its seeding too, is computed with denormal floats flushed to zero
+    (:func:`blurcalib.deconv.convolution.denormals_flushed`).
     """
-    flush_denormals()
     settings = settings or ExtractSettings()
     t0 = time.perf_counter()
     try:

@@ -40,7 +40,7 @@ import cv2
 import numpy as np
 import torch
 
-from blurcalib.deconv.convolution import flush_denormals
+from blurcalib.deconv.convolution import denormals_flushed
 from blurcalib.deconv.latent import update_homography
 from blurcalib.deconv.problem import BlockProblem
 from blurcalib.deconv.settings import DeconvSettings
@@ -432,6 +432,7 @@ def _fit_window(start: PathField, centres: np.ndarray, largest: int) -> int:
     return min(K, largest - 1 + largest % 2)
 
 
+@denormals_flushed
 def fit_path_field(image: np.ndarray, H0: np.ndarray, num_segments: int, start: PathField,
                    deconv: DeconvSettings | None = None, settings: FieldSettings | None = None,
                    pixel_mask: np.ndarray | None = None, features: np.ndarray | None = None) -> FieldFit:
@@ -470,7 +471,6 @@ def fit_path_field(image: np.ndarray, H0: np.ndarray, num_segments: int, start: 
         ValueError: no block can be fitted (all windows outside the image or degenerate), or,
             tied, fewer than 4 blocks.
     """
-    flush_denormals()
     fs = settings or FieldSettings()
     H0 = np.asarray(H0, dtype=np.float64).reshape(-1, 3, 3)
     if features is not None:
