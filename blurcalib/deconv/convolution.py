@@ -16,11 +16,19 @@ multiply-add and the FFT at 7-10 ns per point of its grid (9 channels of 7-24 bl
 of 13-51 px, grids of 50-144 px)."""
 
 
-P = ParamSpec("P")
-R = TypeVar("R")
+_P = ParamSpec("_P")
+_R = TypeVar("_R")
+
+_DENORMAL = 1e-39
+"""A float32 denormal (below 1.18e-38)."""
 
 
-def denormals_flushed(func: Callable[P, R]) -> Callable[P, R]:
+def flushing_denormals() -> bool:
+    """Whether the calling thread flushes denormal floats to zero."""
+    return float(torch.tensor([_DENORMAL], dtype=torch.float32)[0] * 1.0) == 0.0
+
+
+def denormals_flushed(func: Callable[_P, _R]) -> Callable[_P, _R]:
     """Run ``func`` with denormal floats flushed to zero in the calling thread (x86 FTZ/DAZ,
     ``torch.set_flush_denormal``), and give the thread its own setting back after it. The block
     solver, the field fit and the extraction of a frame run so.
@@ -33,7 +41,7 @@ def denormals_flushed(func: Callable[P, R]) -> Callable[P, R]:
     smallest doubles) may need them, hence the restore.
     """
     @functools.wraps(func)
-    def run(*args: P.args, **kwargs: P.kwargs) -> R:
+    def run(*args: _P.args, **kwargs: _P.kwargs) -> _R:
         if flushing_denormals():
             return func(*args, **kwargs)
         torch.set_flush_denormal(True)
@@ -43,15 +51,6 @@ def denormals_flushed(func: Callable[P, R]) -> Callable[P, R]:
             torch.set_flush_denormal(False)
 
     return run
-
-
-def flushing_denormals() -> bool:
-    """Whether the calling thread flushes denormal floats to zero."""
-    return float(torch.tensor([_DENORMAL], dtype=torch.float32)[0] * 1.0) == 0.0
-
-
-_DENORMAL = 1e-39
-"""A float32 denormal (below 1.18e-38)."""
 
 
 def fft_size(n: int) -> int:
