@@ -582,8 +582,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", required=True, help="output folder (resumable: done frames are skipped)")
     p.add_argument("--kind", choices=["auto", "sharp", "blurry"], default="auto",
                    help="auto: each frame is sharp or blurry by its own measured blur (--sharp-below); "
-                        "sharp: small PSF window (7 px) and sharp-frame flags; blurry: a window that "
-                        "fits the blur (%(default)s)")
+                        f"sharp: small PSF window ({SHARP_START} px) and sharp-frame flags; "
+                        "blurry: a window that fits the blur (%(default)s)")
     p.add_argument("--sharp", action="store_true", help="the same as --kind sharp")
     p.add_argument("--psf-size", type=int, default=0,
                    help=f"PSF window side, odd px ({WindowPolicy.start} blurry frames, {SHARP_START} sharp)")

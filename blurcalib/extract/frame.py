@@ -140,9 +140,10 @@ class ExtractSettings:
 
     @staticmethod
     def sharp(**changes) -> ExtractSettings:
-        """Settings for sharp frames: the same engine with a small (7 x 7) PSF window and free
-        PSFs only (no motion-path field: a sharp frame's PSF is its defocus; 4 of the demo's 20
-        sharp frames adapt their window, and their features stay as measured before the field)."""
+        """Settings for sharp frames: the same engine with a small PSF window
+        (:data:`blurcalib.growth.window.SHARP_START`, 9 x 9) and free PSFs only (no motion-path
+        field: a sharp frame's PSF is its defocus; 2 of the demo's 20 sharp frames adapt their
+        window, and their features stay as measured before the field)."""
         return replace(ExtractSettings(window=WindowPolicy(start=SHARP_START),
                                        grow=GrowSettings(psf_field=False), kind="sharp"), **changes)
 

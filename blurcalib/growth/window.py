@@ -29,8 +29,11 @@ from blurcalib.growth.settings import GrowSettings
 from blurcalib.io.results import BlockStatus
 from blurcalib.psf.kernel import blur_extent, blur_per_square
 
-SHARP_START = 7
-"""Start window of sharp frames (px)."""
+SHARP_START = 9
+"""Start window of sharp frames (px): 1.5 x (:attr:`WindowPolicy.per_extent`) the 5 px blur extent
+below which a frame is classified sharp, rounded up to odd, so it holds the PSF of any frame
+classified sharp. A 7 px window, which the PSFs of the real fixture frames (3.3-3.7 px of blur)
+reach, adapted on every real frame and cost 3.6-3.7 x the CPU (docs/deconvolution.md)."""
 
 
 @dataclass(frozen=True)

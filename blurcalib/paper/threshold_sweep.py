@@ -175,7 +175,8 @@ def sharp_observations_from_truth(sim: Simulator, indices: Sequence[int], noise_
 
 def sharp_observations_extracted(sim: Simulator, indices: Sequence[int], device: str,
                                  progress: Callable[[str], None] | None = None) -> FeatureTable:
-    """Sharp-frame star centres from rendering and extracting the frames (7 x 7 PSF window)."""
+    """Sharp-frame star centres from rendering and extracting the frames with the sharp settings
+    (:meth:`ExtractSettings.sharp`)."""
     settings = ExtractSettings.sharp(deconv=DeconvSettings(device=device))
     out = []
     for index in indices:
