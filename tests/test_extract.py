@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 import blurcalib.extract.frame as extract_module
+import blurcalib.growth.grow as grow_module
 from blurcalib.camera.parametric import BrownConrady
 from blurcalib.deconv.settings import DeconvSettings
 from blurcalib.extract.frame import (
@@ -23,6 +24,7 @@ from blurcalib.extract.frame import (
 )
 from blurcalib.extract.local_alignment import align_locally, shared_corners
 from blurcalib.geometry.homography import apply_homography, homography_centre, translation
+from blurcalib.growth.fronts import refine_ring
 from blurcalib.growth.seed import (
     SeedError,
     block_homography,
@@ -419,6 +421,26 @@ def test_auto_kind_classifies_each_frame_by_its_blur(sim: Simulator, sharp_frame
     assert np.all(sharp.features.flags & int(FeatureFlags.SHARP_FRAME))
     assert np.all(blurry.features.flags & int(FeatureFlags.BLURRY_FRAME))
     assert sharp.growth.fit.kernel_size == SHARP_START and blurry.growth.fit.kernel_size >= 17
+
+
+@pytest.mark.slow
+def test_a_ring_that_reads_sharp_on_its_first_fit_is_not_refitted_with_the_blurry_window(
+        sim: Simulator, sharp_frame, blurry_frame, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Classifying a frame needs the ring's blur only: a sharp frame's blurry probe ends after the
+    ring's first fit, and only its sharp growth re-fits the ring from the tag ring's homography."""
+    refits: list[int] = []
+
+    def counted(*args, **kwargs):
+        refits.append(args[4])  # the window policy: which growth re-fits the ring
+        return refine_ring(*args, **kwargs)
+
+    monkeypatch.setattr(grow_module, "refine_ring", counted)
+    auto = ExtractSettings.auto()
+    sharp = extract_frame(sharp_frame.image, sim.pattern, "s.png", auto)
+    assert sharp.kind == "sharp" and [w.start for w in refits] == [SHARP_START]
+    refits.clear()
+    blurry = extract_frame(blurry_frame.image, sim.pattern, "b.png", auto)
+    assert blurry.kind == "blurry" and [w.start for w in refits] == [auto.window.start]
 
 
 def _shifted(image: np.ndarray, dx: float, dy: float) -> np.ndarray:

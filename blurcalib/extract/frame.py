@@ -277,13 +277,17 @@ def extract_frame(image: np.ndarray, pattern: StarPattern, frame: str,
 
 
 def ring_blur(growth: Growth | None) -> float:
-    """A frame's measured blur (px): the median blur extent ``sqrt(12) sigma_major``
-    (:func:`blurcalib.psf.kernel.blur_extent`) of the accepted blocks of the growth's first front (the
-    ring around the tag, or the first blocks of a given seed); NaN when none was accepted."""
+    """A frame's measured blur (px): :func:`median_extent` of the accepted blocks of the growth's
+    first front (the ring around the tag, or the first blocks of a given seed)."""
     if growth is None:
         return math.nan
-    sigma = growth.fit.sigma_major[(growth.front == 0) & growth.accepted]
-    sigma = sigma[np.isfinite(sigma)]
+    return median_extent(growth.fit.sigma_major[(growth.front == 0) & growth.accepted])
+
+
+def median_extent(sigma_major: np.ndarray) -> float:
+    """The median blur extent ``sqrt(12) sigma_major`` (:func:`blurcalib.psf.kernel.blur_extent`,
+    px) of PSFs of second moments ``sigma_major (A,)`` (px); NaN when none is finite."""
+    sigma = sigma_major[np.isfinite(sigma_major)]
     return float(np.median(blur_extent(sigma))) if sigma.size else math.nan
 
 
@@ -300,8 +304,8 @@ def grow_frame(image: np.ndarray, pattern: StarPattern, frame: str, seed: Seed,
     noise = frame_noise(image)
     auto = settings.kind == "auto"
 
-    def blurry(first: Growth) -> bool:  # a sharp first front ends the blurry growth there
-        return not ring_blur(first) < settings.sharp_below_px
+    def blurry(sigma_major: np.ndarray) -> bool:  # a sharp first front ends the blurry growth there
+        return not median_extent(sigma_major) < settings.sharp_below_px
 
     growth = grow(image, pattern, seed, used.window, used.deconv, used.grow, on_event, should_stop, noise,
                   blurry if auto else None)

@@ -54,7 +54,7 @@ def grow(image: np.ndarray, pattern: StarPattern, seed: Seed, window: WindowPoli
          deconv: DeconvSettings | None = None, settings: GrowSettings | None = None,
          on_event: Callable[[GrowthEvent], None] | None = None,
          should_stop: Callable[[], bool] | None = None, noise: NoiseModel | None = None,
-         go_on: Callable[[Growth], bool] | None = None) -> Growth | None:
+         go_on: Callable[[np.ndarray], bool] | None = None) -> Growth | None:
     """Grow from ``seed`` over the frame ``image`` ``(H, W)`` (grey levels).
 
     Args:
@@ -70,9 +70,12 @@ def grow(image: np.ndarray, pattern: StarPattern, seed: Seed, window: WindowPoli
         noise: the frame's noise (:func:`blurcalib.extract.noise.estimate_noise`): the loss limit
             :attr:`GrowSettings.max_loss` grows with its variance at the frame's level above the
             reference (:func:`blurcalib.extract.quality.noise_scale`); None keeps it as given.
-        go_on: called once with the growth of the first front; when it returns False the growth
-            ends there and is returned as it is (no field, final fit or second judgement), e.g.
-            once the first front shows a sharp frame that is to be grown with other settings.
+        go_on: called with ``sigma_major (A,)`` (px) of the accepted blocks of the first front's
+            first fit and, when it returned True, once more with those of the first front as
+            judged (after the tag ring's re-fit); when it returns False the growth ends with
+            that fit as its first front and is returned as it is (no field, final fit or second
+            judgement), e.g. when the first front shows a sharp frame that is to be grown with
+            other settings (the ring's re-fit is then saved where its first fit shows it).
     Returns:
         The growth, or None when not a single block could be attempted; its
         :attr:`Growth.seconds` holds the stages' wall times.
@@ -94,12 +97,14 @@ def grow(image: np.ndarray, pattern: StarPattern, seed: Seed, window: WindowPoli
     state = FrameWindow(window.start)
     ledger = GrowthLedger(pattern, on_event)
     front_index = 0
+    stop = False  # go_on ended the growth after the ring's first fit
     while front_ids and len(ledger) < settings.max_blocks:
         if should_stop is not None and should_stop():
             break
         H0 = np.stack(front_H)
         if state.adaptive is None:
-            H0, fit = _first_fit(image, pattern, seed, front_ids, H0, tag, state, window, deconv, settings)
+            H0, fit, stop = _first_fit(image, pattern, seed, front_ids, H0, tag, state, window, deconv,
+                                       settings, go_on)
         elif state.adaptive:
             hint = psf_hint(ledger.accepted_psf, front_src, state.size, settings)
             first = fit_hinted(image, H0, N, state.size, deconv, pixel_mask(tag, state.size, state.footprint),
@@ -124,7 +129,7 @@ def grow(image: np.ndarray, pattern: StarPattern, seed: Seed, window: WindowPoli
         ledger.add_fits(fit)
         front_ids, front_H, front_src = next_front(pattern, ledger.accepted_H, ledger.row, newly_accepted)
         front_index += 1
-        if front_index == 1 and go_on is not None and not go_on(ledger.growth()):
+        if front_index == 1 and go_on is not None and (stop or not go_on(fit.sigma_major[accepted_rows])):
             growth = ledger.growth()
             growth.seconds = {"free": time.perf_counter() - t0}
             return growth
@@ -157,11 +162,13 @@ def grow(image: np.ndarray, pattern: StarPattern, seed: Seed, window: WindowPoli
 
 def _first_fit(image: np.ndarray, pattern: StarPattern, seed: Seed, front_ids: list[int], H0: np.ndarray,
                tag: np.ndarray, state: FrameWindow, window: WindowPolicy, deconv: DeconvSettings,
-               settings: GrowSettings) -> tuple[np.ndarray, BlockFit]:
+               settings: GrowSettings, go_on: Callable[[np.ndarray], bool] | None
+               ) -> tuple[np.ndarray, BlockFit, bool]:
     """The first front's fit from its predictions ``H0 (B, 3, 3)``, which decides ``state``
     (whether the window adapts, the frame is heavily blurred, the blur's footprint); with a tag,
-    the ring re-fitted from its first fit (:func:`blurcalib.growth.fronts.refine_ring`).
-    Returns the predictions and the fit."""
+    the ring re-fitted from its first fit (:func:`blurcalib.growth.fronts.refine_ring`) unless
+    ``go_on`` (:func:`grow`'s) ends the growth after the first fit.
+    Returns the predictions, the fit and whether the growth ends there."""
     N = pattern.num_star_segments
     fit = fit_blocks(image, H0, N, window.start, deconv, pixel_mask(tag, window.start))
     state.adaptive = needs_adaptive_window(fit, settings)
@@ -173,9 +180,14 @@ def _first_fit(image: np.ndarray, pattern: StarPattern, seed: Seed, front_ids: l
         seed_blur = seed.blur[0] if math.isfinite(seed.blur[0]) else 0.0
         extent = max(fit.kernel_size / window.per_extent, seed_blur)
         state.footprint = blur_footprint(fit, extent)
+    if go_on is not None:
+        statuses = judge_front(fit, H0, settings, np.zeros(len(H0), dtype=bool))
+        accepted = np.array([st is BlockStatus.ACCEPTED for st in statuses], dtype=bool)
+        if not go_on(fit.sigma_major[accepted]):
+            return H0, fit, True
     if seed.source == "tag":
         refined = refine_ring(image, pattern, front_ids, fit, window, deconv, settings, tag, state.adaptive,
                               state.footprint)
         if refined is not None:
-            return refined
-    return H0, fit
+            return *refined, False
+    return H0, fit, False
