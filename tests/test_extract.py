@@ -428,10 +428,10 @@ def test_a_ring_that_reads_sharp_on_its_first_fit_is_not_refitted_with_the_blurr
         sim: Simulator, sharp_frame, blurry_frame, monkeypatch: pytest.MonkeyPatch) -> None:
     """Classifying a frame needs the ring's blur only: a sharp frame's blurry probe ends after the
     ring's first fit, and only its sharp growth re-fits the ring from the tag ring's homography."""
-    refits: list[int] = []
+    refits: list[WindowPolicy] = []
 
     def counted(*args, **kwargs):
-        refits.append(args[4])  # the window policy: which growth re-fits the ring
+        refits.append(args[4])  # the growth's window policy: which growth re-fits the ring
         return refine_ring(*args, **kwargs)
 
     monkeypatch.setattr(grow_module, "refine_ring", counted)
