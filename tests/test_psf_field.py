@@ -12,10 +12,12 @@ import pytest
 import torch
 
 from blurcalib.deconv.blocks import fit_blocks, fit_blocks_fixed
+from blurcalib.deconv.problem import BlockProblem
 from blurcalib.deconv.settings import DeconvSettings
 from blurcalib.geometry.homography import homography_centre, translation
 from blurcalib.growth.seed import block_homography
 from blurcalib.io.results import BlockStatus
+from blurcalib.psf import field
 from blurcalib.psf.field import PathField, constant_field, fit_path_field, path_kernels
 from blurcalib.psf.kernel import psf_centroid
 from blurcalib.sim.blocks import simulate_blocks
@@ -135,6 +137,42 @@ def test_field_fit_recovers_the_field_and_the_blocks() -> None:
     err = np.linalg.norm(homography_centre(fit.H) - sim.centre_true, axis=1)
     assert np.median(err) < 0.06 and err.max() < 0.3, err
     assert fit.objective[-1] < 0.5 * fit.objective[0]
+
+
+def test_field_fit_keeps_its_latent_while_the_blocks_are_held_and_lands_where_recomputing_does(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """While the blocks' homographies are held the fit reuses their latent pattern and its
+    transform (one latent per held phase); the fit that recomputes them at every evaluation
+    takes the same steps to the same field and blocks."""
+    sim, _ = _long_blur_blocks(5, FIELD)
+    centres = homography_centre(sim.H_true)
+    start = constant_field(FIELD.with_degree(0).kernels(centres[:1], 45), FIELD.image_size, 1)
+    computed = []  # (homographies, with their derivatives) of each latent computed
+    latent = BlockProblem.latent
+
+    def counted(self, H_loc, with_jac):
+        computed.append((H_loc, with_jac))
+        return latent(self, H_loc, with_jac)
+
+    monkeypatch.setattr(BlockProblem, "latent", counted)
+    kept = fit_path_field(sim.image.astype(np.float32), sim.H0, SEGMENTS, start)
+    held = [with_jac for H_loc, with_jac in computed if H_loc is computed[0][0]]
+    assert held == [False, True]  # the held phase's one latent, then its derivatives for the next
+    kept_computed = len(computed)
+    computed.clear()
+    keep = field._FieldProblem.latent
+
+    def fresh(self, H_loc, with_jac):
+        self._latent = None
+        return keep(self, H_loc, with_jac)
+
+    monkeypatch.setattr(field._FieldProblem, "latent", fresh)
+    again = fit_path_field(sim.image.astype(np.float32), sim.H0, SEGMENTS, start)
+    assert len(computed) > kept_computed
+    assert kept.iterations == again.iterations
+    np.testing.assert_allclose(kept.objective, again.objective, rtol=1e-6)
+    np.testing.assert_allclose(kept.field.coeffs, again.field.coeffs, atol=1e-6)
+    np.testing.assert_allclose(kept.H, again.H, atol=1e-6)
 
 
 def _render_plane(pattern: StarPattern, H: np.ndarray, size: tuple[int, int], kernel: np.ndarray,

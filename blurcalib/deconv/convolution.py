@@ -86,13 +86,23 @@ def kernel_spectrum(k: torch.Tensor, grid: tuple[int, int]) -> torch.Tensor:
     return torch.fft.rfft2(k[:, None] if k.ndim == 3 else k, s=grid)
 
 
-def valid_convolution(L: torch.Tensor, k: torch.Tensor, spectrum: torch.Tensor | None = None) -> torch.Tensor:
+def latent_spectrum(L: torch.Tensor, K: int) -> torch.Tensor | None:
+    """The transform of latent channels ``L (b, C, Hl, Wl)`` on the FFT grid of their valid
+    convolution with ``K x K`` kernels (:func:`fft_grid`), ``(b, C, rows, cols // 2 + 1)``, for
+    :func:`valid_convolution`; None where that convolution is direct."""
+    grid = fft_grid(tuple(L.shape[-2:]), K)
+    return None if grid is None else torch.fft.rfft2(L, s=grid)
+
+
+def valid_convolution(L: torch.Tensor, k: torch.Tensor, spectrum: torch.Tensor | None = None,
+                      latent: torch.Tensor | None = None) -> torch.Tensor:
     """Valid convolution ``(k * L)`` of latent channels ``L (b, C, Hl, Wl)`` -> ``(b, C, h, w)``,
     ``h = Hl - 2c``, ``w = Wl - 2c`` (``c`` the kernel radius).
 
     ``k`` is ``(b, K, K)`` (one kernel for every channel of a block) or ``(b, C, K, K)`` (one
     per channel; ``L`` may then have one channel, shared); ``spectrum`` its
-    :func:`kernel_spectrum` when computed already (kernels held through several convolutions).
+    :func:`kernel_spectrum` and ``latent`` ``L``'s :func:`latent_spectrum` when computed already
+    (kernels held through several convolutions, latent channels convolved with several kernels).
     Direct where :func:`fft_grid` says so: one depthwise ``conv2d`` over the ``b C`` channels (a
     correlation, so with the kernel flipped). Otherwise circular FFT convolution on a grid of at
     least ``(Hl, Wl)`` (5-smooth sides, the fast FFT sizes): the wrap-around only reaches the
@@ -111,5 +121,6 @@ def valid_convolution(L: torch.Tensor, k: torch.Tensor, spectrum: torch.Tensor |
         out = nnf.conv2d(L.reshape(1, b * C, Hl, Wl), weight, groups=b * C)
         return out.reshape(b, C, h, w)
     kf = kernel_spectrum(k, grid) if spectrum is None else spectrum
-    out = torch.fft.irfft2(torch.fft.rfft2(L, s=grid) * kf, s=grid)
+    lf = torch.fft.rfft2(L, s=grid) if latent is None else latent
+    out = torch.fft.irfft2(lf * kf, s=grid)
     return out[..., r2:r2 + h, r2:r2 + w]

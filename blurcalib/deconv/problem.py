@@ -197,11 +197,12 @@ class BlockProblem:
         return latent_pattern(H_loc, (self.Hl, self.Wl), self.N, self.s.tau, self.s.supersample, self.dt,
                               with_jac)
 
-    def conv(self, L: torch.Tensor, k: torch.Tensor, spectrum: torch.Tensor | None = None) -> torch.Tensor:
+    def conv(self, L: torch.Tensor, k: torch.Tensor, spectrum: torch.Tensor | None = None,
+             latent: torch.Tensor | None = None) -> torch.Tensor:
         """Valid convolution ``(k * L)`` of latent channels ``(b, C, Hl, Wl)`` -> ``(b, C, h, w)``
-        (:func:`blurcalib.deconv.convolution.valid_convolution`; ``spectrum`` the kernels'
-        transform when known)."""
-        return valid_convolution(L, k, spectrum)
+        (:func:`blurcalib.deconv.convolution.valid_convolution`; ``spectrum`` the kernels' and
+        ``latent`` ``L``'s transform when known)."""
+        return valid_convolution(L, k, spectrum, latent)
 
     def square_mask(self, H_loc: torch.Tensor) -> torch.Tensor:
         """Observed pixels of the loss, ``|q|_inf <= e`` (the block's square for ``e = 1``; ``e``

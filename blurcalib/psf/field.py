@@ -40,7 +40,7 @@ import cv2
 import numpy as np
 import torch
 
-from blurcalib.deconv.convolution import denormals_flushed
+from blurcalib.deconv.convolution import denormals_flushed, latent_spectrum
 from blurcalib.deconv.latent import update_homography
 from blurcalib.deconv.problem import BlockProblem
 from blurcalib.deconv.settings import DeconvSettings
@@ -301,6 +301,24 @@ class _FieldProblem:
         self.mask = self.prob.square_mask(self.H_loc).to(self.prob.dt)  # held through the fit
         self.basis = torch.as_tensor(basis[r], dtype=self.prob.dt, device=dev)
         self.one = torch.ones_like(self.prob.u_e)
+        self._latent: tuple[torch.Tensor, torch.Tensor, torch.Tensor | None] | None = None
+
+    def latent(self, H_loc: torch.Tensor, with_jac: bool
+               ) -> tuple[torch.Tensor, torch.Tensor | None, torch.Tensor | None]:
+        """The latent channels ``(b, C, Hl, Wl)`` at ``H_loc`` (``S``, then with ``with_jac`` its 8
+        derivatives), ``S``'s derivatives or None, and the channels' transform
+        (:func:`blurcalib.deconv.convolution.latent_spectrum`; None where the convolutions are
+        direct). The last result is kept for the same ``H_loc`` tensor: while the blocks'
+        homographies are held (:attr:`FieldSettings.hold_steps`) every evaluation reuses it."""
+        held = self._latent
+        if held is not None and held[0] is H_loc and (held[1].shape[1] > 1 or not with_jac):
+            chans, spec = held[1], held[2]
+        else:
+            S, dS = self.prob.latent(H_loc, with_jac=with_jac)
+            chans = S[:, None] if dS is None else torch.cat([S[:, None], dS], dim=1)
+            spec = latent_spectrum(chans, self.prob.K)
+            self._latent = (H_loc, chans, spec)
+        return chans, (chans[:, 1:] if with_jac else None), spec
 
     def evaluate(self, H_loc: torch.Tensor, bright: torch.Tensor | None, coeffs: torch.Tensor,
                  log_sigma: torch.Tensor, with_jac: bool, with_h: bool = True) -> dict[str, torch.Tensor]:
@@ -312,8 +330,10 @@ class _FieldProblem:
         dt = pb.dt
         theta = torch.cat([self.basis @ coeffs.to(dt), log_sigma.to(dt).expand(b, 1)], dim=1)
         k, dk = path_kernels(theta, pb.K, with_jac)
-        S, dS = pb.latent(H_loc, with_jac=with_jac and with_h)
-        conv = pb.conv(S[:, None] if dS is None else torch.cat([S[:, None], dS], dim=1), k)
+        chans, dS, spec = self.latent(H_loc, with_jac=with_jac and with_h)
+        if dS is None:
+            chans, spec = chans[:, :1], None if spec is None else spec[:, :1]
+        conv = pb.conv(chans, k, latent=spec)
         C, u, v = conv[:, 0], pb.u_e, pb.v_e
         lin = torch.stack([u * C, v * C, C, u, v, self.one], dim=1) * self.mask[:, None]  # (b, 6, h, w)
         if bright is None:
@@ -328,7 +348,8 @@ class _FieldProblem:
         out = {"r": r, "bright": bright}
         if with_jac:
             A = (p[:, 0, None, None] * u + p[:, 1, None, None] * v + p[:, 2, None, None]) * self.mask
-            dC = pb.conv(S[:, None], dk) * A[:, None]  # (b, 5, h, w): d model / d theta
+            # (b, 5, h, w): d model / d theta
+            dC = pb.conv(chans[:, :1], dk, latent=None if spec is None else spec[:, :1]) * A[:, None]
             out["Jl"] = torch.cat([conv[:, 1:] * A[:, None], lin], dim=1).flatten(2)
             Jt = dC.reshape(b, _NUM_THETA, -1)
             shared = (Jt[:, None, :4] * self.basis[:, :, None, None]).reshape(b, -1, Jt.shape[-1])
