@@ -46,6 +46,21 @@ def test_the_estimate_tracks_the_simulated_noise(rendered, white: float, electro
     assert black < model.level < white and abs(model.level - mid) < 0.3 * (white - black)
 
 
+@pytest.mark.parametrize(("electrons", "read"), [(2000.0, 0.1), (1e6, 0.05)])
+def test_a_frame_of_whole_grey_levels_below_a_grey_level_of_noise_reads_its_quantisation(
+        rendered, electrons: float, read: float) -> None:
+    """A clean camera (0.29-0.38 grey levels of noise with the rounding to whole levels): its flat
+    areas quantise to one level, and the estimate is still the noise at the frame's level (within
+    25 %), not 0."""
+    irradiance, truth = rendered
+    truth = dataclasses.replace(truth, levels=(30.0, 200.0), noise=(1.0 / electrons, read))
+    image = render.sensor_image(irradiance, truth, np.random.default_rng(1)).astype(np.float32)
+    assert np.array_equal(image, np.round(image))
+    model = estimate_noise(image)
+    true = np.sqrt(read**2 + 1.0 / 12.0 + model.level / electrons)
+    assert 0.75 < model.sigma / true < 1.25, (model, true)
+
+
 def test_highpass_residual_has_unit_gain_on_white_noise_and_cancels_planes() -> None:
     rng = np.random.default_rng(0)
     noise = rng.normal(0.0, 3.0, (300, 300))
