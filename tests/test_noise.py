@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 
+import cv2
 import numpy as np
 import pytest
 
@@ -51,14 +52,16 @@ def test_a_frame_of_whole_grey_levels_below_a_grey_level_of_noise_reads_its_quan
         rendered, electrons: float, read: float) -> None:
     """A clean camera (0.29-0.38 grey levels of noise with the rounding to whole levels): its flat
     areas quantise to one level, and the estimate is still the noise at the frame's level (within
-    25 %), not 0."""
+    25 %), not 0; the same through the float colour conversion of a video's frames."""
     irradiance, truth = rendered
     truth = dataclasses.replace(truth, levels=(30.0, 200.0), noise=(1.0 / electrons, read))
     image = render.sensor_image(irradiance, truth, np.random.default_rng(1)).astype(np.float32)
     assert np.array_equal(image, np.round(image))
-    model = estimate_noise(image)
-    true = np.sqrt(read**2 + 1.0 / 12.0 + model.level / electrons)
-    assert 0.75 < model.sigma / true < 1.25, (model, true)
+    true = np.sqrt(read**2 + 1.0 / 12.0 + estimate_noise(image).level / electrons)
+    colour = cv2.cvtColor(np.repeat(image[:, :, None], 3, axis=2), cv2.COLOR_BGR2GRAY)
+    for frame in (image, colour):
+        model = estimate_noise(frame)
+        assert 0.75 < model.sigma / true < 1.25, (model, true)
 
 
 def test_highpass_residual_has_unit_gain_on_white_noise_and_cancels_planes() -> None:

@@ -25,11 +25,11 @@ fitted and does not absorb the model errors the loss threshold is there to catch
    ``(1.4826 median |r|)^2`` (robust to the edges that remain);
 4. ``a, b`` by least squares on the bins' variances, weighted by their precision, ``a, b >= 0``.
 
-In a frame of whole grey levels (8- and 16-bit cameras) a bin's variance is at least the
-quantisation's, :data:`QUANTISATION_VAR`: where the noise before quantisation is well below a grey
-level, flat areas quantise to one level, the residual's median is 0 and such a bin would read no
-noise at all, at a precision that outweighed every other bin (a simulated frame of 0.38 grey
-levels of noise read 0.0; so did the real fixture frames).
+A bin's variance is at least that of rounding to whole grey levels of the 8-bit scale,
+:data:`QUANTISATION_VAR`: where a camera's noise is well below a grey level, flat areas round to
+one level (or, in a colour frame or a video, to one colour), the residual's median is 0 and such a
+bin would read no noise at all, at a precision that outweighed every other bin (a simulated frame
+of 0.38 grey levels of noise read 0.0; so did the real fixture frames, as images and as a video).
 """
 
 from __future__ import annotations
@@ -43,8 +43,10 @@ _MAD_TO_SIGMA = 1.4826
 """Standard deviation per median absolute deviation of a Gaussian."""
 
 QUANTISATION_VAR = 1.0 / 12.0
-"""Variance (grey levels^2) of rounding to whole grey levels: the least a bin of a frame of whole
-grey levels reads (:func:`estimate_noise`)."""
+"""Variance (grey levels^2) of rounding to whole grey levels of the 8-bit scale: the least a level
+bin reads (:func:`estimate_noise`). Frames come as 8-bit grey levels, or as colour or 16-bit
+ones rounded at least as finely; the loss limits do not fall below their values at 2 grey levels
+(:func:`blurcalib.extract.quality.noise_scale`), so the floor changes none of them."""
 
 
 @dataclass(frozen=True)
@@ -120,16 +122,15 @@ def estimate_noise(image: np.ndarray, bins: int = 12, clip: tuple[float, float] 
     if mu.size < 3 * bins * min_pixels:
         raise ValueError(f"too few unclipped pixels for a noise estimate: {mu.size}")
     order = np.argsort(mu, kind="stable")
-    floor = QUANTISATION_VAR if np.array_equal(img[ok], np.round(img[ok])) else 0.0
     levels, variances, weights = [], [], []
     for part in np.array_split(order, bins):
         flat = part[grad[part] <= np.quantile(grad[part], 1.0 / 3.0)]
         if flat.size < min_pixels:
             continue
-        var = max((_MAD_TO_SIGMA * float(np.median(np.abs(r[flat])))) ** 2, floor)
+        var = max((_MAD_TO_SIGMA * float(np.median(np.abs(r[flat])))) ** 2, QUANTISATION_VAR)
         levels.append(float(np.mean(mu[flat])))
         variances.append(var)
-        weights.append(flat.size / max(var, 1e-6) ** 2)  # precision of a variance ~ n / var^2
+        weights.append(flat.size / var**2)  # precision of a variance ~ n / var^2
     a, b = _fit_affine(np.array(levels), np.array(variances), np.array(weights))
     lo_level, hi_level = np.percentile(mu, [5.0, 95.0])
     return NoiseModel(a, b, float((lo_level + hi_level) / 2))
