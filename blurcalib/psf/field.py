@@ -303,22 +303,21 @@ class _FieldProblem:
         self.one = torch.ones_like(self.prob.u_e)
         self._latent: tuple[torch.Tensor, torch.Tensor, torch.Tensor | None] | None = None
 
-    def latent(self, H_loc: torch.Tensor, with_jac: bool
-               ) -> tuple[torch.Tensor, torch.Tensor | None, torch.Tensor | None]:
-        """The latent channels ``(b, C, Hl, Wl)`` at ``H_loc`` (``S``, then with ``with_jac`` its 8
-        derivatives), ``S``'s derivatives or None, and the channels' transform
-        (:func:`blurcalib.deconv.convolution.latent_spectrum`; None where the convolutions are
-        direct). The last result is kept for the same ``H_loc`` tensor: while the blocks'
-        homographies are held (:attr:`FieldSettings.hold_steps`) every evaluation reuses it."""
+    def latent(self, H_loc: torch.Tensor, with_jac: bool) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """The latent channels ``(b, C, Hl, Wl)`` at ``H_loc``: ``S``, then with ``with_jac`` its 8
+        derivatives; and their transform (:func:`blurcalib.deconv.convolution.latent_spectrum`;
+        None where the convolutions are direct). The last channels computed are kept for the same
+        ``H_loc`` tensor: while the blocks' homographies are held
+        (:attr:`FieldSettings.hold_steps`) every evaluation reuses them."""
         held = self._latent
-        if held is not None and held[0] is H_loc and (held[1].shape[1] > 1 or not with_jac):
-            chans, spec = held[1], held[2]
-        else:
+        if held is None or held[0] is not H_loc or (with_jac and held[1].shape[1] == 1):
             S, dS = self.prob.latent(H_loc, with_jac=with_jac)
             chans = S[:, None] if dS is None else torch.cat([S[:, None], dS], dim=1)
-            spec = latent_spectrum(chans, self.prob.K)
-            self._latent = (H_loc, chans, spec)
-        return chans, (chans[:, 1:] if with_jac else None), spec
+            held = self._latent = (H_loc, chans, latent_spectrum(chans, self.prob.K))
+        chans, spec = held[1], held[2]
+        if with_jac:
+            return chans, spec
+        return chans[:, :1], None if spec is None else spec[:, :1]
 
     def evaluate(self, H_loc: torch.Tensor, bright: torch.Tensor | None, coeffs: torch.Tensor,
                  log_sigma: torch.Tensor, with_jac: bool, with_h: bool = True) -> dict[str, torch.Tensor]:
@@ -330,9 +329,7 @@ class _FieldProblem:
         dt = pb.dt
         theta = torch.cat([self.basis @ coeffs.to(dt), log_sigma.to(dt).expand(b, 1)], dim=1)
         k, dk = path_kernels(theta, pb.K, with_jac)
-        chans, dS, spec = self.latent(H_loc, with_jac=with_jac and with_h)
-        if dS is None:
-            chans, spec = chans[:, :1], None if spec is None else spec[:, :1]
+        chans, spec = self.latent(H_loc, with_jac=with_jac and with_h)
         conv = pb.conv(chans, k, latent=spec)
         C, u, v = conv[:, 0], pb.u_e, pb.v_e
         lin = torch.stack([u * C, v * C, C, u, v, self.one], dim=1) * self.mask[:, None]  # (b, 6, h, w)
