@@ -24,7 +24,7 @@ from typing import Protocol
 import viser
 
 from blurcalib.argtypes import positive_int
-from blurcalib.pipeline.runtime import capped_count, configure_threads, keep_large_allocations
+from blurcalib.runs.runtime import capped_count, configure_threads, keep_large_allocations
 from state import AppState, RunSettings, default_dataset
 from state.alignment import AlignmentCache
 from state.calibration import CalibrationRunner, CalibrationSettings

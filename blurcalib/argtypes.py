@@ -7,7 +7,7 @@ import argparse
 import math
 
 from blurcalib.calib.rolling_shutter import parse_rolling_shutter
-from blurcalib.pipeline.cluster import ClusterError, check_address
+from blurcalib.runs.cluster import ClusterError, check_address
 from blurcalib.target.pattern import PAGE_SIZES_MM
 
 __all__ = ["cluster_address", "image_size", "page_size", "positive_int", "positive_number", "readout_ratio",
@@ -63,7 +63,7 @@ def positive_number(text: str) -> float:
 
 
 def cluster_address(text: str) -> str:
-    """A Dask scheduler address (:func:`blurcalib.pipeline.cluster.check_address`)."""
+    """A Dask scheduler address (:func:`blurcalib.runs.cluster.check_address`)."""
     try:
         return check_address(text)
     except ClusterError as exc:

@@ -35,13 +35,13 @@ from blurcalib.calib.joint import ROUTES, JointSettings
 from blurcalib.calib.rolling_shutter import RollingShutterSettings
 from blurcalib.calib.sequence import MODELS, SequenceSettings
 from blurcalib.calib.validation import ValidationMethod, ValidationSettings
-from blurcalib.extract.quality import LossMode, QualitySettings
+from blurcalib.growth.quality import LossMode, QualitySettings
 from blurcalib.growth.settings import FinalFitFrames, GrowSettings
 from blurcalib.growth.window import SHARP_START, WindowPolicy
 from blurcalib.io.atomic import OutputError, output_lock, storage_error
 from blurcalib.io.text import count
-from blurcalib.pipeline.cluster import ClusterError
-from blurcalib.pipeline.runtime import (
+from blurcalib.runs.cluster import ClusterError
+from blurcalib.runs.runtime import (
     DeviceError,
     available_cores,
     capped_count,
@@ -305,7 +305,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
         print(f"accuracy of the aligned blurry features against the true camera (pose refitted): "
               f"median over {count(len(acc), 'frame')} {med:.4f} px "
               f"(per frame {min(a.median for a in acc):.4f} to {max(a.median for a in acc):.4f} px)")
-    from blurcalib.pipeline.accuracy import camera_accuracy_lines
+    from blurcalib.sim.accuracy import camera_accuracy_lines
 
     print("\n".join(camera_accuracy_lines(out / "calibration", truth.camera)))
     return 0
@@ -313,7 +313,8 @@ def cmd_demo(args: argparse.Namespace) -> int:
 
 def cmd_extract(args: argparse.Namespace) -> int:
     """``blurcalib extract``: star features, PSFs and per-block figures from frames."""
-    from blurcalib.extract.frame import ExtractSettings, extract_to_folder
+    from blurcalib.extract.frame import ExtractSettings
+    from blurcalib.runs.folder import extract_to_folder
 
     pattern = load_pattern(args.pattern)
     paths = _frame_inputs(args)

@@ -25,7 +25,7 @@ import numpy as np
 from blurcalib.calib.sequence import SequenceSettings
 from blurcalib.calib.sharp import calibrate_sharp
 from blurcalib.extract.frame import ExtractSettings, extract_frame
-from blurcalib.extract.quality import QualitySettings
+from blurcalib.growth.quality import QualitySettings
 from blurcalib.io.frames import load_frame
 from blurcalib.io.results import FeatureTable, read_feature_table
 from blurcalib.pipeline.run import PipelineSettings, run_pipeline

@@ -15,7 +15,7 @@ from the scheduler's task stream). Wall times depend on the machine's load; CPU 
 
 The workers start with ``WORKER_MALLOC`` in their environment; ``--dask-malloc`` keeps Dask's
 default ``MALLOC_TRIM_THRESHOLD_=65536`` instead. Either way every task sets glibc's thresholds
-itself (:func:`blurcalib.pipeline.runtime.keep_large_allocations`, docs/cluster.md).
+itself (:func:`blurcalib.runs.runtime.keep_large_allocations`, docs/cluster.md).
 """
 
 from __future__ import annotations
@@ -27,8 +27,9 @@ from pathlib import Path
 
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 
-from blurcalib.extract.frame import ExtractSettings, extract_to_folder
-from blurcalib.pipeline.runtime import configure_threads
+from blurcalib.extract.frame import ExtractSettings
+from blurcalib.runs.folder import extract_to_folder
+from blurcalib.runs.runtime import configure_threads
 from blurcalib.target.pattern import load_pattern
 
 ROOT = Path(__file__).resolve().parents[1]

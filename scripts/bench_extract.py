@@ -35,7 +35,7 @@ from blurcalib.extract.frame import ExtractSettings, extract_frame, mean_stage_s
 from blurcalib.geometry.homography import homography_centre
 from blurcalib.io.frames import load_frame
 from blurcalib.io.refformat import read_ref_dataset
-from blurcalib.pipeline.runtime import keep_large_allocations
+from blurcalib.runs.runtime import keep_large_allocations
 from blurcalib.sim.synth import Simulator, SynthConfig
 from blurcalib.sim.truth import splat
 from blurcalib.target.pattern import load_pattern

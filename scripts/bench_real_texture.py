@@ -43,7 +43,7 @@ from blurcalib.extract.frame import ExtractSettings, extract_frame, mean_stage_s
 from blurcalib.growth.settings import GrowSettings
 from blurcalib.io.frames import load_frame
 from blurcalib.io.refformat import read_ref_dataset
-from blurcalib.pipeline.runtime import keep_large_allocations
+from blurcalib.runs.runtime import keep_large_allocations
 from blurcalib.sim.truth import splat
 from blurcalib.target.pattern import load_pattern
 

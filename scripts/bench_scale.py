@@ -87,7 +87,7 @@ def run_size(frames: int, blurry_share: float, noise_px: float, seed: int, devic
     from blurcalib.calib.joint import JointSettings, calibrate_generic
     from blurcalib.calib.sharp import calibrate_sharp
     from blurcalib.calib.trust import assess_calibration
-    from blurcalib.pipeline.runtime import keep_large_allocations
+    from blurcalib.runs.runtime import keep_large_allocations
     from blurcalib.sim.evaluate import camera_accuracy
 
     torch.set_num_threads(1)

@@ -40,9 +40,9 @@ def run(frames: int, seed: int, threads: int, device: str, quiet: bool) -> dict:
     """Extract ``frames`` simulated frames; per-frame figures and totals."""
     import torch
 
-    torch.set_num_threads(threads)  # (not blurcalib.pipeline.runtime: the script also times older checkouts)
+    torch.set_num_threads(threads)  # (not blurcalib.runs.runtime: the script also times older checkouts)
     try:  # glibc keeps freed tensors' memory, as the command line and its workers do
-        from blurcalib.pipeline.runtime import keep_large_allocations
+        from blurcalib.runs.runtime import keep_large_allocations
         keep_large_allocations()
     except ImportError:  # an older checkout
         pass

@@ -10,7 +10,7 @@
    centres against the time-averaged truth after removing the frame's mean offset. Targets:
    >= 90% of frames extracted, >= 85% of visible features returned, median <= 0.03 px, none off
    by more than 1 px. The same figures after the pipeline's block filter
-   (:func:`blurcalib.extract.quality.filter_frame`, default thresholds: BE, loss, connectivity), their
+   (:func:`blurcalib.growth.quality.filter_frame`, default thresholds: BE, loss, connectivity), their
    pose-consistent errors (each frame's best-fit homography removed: a pose change, which a
    calibration refits), and the share returned of the visible features whose blur is shorter than
    their star square. Last, per class of blur length over square side (the feature's blur
@@ -24,7 +24,7 @@
    is at 150, 183, 217 or 250 grey levels and whose sensor has 5, 10 or 20 electrons per grey
    level (the 12 combinations in turn; read noise 0.7 grey levels; :func:`photometric_frame`),
    then ``--demo N`` frames of the demo set (``SynthConfig()``): per frame the true and the
-   estimated noise at the frame's level (:mod:`blurcalib.extract.noise`), and the blocks the pipeline's
+   estimated noise at the frame's level (:mod:`blurcalib.growth.noise`), and the blocks the pipeline's
    block filter keeps with the loss threshold in the frame's noise units (the default) and with
    the paper's absolute one (``QualitySettings(loss_mode="absolute")``); a frame is used when at least
    :data:`blurcalib.calib.alignment.MIN_BLOCKS` are kept. Target: >= 95% of the photometry
@@ -58,9 +58,9 @@ import torch
 from blurcalib.calib.alignment import MIN_BLOCKS
 from blurcalib.deconv.settings import DeconvSettings
 from blurcalib.extract.frame import ExtractSettings, extract_frame, mean_stage_seconds
-from blurcalib.extract.quality import QualitySettings, filter_frame
+from blurcalib.growth.quality import QualitySettings, filter_frame
 from blurcalib.growth.window import WindowPolicy
-from blurcalib.pipeline.runtime import keep_large_allocations
+from blurcalib.runs.runtime import keep_large_allocations
 from blurcalib.sim import render, synth
 from blurcalib.sim.evaluate import pose_consistent_errors
 from blurcalib.sim.synth import SimulatedFrame, Simulator, SynthConfig

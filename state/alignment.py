@@ -44,8 +44,8 @@ from blurcalib.calib.sharp import (
 )
 from blurcalib.camera.parametric import BrownConrady
 from blurcalib.extract.frame import FrameResult, FrameStatus
-from blurcalib.extract.quality import FrameFilter
 from blurcalib.geometry.pose import Pose
+from blurcalib.growth.quality import FrameFilter
 from blurcalib.io.results import FeatureTable
 from blurcalib.target.pattern import StarPattern
 from state.app_state import AppState

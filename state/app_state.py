@@ -23,9 +23,9 @@ from pathlib import Path
 import numpy as np
 
 from blurcalib.extract.frame import ExtractSettings, FrameResult, FrameStatus, extract_frame
-from blurcalib.extract.quality import FrameFilter, QualitySettings, filter_frame
 from blurcalib.geometry.homography import homography_centre
 from blurcalib.growth.ledger import GrowthEvent
+from blurcalib.growth.quality import FrameFilter, QualitySettings, filter_frame
 from blurcalib.growth.seed import block_homography
 from blurcalib.io.frames import FrameError
 from blurcalib.io.results import BlockStatus

@@ -59,7 +59,7 @@ from blurcalib.calib.sharp import Calibration, CalibrationError
 from blurcalib.calib.trust import Trust
 from blurcalib.camera.parametric import save_camera_yaml
 from blurcalib.extract.frame import FrameStatus
-from blurcalib.extract.quality import QualitySettings
+from blurcalib.growth.quality import QualitySettings
 from blurcalib.io.atomic import ensure_writable_dir
 from blurcalib.io.results import BlockTable, FeatureTable
 from blurcalib.io.text import count

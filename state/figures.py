@@ -16,9 +16,9 @@ from blurcalib.calib.joint import GenericCalibration
 from blurcalib.calib.sharp import CalibrationError, calibrate_pinhole
 from blurcalib.camera.parametric import BrownConrady
 from blurcalib.extract.frame import FrameResult, FrameStatus
-from blurcalib.extract.quality import FrameFilter
 from blurcalib.geometry.homography import apply_homography
 from blurcalib.geometry.pose import Pose
+from blurcalib.growth.quality import FrameFilter
 from blurcalib.sim.truth import DatasetTruth, FrameTruth
 from blurcalib.target.pattern import StarPattern
 from state.alignment import AlignmentCache, FrameAlignment

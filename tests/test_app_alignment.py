@@ -10,8 +10,8 @@ import pytest
 from blurcalib.calib.sharp import calibrate_sharp, save_calibration
 from blurcalib.camera.parametric import BrownConrady, project_points
 from blurcalib.extract.frame import FrameResult, FrameStatus
-from blurcalib.extract.quality import QualitySettings
 from blurcalib.geometry.pose import Pose
+from blurcalib.growth.quality import QualitySettings
 from blurcalib.io.results import BlockStatus, BlockTable, FeatureFlags, FeatureObservation, FeatureTable
 from blurcalib.sim.truth import DatasetTruth, TrueCamera
 from blurcalib.target.pattern import layout_pattern

@@ -19,7 +19,7 @@ from blurcalib.calib.uncertainty import cross_validation_diff
 from blurcalib.calib.validation import ValidationSettings
 from blurcalib.camera.files import read_generic_yaml
 from blurcalib.camera.parametric import load_camera_yaml
-from blurcalib.extract.quality import QualitySettings
+from blurcalib.growth.quality import QualitySettings
 from blurcalib.io.results import FeatureTable
 from blurcalib.paper.generic import projection_errors
 from blurcalib.sim.synth import SynthConfig

@@ -11,7 +11,7 @@ import pytest
 
 from blurcalib.camera.parametric import BrownConrady
 from blurcalib.extract.frame import ExtractSettings
-from blurcalib.extract.quality import QualitySettings, noise_scale
+from blurcalib.growth.quality import QualitySettings, noise_scale
 from blurcalib.growth.settings import GrowSettings
 from blurcalib.io.results import BlockStatus
 from blurcalib.sim.synth import SynthConfig

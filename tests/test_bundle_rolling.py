@@ -10,8 +10,8 @@ import torch
 from blurcalib.calib.bundle import BundleSettings, bundle_adjust
 from blurcalib.calib.frame_block import RollingRows, rolling_points
 from blurcalib.camera.generic import CentralGeneric, fit_to_rays
+from blurcalib.camera.shutter import row_time
 from blurcalib.geometry.pose import Pose
-from blurcalib.sim.shutter import row_time
 from tests.bundle_scene import TARGET, TRUE_CAM, bumped_truth, observed_scene
 
 torch.set_num_threads(1)

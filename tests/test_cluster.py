@@ -12,10 +12,11 @@ import pytest
 
 from blurcalib.camera.parametric import BrownConrady
 from blurcalib.cli import main
-from blurcalib.extract.frame import ExtractSettings, extract_to_folder
+from blurcalib.extract.frame import ExtractSettings
 from blurcalib.io.results import read_features
-from blurcalib.pipeline.cluster import ClusterError, run_on_cluster
-from blurcalib.pipeline.runtime import configure_threads
+from blurcalib.runs.cluster import ClusterError, run_on_cluster
+from blurcalib.runs.folder import extract_to_folder
+from blurcalib.runs.runtime import configure_threads
 from blurcalib.sim.synth import Simulator, SynthConfig
 from blurcalib.sim.truth import TrueCamera
 

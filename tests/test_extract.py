@@ -10,6 +10,7 @@ import pytest
 
 import blurcalib.extract.frame as extract_module
 import blurcalib.growth.grow as grow_module
+import blurcalib.runs.folder as folder_module
 from blurcalib.camera.parametric import BrownConrady
 from blurcalib.deconv.settings import DeconvSettings
 from blurcalib.extract.frame import (
@@ -17,10 +18,7 @@ from blurcalib.extract.frame import (
     ExtractSettings,
     FrameResult,
     FrameStatus,
-    NeighbourSeed,
     extract_frame,
-    extract_to_folder,
-    seed_from_neighbour,
 )
 from blurcalib.extract.local_alignment import align_locally, shared_corners
 from blurcalib.geometry.homography import apply_homography, homography_centre, translation
@@ -46,6 +44,7 @@ from blurcalib.io.results import (
     read_features,
     read_frame_status,
 )
+from blurcalib.runs.folder import NeighbourSeed, extract_to_folder, seed_from_neighbour
 from blurcalib.sim.synth import Simulator, SynthConfig
 from blurcalib.sim.truth import TrueCamera
 from blurcalib.target.pattern import layout_pattern, load_pattern
@@ -247,7 +246,7 @@ def engine(monkeypatch: pytest.MonkeyPatch) -> list[str]:
         return FrameResult(frame, FrameStatus.OK, features=FeatureTable.from_observations([obs]),
                            corners=[[frame, 1, 1, 0.005, 0.005, 1.0, 2.0, 2]])
 
-    monkeypatch.setattr(extract_module, "extract_frame", fake)
+    monkeypatch.setattr(folder_module, "extract_frame", fake)
     return calls
 
 
@@ -540,7 +539,7 @@ def test_idle_workers_try_a_frames_next_neighbour_at_once(tmp_path, sim: Simulat
         return ThreadPoolExecutor(workers)
 
     monkeypatch.setattr(extract_module, "seed_frame", no_tag_in_moved)
-    monkeypatch.setattr(extract_module, "ProcessPoolExecutor", pool)
+    monkeypatch.setattr(folder_module, "ProcessPoolExecutor", pool)
     paths = [frames / n for n in ("0.png", "1.png", "2.png")]
     runs = {}
     for workers in (1, 2):
@@ -557,7 +556,7 @@ def test_idle_workers_try_a_frames_next_neighbour_at_once(tmp_path, sim: Simulat
     assert np.abs(a.x - b.x).max() < 1e-4 and np.abs(a.y - b.y).max() < 1e-4
     # the sequence moves the target by about a fifth of a square per frame: with a limit below
     # that, no neighbour is tried and the frame's message says why
-    monkeypatch.setattr(extract_module, "NEIGHBOUR_MOTION_SQUARES", 0.05)
+    monkeypatch.setattr(folder_module, "NEIGHBOUR_MOTION_SQUARES", 0.05)
     summary = extract_to_folder(paths, sim.pattern, tmp_path / "still", ExtractSettings.auto(), workers=2)
     row = {r["frame"]: r for r in summary.frames}["1.png"]
     assert row["status"] == "not_seeded" and "neighbours_tried" not in row
@@ -579,14 +578,14 @@ def test_folders_with_other_settings_share_one_frame_pool(tmp_path, sim: Simulat
         started.append(workers)
         return ThreadPoolExecutor(workers)
 
-    monkeypatch.setattr(extract_module, "ProcessPoolExecutor", pool)
+    monkeypatch.setattr(folder_module, "ProcessPoolExecutor", pool)
     folder = tmp_path / "frames"
     folder.mkdir()
     for name in ("0.png", "1.png"):
         cv2.imwrite(str(folder / name), sharp_frame.image)
     paths = [folder / "0.png", folder / "1.png"]
     kinds = {"sharp": ExtractSettings.sharp(), "blurry": ExtractSettings()}
-    with extract_module.FramePool(2) as shared:
+    with folder_module.FramePool(2) as shared:
         rows = {k: extract_to_folder(paths, sim.pattern, tmp_path / k, s, pool=shared).frames
                 for k, s in kinds.items()}
     assert started == [2]
@@ -607,8 +606,8 @@ def test_sequence_motion_is_the_median_step_in_squares_per_frame() -> None:
     frames = [(0, H, f), (1, moved[0], f), (3, moved[1], f), (4, moved[2], f)]
     # steps: 0.5 squares in 1 frame, 1.5 in 2 frames, 0.3 in 1 frame (the mean features of each
     # frame are the same points here)
-    assert abs(extract_module.sequence_motion(frames) - 0.5) < 1e-9
-    assert np.isnan(extract_module.sequence_motion(frames[:1]))
+    assert abs(folder_module.sequence_motion(frames) - 0.5) < 1e-9
+    assert np.isnan(folder_module.sequence_motion(frames[:1]))
 
 
 @pytest.mark.slow

@@ -317,7 +317,7 @@ def test_a_tag_ring_fitted_far_above_the_noise_is_fitted_again_from_its_first_fi
     from blurcalib.growth.field import ring_seed
     from blurcalib.growth.ledger import Growth
     from blurcalib.growth.seed import block_homography
-    from blurcalib.psf.field import PathField
+    from blurcalib.psf.path import PathField
     from tests.test_psf_field import SEGMENTS, _render_plane
 
     pattern = layout_pattern()

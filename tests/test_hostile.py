@@ -35,8 +35,8 @@ from blurcalib.io.atomic import (
 )
 from blurcalib.io.frames import FrameError, frame_size, list_frames, load_frame
 from blurcalib.io.results import BlockTable, FeatureTable, read_frame_status, write_frame_results
-from blurcalib.pipeline.cluster import ClusterError, check_address, run_on_cluster
-from blurcalib.pipeline.runtime import available_cores, capped_count
+from blurcalib.runs.cluster import ClusterError, check_address, run_on_cluster
+from blurcalib.runs.runtime import available_cores, capped_count
 from blurcalib.target.pattern import MAX_STAR_SEGMENTS, PatternFileError, load_pattern
 from tests.conftest import FIXTURE_YAML
 
@@ -588,7 +588,7 @@ def test_workers_exit_when_their_parent_is_killed(tmp_path: Path) -> None:
     script = textwrap.dedent("""
         import multiprocessing, os, time
         from concurrent.futures import ProcessPoolExecutor
-        from blurcalib.pipeline.runtime import exit_with_parent
+        from blurcalib.runs.runtime import exit_with_parent
 
         if __name__ == "__main__":
             ctx = multiprocessing.get_context("spawn")

@@ -1,4 +1,4 @@
-"""The frame noise estimate (blurcalib.extract.noise) against the simulator's true Poisson-Gaussian noise."""
+"""The frame noise estimate (blurcalib.growth.noise) against the simulator's true Poisson-Gaussian noise."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import cv2
 import numpy as np
 import pytest
 
-from blurcalib.extract.noise import NoiseModel, estimate_noise, frame_noise, highpass_residual
+from blurcalib.growth.noise import NoiseModel, estimate_noise, frame_noise, highpass_residual
 from blurcalib.sim import render, synth
 from blurcalib.sim.truth import FrameTruth
 

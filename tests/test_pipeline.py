@@ -21,11 +21,11 @@ from blurcalib.calib.sharp import load_calibration
 from blurcalib.camera.files import read_generic_yaml
 from blurcalib.camera.parametric import BrownConrady
 from blurcalib.cli import main
-from blurcalib.extract.quality import QualitySettings
+from blurcalib.growth.quality import QualitySettings
 from blurcalib.io.atomic import OutputError
 from blurcalib.io.results import FeatureFlags, read_feature_table
-from blurcalib.pipeline.accuracy import camera_accuracy_lines
 from blurcalib.pipeline.run import PUBLISHED, PipelineError, PipelineSettings, run_pipeline
+from blurcalib.sim.accuracy import camera_accuracy_lines
 from blurcalib.sim.evaluate import camera_accuracy, evaluate_features
 from blurcalib.sim.synth import SynthConfig, write_dataset
 from blurcalib.sim.truth import TrueCamera, load_ground_truth

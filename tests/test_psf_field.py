@@ -11,15 +11,16 @@ import numpy as np
 import pytest
 import torch
 
+from blurcalib.deconv import field as field_fit
 from blurcalib.deconv.blocks import fit_blocks, fit_blocks_fixed
+from blurcalib.deconv.field import fit_path_field
 from blurcalib.deconv.problem import BlockProblem
 from blurcalib.deconv.settings import DeconvSettings
 from blurcalib.geometry.homography import homography_centre, translation
 from blurcalib.growth.seed import block_homography
 from blurcalib.io.results import BlockStatus
-from blurcalib.psf import field
-from blurcalib.psf.field import PathField, constant_field, fit_path_field, path_kernels
 from blurcalib.psf.kernel import psf_centroid
+from blurcalib.psf.path import PathField, constant_field, path_kernels
 from blurcalib.sim.blocks import simulate_blocks
 from blurcalib.target.pattern import StarPattern, layout_pattern
 
@@ -160,13 +161,13 @@ def test_field_fit_keeps_its_latent_while_the_blocks_are_held_and_lands_where_re
     assert held == [False, True]  # the held phase's one latent, then its derivatives for the next
     kept_computed = len(computed)
     computed.clear()
-    keep = field._FieldProblem.latent
+    keep = field_fit._FieldProblem.latent
 
     def fresh(self, H_loc, with_jac):
         self._latent = None
         return keep(self, H_loc, with_jac)
 
-    monkeypatch.setattr(field._FieldProblem, "latent", fresh)
+    monkeypatch.setattr(field_fit._FieldProblem, "latent", fresh)
     again = fit_path_field(sim.image.astype(np.float32), sim.H0, SEGMENTS, start)
     assert len(computed) > kept_computed
     assert kept.iterations == again.iterations

@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 
 from blurcalib.deconv.blocks import fit_blocks
-from blurcalib.extract.noise import NoiseModel
-from blurcalib.extract.quality import REFERENCE_NOISE_VAR, QualitySettings, connected_blocks, filter_frame
 from blurcalib.geometry.homography import translation
+from blurcalib.growth.noise import NoiseModel
+from blurcalib.growth.quality import REFERENCE_NOISE_VAR, QualitySettings, connected_blocks, filter_frame
 from blurcalib.io.results import BlockStatus, BlockTable
 from blurcalib.sim.blocks import simulate_blocks
 from blurcalib.target.pattern import layout_pattern

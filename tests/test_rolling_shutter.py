@@ -27,13 +27,13 @@ from blurcalib.calib.trust import TrustSettings
 from blurcalib.calib.validation import ValidationSettings, parametric_projector
 from blurcalib.camera.files import read_generic_yaml
 from blurcalib.camera.parametric import BrownConrady
+from blurcalib.camera.shutter import row_time
 from blurcalib.geometry.pose import Pose
 from blurcalib.io.results import FEATURE_COLUMNS, FeatureFlags, FeatureTable
 from blurcalib.pipeline.frames import blurry_row, write_frames
 from blurcalib.pipeline.run import GLOBAL_SHUTTER_DIR, PipelineSettings, run_pipeline
 from blurcalib.sim.evaluate import camera_accuracy
 from blurcalib.sim.render import Renderer, dot_texture
-from blurcalib.sim.shutter import row_time
 from blurcalib.sim.synth import Simulator, SynthConfig, frame_truth, sample_motion, sample_pose, write_dataset
 from blurcalib.sim.truth import FrameTruth, Motion, TrueCamera, d435i_like_camera, row_window_track
 from blurcalib.target.pattern import layout_pattern

@@ -1,4 +1,4 @@
-"""Thread policy and device checks of blurcalib.pipeline.runtime, and their CLI errors."""
+"""Thread policy and device checks of blurcalib.runs.runtime, and their CLI errors."""
 
 from __future__ import annotations
 
@@ -11,7 +11,7 @@ import pytest
 import torch
 
 from blurcalib.cli import main
-from blurcalib.pipeline.runtime import (
+from blurcalib.runs.runtime import (
     DeviceError,
     available_cores,
     check_device,

@@ -2,7 +2,7 @@
 alignment error they give.
 
 Moving a slider re-filters every finished frame from its stored figures
-(:func:`blurcalib.extract.quality.filter_frame`, milliseconds per frame); the frame view shows the
+(:func:`blurcalib.growth.quality.filter_frame`, milliseconds per frame); the frame view shows the
 result (kept blocks are the ones breadth-first connected to the seed block). The kept blocks are
 then aligned globally to the reference camera (:mod:`state.alignment`, a few milliseconds per
 frame, cached), and the panel reports the residual error after alignment (px) for the current
@@ -15,7 +15,7 @@ import math
 
 import viser
 
-from blurcalib.extract.quality import QualitySettings
+from blurcalib.growth.quality import QualitySettings
 from blurcalib.io.text import count
 from state import AppState, Topic
 from state.alignment import AlignmentCache, AlignmentError

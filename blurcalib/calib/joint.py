@@ -50,10 +50,10 @@ from blurcalib.camera.generic import (
     undistortion_map,
 )
 from blurcalib.camera.parametric import BrownConrady
+from blurcalib.camera.shutter import row_time
 from blurcalib.geometry.pose import Pose
 from blurcalib.io.atomic import atomic_path, atomic_write_csv, ensure_writable_dir
 from blurcalib.io.results import FeatureFlags, FeatureTable
-from blurcalib.sim.shutter import row_time
 from blurcalib.target.pattern import StarPattern
 
 __all__ = [

@@ -4,7 +4,7 @@ readout ratio of the camera, and the detector of row-correlated residuals
 
 Model. Row ``v`` of an ``H``-row sensor is exposed over the window centred at
 ``c(v) = r y(v)`` exposure times, ``y(v) = (v - (H - 1) / 2) / H`` in ``[-1/2, 1/2]``
-(:func:`blurcalib.sim.shutter.row_time`), ``r = readout / exposure time``. A feature seen in row
+(:func:`blurcalib.camera.shutter.row_time`), ``r = readout / exposure time``. A feature seen in row
 ``v`` is the time-average of its image over that window, so (to second order in the motion) it
 is seen from the frame's pose moved by the motion over ``c(v)``::
 
@@ -53,10 +53,10 @@ from blurcalib.calib.frame_block import rolling_frame_jacobian, rolling_points, 
 from blurcalib.calib.joint import GenericCalibration, JointSettings, calibrate_generic
 from blurcalib.calib.sharp import Calibration
 from blurcalib.calib.validation import Projector, generic_projector
+from blurcalib.camera.shutter import row_time
 from blurcalib.geometry.lie import exp_so3, orthonormal, skew
 from blurcalib.geometry.pose import Pose
 from blurcalib.io.results import BlockTable, FeatureTable
-from blurcalib.sim.shutter import row_time
 from blurcalib.target.pattern import StarPattern
 
 __all__ = ["BlurVelocity", "RollingEvidence", "RollingFit", "RollingShutterResult", "RollingShutterSettings",

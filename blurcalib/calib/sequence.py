@@ -13,7 +13,7 @@ app (``state/calibration.py``) run:
    blocks corrected under that final camera; sharp frames it leaves out are flagged
    ``FILTERED_OUT``;
 3. per blurry frame with blocks: the BE / loss / connectivity filter and the blur pre-filter
-   (:func:`blurcalib.extract.quality.filter_frame`, on the corrected blocks, unless the caller
+   (:func:`blurcalib.growth.quality.filter_frame`, on the corrected blocks, unless the caller
    gives the kept blocks), and the global alignment of the kept blocks to the parametric camera
    (``eq:global_align``, :func:`blurcalib.calib.alignment.align_kept_blocks`);
 4. with ``model="generic"``: the central generic camera (:func:`blurcalib.calib.joint.calibrate_generic`)
@@ -48,7 +48,7 @@ from blurcalib.calib.rolling_shutter import (
 from blurcalib.calib.sharp import Calibration, calibrate_sharp
 from blurcalib.calib.trust import Trust, TrustSettings, assess_calibration
 from blurcalib.calib.uncertainty import projection_uncertainty
-from blurcalib.extract.quality import FrameFilter, QualitySettings, filter_frame
+from blurcalib.growth.quality import FrameFilter, QualitySettings, filter_frame
 from blurcalib.io.results import BlockTable, FeatureFlags, FeatureTable
 from blurcalib.target.pattern import StarPattern
 

@@ -55,7 +55,7 @@ Three entry points, one per start of the PSF:
   :attr:`DeconvSettings.hinted_stages` stages run (one by default: half the kernel solves;
   measured in ``docs/deconvolution.md``);
 * :func:`fit_blocks_fixed`: each block's PSF is given (the frame's motion-path PSF field,
-  :mod:`blurcalib.psf.field`) and kept: only ``H``, ``alpha`` and the brightness are fitted, in
+  :mod:`blurcalib.psf.path`) and kept: only ``H``, ``alpha`` and the brightness are fitted, in
   one stage of :attr:`DeconvSettings.fixed_steps` LM steps, and the re-centring moves ``H`` by
   the given kernel's centroid.
 
@@ -146,7 +146,7 @@ def fit_blocks_fixed(image: np.ndarray, H0: np.ndarray, num_segments: int, psfs:
                      settings: DeconvSettings | None = None, pixel_mask: np.ndarray | None = None
                      ) -> BlockFit:
     """:func:`fit_blocks` with known PSFs ``psfs (B, K, K)`` (non-negative, e.g. the frame's
-    motion-path field, :mod:`blurcalib.psf.field`; the window is theirs): the kernels are kept,
+    motion-path field, :mod:`blurcalib.psf.path`; the window is theirs): the kernels are kept,
     ``H``, the brightness gradient and its scale and offset are fitted
     (:attr:`DeconvSettings.fixed_steps` LM steps); the re-centring then moves ``H`` by each
     kernel's centroid."""

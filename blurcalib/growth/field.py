@@ -1,7 +1,7 @@
 """The field growth: a frame's path-PSF field fitted from a growth, and the growth gone on with it.
 
 Under blur as long as the star squares a block's free PSF trades its shape against the star's
-position; the frame's motion-path field (:mod:`blurcalib.psf.field`) does not
+position; the frame's motion-path field (:mod:`blurcalib.psf.path`) does not
 (:func:`field_growth`).
 """
 
@@ -14,6 +14,7 @@ import cv2
 import numpy as np
 
 from blurcalib.deconv.blocks import fit_blocks_fixed
+from blurcalib.deconv.field import FieldFit, FieldSettings, fit_path_field
 from blurcalib.deconv.result import BlockFit
 from blurcalib.deconv.settings import DeconvSettings
 from blurcalib.deconv.windows import block_windows
@@ -27,7 +28,7 @@ from blurcalib.growth.seed import block_homography
 from blurcalib.growth.settings import GrowSettings
 from blurcalib.growth.window import WindowPolicy
 from blurcalib.io.results import BlockStatus
-from blurcalib.psf.field import FieldFit, FieldSettings, PathField, constant_field, fit_path_field
+from blurcalib.psf.path import PathField, constant_field
 from blurcalib.target.pattern import StarPattern
 
 
@@ -112,7 +113,7 @@ def fit_with_field(image: np.ndarray, pattern: StarPattern, ids: np.ndarray, H0:
 def fit_field(image: np.ndarray, pattern: StarPattern, ids: np.ndarray, H: np.ndarray, start: PathField,
               window: WindowPolicy, deconv: DeconvSettings, settings: GrowSettings, tag: np.ndarray | None,
               tied: bool = False) -> tuple[FieldFit, np.ndarray]:
-    """:func:`blurcalib.psf.field.fit_path_field` on blocks ``ids (B,)`` from ``H (B, 3, 3)``:
+    """:func:`blurcalib.deconv.field.fit_path_field` on blocks ``ids (B,)`` from ``H (B, 3, 3)``:
     those of :func:`field_rows`, or when ``tied`` all but those on the pattern's rim; pixels
     seeing the tag through ``start``'s blur are left out. Returns the fit (of those rows) and
     the blocks' homographies ``(B, 3, 3)`` (rows not in the fit keep ``H``)."""
@@ -134,7 +135,7 @@ def ring_seed(image: np.ndarray, pattern: StarPattern, growth: Growth, window: W
               deconv: DeconvSettings, settings: GrowSettings, tag: np.ndarray | None,
               noise_var: float | None = None) -> tuple[np.ndarray, np.ndarray, PathField]:
     """The tag ring's blocks fitted tied to one feature homography with a path field
-    (:func:`blurcalib.psf.field.fit_path_field` with ``features``), from their predictions:
+    (:func:`blurcalib.deconv.field.fit_path_field` with ``features``), from their predictions:
     a field of degree 0 from a straight path along their free PSFs, then of degree 1 when the
     ring spans enough of the image (:func:`field_degree`). Returns the ring's rows, their
     homographies and the field.
@@ -205,11 +206,11 @@ def field_growth(image: np.ndarray, pattern: StarPattern, growth: Growth, window
     """Fit the frame's path-PSF field from a growth and grow on with it.
 
     Under blur as long as the star squares a block's free PSF trades its shape against the
-    star's position; the frame's motion-path field (:mod:`blurcalib.psf.field`) does not. So:
+    star's position; the frame's motion-path field (:mod:`blurcalib.psf.path`) does not. So:
 
-    1. **Seeds.** The field is fitted (:func:`blurcalib.psf.field.fit_path_field`) with at most
+    1. **Seeds.** The field is fitted (:func:`blurcalib.deconv.field.fit_path_field`) with at most
        :attr:`GrowSettings.field_blocks` of the growth's accepted blocks spread over the frame,
-       from a straight path along their PSFs (:func:`blurcalib.psf.field.constant_field`), its
+       from a straight path along their PSFs (:func:`blurcalib.psf.path.constant_field`), its
        degree by their spread (:func:`field_degree`). When the growth failed (it accepted fewer
        than half of the blocks it fitted, or fewer than :attr:`GrowSettings.field_min_blocks`:
        blur as long as the squares, whose free fits settle px off) the seeds are the tag ring

@@ -28,14 +28,14 @@ import numpy as np
 from blurcalib.deconv.blocks import fit_blocks
 from blurcalib.deconv.result import BlockFit
 from blurcalib.deconv.settings import DeconvSettings
-from blurcalib.extract.noise import NoiseModel
-from blurcalib.extract.quality import noise_scale
 from blurcalib.growth.field import field_growth
 from blurcalib.growth.final import final_fit
 from blurcalib.growth.fronts import first_front, fit_hinted, next_front, psf_hint, refine_ring
 from blurcalib.growth.judge import judge_again, judge_front, off_neighbours
 from blurcalib.growth.ledger import Growth, GrowthEvent, GrowthLedger
 from blurcalib.growth.masks import blur_footprint, pixel_mask, tag_mask
+from blurcalib.growth.noise import NoiseModel
+from blurcalib.growth.quality import noise_scale
 from blurcalib.growth.seed import Seed
 from blurcalib.growth.settings import GrowSettings
 from blurcalib.growth.window import (
@@ -67,9 +67,9 @@ def grow(image: np.ndarray, pattern: StarPattern, seed: Seed, window: WindowPoli
         on_event: called once per attempted block, in order, as fronts finish, and once more
             for a block that the final consistency check of an adaptive frame rejects.
         should_stop: polled between fronts; growth ends early when it returns True.
-        noise: the frame's noise (:func:`blurcalib.extract.noise.estimate_noise`): the loss limit
+        noise: the frame's noise (:func:`blurcalib.growth.noise.estimate_noise`): the loss limit
             :attr:`GrowSettings.max_loss` grows with its variance at the frame's level above the
-            reference (:func:`blurcalib.extract.quality.noise_scale`); None keeps it as given.
+            reference (:func:`blurcalib.growth.quality.noise_scale`); None keeps it as given.
         go_on: called with ``sigma_major (A,)`` (px) of the accepted blocks of the first front's
             first fit and, when it returned True, once more with those of the first front as
             judged (after the tag ring's re-fit); when it returns False the growth ends with

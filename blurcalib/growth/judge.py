@@ -24,9 +24,9 @@ import cv2
 import numpy as np
 
 from blurcalib.deconv.result import BlockFit
-from blurcalib.extract.quality import connected_blocks
 from blurcalib.geometry.homography import apply_homography, homography_centre, homography_scale
 from blurcalib.growth.ledger import Growth, GrowthEvent, GrowthLedger
+from blurcalib.growth.quality import connected_blocks
 from blurcalib.growth.settings import GrowSettings
 from blurcalib.io.results import BlockStatus
 from blurcalib.target.pattern import StarPattern

@@ -10,7 +10,7 @@ import numpy as np
 
 from blurcalib.deconv.result import BlockFit
 from blurcalib.io.results import BlockStatus
-from blurcalib.psf.field import PathField
+from blurcalib.psf.path import PathField
 from blurcalib.target.pattern import StarPattern
 
 

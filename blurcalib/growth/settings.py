@@ -18,8 +18,8 @@ class GrowSettings:
         max_loss: reject blocks whose mean squared residual exceeds this (grey levels^2; given
             the frame's noise, :func:`blurcalib.growth.grow.grow` raises it in proportion to the
             noise variance above
-            :data:`blurcalib.extract.quality.REFERENCE_NOISE_VAR`,
-            :func:`blurcalib.extract.quality.noise_scale`).
+            :data:`blurcalib.growth.quality.REFERENCE_NOISE_VAR`,
+            :func:`blurcalib.growth.quality.noise_scale`).
         max_boundary_energy: reject blocks whose PSF has more than this share of its energy in
             the outer two-pixel ring of the kernel window (the blur does not fit: truncated).
         max_jump: reject blocks whose star centre moved further than this from its prediction
@@ -70,7 +70,7 @@ class GrowSettings:
             this multiple of the median loss of the accepted blocks' field fits.
         field_refit_px: when the field has been fitted again during the field growth, a block
             accepted with an earlier field is fitted with the last one where the paths moved
-            by more than this at the block (px, :meth:`blurcalib.psf.field.PathField.path_change`;
+            by more than this at the block (px, :meth:`blurcalib.psf.path.PathField.path_change`;
             0 fits every such block again).
         ring_refit_noise: a tag ring's field fit (:func:`blurcalib.growth.field.ring_seed`)
             whose median block loss exceeds this multiple of the frame's noise variance is made

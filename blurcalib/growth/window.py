@@ -45,7 +45,7 @@ class WindowPolicy:
         largest: the largest window of free PSFs; a value not above ``start`` keeps the window
             fixed (and leaves out the path-PSF field).
         field_largest: the largest window of a path-PSF field's kernels
-            (:mod:`blurcalib.psf.field`).
+            (:mod:`blurcalib.psf.path`).
         per_extent: window side per px of blur extent (:meth:`choose`).
     """
 

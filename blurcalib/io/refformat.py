@@ -22,12 +22,12 @@ import struct
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Protocol
 
 import numpy as np
 
 from blurcalib.io.atomic import atomic_write_bytes
 from blurcalib.io.results import FeatureFlags, FeatureTable
-from blurcalib.target.pattern import StarPattern
 
 MAGIC = b"calib_data"
 """The file's first 10 bytes."""
@@ -41,6 +41,25 @@ PIXEL_CORNER_OFFSET = 0.5
 _FEATURE = np.dtype([("x", "<f4"), ("y", "<f4"), ("id", ">i4")])
 _TRIPLE = np.dtype([("id", ">i4"), ("fx", ">i4"), ("fy", ">i4")])
 _I32 = np.iinfo(np.int32)
+
+
+class TargetFeatures(Protocol):
+    """The target as this format needs it (:class:`blurcalib.target.pattern.StarPattern` is one).
+
+    Attributes:
+        features: ``(N, 2)`` int feature coordinates ``(fx, fy)`` of the feature ids ``0..N-1``.
+        num_features: ``N``.
+        square_length_m: the square length (m).
+    """
+
+    @property
+    def features(self) -> np.ndarray: ...
+
+    @property
+    def num_features(self) -> int: ...
+
+    @property
+    def square_length_m(self) -> float: ...
 
 
 class RefFormatError(ValueError):
@@ -252,7 +271,7 @@ def write_ref_dataset(path: str | os.PathLike, dataset: RefDataset) -> Path:
 
 def to_ref_dataset(image_size: tuple[int, int], frames: Sequence[str], frame_of_obs: np.ndarray,
                    feature_id: np.ndarray, x: np.ndarray, y: np.ndarray,
-                   pattern: StarPattern) -> RefDataset:
+                   pattern: TargetFeatures) -> RefDataset:
     """Build a reference dataset from blurcalib observations.
 
     Every frame becomes an image (in ``frames`` order, also those without observations), its
@@ -304,7 +323,7 @@ def to_ref_dataset(image_size: tuple[int, int], frames: Sequence[str], frame_of_
                       geometries=[geometry])
 
 
-def ref_feature_table(dataset: RefDataset, pattern: StarPattern) -> FeatureTable:
+def ref_feature_table(dataset: RefDataset, pattern: TargetFeatures) -> FeatureTable:
     """The dataset's features as a :class:`blurcalib.io.results.FeatureTable` of ``pattern``'s
     feature ids (matched by feature coordinates ``(fx, fy)``), every frame a sharp frame, named
     as the dataset names its images; positions stay in the OpenCV convention.

@@ -234,7 +234,7 @@ class BlockTable:
         loss_extent: ``(B,)`` the area the block was fitted over, ``|q|_inf <= loss_extent``
             (1: its square; :attr:`blurcalib.deconv.settings.DeconvSettings.loss_extent`); 1 when not given.
         noise_var: ``(B,)`` the frame's noise variance at the block's brightness (grey levels^2,
-            :meth:`blurcalib.extract.noise.NoiseModel.block_variance`): the unit of the noise-relative
+            :meth:`blurcalib.growth.noise.NoiseModel.block_variance`): the unit of the noise-relative
             loss threshold; NaN when not known.
     """
 

@@ -23,7 +23,7 @@ from blurcalib.extract.frame import ExtractSettings, FrameResult, FrameStatus, e
 from blurcalib.growth.settings import GrowSettings
 from blurcalib.growth.window import WindowPolicy
 from blurcalib.io.atomic import OutputError
-from blurcalib.pipeline.runtime import check_device
+from blurcalib.runs.runtime import check_device
 from blurcalib.sim.synth import Simulator, SynthConfig
 from blurcalib.sim.truth import FrameTruth, TrueCamera, d435i_like_camera
 
@@ -167,7 +167,7 @@ def extract_frames(sim: Simulator, indices: Sequence[int], settings: ExtractSett
     """Render and extract the simulator's frames ``indices`` once each.
 
     A frame whose extraction raises (ValueError, RuntimeError, LinAlgError) is kept with status
-    ``failed`` and its message, as :func:`blurcalib.extract.frame.extract_to_folder` records it.
+    ``failed`` and its message, as :func:`blurcalib.runs.folder.extract_to_folder` records it.
     """
     out = []
     size = (sim.camera.model.width, sim.camera.model.height)

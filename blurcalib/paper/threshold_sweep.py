@@ -15,7 +15,7 @@ configurations. Here, per configuration and ``tau_L``:
   that survive the filter only (so the truncated blocks do not pull their neighbours).
 
 Every configuration keeps the loss filter at ``tau_L`` and the BFS connectivity of
-:func:`blurcalib.extract.quality.filter_frame` (with ``min_sigma_major = 0``: no frame pre-filter); the
+:func:`blurcalib.growth.quality.filter_frame` (with ``min_sigma_major = 0``: no frame pre-filter); the
 growth's own rejections (loss above 400, BE above 0.3, not converged) apply to all. Each frame is
 then aligned to the parametric camera (:func:`blurcalib.calib.alignment.align_global`, Huber loss,
 ``loss_weights`` of the block losses) with the bilinear bias (the paper's) and with one
@@ -63,8 +63,8 @@ from blurcalib.calib.sharp import Calibration, calibrate_sharp
 from blurcalib.deconv.settings import DeconvSettings
 from blurcalib.extract.frame import ExtractSettings, extract_frame
 from blurcalib.extract.local_alignment import align_locally
-from blurcalib.extract.quality import QualitySettings, filter_frame
 from blurcalib.geometry.homography import homography_centre
+from blurcalib.growth.quality import QualitySettings, filter_frame
 from blurcalib.io.atomic import atomic_path, atomic_write_text, ensure_writable_dir
 from blurcalib.io.results import FeatureFlags, FeatureObservation, FeatureTable
 from blurcalib.paper.common import (

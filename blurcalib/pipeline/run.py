@@ -66,7 +66,7 @@ from blurcalib.calib.sharp import CalibrationError, save_calibration
 from blurcalib.calib.trust import save_trust
 from blurcalib.camera.files import write_generic_yaml
 from blurcalib.extract.duplicates import mark_duplicates
-from blurcalib.extract.frame import ExtractSettings, FramePool, extract_to_folder
+from blurcalib.extract.frame import ExtractSettings
 from blurcalib.io.atomic import (
     atomic_path,
     atomic_write_json,
@@ -86,7 +86,8 @@ from blurcalib.io.results import (
 )
 from blurcalib.io.sources import FrameInput
 from blurcalib.pipeline.frames import FrameRow, blurry_row, sharp_row, status_counts, write_frames
-from blurcalib.pipeline.runtime import compute_threads
+from blurcalib.runs.folder import FramePool, extract_to_folder
+from blurcalib.runs.runtime import compute_threads
 from blurcalib.target.pattern import StarPattern
 
 Table = TypeVar("Table", FeatureTable, BlockTable)
@@ -330,7 +331,7 @@ def _rows(sharp: list[dict], blurry: list[dict], outcomes: dict[str, BlurryOutco
 
 def _calibration_threads(s: PipelineSettings) -> int:
     """Compute threads of the calibration: one per worker (it runs once the workers are done,
-    :mod:`blurcalib.pipeline.runtime`), or this process's own when it has more."""
+    :mod:`blurcalib.runs.runtime`), or this process's own when it has more."""
     import torch
 
     return max(s.workers, torch.get_num_threads())

@@ -7,7 +7,7 @@ A frame is rendered as a real camera records it (``docs/synthetic-data.md``):
 2. camera motion during the exposure (:class:`blurcalib.sim.truth.Motion`), integrated by time
    samples: each warps the texture onto an undistorted canvas finer than the sensor;
 3. the true lens, applied to the time integral (exact: the lens maps every time sample through
-   the same coordinate change); with a rolling shutter (:mod:`blurcalib.sim.shutter`) each
+   the same coordinate change); with a rolling shutter (:mod:`blurcalib.camera.shutter`) each
    sample is lens-mapped onto the band of sensor rows whose windows contain it and weighted per
    row, so each row integrates its own window;
 4. the pixel's area: everything above is rendered ``supersample`` times finer and box-averaged;
@@ -25,8 +25,8 @@ import cv2
 import numpy as np
 from scipy.interpolate import RectBivariateSpline
 
+from blurcalib.camera.shutter import exposure_grid, row_time, window_weights
 from blurcalib.geometry.pose import Pose
-from blurcalib.sim.shutter import exposure_grid, row_time, window_weights
 from blurcalib.sim.truth import FrameTruth, Motion, TrueCamera, gauss_ksize
 from blurcalib.target.pattern import StarPattern, star_sector_white
 
@@ -180,9 +180,9 @@ class Renderer:
         homography ``K_canvas [r1 r2 t](tau) to_plane`` (``eq:T``). Global shutter
         (``rolling_shutter = 0``, or no motion): the mean over the samples is mapped through the
         true lens and box-averaged over each pixel. Rolling shutter (readout ratio ``r``): the
-        samples of the frame's exposure grid (:func:`blurcalib.sim.shutter.exposure_grid`) are
+        samples of the frame's exposure grid (:func:`blurcalib.camera.shutter.exposure_grid`) are
         each lens-mapped onto the rows whose windows contain them, weighted by
-        :func:`blurcalib.sim.shutter.window_weights` per sensor row (every sub-sample row of a
+        :func:`blurcalib.camera.shutter.window_weights` per sensor row (every sub-sample row of a
         pixel row shares its window), and summed.
 
         ``levels`` is a mip pyramid of the same target (finest first, each level half the

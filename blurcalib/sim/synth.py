@@ -25,7 +25,7 @@ import numpy as np
 
 from blurcalib.geometry.pose import Pose
 from blurcalib.io.atomic import atomic_path, atomic_write_text, ensure_writable_dir
-from blurcalib.pipeline.runtime import exit_with_parent
+from blurcalib.runs.runtime import exit_with_parent
 from blurcalib.sim.render import (
     MIP_TEXELS_PER_SQUARE,
     Renderer,
@@ -62,7 +62,7 @@ class SynthConfig:
         seed: random seed; the dataset is a deterministic function of the config.
         supersample: canvas samples per pixel side.
         rolling_shutter: readout ratio ``r = readout time / exposure time`` of a rolling shutter
-            (:mod:`blurcalib.sim.shutter`); 0 is a global shutter.
+            (:mod:`blurcalib.camera.shutter`); 0 is a global shutter.
     """
 
     sharp: int = 20

@@ -5,7 +5,7 @@ simulated frame shows (its poses and every feature's true image positions and bl
 * :class:`Motion`: ``X_cam(tau) = Exp(tau xi + tau^2 xi2) X_cam(0)`` for time ``tau`` in exposure
   times (``tau = 0`` the frame's reference instant).
 * :class:`FrameTruth`, :class:`DatasetTruth`: ``ground_truth.json``
-  (``docs/synthetic-data.md``). With a rolling shutter (:mod:`blurcalib.sim.shutter`) a feature
+  (``docs/synthetic-data.md``). With a rolling shutter (:mod:`blurcalib.camera.shutter`) a feature
   is the time-average of its image over the window of the row where it is seen.
 
 Pixel convention: OpenCV (top-left pixel centre at (0, 0)).
@@ -24,9 +24,9 @@ import numpy as np
 import torch
 
 from blurcalib.camera.parametric import BrownConrady
+from blurcalib.camera.shutter import exposure_grid, row_time, window_weights
 from blurcalib.geometry.lie import exp_so3, skew
 from blurcalib.geometry.pose import Pose
-from blurcalib.sim.shutter import exposure_grid, row_time, window_weights
 
 GROUND_TRUTH_FILE = "ground_truth.json"
 GROUND_TRUTH_VERSION = 1
@@ -155,7 +155,7 @@ class Motion:
 
     def grid_poses(self, mid: Pose, height: int, rolling_shutter: float) -> list[Pose]:
         """The pose at every sample of the frame's exposure grid
-        (:func:`blurcalib.sim.shutter.exposure_grid`; the exposure's samples when ``r = 0``)."""
+        (:func:`blurcalib.camera.shutter.exposure_grid`; the exposure's samples when ``r = 0``)."""
         return self.poses_at(mid, exposure_grid(height, rolling_shutter, self.samples).times)
 
     @staticmethod

@@ -14,7 +14,7 @@ default); then, within a frame,
 
 The loss threshold follows the frame's own noise by default (``loss_mode = "relative"``). A
 block's loss, its mean squared residual, is the mean noise variance over its pixels, ``a + b mu``
-at its mean level ``mu`` (:mod:`blurcalib.extract.noise`), plus what the model does not explain (the
+at its mean level ``mu`` (:mod:`blurcalib.growth.noise`), plus what the model does not explain (the
 print, a display's pixel grid, the blur model): shot noise makes the first grow with the
 brightness, so one threshold in grey levels^2 drops the well-fitted blocks of bright, noisy
 frames. The block is kept when::

@@ -4,8 +4,8 @@
 results as they finish; the caller writes each one at once (so a run on a cluster is resumable
 like a local one). Workers read the frames from the paths given, so they need the same file
 system view as the client (a shared or network file system); each task computes with one
-thread (:func:`blurcalib.pipeline.runtime.configure_threads`) and keeps large allocations on the heap
-(:func:`blurcalib.pipeline.runtime.keep_large_allocations`). Setting up a cluster: ``docs/cluster.md``.
+thread (:func:`blurcalib.runs.runtime.configure_threads`) and keeps large allocations on the heap
+(:func:`blurcalib.runs.runtime.keep_large_allocations`). Setting up a cluster: ``docs/cluster.md``.
 """
 
 from __future__ import annotations
@@ -14,7 +14,7 @@ from collections.abc import Callable, Iterator, Sequence
 from typing import Any, TypeVar
 from urllib.parse import urlsplit
 
-from blurcalib.pipeline.runtime import configure_threads, keep_large_allocations
+from blurcalib.runs.runtime import configure_threads, keep_large_allocations
 
 R = TypeVar("R")
 
@@ -61,7 +61,7 @@ def check_address(address: str) -> str:
 
 def _single_threaded(fn: Callable[..., R], *args: Any) -> R:
     """``fn(*args)`` with one compute thread and glibc keeping large allocations
-    (:func:`blurcalib.pipeline.runtime.keep_large_allocations`), whatever the worker's environment."""
+    (:func:`blurcalib.runs.runtime.keep_large_allocations`), whatever the worker's environment."""
     configure_threads(1)
     keep_large_allocations()
     return fn(*args)

@@ -7,7 +7,7 @@ A camera's raw grey level ``I`` at a true level ``mu`` has the variance::
 ``b`` the grey levels per photo-electron (shot noise, ``1 / b`` electrons per grey level) and ``a``
 the signal-independent part (read noise, quantisation, the dark offset's shot noise). The loss of a
 block (its mean squared residual) is, for a model that fits, the mean of this variance over the
-block's pixels, so the loss threshold is expressed in it (:mod:`blurcalib.extract.quality`).
+block's pixels, so the loss threshold is expressed in it (:mod:`blurcalib.growth.quality`).
 
 The estimate (:func:`estimate_noise`) uses the image alone, so that it exists before any block is
 fitted and does not absorb the model errors the loss threshold is there to catch:
@@ -46,7 +46,7 @@ QUANTISATION_VAR = 1.0 / 12.0
 """Variance (grey levels^2) of rounding to whole grey levels of the 8-bit scale: the least a level
 bin reads (:func:`estimate_noise`). Frames come as 8-bit grey levels, or as colour or 16-bit
 ones rounded at least as finely; the loss limits do not fall below their values at 2 grey levels
-(:func:`blurcalib.extract.quality.noise_scale`), so the floor changes none of them."""
+(:func:`blurcalib.growth.quality.noise_scale`), so the floor changes none of them."""
 
 
 @dataclass(frozen=True)

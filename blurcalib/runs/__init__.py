@@ -1,0 +1,1 @@
+"""Running many frames: the process and thread runtime, and the Dask cluster."""
