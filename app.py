@@ -168,12 +168,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("folder", nargs="?", help="dataset folder (default: a built-in simulated dataset)")
     p.add_argument("--pattern", help="pattern YAML (default: pattern.yaml in the folder or its parent)")
     p.add_argument("--port", type=_port, default=8080,
-                   help="TCP port (%(default)s; the next free one if taken)")
+                   help="TCP port (default %(default)s; the next free one if taken)")
     p.add_argument("--host", default="127.0.0.1",
-                   help="interface to listen on (%(default)s; 0.0.0.0 exposes the app to the network)")
+                   help="interface to listen on (default %(default)s; 0.0.0.0 exposes the app to the "
+                        "network)")
     p.add_argument("--threads", type=positive_int, default=1,
-                   help="compute threads of the extraction and calibration (%(default)s, the engine's "
-                        "policy: more only helps on an otherwise idle machine)")
+                   help="compute threads of the extraction and calibration (default %(default)s: more "
+                        "only helps on an otherwise idle machine)")
     return p
 
 
