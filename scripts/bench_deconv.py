@@ -6,7 +6,9 @@ random curved motion path of 4 to 15 px plus a small Gaussian, gain and offset g
 and paper ~200 grey levels, Gaussian noise of 2 grey levels, 8-bit quantisation; the initial
 homography off by up to 1.5 px and 3 % scale), fits them all in one batch with each solver variant
 and prints the star-centre error (recovered ``H'(0, 0)`` after PSF re-centring against the true
-``H(0, 0)`` plus the true kernel's centroid), the residual and the time per block.
+``H(0, 0)`` plus the true kernel's centroid), the residual, the share of blocks whose fit
+converged (the yield) and the time per block. The figures are also recorded as JSON
+(``scripts/benchrecord.py``).
 
 Usage::
 
@@ -19,6 +21,7 @@ import argparse
 import dataclasses
 import time
 
+import benchrecord
 import numpy as np
 
 from blurcalib.deconv.blocks import fit_blocks
@@ -71,7 +74,9 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=7)
     parser.add_argument("--kernel-size", type=int, default=17)
     parser.add_argument("--repeats", type=int, default=3, help="timed runs per variant (median)")
+    benchrecord.add_option(parser)
     args = parser.parse_args()
+    record = benchrecord.start(__file__, args)
 
     t0 = time.perf_counter()
     sim = simulate_blocks(layout_pattern(), args.blocks, np.random.default_rng(args.seed))
@@ -80,22 +85,29 @@ def main() -> None:
     base = DeconvSettings()
     fit_blocks(sim.image, sim.H0[:4], 16, args.kernel_size, base)  # warm-up (allocator, lazy initialisation)
 
-    header = ("variant", "median", "p90", "max", "rms", "conv", "ms/block")
-    print("\n{:42s} {:>8s} {:>8s} {:>8s} {:>6s} {:>5s} {:>9s}".format(*header))
+    header = ("variant", "median", "p90", "max", "rms", "converged", "ms/block")
+    print("\n{:42s} {:>8s} {:>8s} {:>8s} {:>6s} {:>9s} {:>9s}".format(*header))
     for name, changes in VARIANTS:
         settings = dataclasses.replace(base, **changes)
         fit, seconds = timed_fit(sim, args.kernel_size, settings, args.repeats)
         err = errors(fit, sim)
         print(f"{name:42s} {np.median(err):8.4f} {np.percentile(err, 90):8.4f} {err.max():8.4f} "
-              f"{np.median(fit.residual_rms):6.2f} {fit.converged.mean():5.2f} "
+              f"{np.median(fit.residual_rms):6.2f} {100 * fit.converged.mean():8.0f}% "
               f"{1000 * seconds / len(err):9.1f}")
+        record.add(name, blocks=len(err), converged_pct=100 * fit.converged.mean(),
+                   median_px=np.median(err), p90_px=np.percentile(err, 90), max_px=err.max(),
+                   residual_rms_grey=np.median(fit.residual_rms), wall_ms_per_block=1000 * seconds / len(err))
 
     big = tiled(sim, 4)
     fit, seconds = timed_fit(big, args.kernel_size, base, 1)
     err = errors(fit, big)
     print(f"\n{len(err)} blocks (the {args.blocks} above, four times), defaults: {seconds:.2f} s, "
-          f"{1000 * seconds / len(err):.1f} ms/block; median error {np.median(err):.4f} px, "
-          f"max {err.max():.4f} px")
+          f"{1000 * seconds / len(err):.1f} ms/block; {100 * fit.converged.mean():.0f}% converged, "
+          f"median error {np.median(err):.4f} px, max {err.max():.4f} px")
+    record.add(f"{len(err)} blocks in one batch, defaults", blocks=len(err),
+               converged_pct=100 * fit.converged.mean(), median_px=np.median(err), max_px=err.max(),
+               wall_s=seconds, wall_ms_per_block=1000 * seconds / len(err))
+    record.write()
 
 
 if __name__ == "__main__":
