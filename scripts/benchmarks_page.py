@@ -49,21 +49,21 @@ class Headline:
 
 
 HEADLINES = (
-    Headline("the demo's 80 frames, split by hand: generic camera from sharp + blurry frames",
+    Headline("the demo's 80 frames, split by hand: generic camera, sharp + blurry",
              "bench_capture", "split",
              "{camera_error_px} px from the true camera (shape {camera_shape_px} px); {frames_used} of "
              "{frames} frames used"),
-    Headline("the same frames as one mp4 video, kinds measured", "bench_capture", "video",
+    Headline("the same frames as one mp4 video", "bench_capture", "video",
              "{camera_error_px} px from the true camera; {frames_used} of {frames} frames used"),
-    Headline("real camera, held-out median error (5-fold)", "bench_validation", "held out",
+    Headline("real camera, held-out median (5-fold)", "bench_validation", "held out",
              "generic {generic_median_px} px, OpenCV rational-8 {rational8_median_px} px, "
              "Brown-Conrady {brown_conrady_median_px} px"),
-    Headline("simulated frames under 12-25 px of blur", "bench_yield",
+    Headline("simulated frames, 12-25 px of blur", "bench_yield",
              "12-25 px blur, adaptive window (default)",
              "{returned_pct} % of the visible features, pose-consistent median "
              "{pose_consistent_median_px} px; {frames_extracted} of {frames} frames; {cpu_s_per_frame} s CPU "
              "per frame"),
-    Headline("real frames under 5-12 px of blur", "bench_real_texture", "hints",
+    Headline("real frames, 5-12 px of blur", "bench_real_texture", "hints",
              "{yield_pct} % of the reference detector's features, median {median_px} px; "
              "{cpu_s_per_frame} s CPU per frame"),
     Headline("close-up 1280x720 frames, one thread", "bench_speed", "close-up frames (blur 4-15 px)",
@@ -72,10 +72,10 @@ HEADLINES = (
     Headline("real sharp frames, Brown-Conrady", "bench_calibrate",
              "real fixture frames, sharp-set calibration",
              "median reprojection error {median_px} px over {frames_used} of {frames} frames"),
-    Headline("calibration from 1,000 frames' features, with assessment", "bench_scale", "1000 frames",
+    Headline("1,000 frames' features: calibration and assessment", "bench_scale", "1000 frames",
              "{cpu_s} s CPU, {peak_gb} GB; camera {error_px} px from the truth; {frames_used} of {frames} "
              "frames used"),
-    Headline("rolling shutter (readout 2 exposures), --rolling-shutter auto", "bench_rolling_shutter",
+    Headline("rolling shutter (readout 2 exposures), `auto`", "bench_rolling_shutter",
              "rolling shutter, --rolling-shutter auto",
              "camera {camera_median_px} px from the truth; {blurry_frames_used} of {blurry_frames} blurry "
              "frames used; readout ratio {readout_ratio}"),
