@@ -41,7 +41,8 @@ def test_benchmarks_page_is_what_the_records_make(page) -> None:
 def test_readme_headlines_are_what_the_records_make(page) -> None:
     readme = (ROOT / "README.md").read_text(encoding="utf-8")
     region = page.render_headlines(page.load_records())
-    assert region in readme, "the README's headline figures are out of date: run python scripts/benchmarks_page.py"
+    assert region in readme, \
+        "the README's headline figures are out of date: run python scripts/benchmarks_page.py"
 
 
 def test_every_benchmark_records_its_figures() -> None:
