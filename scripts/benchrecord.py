@@ -78,12 +78,15 @@ def machine(device: str = "cpu") -> dict[str, Any]:
 
 
 def _commit() -> str | None:
+    """The checkout's commit, with ``+changes`` when tracked files differ from it."""
     try:
-        out = subprocess.run(["git", "-C", str(ROOT), "rev-parse", "--short=12", "HEAD"],
-                             capture_output=True, text=True, timeout=10, check=False)
+        head = subprocess.run(["git", "-C", str(ROOT), "rev-parse", "--short=12", "HEAD"],
+                              capture_output=True, text=True, timeout=10, check=False).stdout.strip()
+        dirty = subprocess.run(["git", "-C", str(ROOT), "status", "--porcelain", "--untracked-files=no"],
+                               capture_output=True, text=True, timeout=10, check=False).stdout.strip()
     except (OSError, subprocess.SubprocessError):
         return None
-    return out.stdout.strip() or None
+    return (head + ("+changes" if dirty else "")) or None
 
 
 def _load() -> list[float] | None:
