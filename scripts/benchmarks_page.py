@@ -121,7 +121,7 @@ def scripts(folder: Path = SCRIPTS) -> dict[str, str]:
     out = {}
     for path in sorted(folder.glob("bench_*.py")):
         doc = ast.get_docstring(ast.parse(path.read_text(encoding="utf-8"))) or ""
-        out[path.stem] = " ".join(doc.split("\n\n")[0].split())
+        out[path.stem] = " ".join(doc.split("\n\n")[0].split()).replace("``", "`")
     return out
 
 
