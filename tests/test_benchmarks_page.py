@@ -109,3 +109,14 @@ def test_headline_templates_name_recorded_figures(page) -> None:
         source = (SCRIPTS / f"{h.script}.py").read_text(encoding="utf-8")
         for key in re.findall(r"\{(\w+)\}", h.template):
             assert f"{key}=" in source or f'"{key}"' in source or f"{key}_" in source, (h.script, key)
+
+
+def test_readme_stays_within_10_kb_with_every_headline_filled(page) -> None:
+    records: dict = {}
+    for h in page.HEADLINES:
+        figures = records.setdefault(h.script, {"command": "python scripts/x.py", "figures": {}})["figures"]
+        figures[h.section] = {key: 12345.678 for key in re.findall(r"\{(\w+)\}", h.template)}
+    readme = (ROOT / "README.md").read_text(encoding="utf-8")
+    filled = page.replace_region(readme, page.render_headlines(records))
+    assert page.NOT_RUN not in page.render_headlines(records)
+    assert len(filled.encode("utf-8")) <= 10_000, len(filled.encode("utf-8"))
