@@ -25,6 +25,7 @@ from pathlib import Path
 
 import benchrecord
 import numpy as np
+import torch
 
 from blurcalib.calib.sequence import SequenceSettings
 from blurcalib.calib.sharp import calibrate_sharp
@@ -102,6 +103,7 @@ def main() -> None:
     benchrecord.add_option(parser)
     args = parser.parse_args()
     record = benchrecord.start(__file__, args)
+    torch.set_num_threads(1)  # per-process figures, as the command line's workers compute
     real_fixture(record)
     if not args.skip_simulated:
         simulated(args.sharp, args.blurry, record)
