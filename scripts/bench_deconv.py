@@ -12,7 +12,7 @@ converged (the yield) and the time per block. The figures are also recorded as J
 
 Usage::
 
-    python scripts/bench_deconv.py [--blocks 64] [--seed 7] [--kernel-size 17] [--repeats 3]
+    python scripts/bench_deconv.py [--blocks 64] [--seed 7] [--kernel-size 17] [--repeats 3] [--threads 1]
 """
 
 from __future__ import annotations
@@ -23,6 +23,7 @@ import time
 
 import benchrecord
 import numpy as np
+import torch
 
 from blurcalib.deconv.blocks import fit_blocks
 from blurcalib.deconv.result import BlockFit
@@ -76,9 +77,12 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=7)
     parser.add_argument("--kernel-size", type=int, default=17)
     parser.add_argument("--repeats", type=int, default=3, help="timed runs per variant (median)")
+    parser.add_argument("--threads", type=int, default=1,
+                        help="torch threads (1: per-process figures, as the command line's workers compute)")
     benchrecord.add_option(parser)
     args = parser.parse_args()
     record = benchrecord.start(__file__, args)
+    torch.set_num_threads(args.threads)
 
     t0 = time.perf_counter()
     sim = simulate_blocks(layout_pattern(), args.blocks, np.random.default_rng(args.seed))
