@@ -78,11 +78,13 @@ def machine(device: str = "cpu") -> dict[str, Any]:
 
 
 def _commit() -> str | None:
-    """The checkout's commit, with ``+changes`` when tracked files differ from it."""
+    """The checkout's commit, with ``+changes`` when its code (``blurcalib/``, ``scripts/``)
+    differs from it."""
     try:
         head = subprocess.run(["git", "-C", str(ROOT), "rev-parse", "--short=12", "HEAD"],
                               capture_output=True, text=True, timeout=10, check=False).stdout.strip()
-        dirty = subprocess.run(["git", "-C", str(ROOT), "status", "--porcelain", "--untracked-files=no"],
+        dirty = subprocess.run(["git", "-C", str(ROOT), "status", "--porcelain", "--untracked-files=no",
+                                "--", "blurcalib", "scripts"],
                                capture_output=True, text=True, timeout=10, check=False).stdout.strip()
     except (OSError, subprocess.SubprocessError):
         return None
