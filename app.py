@@ -165,15 +165,18 @@ def _ignore(signum: int, frame: object) -> None:
 def build_parser() -> argparse.ArgumentParser:
     """The command line of ``python app.py``."""
     p = argparse.ArgumentParser(prog="app.py", description=__doc__.split("\n\n")[0])
-    p.add_argument("folder", nargs="?", help="dataset folder (default: a built-in simulated dataset)")
-    p.add_argument("--pattern", help="pattern YAML (default: pattern.yaml in the folder or its parent)")
-    p.add_argument("--port", type=_port, default=8080,
-                   help="TCP port (%(default)s; the next free one if taken)")
-    p.add_argument("--host", default="127.0.0.1",
-                   help="interface to listen on (%(default)s; 0.0.0.0 exposes the app to the network)")
-    p.add_argument("--threads", type=positive_int, default=1,
-                   help="compute threads of the extraction and calibration (%(default)s, the engine's "
-                        "policy: more only helps on an otherwise idle machine)")
+    p.add_argument("folder", nargs="?", metavar="FOLDER",
+                   help="dataset folder (default: a built-in simulated dataset)")
+    p.add_argument("--pattern", metavar="FILE",
+                   help="pattern YAML (default: pattern.yaml in the folder or its parent)")
+    p.add_argument("--port", type=_port, default=8080, metavar="N",
+                   help="TCP port (default %(default)s; the next free one if taken)")
+    p.add_argument("--host", default="127.0.0.1", metavar="ADDRESS",
+                   help="interface to listen on (default %(default)s; 0.0.0.0 exposes the app to the "
+                        "network)")
+    p.add_argument("--threads", type=positive_int, default=1, metavar="N",
+                   help="compute threads of the extraction and calibration (default %(default)s: more "
+                        "only helps on an otherwise idle machine)")
     return p
 
 

@@ -67,9 +67,8 @@ BLOCK_COLUMNS: tuple[str, ...] = (
 
 BLUR_PER_SQUARE_LIMIT = 1.25
 """:attr:`BlockTable.blur_per_square` from which fewer blocks are found, and those found are poorer,
-even with the frame's path-PSF field (``scripts/bench_yield.py``: 85 % returned at 0.048 px from
-0.8, 77 % at 0.067 px from 1, 59 % at 0.059 px from 1.25, 22 % at 0.11 px from 1.5; with free
-PSFs alone it is 50 % from 0.8 and 10 % from 1)."""
+even with the frame's path-PSF field (``scripts/bench_yield.py`` prints the share returned by
+class of blur per square; docs/decisions/path-psf-field.md)."""
 
 CORNER_COLUMNS: tuple[str, ...] = ("frame", "cx2", "cy2", "X", "Y", "x", "y", "blocks")
 """Columns of ``corners.csv``: the corner's feature coordinates doubled (``cx2 = 2 fx + 1`` for

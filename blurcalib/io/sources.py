@@ -4,10 +4,8 @@ Each input is a folder (its image files, :func:`blurcalib.io.frames.list_frames`
 video file (:data:`VIDEO_EXTENSIONS`, decoded by OpenCV's ``cv2.VideoCapture``). Every frame is a
 :class:`FrameInput`: a name, the file and, for a video, the frame's index, so that a worker
 process reads just the frame it processes (nothing decodes a whole video into memory). A video
-frame is read by seeking to its index (``CAP_PROP_POS_FRAMES``): on an mp4v video of 1280 x 720
-px, opening it and reading one frame by seeking takes 40 ms (median, 72 ms at most; a sequential
-decode 10 ms per frame) and returns the same pixels as a sequential decode, a few hundredths of
-the seconds a frame's extraction takes.
+frame is read by seeking to its index (``CAP_PROP_POS_FRAMES``), which returns the same pixels
+as a sequential decode and costs a few hundredths of a frame's extraction.
 
 Names: an image is named by its path relative to the common folder of all inputs' files
 (``0.png``, ``seq1/0.png``); frame ``i`` of a video by the video's relative path without its
