@@ -33,6 +33,7 @@ import torch
 import yaml
 
 from blurcalib.io.atomic import atomic_write_text
+from blurcalib.io.input_file import InputFileError, open_input
 
 TAG_CELLS = 10
 """A tag36h11 marker drawn by the reference tool is 10 x 10 cells: a white ring, a black ring
@@ -393,10 +394,12 @@ def load_pattern(path: str | os.PathLike) -> StarPattern:
     """
     path_s = str(path)
     try:
-        with open(path, "rb") as handle:
+        with open_input(path, what="pattern file") as handle:  # a regular file: a FIFO would block
             data = handle.read(MAX_PATTERN_BYTES + 1)
     except FileNotFoundError:
         raise PatternFileError(f"{path_s}: pattern file not found") from None
+    except InputFileError as exc:
+        raise PatternFileError(str(exc)) from None
     except OSError as exc:
         raise PatternFileError(f"{path_s}: cannot read pattern file ({exc})") from None
     if len(data) > MAX_PATTERN_BYTES:
