@@ -7,6 +7,7 @@ import argparse
 import math
 
 from blurcalib.calib.rolling_shutter import parse_rolling_shutter
+from blurcalib.io.frames import frame_size_problem
 from blurcalib.runs.cluster import ClusterError, check_address
 from blurcalib.target.pattern import PAGE_SIZES_MM
 
@@ -30,13 +31,15 @@ def page_size(text: str) -> tuple[float, float]:
 
 
 def image_size(text: str) -> tuple[int, int]:
-    """An image size ``WxH`` in px, both >= 1."""
+    """An image size ``WxH`` in px that a frame may have
+    (:func:`blurcalib.io.frames.frame_size_problem`: sides of 32 px or more, at most 50 MP)."""
     try:
         w, h = (int(v) for v in text.lower().split("x"))
     except ValueError:
         raise argparse.ArgumentTypeError(f"expected WxH in px (e.g. 1280x720), got {text!r}") from None
-    if w < 1 or h < 1:
-        raise argparse.ArgumentTypeError(f"width and height must be >= 1 px, got {text!r}")
+    problem = frame_size_problem(w, h)
+    if problem is not None:
+        raise argparse.ArgumentTypeError(problem.removeprefix("is "))
     return w, h
 
 

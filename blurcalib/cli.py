@@ -245,6 +245,8 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     if args.blurry and not args.sharp:
         raise CliError("--blurry DIR goes with --sharp DIR (or give every folder as INPUT)")
     if args.features is not None:
+        if args.model == "generic":
+            _check_grid([_features_image_size(Path(args.features), args.image_size)], args.cell_px)
         _run_pipeline([], [], pattern, Path(args.out), args, features=Path(args.features))
         return 0
     if args.frames:
@@ -262,6 +264,17 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
         _check_grid(map(frame_size, sharp), args.cell_px)
     _run_pipeline(sharp, blurry, pattern, Path(args.out), args)
     return 0
+
+
+def _features_image_size(path: Path, given: tuple[int, int] | None) -> tuple[int, int] | None:
+    """The image size of a ``--features`` file: ``--image-size``, or a reference dataset's own from
+    its header; None when neither is known, or the size is one no frame may have (the reader
+    says so)."""
+    from blurcalib.io.frames import frame_size_problem
+    from blurcalib.io.refformat import ref_dataset_image_size
+
+    size = given or (ref_dataset_image_size(path) if path.suffix.lower() == ".bin" else None)
+    return size if size is not None and frame_size_problem(*size) is None else None
 
 
 def _check_grid(sizes: Iterable[tuple[int, int] | None], cell_px: float) -> None:
@@ -515,7 +528,7 @@ def _add_source_options(p: argparse.ArgumentParser, nargs: str = "+") -> None:
                    help="keep every N-th frame of each folder and video (%(default)s)")
     p.add_argument("--max-frames", type=positive_int, default=None,
                    help="keep at most N frames of each folder and video (default: all)")
-    p.add_argument("--sharp-below", type=float, default=SHARP_BELOW_PX,
+    p.add_argument("--sharp-below", type=positive_number, default=SHARP_BELOW_PX,
                    help="frames whose measured blur (median blur extent of the tag ring's PSFs) is "
                         "below this are sharp, px (%(default)s; docs/pipeline.md)")
 

@@ -261,6 +261,122 @@ def test_broken_links_loops_and_non_utf8_names_get_rows(
     assert rows["caf\\xe9.png"].split(",")[1] == "not_seeded"
 
 
+NEEDS_DEVICES = pytest.mark.skipif(
+    not Path("/dev/zero").exists() or not hasattr(os, "mkfifo"), reason="needs /dev/zero and FIFOs (POSIX)"
+)
+
+
+@NEEDS_DEVICES
+def test_devices_and_fifos_behind_frame_names_get_unreadable_rows(
+    tmp_path: Path, capsys: pytest.CaptureFixture
+) -> None:
+    """``/dev/zero`` behind ``zero.png`` read 2 GB in seconds; a FIFO behind a name blocked the run."""
+    frames = tmp_path / "f"
+    _png(frames / "ok.png")
+    (frames / "zero.png").symlink_to("/dev/zero")
+    os.mkfifo(tmp_path / "pipe")
+    (frames / "pipe.png").symlink_to(tmp_path / "pipe")
+    code, _err = _run(capsys, ["extract", frames, "--pattern", FIXTURE_YAML, "--out", tmp_path / "o",
+                               "--workers", "1"])
+    assert code == 1
+    rows = (tmp_path / "o" / "frames.csv").read_text().splitlines()[1:]  # named by the files they lead to
+    for needle in ("zero.png: is a character device, not a regular file",
+                   "pipe.png: is a FIFO (named pipe), not a regular file"):
+        assert any(",unreadable," in r and needle in r for r in rows), rows
+
+
+# ----------------------------------------------------------------------------- feature files and videos
+def _features_csv(tmp_path: Path, first_row: dict[str, str] | None = None) -> Path:
+    """A features.csv of two sharp frames of 12 features; ``first_row`` replaces fields of row 1."""
+    from blurcalib.io.results import FEATURE_COLUMNS, write_features
+    from blurcalib.target.pattern import layout_pattern
+
+    pattern = layout_pattern()
+    ids = np.tile(np.arange(12), 2)
+    fx, fy = pattern.features[ids].T
+    table = FeatureTable(np.repeat(["a.png", "b.png"], 12), ids, fx, fy, fx * 0.01, fy * 0.01,
+                         100.0 + 30 * fx, 100.0 + 30 * fy, np.ones(24), np.full(24, 3))
+    path = write_features(tmp_path / "features.csv", table)
+    lines = path.read_text().splitlines()
+    row = lines[1].split(",")
+    for name, value in (first_row or {}).items():
+        row[FEATURE_COLUMNS.index(name)] = value
+    path.write_text("\n".join([lines[0], ",".join(row), *lines[2:]]) + "\n")
+    return path
+
+
+@pytest.mark.parametrize(("first_row", "needle"), [
+    ({"x": "nan"}, "features.csv: row 1: x is nan; positions must be finite numbers"),
+    ({"feature_id": "1" + "0" * 30}, "features.csv: column 'feature_id', row 1: cannot parse"),
+    ({"flags": "1" + "0" * 30}, "features.csv: column 'flags', row 1: cannot parse"),
+    ({"frame": "n" * 200_000}, "features.csv: row 1: a field longer than the 131072 characters"),
+    ({"weight": "1e300"}, "features.csv: row 1: weight 1e+300 is outside 0 to 1e+06"),
+    ({"feature_id": "-1"}, "features.csv: row 1: feature id -1 is not one of the pattern's ids"),
+])
+def test_bad_feature_rows_exit_2_before_any_calibration(
+    tmp_path: Path, capsys: pytest.CaptureFixture, first_row: dict[str, str], needle: str
+) -> None:
+    """A NaN position ran the whole calibration, then failed writing features.bin; 10^30 and a 200 kB
+    field were tracebacks; a weight of 1e300 failed after 5.6 minutes."""
+    path = _features_csv(tmp_path, first_row)
+    code, err = _run(capsys, ["calibrate", "--features", path, "--image-size", "1280x720", "--pattern",
+                              FIXTURE_YAML, "--out", tmp_path / "out"])
+    assert code == 2 and needle in err and len(err.strip().splitlines()) == 1, err
+    assert not (tmp_path / "out").exists()
+
+
+@NEEDS_DEVICES
+def test_feature_files_behind_devices_and_fifos_exit_2(
+    tmp_path: Path, capsys: pytest.CaptureFixture
+) -> None:
+    (tmp_path / "zero.bin").symlink_to("/dev/zero")
+    os.mkfifo(tmp_path / "pipe.bin")
+    for name, what in (("zero.bin", "a character device"), ("pipe.bin", "a FIFO (named pipe)")):
+        code, err = _run(capsys, ["calibrate", "--features", tmp_path / name, "--pattern", FIXTURE_YAML,
+                                  "--out", tmp_path / "out"])
+        assert code == 2 and f"{tmp_path / name}: is {what}, not a regular file" in err
+    assert not (tmp_path / "out").exists()
+
+
+def test_cell_px_1_with_features_is_refused_before_the_file_is_read(
+    tmp_path: Path, capsys: pytest.CaptureFixture
+) -> None:
+    """Refused only after the 49 s parametric stage before; now from the .bin's header, before its
+    rows are read (this file's rows are refused too, later)."""
+    from blurcalib.io.refformat import encode_ref_dataset, to_ref_dataset
+    from blurcalib.target.pattern import layout_pattern
+
+    dataset = to_ref_dataset((1280, 720), ["a.png", "b.png"], np.array([0, 1]), np.array([0, 0]),
+                             np.array([10.0, 20.0]), np.array([10.0, 20.0]), layout_pattern())
+    dataset.images[1].name = "a.png"
+    path = tmp_path / "features.bin"
+    path.write_bytes(encode_ref_dataset(dataset))
+    argv = ["calibrate", "--features", path, "--pattern", FIXTURE_YAML, "--out", tmp_path / "out"]
+    code, err = _run(capsys, [*argv, "--cell-px", "1"])
+    assert code == 2 and "--cell-px 1: cells of 1 px make a 1282 x 722 grid" in err
+    code, err = _run(capsys, argv)
+    assert code == 2 and "images 0 and 1 are both named 'a.png'" in err
+    code, err = _run(capsys, ["calibrate", "--features", _features_csv(tmp_path), "--image-size", "1280x720",
+                              "--pattern", FIXTURE_YAML, "--out", tmp_path / "out", "--cell-px", "1"])
+    assert code == 2 and "--cell-px 1: cells of 1 px make a 1282 x 722 grid" in err
+    assert not (tmp_path / "out").exists()
+
+
+def test_two_videos_of_one_name_exit_2_naming_both(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    """``clip.mp4`` and ``clip.mkv``: a ValueError traceback in extract and calibrate before."""
+    for name, fourcc in (("clip.mp4", "mp4v"), ("clip.mkv", "MJPG")):
+        writer = cv2.VideoWriter(str(tmp_path / name), cv2.VideoWriter_fourcc(*fourcc), 10, (64, 48))
+        for _ in range(2):
+            writer.write(np.zeros((48, 64, 3), np.uint8))
+        writer.release()
+    for command in ("extract", "calibrate"):
+        code, err = _run(capsys, [command, tmp_path / "clip.mp4", tmp_path / "clip.mkv", "--pattern",
+                                  FIXTURE_YAML, "--out", tmp_path / "out"])
+        assert code == 2 and (f"{tmp_path / 'clip.mp4'} and {tmp_path / 'clip.mkv'}: both give frames the "
+                              f"name clip#000000") in err
+    assert not (tmp_path / "out").exists()
+
+
 # ----------------------------------------------------------------------------- output folders
 def test_full_disk_is_one_line_and_keeps_old_files(
     tmp_path: Path, capsys: pytest.CaptureFixture, monkeypatch: pytest.MonkeyPatch
@@ -426,13 +542,22 @@ def test_strict_json_for_reports_and_frame_statuses(tmp_path: Path) -> None:
             ],
             "1282 x 722 grid (925604 nodes)",
         ),
+        (
+            ["calibrate", "{tmp}/f", "--pattern", str(FIXTURE_YAML), "--out", "{tmp}/ds",
+             "--sharp-below", "-3"],
+            "--sharp-below: must be a finite number > 0, got '-3'",
+        ),
+        (
+            ["calibrate", "--features", "{tmp}/f.csv", "--image-size", "4294967295x4294967295", "--pattern",
+             str(FIXTURE_YAML), "--out", "{tmp}/ds"],
+            "--image-size: 4294967295x4294967295 px (18446744065119.6 MP), more than the 50 MP a frame may",
+        ),
     ],
 )
 def test_bad_arguments_exit_2_before_anything_is_written(
     tmp_path: Path, capsys: pytest.CaptureFixture, argv: list[str], needle: str
 ) -> None:
     _png(tmp_path / "f" / "0.png", 1280, 720)
-    start = time.perf_counter()
     try:
         code = main([a.replace("{tmp}", str(tmp_path)) for a in argv])
     except SystemExit as exc:  # argparse's refusal of an option value
@@ -440,7 +565,6 @@ def test_bad_arguments_exit_2_before_anything_is_written(
     err = capsys.readouterr().err
     assert code == 2 and needle in err and "Traceback" not in err, err
     assert not (tmp_path / "ds").exists() and not list(tmp_path.glob("x.*"))
-    assert time.perf_counter() - start < 60  # refused at once, not after minutes of work
 
 
 def test_pattern_needs_overwrite_to_replace_files(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
@@ -487,16 +611,27 @@ def test_threads_and_workers_are_capped_at_the_cores(tmp_path: Path, capsys: pyt
         cv2.setNumThreads(1)
 
 
-def test_malformed_cluster_address_fails_fast() -> None:
+def test_malformed_cluster_address_fails_fast(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    """Refused when the options are read, before anything is written, with or without Dask."""
     assert check_address("tcp://10.0.0.5:8786") == "tcp://10.0.0.5:8786"
     assert check_address("localhost:8786") == "localhost:8786"
     for bad in ("foo", "http://h:1", "tcp://h:99999", "tls://h:1/x"):
         with pytest.raises(ClusterError, match="not a scheduler address"):
             check_address(bad)
-    start = time.perf_counter()
-    with pytest.raises(ClusterError, match="tcp://h:port"):
+    _png(tmp_path / "f" / "0.png")
+    with pytest.raises(SystemExit) as info:
+        main(["extract", str(tmp_path / "f"), "--pattern", str(FIXTURE_YAML), "--out", str(tmp_path / "o"),
+              "--cluster", "tcp://h:port"])
+    err = capsys.readouterr().err
+    assert info.value.code == 2 and "argument --cluster: not a scheduler address, the port must be" in err
+    assert not (tmp_path / "o").exists()
+
+
+def test_malformed_cluster_address_is_refused_before_connecting() -> None:
+    """No wait for a scheduler that cannot exist."""
+    pytest.importorskip("distributed", reason="Dask is not installed: pip install 'blurcalib[cluster]'")
+    with pytest.raises(ClusterError, match="'tcp://h:port': not a scheduler address"):
         next(iter(run_on_cluster("tcp://h:port", print, [(1,)])))
-    assert time.perf_counter() - start < 10  # no 60 s wait for a scheduler that cannot exist
 
 
 def test_generic_grid_limit_names_the_cell_that_fits() -> None:

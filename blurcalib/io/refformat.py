@@ -27,7 +27,7 @@ from typing import Protocol
 import numpy as np
 
 from blurcalib.io.atomic import atomic_write_bytes
-from blurcalib.io.input_file import InputFileError, read_input
+from blurcalib.io.input_file import InputFileError, open_input, read_input
 from blurcalib.io.results import FeatureFlags, FeatureTable
 
 MAGIC = b"calib_data"
@@ -216,6 +216,22 @@ def read_ref_dataset(path: str | os.PathLike, max_bytes: int | None = None) -> R
         raise RefFormatError(f"{path_s}: {len(data) - r.pos} unexpected bytes after the dataset's "
                              f"end at byte {r.pos}")
     return RefDataset(image_size=image_size, images=images, geometries=geometries)
+
+
+def ref_dataset_image_size(path: str | os.PathLike) -> tuple[int, int] | None:
+    """``(width, height)`` of a reference dataset's camera, read from its first 26 bytes (nothing
+    else is read); None when the file cannot be read or does not start as a single-camera dataset
+    of version 0 (:func:`read_ref_dataset` then says why)."""
+    head_size = len(MAGIC) + 4 * 4
+    try:
+        with open_input(path, what="reference dataset") as handle:
+            head = handle.read(head_size)
+    except (OSError, InputFileError):
+        return None
+    if len(head) < head_size or head[:len(MAGIC)] != MAGIC:
+        return None
+    version, cameras, width, height = struct.unpack(">IIII", head[len(MAGIC):])
+    return (width, height) if version == VERSION and cameras == 1 else None
 
 
 def _int32(values: np.ndarray, what: str) -> np.ndarray:
