@@ -782,6 +782,73 @@ def test_app_refuses_addresses_it_cannot_use(capsys: pytest.CaptureFixture) -> N
         assert info.value.code == 2 and needle in capsys.readouterr().err
 
 
+def test_a_host_other_machines_reach_needs_allow_remote(
+    tmp_path: Path, capsys: pytest.CaptureFixture
+) -> None:
+    """``--host 0.0.0.0`` let any network client browse, probe and export as the app's user, with no
+    warning: now it is refused without ``--allow-remote``, and warned about with it."""
+    import app
+    from views.security import ServeError, check_host, is_local_host
+
+    assert all(is_local_host(h) for h in ("127.0.0.1", "::1", "localhost"))
+    assert not any(is_local_host(h) for h in ("0.0.0.0", "::", "192.0.2.1", "no-such-host.invalid"))
+    assert check_host("127.0.0.1", False) is None
+    assert app.main(["--host", "0.0.0.0", "--port", "0"]) == 2
+    assert capsys.readouterr().err.strip() == (
+        "app.py: error: --host 0.0.0.0 exposes the app to the network: any client that reaches it can browse "
+        "and read files, export into any folder and run jobs as this user; add --allow-remote to do so on a "
+        "network you trust")
+    assert check_host("0.0.0.0", True).endswith("run jobs as this user (--allow-remote)")
+    with pytest.raises(ServeError, match="--allow-remote"):
+        app.serve(tmp_path, port=0, host="0.0.0.0")
+    server, running = app.serve(tmp_path, port=0, host="0.0.0.0", allow_remote=True)
+    running.close()
+    server.stop()
+
+
+def test_a_typed_pattern_file_is_not_quoted_in_the_app(tmp_path: Path) -> None:
+    """A pattern path typed in the app named any file the app's user can read, and the notice
+    quoted a field's value or the offending line: now it names the field or the line number only."""
+    from state import AppState
+
+    _png(tmp_path / "f" / "0.png")
+    secret = "SECRET-TOKEN-1234"
+    files = {
+        "value.yaml": (f"num_star_segments: {secret}\n", "field 'num_star_segments' must be int"),
+        "line.yaml": (f"a: [b\n{secret}: x: y\n", "not valid YAML (line 2)"),
+        "segments.yaml": ("num_star_segments: 424242\n", "must be a multiple of 4 from 4 to 128"),
+        "squares.yaml": (FIXTURE_YAML.read_text().replace("squares_x: 17", "squares_x: 1"),
+                         "squares_x: not a valid star target"),
+        "binary.yaml": (None, "not a pattern file (not UTF-8 text)"),
+    }
+    state = AppState()
+    for name, (text, needle) in files.items():
+        path = tmp_path / name
+        if text is None:
+            path.write_bytes(b"\x89" + secret.encode())
+        else:
+            path.write_text(text)
+        assert not state.load_folder(tmp_path / "f", path)
+        notice = state.notices[-1].text
+        assert notice.startswith(f"{path}: ") and needle in notice, notice
+        assert secret not in notice and "424242" not in notice and "0x89" not in notice, notice
+    with pytest.raises(PatternFileError, match=secret):  # the command line's own user sees the value
+        load_pattern(tmp_path / "value.yaml")
+
+
+def test_a_very_long_folder_path_is_a_notice(tmp_path: Path) -> None:
+    """A 5,000-character folder path was an OSError traceback in the server log and no notice."""
+    from state import AppState
+
+    state = AppState()
+    for folder, pattern in ((tmp_path / ("a" * 5000), None), (tmp_path / ("a/" * 2500), None),
+                            (tmp_path, tmp_path / ("p" * 5000 + ".yaml"))):
+        assert not state.load_folder(folder, pattern)
+        notice = state.notices[-1]
+        assert notice.title == "Cannot open the folder" and "(File name too long)" in notice.text
+        assert len(notice.text) < 250 and "..." in notice.text, notice.text
+
+
 def test_upload_names_are_made_safe() -> None:
     from views.security import MAX_UPLOAD_NAME, safe_upload_name
 
