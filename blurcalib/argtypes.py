@@ -11,8 +11,12 @@ from blurcalib.io.frames import frame_size_problem
 from blurcalib.runs.cluster import ClusterError, check_address
 from blurcalib.target.pattern import PAGE_SIZES_MM
 
-__all__ = ["cluster_address", "image_size", "page_size", "positive_int", "positive_number", "readout_ratio",
-           "rolling_shutter_mode"]
+__all__ = ["cluster_address", "fold_count", "image_size", "non_negative_number", "page_size", "positive_int",
+           "positive_number", "psf_window", "readout_ratio", "rolling_shutter_mode"]
+
+MAX_PSF_WINDOW = 255
+"""Largest ``--psf-size`` (px): four times the largest window the growth reaches by itself (61 px);
+every block's deconvolution grows with its square."""
 
 
 def page_size(text: str) -> tuple[float, float]:
@@ -62,6 +66,37 @@ def positive_number(text: str) -> float:
         raise argparse.ArgumentTypeError(f"must be a number > 0, got {text!r}") from None
     if not (math.isfinite(value) and value > 0):
         raise argparse.ArgumentTypeError(f"must be a finite number > 0, got {text!r}")
+    return value
+
+
+def non_negative_number(text: str) -> float:
+    """A finite number >= 0."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"must be a number >= 0, got {text!r}") from None
+    if not (math.isfinite(value) and value >= 0):
+        raise argparse.ArgumentTypeError(f"must be a finite number >= 0, got {text!r}")
+    return value
+
+
+def fold_count(text: str) -> int:
+    """A number of validation folds: a whole number >= 2."""
+    value = positive_int(text)
+    if value < 2:
+        raise argparse.ArgumentTypeError(f"must be >= 2 (each fold's frames are scored by the others), "
+                                         f"got {value}")
+    return value
+
+
+def psf_window(text: str) -> int:
+    """A PSF window side in px: odd, from 3 to :data:`MAX_PSF_WINDOW`; 0 picks the default."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"must be an odd whole number of px, got {text!r}") from None
+    if value != 0 and not (3 <= value <= MAX_PSF_WINDOW and value % 2):
+        raise argparse.ArgumentTypeError(f"must be odd, from 3 to {MAX_PSF_WINDOW} px, got {value}")
     return value
 
 

@@ -23,10 +23,13 @@ from tqdm import tqdm
 from blurcalib import __version__
 from blurcalib.argtypes import (
     cluster_address,
+    fold_count,
     image_size,
+    non_negative_number,
     page_size,
     positive_int,
     positive_number,
+    psf_window,
     readout_ratio,
     rolling_shutter_mode,
 )
@@ -471,15 +474,15 @@ def _add_fit_options(p: argparse.ArgumentParser, which: str) -> None:
 
 
 def _add_pipeline_options(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--tau-be", type=float, default=QualitySettings.tau_be,
+    p.add_argument("--tau-be", type=non_negative_number, default=QualitySettings.tau_be,
                    help="largest PSF boundary energy kept (%(default)s)")
-    p.add_argument("--tau-loss", type=float, default=QualitySettings.tau_loss,
+    p.add_argument("--tau-loss", type=positive_number, default=QualitySettings.tau_loss,
                    help="largest block loss kept, grey levels^2: at a noise of 2 grey levels, scaled with "
                         "each block's noise variance (relative), or as given (absolute) (%(default)s)")
     p.add_argument("--loss-threshold", choices=list(get_args(LossMode)), default=QualitySettings.loss_mode,
                    help="--tau-loss in the frame's own noise units, estimated from the image, or the "
                         "paper's absolute grey levels^2 (%(default)s; docs/pipeline.md)")
-    p.add_argument("--min-sigma-major", type=float, default=QualitySettings.min_sigma_major,
+    p.add_argument("--min-sigma-major", type=non_negative_number, default=QualitySettings.min_sigma_major,
                    help="drop blurry frames whose centre median sigma_major is below this, px "
                         "(%(default)s: keep every frame; the paper's choice for its camera is 3.8)")
     p.add_argument("--loss", choices=LOSSES, default=AlignmentSettings.loss,
@@ -511,7 +514,7 @@ def _add_pipeline_options(p: argparse.ArgumentParser) -> None:
                         "it when significant) or a number R: model it whatever the test says (the ratio "
                         "is still estimated); with demo, R also simulates that rolling shutter (%(default)s; "
                         "docs/rolling-shutter.md)")
-    p.add_argument("--folds", type=positive_int, default=ValidationSettings.folds,
+    p.add_argument("--folds", type=fold_count, default=ValidationSettings.folds,
                    help="number of folds of the validation (%(default)s; needs at least "
                         f"{ValidationSettings.min_frames} frames)")
 
@@ -599,7 +602,7 @@ def build_parser() -> argparse.ArgumentParser:
                         f"sharp: small PSF window ({SHARP_START} px) and sharp-frame flags; "
                         "blurry: a window that fits the blur (%(default)s)")
     p.add_argument("--sharp", action="store_true", help="the same as --kind sharp")
-    p.add_argument("--psf-size", type=int, default=0,
+    p.add_argument("--psf-size", type=psf_window, default=0,
                    help=f"PSF window side, odd px ({WindowPolicy.start} blurry frames, {SHARP_START} sharp)")
     p.add_argument("--local-alignment", action="store_true",
                    help="move star centres by the local-alignment translations")

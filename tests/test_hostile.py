@@ -548,6 +548,23 @@ def test_strict_json_for_reports_and_frame_statuses(tmp_path: Path) -> None:
             "--sharp-below: must be a finite number > 0, got '-3'",
         ),
         (
+            ["calibrate", "{tmp}/f", "--pattern", str(FIXTURE_YAML), "--out", "{tmp}/ds", "--tau-be", "nan"],
+            "--tau-be: must be a finite number >= 0, got 'nan'",
+        ),
+        (
+            ["calibrate", "{tmp}/f", "--pattern", str(FIXTURE_YAML), "--out", "{tmp}/ds",
+             "--min-sigma-major", "-1"],
+            "--min-sigma-major: must be a finite number >= 0, got '-1'",
+        ),
+        (
+            ["calibrate", "{tmp}/f", "--pattern", str(FIXTURE_YAML), "--out", "{tmp}/ds", "--folds", "1"],
+            "--folds: must be >= 2",
+        ),
+        (
+            ["extract", "{tmp}/f", "--pattern", str(FIXTURE_YAML), "--out", "{tmp}/ds", "--psf-size", "4"],
+            "--psf-size: must be odd, from 3 to 255 px, got 4",
+        ),
+        (
             ["calibrate", "--features", "{tmp}/f.csv", "--image-size", "4294967295x4294967295", "--pattern",
              str(FIXTURE_YAML), "--out", "{tmp}/ds"],
             "--image-size: 4294967295x4294967295 px (18446744065119.6 MP), more than the 50 MP a frame may",
