@@ -58,26 +58,26 @@ def positive_int(text: str) -> int:
     return value
 
 
-def positive_number(text: str) -> float:
-    """A finite number > 0."""
+def _finite_number(text: str, zero_allowed: bool) -> float:
+    """A finite number > 0, or >= 0 with ``zero_allowed``."""
+    least = ">= 0" if zero_allowed else "> 0"
     try:
         value = float(text)
     except ValueError:
-        raise argparse.ArgumentTypeError(f"must be a number > 0, got {text!r}") from None
-    if not (math.isfinite(value) and value > 0):
-        raise argparse.ArgumentTypeError(f"must be a finite number > 0, got {text!r}")
+        raise argparse.ArgumentTypeError(f"must be a number {least}, got {text!r}") from None
+    if not (math.isfinite(value) and (value >= 0 if zero_allowed else value > 0)):
+        raise argparse.ArgumentTypeError(f"must be a finite number {least}, got {text!r}")
     return value
+
+
+def positive_number(text: str) -> float:
+    """A finite number > 0."""
+    return _finite_number(text, zero_allowed=False)
 
 
 def non_negative_number(text: str) -> float:
     """A finite number >= 0."""
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"must be a number >= 0, got {text!r}") from None
-    if not (math.isfinite(value) and value >= 0):
-        raise argparse.ArgumentTypeError(f"must be a finite number >= 0, got {text!r}")
-    return value
+    return _finite_number(text, zero_allowed=True)
 
 
 def fold_count(text: str) -> int:

@@ -19,6 +19,7 @@ from blurcalib.io import sources
 from blurcalib.io.frames import FrameError
 from blurcalib.io.sources import frame_inputs, read_video_frame, video_frame_count
 from tests.conftest import FIXTURE_YAML
+from tests.test_sources import _decoded
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -38,16 +39,6 @@ def _avi(path: Path, frames: int, claimed: int | None = None) -> Path:
         struct.pack_into("<I", data, data.index(b"strh") + 8 + 32, claimed)
         path.write_bytes(bytes(data))
     return path
-
-
-def _decoded(path: Path) -> list[np.ndarray]:
-    capture = cv2.VideoCapture(str(path))
-    out = []
-    while True:
-        ok, frame = capture.read()
-        if not ok:
-            return out
-        out.append(cv2.cvtColor(frame.astype(np.float32), cv2.COLOR_BGR2GRAY))
 
 
 @pytest.mark.parametrize("claimed", [2**31 - 1, 9, 100_000])
