@@ -23,10 +23,13 @@ from tqdm import tqdm
 from blurcalib import __version__
 from blurcalib.argtypes import (
     cluster_address,
+    fold_count,
     image_size,
+    non_negative_number,
     page_size,
     positive_int,
     positive_number,
+    psf_window,
     readout_ratio,
     rolling_shutter_mode,
 )
@@ -256,6 +259,8 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     if args.blurry and not args.sharp:
         raise CliError("--blurry DIR goes with --sharp DIR (or give every folder as INPUT)")
     if args.features is not None:
+        if args.model == "generic":
+            _check_grid([_features_image_size(Path(args.features), args.image_size)], args.cell_px)
         _run_pipeline([], [], pattern, Path(args.out), args, features=Path(args.features))
         return 0
     if args.frames:
@@ -273,6 +278,17 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
         _check_grid(map(frame_size, sharp), args.cell_px)
     _run_pipeline(sharp, blurry, pattern, Path(args.out), args)
     return 0
+
+
+def _features_image_size(path: Path, given: tuple[int, int] | None) -> tuple[int, int] | None:
+    """The image size of a ``--features`` file: ``--image-size``, or a reference dataset's own from
+    its header; None when neither is known, or the size is one no frame may have (the reader
+    says so)."""
+    from blurcalib.io.frames import frame_size_problem
+    from blurcalib.io.refformat import ref_dataset_image_size
+
+    size = given or (ref_dataset_image_size(path) if path.suffix.lower() == ".bin" else None)
+    return size if size is not None and frame_size_problem(*size) is None else None
 
 
 def _check_grid(sizes: Iterable[tuple[int, int] | None], cell_px: float) -> None:
@@ -482,16 +498,17 @@ def _add_fit_options(p: argparse._ActionsContainer, which: str) -> None:
 
 def _add_pipeline_options(p: argparse._ActionsContainer) -> None:
     g = p.add_argument_group("blurry frames: extraction, block filter and alignment")
-    g.add_argument("--tau-be", type=float, default=QualitySettings.tau_be, metavar="BE",
+    g.add_argument("--tau-be", type=non_negative_number, default=QualitySettings.tau_be, metavar="BE",
                    help="largest PSF boundary energy kept (default %(default)s)")
-    g.add_argument("--tau-loss", type=float, default=QualitySettings.tau_loss, metavar="L",
+    g.add_argument("--tau-loss", type=positive_number, default=QualitySettings.tau_loss, metavar="L",
                    help="largest block loss kept, grey levels^2: at a noise of 2 grey levels, scaled with "
                         "each block's noise variance (relative), or as given (absolute) "
                         "(default %(default)s)")
     g.add_argument("--loss-threshold", choices=list(get_args(LossMode)), default=QualitySettings.loss_mode,
                    help="--tau-loss in the frame's own noise units, estimated from the image (relative), "
                         "or the paper's absolute grey levels^2 (default %(default)s; docs/pipeline.md)")
-    g.add_argument("--min-sigma-major", type=float, default=QualitySettings.min_sigma_major, metavar="PX",
+    g.add_argument("--min-sigma-major", type=non_negative_number, default=QualitySettings.min_sigma_major,
+                   metavar="PX",
                    help="drop blurry frames whose centre median sigma_major is below this, px "
                         "(default %(default)s: keep every frame; the paper's choice for its camera is 3.8)")
     g.add_argument("--loss", choices=LOSSES, default=AlignmentSettings.loss,
@@ -527,7 +544,7 @@ def _add_pipeline_options(p: argparse._ActionsContainer) -> None:
                    help="held-out validation of the cameras: k-fold over frames, each held-out frame "
                         "scored by cameras fitted without it, or none (default %(default)s; "
                         "docs/validation.md)")
-    g.add_argument("--folds", type=positive_int, default=ValidationSettings.folds, metavar="K",
+    g.add_argument("--folds", type=fold_count, default=ValidationSettings.folds, metavar="K",
                    help="number of folds of the validation (default %(default)s; needs at least "
                         f"{ValidationSettings.min_frames} frames)")
 
@@ -545,7 +562,7 @@ def _add_source_options(p: argparse._ActionsContainer, nargs: str = "+") -> None
                    help="keep every N-th frame of each folder and video (default %(default)s)")
     p.add_argument("--max-frames", type=positive_int, default=None, metavar="N",
                    help="keep at most N frames of each folder and video (default: all)")
-    p.add_argument("--sharp-below", type=float, default=SHARP_BELOW_PX, metavar="PX",
+    p.add_argument("--sharp-below", type=positive_number, default=SHARP_BELOW_PX, metavar="PX",
                    help="frames whose measured blur (median blur extent of the tag ring's PSFs) is "
                         "below this are sharp, px (default %(default)s; docs/pipeline.md)")
 
@@ -628,7 +645,7 @@ def build_parser() -> argparse.ArgumentParser:
                         f"sharp: small PSF window ({SHARP_START} px) and sharp-frame flags; "
                         "blurry: a window that fits the blur (default %(default)s)")
     g.add_argument("--sharp", action="store_true", help="the same as --kind sharp")
-    g.add_argument("--psf-size", type=int, default=0, metavar="PX",
+    g.add_argument("--psf-size", type=psf_window, default=0, metavar="PX",
                    help=f"starting PSF window side, odd px; it grows with the blur (default "
                         f"{WindowPolicy.start} for blurry frames, {SHARP_START} for sharp ones)")
     g.add_argument("--local-alignment", action="store_true",

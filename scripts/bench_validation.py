@@ -29,7 +29,8 @@ import torch
 from blurcalib.calib.sequence import SequenceSettings
 from blurcalib.calib.trust import TrustSettings
 from blurcalib.calib.validation import ValidationSettings, assign_folds
-from blurcalib.pipeline.run import PipelineSettings, read_feature_input, run_from_features
+from blurcalib.io.feature_input import read_feature_input
+from blurcalib.pipeline.run import PipelineSettings, run_from_features
 from blurcalib.target.pattern import load_pattern
 
 ROOT = Path(__file__).resolve().parents[1]
