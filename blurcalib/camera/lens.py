@@ -275,12 +275,13 @@ class ParametricCamera:
         px = d * self.params[:2] + self.params[2:4]
         return px.reshape(*pts.shape[:-1], 2)
 
-    def project_valid(self, points: ArrayLike, init: ArrayLike | None = None
+    def project_valid(self, points: ArrayLike, init: ArrayLike | None = None, tol_px: float = 0.0
                       ) -> tuple[np.ndarray, np.ndarray]:
         """Pixels ``(N, 2)`` of points ``(N, 3)`` and ``(N,) bool``: in the valid field and on the
-        sensor. ``init`` (a previous projection) is accepted for the generic model's interface
-        and not needed: the projection is closed-form."""
-        del init
+        sensor. ``init`` and ``tol_px`` (a start and the tolerance of the generic model's iterative
+        projection, :class:`blurcalib.camera.remap.RayProjector`) are not needed: the projection is
+        closed-form."""
+        del init, tol_px
         pts = as_points(points, 3, "points").reshape(-1, 3)
         px = self.project(pts)
         return px, self.valid_directions(pts) & self.in_image(px)
