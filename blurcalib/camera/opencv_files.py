@@ -72,7 +72,9 @@ def read_opencv_camera(path: str | os.PathLike[str]) -> ParametricCamera:
         K = file.matrix("camera_matrix")
         dist = file.matrix("distortion_coefficients").reshape(-1)
         cls = _model_of(file, dist.size)
-        names = cls.OPENCV_DISTORTION or ()
+        if cls.OPENCV_DISTORTION is None:
+            raise CameraFileError(f"camera file {file.name!r}: OpenCV has no {cls.MODEL} model")
+        names = cls.OPENCV_DISTORTION
         if dist.size > len(names) and np.any(dist[len(names):] != 0):
             raise CameraFileError(f"camera file {file.name!r}: distortion_coefficients has non-zero entries "
                                   f"beyond the {len(names)} of the {cls.MODEL} model")
