@@ -160,13 +160,24 @@ def sample_pose(pattern: StarPattern, camera: TrueCamera, rng: np.random.Generat
     raise RuntimeError("could not sample a pose with the tag in view; check the camera/pattern")
 
 
+def _tag_square_px(pattern: StarPattern, camera: TrueCamera, pose: Pose) -> float:
+    """The smallest short side (px) of a square at the tags' corners seen at ``pose``."""
+    L = pattern.square_length_m
+    corners = np.concatenate([pattern.tag_corners(t) for t in pattern.apriltags]) * L
+    cam = pose.transform(np.column_stack([corners, np.zeros(len(corners))]))
+    J = camera.point_jacobian(cam) @ pose.R[:, :2]
+    return float(np.linalg.svd(J, compute_uv=False)[:, 1].min()) * L
+
+
 def sample_wide_pose(pattern: StarPattern, camera: TrueCamera, rng: np.random.Generator,
                      max_tilt_deg: float, square_px: tuple[float, float], tries: int = 400) -> Pose:
     """A pose for a lens of any field of view: a random target point at a random pixel of the
     lens's image circle (its corners and rays far off the axis as often as the centre), the
     target facing that pixel's ray up to ``max_tilt_deg`` off it, at the distance where a square
     is a random size of ``square_px`` (the lens's px per radian there, geometric mean of the two
-    directions). The tag is fully in view and 40 features are seen."""
+    directions). The tag is fully in view, its squares at least half the smallest ``square_px`` on
+    their short side (a close target spans tens of degrees, and its far part is seen obliquely),
+    and 40 features are seen."""
     L = pattern.square_length_m
     lo = np.array([-1.0, -1.0]) * L
     hi = np.array([pattern.squares_x - 1, pattern.squares_y - 1]) * L
@@ -188,7 +199,7 @@ def sample_wide_pose(pattern: StarPattern, camera: TrueCamera, rng: np.random.Ge
         sv = np.linalg.svd(camera.point_jacobian(ray[None])[0], compute_uv=False)
         distance = math.sqrt(float(sv[0] * sv[1])) * L / rng.uniform(*square_px)
         pose = _anchored_pose(pattern, camera, R, anchor, distance * ray)
-        if pose is not None:
+        if pose is not None and _tag_square_px(pattern, camera, pose) >= 0.5 * square_px[0]:
             return pose
     raise RuntimeError("could not sample a pose with the tag in view; check the camera/pattern")
 
