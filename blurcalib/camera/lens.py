@@ -35,7 +35,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from blurcalib.camera.distortion import COEFFICIENTS, distort, radial_map, radial_slope_root
-from blurcalib.camera.parametric import Projection, rodrigues_jacobian
+from blurcalib.camera.parametric import Projection, as_int, rodrigues_jacobian
 from blurcalib.geometry.pose import as_points
 
 __all__ = ["ParametricCamera", "base_point", "direction_of_base", "project_poses_camera"]
@@ -49,16 +49,11 @@ _SOLVED = 1e-11
 
 
 def _as_size(value: Any, name: str) -> int:
-    """A positive integer image size; rejects bools and non-integral numbers."""
-    if isinstance(value, bool | np.bool_):
-        raise ValueError(f"{name} must be a positive integer, got {value!r}")
-    try:
-        as_float = float(value)
-    except (TypeError, ValueError) as exc:
-        raise ValueError(f"{name} must be a positive integer, got {value!r}") from exc
-    if not math.isfinite(as_float) or as_float != int(as_float) or as_float <= 0:
-        raise ValueError(f"{name} must be a positive integer, got {value!r}")
-    return int(as_float)
+    """A positive integer image size."""
+    size = as_int(value, name)
+    if size <= 0:
+        raise ValueError(f"{name} must be positive, got {size}")
+    return size
 
 
 def base_point(points: np.ndarray, angular: bool, jacobian: bool = False

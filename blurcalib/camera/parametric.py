@@ -151,7 +151,7 @@ def _dist_from_array(dist: ArrayLike) -> tuple[float, float, float, float, float
     return k1, k2, p1, p2, k3
 
 
-def _as_int(value: Any, name: str) -> int:
+def as_int(value: Any, name: str) -> int:
     """Integer-valued ``value`` as int; rejects bools and non-integral numbers."""
     if isinstance(value, bool | np.bool_):
         raise ValueError(f"{name} must be an integer, got {value!r}")
@@ -208,7 +208,7 @@ class BrownConrady:
         if self.fx <= 0.0 or self.fy <= 0.0:
             raise ValueError(f"focal lengths must be positive, got fx={self.fx}, fy={self.fy}")
         for name in _SIZE_FIELDS:
-            size = _as_int(getattr(self, name), name)
+            size = as_int(getattr(self, name), name)
             if size <= 0:
                 raise ValueError(f"{name} must be positive, got {size}")
             object.__setattr__(self, name, size)
