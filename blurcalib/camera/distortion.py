@@ -22,7 +22,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["COEFFICIENTS", "Distorted", "distort", "radial_map", "radial_slope_root"]
+__all__ = ["COEFFICIENTS", "Distorted", "distort", "distort_with_jacobian", "radial_map", "radial_slope_root"]
 
 COEFFICIENTS = ("a1", "a2", "a3", "a4", "b1", "b2", "b3", "p1", "p2", "s1", "s3")
 """The kernel's coefficients, in the order of its coefficient vector ``c (11,)``."""
@@ -30,17 +30,17 @@ COEFFICIENTS = ("a1", "a2", "a3", "a4", "b1", "b2", "b3", "p1", "p2", "s1", "s3"
 
 @dataclass(frozen=True, eq=False)
 class Distorted:
-    """The distorted points and, when asked, their derivatives.
+    """The distorted points and their derivatives.
 
     Attributes:
         d: ``(N, 2)`` distorted base points.
-        d_m: ``(N, 2, 2)`` ``dd/dm`` (rows ``d_x, d_y``), or None.
-        d_c: ``(N, 2, 11)`` ``dd/dc`` in :data:`COEFFICIENTS` order, or None.
+        d_m: ``(N, 2, 2)`` ``dd/dm`` (rows ``d_x, d_y``).
+        d_c: ``(N, 2, 11)`` ``dd/dc`` in :data:`COEFFICIENTS` order.
     """
 
     d: np.ndarray
-    d_m: np.ndarray | None = None
-    d_c: np.ndarray | None = None
+    d_m: np.ndarray
+    d_c: np.ndarray
 
 
 def _radial(r2: np.ndarray, c: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -53,18 +53,27 @@ def _radial(r2: np.ndarray, c: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.n
     return num, den, dnum, dden
 
 
-def distort(m: np.ndarray, c: np.ndarray, jacobian: bool = False) -> Distorted:
-    """The distortion ``d(m)`` of base points ``m (N, 2)`` with coefficients ``c (11,)``."""
+def distort(m: np.ndarray, c: np.ndarray) -> np.ndarray:
+    """The distortion ``d(m) (N, 2)`` of base points ``m (N, 2)`` with coefficients ``c (11,)``."""
+    x, y = m[:, 0], m[:, 1]
+    p1, p2, s1, s3 = c[7:]
+    r2 = x * x + y * y
+    num, den, _, _ = _radial(r2, c)
+    radial = num / den
+    xy2 = 2.0 * x * y
+    return np.stack([x * radial + p1 * xy2 + p2 * (r2 + 2.0 * x * x) + s1 * r2,
+                     y * radial + p1 * (r2 + 2.0 * y * y) + p2 * xy2 + s3 * r2], axis=1)
+
+
+def distort_with_jacobian(m: np.ndarray, c: np.ndarray) -> Distorted:
+    """:func:`distort` with its derivatives w.r.t. the base point and the coefficients."""
     x, y = m[:, 0], m[:, 1]
     p1, p2, s1, s3 = c[7:]
     r2 = x * x + y * y
     num, den, dnum, dden = _radial(r2, c)
     radial = num / den
     xy2 = 2.0 * x * y
-    d = np.stack([x * radial + p1 * xy2 + p2 * (r2 + 2.0 * x * x) + s1 * r2,
-                  y * radial + p1 * (r2 + 2.0 * y * y) + p2 * xy2 + s3 * r2], axis=1)
-    if not jacobian:
-        return Distorted(d)
+    d = distort(m, c)
     dradial = (dnum * den - num * dden) / (den * den)  # d radial / d(r^2)
     d_m = np.empty((len(m), 2, 2))
     d_m[:, 0, 0] = radial + 2.0 * x * x * dradial + 2.0 * p1 * y + 6.0 * p2 * x + 2.0 * s1 * x

@@ -109,6 +109,7 @@ def write_parametric_yaml(path: str | os.PathLike, camera: ParametricCamera) -> 
     values = {name: 0.0 for name in _OPENCV_ORDER + _THIN_PRISM_ORDER} | camera.named()
     values["cx"] += PIXEL_CORNER_OFFSET
     values["cy"] += PIXEL_CORNER_OFFSET
+    order: tuple[str, ...]
     if isinstance(camera, BrownConradyCamera | RationalCamera):
         kind, order, extra = OPENCV_TYPE, _OPENCV_ORDER, []
     else:

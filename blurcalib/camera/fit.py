@@ -84,14 +84,14 @@ def fit_rays(model: type[ParametricCamera], px: ArrayLike, rays: ArrayLike, widt
         start: the start (default: module docstring).
         rotate: whether to fit the rotation too (else ``R = I``).
     """
-    px = np.asarray(px, dtype=np.float64).reshape(-1, 2)
-    rays = np.asarray(rays, dtype=np.float64).reshape(-1, 3)
-    rays = rays / np.linalg.norm(rays, axis=1, keepdims=True)
-    usable = np.all(np.isfinite(rays), axis=1)
-    camera = start if start is not None else _start(model, px[usable], rays[usable], width, height)
+    pixels = np.asarray(px, dtype=np.float64).reshape(-1, 2)
+    units = np.asarray(rays, dtype=np.float64).reshape(-1, 3)
+    units = units / np.linalg.norm(units, axis=1, keepdims=True)
+    usable = np.all(np.isfinite(units), axis=1)
+    camera = start if start is not None else _start(model, pixels[usable], units[usable], width, height)
     if not camera.angular:
-        usable &= rays[:, 2] > _PERSPECTIVE_LIMIT
-    u, v = px[usable], rays[usable]
+        usable &= units[:, 2] > _PERSPECTIVE_LIMIT
+    u, v = pixels[usable], units[usable]
     n_intr = len(camera.params)
 
     def unpack(x: np.ndarray) -> tuple[ParametricCamera, np.ndarray, np.ndarray]:
@@ -105,6 +105,7 @@ def fit_rays(model: type[ParametricCamera], px: ArrayLike, rays: ArrayLike, widt
     def jacobian(x: np.ndarray) -> np.ndarray:
         cam, R, dR = unpack(x)
         proj = cam.project_with_jacobian(v @ R.T)
+        assert proj.d_intrinsics is not None and proj.d_point is not None
         blocks = [proj.d_intrinsics]
         if rotate:
             blocks.append(np.einsum("nij,kjl,nl->nik", proj.d_point, dR, v))
@@ -113,9 +114,9 @@ def fit_rays(model: type[ParametricCamera], px: ArrayLike, rays: ArrayLike, widt
     x0 = np.r_[camera.params, np.zeros(3)] if rotate else camera.params.copy()
     sol = least_squares(residual, x0, jac=jacobian, method="lm", x_scale="jac", max_nfev=400)
     fitted, R, _ = unpack(sol.x)
-    turned = rays @ R.T
+    turned = units @ R.T
     valid = np.all(np.isfinite(turned), axis=1)
     valid[valid] = fitted.valid_directions(turned[valid])
-    errors = np.full(len(px), np.nan)
-    errors[valid] = np.linalg.norm(fitted.project(turned[valid]) - px[valid], axis=1)
+    errors = np.full(len(pixels), np.nan)
+    errors[valid] = np.linalg.norm(fitted.project(turned[valid]) - pixels[valid], axis=1)
     return RayFit(fitted, R, errors, float(valid.mean()))

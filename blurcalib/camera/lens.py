@@ -34,7 +34,13 @@ from typing import Any, ClassVar
 import numpy as np
 from numpy.typing import ArrayLike
 
-from blurcalib.camera.distortion import COEFFICIENTS, distort, radial_map, radial_slope_root
+from blurcalib.camera.distortion import (
+    COEFFICIENTS,
+    distort,
+    distort_with_jacobian,
+    radial_map,
+    radial_slope_root,
+)
 from blurcalib.camera.parametric import Projection, as_int, rodrigues_jacobian
 from blurcalib.geometry.pose import as_points
 
@@ -247,7 +253,7 @@ class ParametricCamera:
             ok = np.isfinite(r) & (r < self.max_base_radius)
             if not self.angular:
                 ok &= pts[:, 2] > 0
-            J = distort(np.nan_to_num(m), self.coefficients, jacobian=True).d_m
+            J = distort_with_jacobian(np.nan_to_num(m), self.coefficients).d_m
             det = J[:, 0, 0] * J[:, 1, 1] - J[:, 0, 1] * J[:, 1, 0]
         return ok & (det > 0)
 
@@ -266,7 +272,7 @@ class ParametricCamera:
         """
         pts = as_points(points, 3, "points")
         m, _ = base_point(pts.reshape(-1, 3), self.angular)
-        d = distort(m, self.coefficients).d
+        d = distort(m, self.coefficients)
         px = d * self.params[:2] + self.params[2:4]
         return px.reshape(*pts.shape[:-1], 2)
 
@@ -290,7 +296,7 @@ class ParametricCamera:
         """
         pts = as_points(points, 3, "points").reshape(-1, 3)
         m, dm = base_point(pts, self.angular, jacobian=True)
-        dist = distort(m, self.coefficients, jacobian=True)
+        dist = distort_with_jacobian(m, self.coefficients)
         f = self.params[:2]
         px = dist.d * f + self.params[2:4]
         n = len(pts)
@@ -346,13 +352,13 @@ class ParametricCamera:
         with np.errstate(divide="ignore", invalid="ignore"):
             m = np.where((target > 0)[:, None], md * (r / target)[:, None], 0.0)
         c = self.coefficients
-        err = distort(m, c).d - md
+        err = distort(m, c) - md
         cost = (err * err).sum(axis=1)
         going = np.flatnonzero(cost > 0)
         for _ in range(_NEWTON_ITERATIONS):
             if len(going) == 0:
                 break
-            J = distort(m[going], c, jacobian=True).d_m
+            J = distort_with_jacobian(m[going], c).d_m
             e = err[going]
             det = J[:, 0, 0] * J[:, 1, 1] - J[:, 0, 1] * J[:, 1, 0]
             with np.errstate(divide="ignore", invalid="ignore"):
@@ -361,7 +367,7 @@ class ParametricCamera:
             improved = np.zeros(len(going), dtype=bool)
             for scale in (1.0, 0.5, 0.25):
                 cand = m[going] - scale * step
-                cerr = distort(np.nan_to_num(cand), c).d - md[going]
+                cerr = distort(np.nan_to_num(cand), c) - md[going]
                 ccost = (cerr * cerr).sum(axis=1)
                 take = ~improved & np.isfinite(ccost) & (ccost < cost[going])
                 idx = going[take]
@@ -369,7 +375,7 @@ class ParametricCamera:
                 improved |= take
             going = going[improved & (cost[going] > 0)]
         with np.errstate(invalid="ignore"):
-            J = distort(m, c, jacobian=True).d_m
+            J = distort_with_jacobian(m, c).d_m
             det = J[:, 0, 0] * J[:, 1, 1] - J[:, 0, 1] * J[:, 1, 0]
             ok = (exists & (np.sqrt(cost) < _SOLVED * (1.0 + target))
                   & (np.linalg.norm(m, axis=1) < self.max_base_radius) & (det > 0))

@@ -85,5 +85,8 @@ def read_opencv_camera(path: str | os.PathLike[str]) -> ParametricCamera:
             raise CameraFileError(f"camera file {file.name!r}: camera_matrix must be "
                                   "[[fx, 0, cx], [0, fy, cy], [0, 0, 1]]")
         values = dict(zip(names, dist, strict=False))
-        return cls.from_values(file.number("image_width"), file.number("image_height"), fx=K[0, 0],
+        width, height = file.number("image_width"), file.number("image_height")
+        if width != int(width) or height != int(height):
+            raise CameraFileError(f"camera file {file.name!r}: image_width and image_height must be integers")
+        return cls.from_values(int(width), int(height), fx=K[0, 0],
                                fy=K[1, 1], cx=K[0, 2], cy=K[1, 2], **values)

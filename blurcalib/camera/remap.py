@@ -40,8 +40,15 @@ PINHOLE_FIELD_DEG = 120.0
 class RayProjector(Protocol):
     """A camera that projects directions: the generic and the parametric models."""
 
-    width: int
-    height: int
+    @property
+    def width(self) -> int:
+        """Image width (px)."""
+        ...
+
+    @property
+    def height(self) -> int:
+        """Image height (px)."""
+        ...
 
     def project_valid(self, points: ArrayLike, init: ArrayLike | None = None, tol_px: float = 1e-8
                       ) -> tuple[np.ndarray, np.ndarray]:

@@ -153,9 +153,9 @@ class WideLens:
         gx, gy = np.meshgrid((coarse_x + 0.5) / ss - 0.5, (coarse_y + 0.5) / ss - 0.5)
         rays = camera.pixel_to_ray(np.stack([gx.ravel(), gy.ravel()], axis=1))
         if not np.all(np.isfinite(rays)):
-            raise ValueError(f"the {camera.model.MODEL} lens has no ray for some pixels of its image "
-                             f"(its valid field ends {math.degrees(camera.model.max_angle):.1f} degrees "
-                             "off the axis); the simulator needs one everywhere")
+            raise ValueError(f"the lens has no ray for some pixels of its image (its valid field ends "
+                             f"{math.degrees(camera.field_stop):.1f} degrees off the axis or before); "
+                             "the simulator needs one everywhere")
         self._rays = rays.reshape(len(coarse_y), len(coarse_x), 3)
         self._splines = [RectBivariateSpline(coarse_y, coarse_x, self._rays[..., k], kx=3, ky=3)
                          for k in range(3)]

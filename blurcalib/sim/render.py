@@ -219,8 +219,9 @@ class Renderer:
                 continue
             s0, s1 = int(rows[0]) * ss, (int(rows[-1]) + 1) * ss
             box = lens.box(s0, s1)
+            band: np.ndarray
             if box is None:
-                band = np.full((s1 - s0, sensor.shape[1]), background, dtype=np.float32)
+                band = np.full_like(lens.map_x[s0:s1], background)
             else:
                 x0, y0 = box[0], box[1]
                 canvas = self._canvas(levels, weights, lens, [p], box)

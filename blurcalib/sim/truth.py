@@ -83,7 +83,7 @@ class TrueCamera:
     @property
     def field_stop(self) -> float:
         """The largest angle off the optical axis (rad) the lens sees."""
-        if self.forward_only:
+        if isinstance(self.model, BrownConrady):
             return math.pi / 2
         limit = self.model.max_angle
         return limit if self.field_stop_deg is None else min(limit, math.radians(self.field_stop_deg))
@@ -108,7 +108,7 @@ class TrueCamera:
         """``(N,) bool``: camera-frame points ``(N, 3)`` the lens sees (``Z > 0`` for the
         forward-looking lens; in the valid field and within the field stop otherwise)."""
         pts = np.asarray(points_cam, dtype=np.float64).reshape(-1, 3)
-        if self.forward_only:
+        if isinstance(self.model, BrownConrady):
             return pts[:, 2] > 0
         cos = pts[:, 2] / np.maximum(np.linalg.norm(pts, axis=1), 1e-300)
         return self.model.valid_directions(pts) & (cos >= math.cos(self.field_stop))
@@ -144,7 +144,9 @@ class TrueCamera:
     def point_jacobian(self, points_cam: np.ndarray) -> np.ndarray:
         """``(N, 2, 3)`` px/m: the lens model's ``d pi / d X`` (the deviation's own slope, below
         1e-2, is left out: this sizes sampling densities)."""
-        return as_family(self.model).project_with_jacobian(points_cam).d_point
+        d_point = as_family(self.model).project_with_jacobian(points_cam).d_point
+        assert d_point is not None
+        return d_point
 
     def to_dict(self) -> dict:
         if self.forward_only:
