@@ -90,6 +90,20 @@ def test_dot_centroid_matches_time_average_far_off_the_axis() -> None:
     assert max(errors) < 0.03
 
 
+def test_still_rolling_shutter_through_a_fisheye_equals_global() -> None:
+    """A rolling shutter without motion renders what the global shutter does, through a
+    target-facing canvas (row bands, dark sub-samples beyond the field stop) too."""
+    renderer = Renderer(SMALL_FISHEYE)
+    ray = SMALL_FISHEYE.pixel_to_ray(np.array([[30.0, 60.0]]))[0]
+    tex = dot_texture((0.0, 0.0), radius_m=0.004, texel_m=0.0005, extent_m=0.01)
+    R = _facing(ray, np.random.default_rng(3), 0.2)
+    pose = Pose(R, 0.1 * ray)
+    still = Motion(np.zeros(6), np.zeros(6), 6)
+    rolling = renderer.irradiance([tex], pose, still, rolling_shutter=2.0)
+    assert rolling.max() > 0.5 and rolling[0, 0] == 0.0  # the corner is beyond the image circle
+    assert np.abs(rolling - renderer.irradiance([tex], pose, still)).max() < 1e-5
+
+
 @pytest.mark.slow
 def test_wide_canvas_renders_a_perspective_lens_like_its_own_canvas() -> None:
     """The same Brown-Conrady lens, rendered through one perspective canvas and through the
