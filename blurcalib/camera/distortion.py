@@ -53,26 +53,27 @@ def _radial(r2: np.ndarray, c: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.n
     return num, den, dnum, dden
 
 
+def _parts(m: np.ndarray, c: np.ndarray) -> tuple[np.ndarray, ...]:
+    """``x, y, r^2, 2 x y`` of base points ``m (N, 2)`` and :func:`_radial`'s four terms."""
+    x, y = m[:, 0], m[:, 1]
+    r2 = x * x + y * y
+    return (x, y, r2, 2.0 * x * y, *_radial(r2, c))
+
+
 def distort(m: np.ndarray, c: np.ndarray) -> np.ndarray:
     """The distortion ``d(m) (N, 2)`` of base points ``m (N, 2)`` with coefficients ``c (11,)``."""
-    x, y = m[:, 0], m[:, 1]
+    x, y, r2, xy2, num, den, _, _ = _parts(m, c)
     p1, p2, s1, s3 = c[7:]
-    r2 = x * x + y * y
-    num, den, _, _ = _radial(r2, c)
     radial = num / den
-    xy2 = 2.0 * x * y
     return np.stack([x * radial + p1 * xy2 + p2 * (r2 + 2.0 * x * x) + s1 * r2,
                      y * radial + p1 * (r2 + 2.0 * y * y) + p2 * xy2 + s3 * r2], axis=1)
 
 
 def distort_with_jacobian(m: np.ndarray, c: np.ndarray) -> Distorted:
     """:func:`distort` with its derivatives w.r.t. the base point and the coefficients."""
-    x, y = m[:, 0], m[:, 1]
+    x, y, r2, xy2, num, den, dnum, dden = _parts(m, c)
     p1, p2, s1, s3 = c[7:]
-    r2 = x * x + y * y
-    num, den, dnum, dden = _radial(r2, c)
     radial = num / den
-    xy2 = 2.0 * x * y
     d = distort(m, c)
     dradial = (dnum * den - num * dden) / (den * den)  # d radial / d(r^2)
     d_m = np.empty((len(m), 2, 2))

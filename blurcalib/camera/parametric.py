@@ -484,7 +484,8 @@ def load_camera_yaml(path: str | os.PathLike[str]) -> BrownConrady:
     with StorageReader(path) as file:
         file.require("camera_matrix", "distortion_coefficients", "image_width", "image_height")
         K, dist = file.matrix("camera_matrix"), file.matrix("distortion_coefficients")
-        return BrownConrady.from_matrix(K, dist, file.number("image_width"), file.number("image_height"))
+        width, height = (as_int(file.number(key), key) for key in ("image_width", "image_height"))
+        return BrownConrady.from_matrix(K, dist, width, height)
 
 
 def save_camera_json(path: str | os.PathLike[str], camera: BrownConrady) -> None:
