@@ -109,6 +109,10 @@ def cmd_pattern(args: argparse.Namespace) -> int:
     return 0
 
 
+FISHEYE_FOV = 130.0
+"""``synth --lens fisheye``'s default horizontal field of view (deg)."""
+
+
 def _check_empty_output(out: Path, overwrite: bool) -> None:
     if out.exists() and not out.is_dir():
         raise CliError(f"{out}: output path exists and is not a folder")
@@ -119,19 +123,25 @@ def _check_empty_output(out: Path, overwrite: bool) -> None:
 
 def _simulate(out: Path, args: argparse.Namespace, pattern: StarPattern | None) -> None:
     from blurcalib.sim.synth import SynthConfig, write_dataset
+    from blurcalib.sim.truth import fisheye_camera
 
     readout = args.rolling_shutter if isinstance(args.rolling_shutter, float) else 0.0  # demo: off, auto
+    lens, fov = getattr(args, "lens", "standard"), getattr(args, "fov", None)
+    if fov is not None and lens != "fisheye":
+        raise CliError("--fov sets the field of view of --lens fisheye")
     try:
         config = SynthConfig(sharp=args.sharp, blurry=args.blurry, blur_min_px=args.blur_min,
                              blur_max_px=args.blur_max, max_tilt_deg=args.max_tilt,
                              noise_sigma=args.noise, seed=args.seed,
                              rolling_shutter=readout)
+        camera = fisheye_camera(FISHEYE_FOV if fov is None else fov, args.seed) if lens == "fisheye" else None
     except ValueError as exc:
         raise CliError(str(exc)) from None
     start = time.perf_counter()
     bar, update = _progress("simulating")
     with bar:
-        truth = write_dataset(out, config, pattern=pattern, progress=update, workers=args.workers)
+        truth = write_dataset(out, config, pattern=pattern, camera=camera, progress=update,
+                              workers=args.workers)
     elapsed = time.perf_counter() - start
     blurry = [f for f in truth.frames if f.kind == "blurry"]
     print(f"simulated {count(len(truth.frames), 'frame')} ({config.sharp} sharp, {len(blurry)} blurry) "
@@ -451,7 +461,8 @@ def _add_synth_options(p: argparse._ActionsContainer, rolling_shutter: bool = Tr
     g.add_argument("--blur-max", type=float, default=SynthConfig.blur_max_px, metavar="PX",
                    help="largest median blur length of a blurry frame, px (default %(default)s)")
     g.add_argument("--max-tilt", type=float, default=SynthConfig.max_tilt_deg, metavar="DEG",
-                   help="largest angle between optical axis and target normal, degrees (default %(default)s)")
+                   help="largest angle between the target's normal and the optical axis (a fisheye: the "
+                        "ray the target is seen along), deg (default %(default)s)")
     g.add_argument("--noise", type=float, default=SynthConfig.noise_sigma, metavar="SIGMA",
                    help="noise standard deviation at mid grey, grey levels (default %(default)s)")
     g.add_argument("--seed", type=int, default=SynthConfig.seed, metavar="N",
@@ -677,6 +688,13 @@ def build_parser() -> argparse.ArgumentParser:
                        description=_plain(cmd_synth.__doc__))
     p.add_argument("--out", required=True, metavar="DIR", help="output folder")
     p.add_argument("--pattern", metavar="FILE", help="pattern YAML (default: the reference A4 17x24 target)")
+    p.add_argument("--lens", choices=["standard", "fisheye"], default="standard",
+                   help="standard: a 90 degree Brown-Conrady lens like a RealSense D435I's; fisheye: a "
+                        "Kannala-Brandt lens of --fov horizontal field whose image circle is 200 degrees "
+                        "(both 1280x720 px with a smooth lens deviation of 0.3 px; default %(default)s)")
+    p.add_argument("--fov", type=float, metavar="DEG",
+                   help=f"horizontal field of view of --lens fisheye, deg, up to 200 "
+                        f"(default {FISHEYE_FOV:g})")
     _add_synth_options(p)
     p.set_defaults(func=cmd_synth)
     return parser

@@ -13,6 +13,7 @@ from blurcalib.io.atomic import OutputError
 from blurcalib.sim.render import MIP_TEXELS_PER_SQUARE, Renderer, dot_texture, mip_levels_for
 from blurcalib.sim.synth import Simulator, SynthConfig, write_dataset
 from blurcalib.sim.truth import GROUND_TRUTH_FILE, Motion, TrueCamera, d435i_like_camera, load_ground_truth
+from tests.dot_checks import blurred_dot_error, centroid
 from tests.symmetry import symmetry_centres
 
 
@@ -34,19 +35,6 @@ def _rotation(rng: np.random.Generator, scale: float) -> np.ndarray:
     return cv2.Rodrigues(rng.normal(size=3) * scale)[0]
 
 
-def _centroid(img: np.ndarray) -> np.ndarray:
-    ys, xs = np.mgrid[0:img.shape[0], 0:img.shape[1]]
-    return np.array([(img * xs).sum(), (img * ys).sum()]) / img.sum()
-
-
-def _area_scale(camera: TrueCamera, pose: Pose, P: np.ndarray) -> float:
-    eps = 1e-5
-    a = camera.project(pose.transform(P[None]))[0]
-    bx = camera.project(pose.transform((P + np.array([eps, 0.0, 0.0]))[None]))[0]
-    by = camera.project(pose.transform((P + np.array([0.0, eps, 0.0]))[None]))[0]
-    return abs(np.linalg.det(np.column_stack([bx - a, by - a])))
-
-
 def test_dot_centroid_matches_time_average(small_camera: TrueCamera, renderer: Renderer) -> None:
     """A small dot blurred by a general 6-DoF motion: its intensity centroid is the mean of its
     sampled image positions, weighted by the image area the dot covers at each sample (which
@@ -62,14 +50,9 @@ def test_dot_centroid_matches_time_average(small_camera: TrueCamera, renderer: R
         pose = Pose(R, t)
         xi = np.concatenate([rng.normal(size=3) * 0.02, rng.normal(size=3) * 0.002])
         xi2 = np.concatenate([rng.normal(size=3) * 0.01, np.zeros(3)])
-        motion = Motion(xi, xi2, renderer.time_samples_for(pose, xi, xi2, P[None]))
-        img = renderer.irradiance([tex], pose, motion).astype(np.float64)
-        poses = motion.poses(pose)
-        track = np.stack([small_camera.project(p.transform(P[None]))[0] for p in poses])
-        weight = np.array([_area_scale(small_camera, p, P) for p in poses])
-        expected = (track * weight[:, None]).sum(axis=0) / weight.sum()
+        error, track = blurred_dot_error(renderer, tex, pose, xi, xi2, P)
         assert np.linalg.norm(track[-1] - track[0]) > 2.0
-        errors.append(np.linalg.norm(_centroid(img) - expected))
+        errors.append(error)
     assert max(errors) < 0.02
 
 
@@ -87,7 +70,7 @@ def test_dot_centroid_in_plane_motion_is_plain_time_average(small_camera: TrueCa
     img = renderer.irradiance([tex], pose, motion).astype(np.float64)
     track = np.stack([small_camera.project(p.transform(P[None]))[0] for p in motion.poses(pose)])
     assert np.linalg.norm(track[-1] - track[0]) > 10.0
-    assert np.linalg.norm(_centroid(img) - track.mean(axis=0)) < 0.02
+    assert np.linalg.norm(centroid(img) - track.mean(axis=0)) < 0.02
 
 
 @pytest.fixture(scope="module")
