@@ -243,8 +243,8 @@ def frame_inputs(inputs: Sequence[str | os.PathLike], every: int = 1,
 
 
 def in_sequences(frames: list[FrameInput]) -> list[FrameInput]:
-    """Image frames placed in the sequence of their folder, ranked in list order (video frames
-    keep theirs)."""
+    """Image frames placed in the sequence of their folder, ranked in list order; video frames
+    keep theirs, or, without one, are placed in their video's at their index."""
     rank: dict[str, int] = {}
     out = []
     for f in frames:
@@ -252,5 +252,7 @@ def in_sequences(frames: list[FrameInput]) -> list[FrameInput]:
             folder = str(_located(f.path).parent)
             f = FrameInput(f.name, f.path, None, folder, rank.get(folder, 0))
             rank[folder] = f.order + 1
+        elif not f.sequence:
+            f = FrameInput(f.name, f.path, f.index, str(_located(f.path)), f.index)
         out.append(f)
     return out
