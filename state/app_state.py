@@ -370,9 +370,7 @@ class AppState:
             entry.kind = kind
             result = self._results.get(entry.name)
             if result is not None:
-                flt = frame_filter(result, self._sizes[entry.name], self.quality, kind)
-                if flt is not None:
-                    self._filters[entry.name] = flt
+                self._keep(entry, result)
         self.events.emit(Topic.FRAMES, Topic.FILTER)
 
     def entries(self) -> list[FrameEntry]:
@@ -583,9 +581,7 @@ class AppState:
                                                 ("min_sigma_major", min_sigma_major)) if v is not None}
             self.quality = replace(self.quality, **changes)
             for name, result in self._results.items():
-                flt = frame_filter(result, self._sizes[name], self.quality, self._entry(name).kind)
-                if flt is not None:
-                    self._filters[name] = flt
+                self._keep(self._entry(name), result)
             quality = self.quality
         self.events.emit(Topic.FILTER)
         return quality
