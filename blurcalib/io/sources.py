@@ -15,7 +15,7 @@ extension, ``#`` and ``i`` in six digits (``walk#000123``), in every table.
 
 Frames of one input form a *sequence* (:attr:`FrameInput.sequence`): the frames of a video, or
 the images of a folder in natural order. Neighbours in a sequence see the target from nearby
-poses (:func:`blurcalib.runs.folder.seed_from_neighbour`).
+poses (:func:`blurcalib.runs.neighbours.seed_from_neighbour`).
 """
 
 from __future__ import annotations
@@ -170,7 +170,7 @@ def read_video_frame(path: str | os.PathLike, index: int) -> np.ndarray:
 
 def _located(path: Path) -> Path:
     """The absolute path a file is named by: the file it resolves to, or, for a broken symbolic
-    link, the link itself (as :func:`blurcalib.runs.folder.frame_names` names plain paths)."""
+    link, the link itself (as :func:`blurcalib.runs.output.frame_names` names plain paths)."""
     return path.resolve() if path.exists() else path.parent.resolve() / path.name
 
 

@@ -1,8 +1,7 @@
 """The runner of many frames through each executor: resume, neighbour seeding, cancel, progress.
 
-The per-frame engine is a fast stand-in (:func:`engine`): a frame's image value says where its
-target is, and a frame of value :data:`NO_TAG` has no tag, so that the runner's logic, not the
-engine, is under test (the engine's own neighbour seeding: ``tests/test_extract.py``).
+The per-frame engine is a fast stand-in (:mod:`tests.runs.stand_in`), so that the runner's logic,
+not the engine, is under test (the engine's own neighbour seeding: ``tests/test_extract.py``).
 """
 
 from __future__ import annotations
@@ -18,56 +17,20 @@ import pytest
 import blurcalib.runs.executors as executors_module
 import blurcalib.runs.task as task_module
 from blurcalib.extract.frame import ExtractSettings, FrameResult
-from blurcalib.growth.seed import Seed
 from blurcalib.io.frame_files import read_frame_status
 from blurcalib.io.record import FrameStatus
-from blurcalib.io.results import FeatureTable, read_features
+from blurcalib.io.results import read_features
 from blurcalib.runs.events import FrameDone, FrameStarted, RunEvent
 from blurcalib.runs.executors import DaskCluster, InProcess, ProcessPool
 from blurcalib.runs.folder import finished_frames, run_frames
 from blurcalib.target.pattern import layout_pattern
-
-NO_TAG = 7
-"""The image value of a frame whose tag is not found."""
-SQUARE_PX = 30.0
-
-
-def _features(frame: str, shift: float) -> FeatureTable:
-    """A 5 x 4 grid of star centres, ``SQUARE_PX`` apart, moved by ``shift`` px."""
-    fy, fx = (a.ravel().astype(float) for a in np.mgrid[0:4, 0:5])
-    x, y = 100.0 + SQUARE_PX * fx + shift, 80.0 + SQUARE_PX * fy
-    n = len(fx)
-    return FeatureTable(np.full(n, frame), np.arange(n), fx, fy, fx * 0.01, fy * 0.01, x, y, np.ones(n),
-                        np.ones(n, dtype=np.int64))
-
-
-def _seed() -> Seed:
-    return Seed(np.eye(3), -1, np.zeros((0, 2)), 1.0, "given", "neighbour")
+from tests.runs import stand_in
 
 
 @pytest.fixture()
 def engine(monkeypatch: pytest.MonkeyPatch) -> list[str]:
-    """The stand-in engine; returns the calls, ``frame`` or ``frame<-neighbour``."""
-    calls: list[str] = []
-    lock = threading.Lock()
-
-    def extract(image, pattern, frame, settings=None, *args, **kwargs) -> FrameResult:
-        with lock:
-            calls.append(frame)
-        if round(float(image.mean())) == NO_TAG:
-            return FrameResult(frame, FrameStatus.NOT_SEEDED, "no AprilTag found (test)")
-        features = _features(frame, float(image.mean()))
-        return FrameResult(frame, FrameStatus.OK, features=features, kind="sharp")
-
-    def from_neighbour(image, pattern, frame, hint, settings=None, *args) -> FrameResult:
-        with lock:
-            calls.append(f"{frame}<-{hint.neighbour}")
-        return FrameResult(frame, FrameStatus.OK, f"seeded from neighbour {hint.neighbour}",
-                           features=_features(frame, 1.0), seed=_seed(), kind="sharp")
-
-    monkeypatch.setattr(task_module, "extract_frame", extract)
-    monkeypatch.setattr(task_module, "seed_from_neighbour", from_neighbour)
-    return calls
+    """The stand-in engine (:mod:`tests.runs.stand_in`); returns its calls."""
+    return stand_in.install(monkeypatch)
 
 
 def _sequence(folder: Path, values: list[int]) -> list[Path]:
@@ -106,7 +69,7 @@ def test_each_executor_seeds_from_neighbours_and_resumes(tmp_path: Path, engine:
     every frame was tried from its own tag; where frames run side by side it tries frame 2 in the
     same round. A second run finds everything done and computes nothing."""
     runner, more = executor
-    paths = _sequence(tmp_path / "seq", [10, NO_TAG, 12])
+    paths = _sequence(tmp_path / "seq", [10, stand_in.NO_TAG, 12])
     out = tmp_path / "out"
     done: list[FrameDone] = []
 
@@ -135,7 +98,7 @@ def test_only_some_frames_and_redo(tmp_path: Path, engine: list[str]) -> None:
     """A run of some frames of a sequence extracts those, seeds them from the finished ones of the
     others, and lists the finished frames of the whole sequence; ``redo`` extracts a finished
     frame again."""
-    paths = _sequence(tmp_path / "seq", [10, 11, NO_TAG, 13])
+    paths = _sequence(tmp_path / "seq", [10, 11, stand_in.NO_TAG, 13])
     out = tmp_path / "out"
     first = run_frames(paths, layout_pattern(), out, only=["0.png", "3.png"])
     assert engine == ["0.png", "3.png"] and [r.frame for r in first.records] == ["0.png", "3.png"]

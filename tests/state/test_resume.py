@@ -12,52 +12,23 @@ import numpy as np
 import pytest
 
 import blurcalib.extract.frame as extract_module
-import blurcalib.runs.task as task_module
 from blurcalib.camera.parametric import BrownConrady
-from blurcalib.extract.frame import ExtractSettings, FrameResult
-from blurcalib.growth.seed import Seed, SeedError, seed_frame
+from blurcalib.extract.frame import ExtractSettings
+from blurcalib.growth.seed import SeedError, seed_frame
 from blurcalib.growth.settings import GrowSettings
 from blurcalib.io.record import FrameStatus
-from blurcalib.io.results import FeatureTable
 from blurcalib.sim.synth import Simulator, SynthConfig
 from blurcalib.sim.truth import TrueCamera
 from blurcalib.target.pattern import layout_pattern
 from state import AppState, RunSettings, Topic
 from state.folder import default_output_folder
-
-NO_TAG = 7
-"""The image value of a frame whose tag the stand-in engine does not find."""
-
-
-def _features(frame: str, shift: float) -> FeatureTable:
-    fy, fx = (a.ravel().astype(float) for a in np.mgrid[0:4, 0:5])
-    n = len(fx)
-    return FeatureTable(np.full(n, frame), np.arange(n), fx, fy, fx * 0.01, fy * 0.01, 100 + 30 * fx + shift,
-                        80 + 30 * fy, np.ones(n), np.ones(n, dtype=np.int64))
+from tests.runs import stand_in
 
 
 @pytest.fixture()
 def engine(monkeypatch: pytest.MonkeyPatch) -> list[str]:
-    """A stand-in engine for the runner (the frame's image value places its target); returns the
-    calls, ``frame`` or ``frame<-neighbour``."""
-    calls: list[str] = []
-
-    def extract(image, pattern, frame, settings=None, *args, **kwargs) -> FrameResult:
-        calls.append(frame)
-        if round(float(image.mean())) == NO_TAG:
-            return FrameResult(frame, FrameStatus.NOT_SEEDED, "no AprilTag found (test)")
-        features = _features(frame, float(image.mean()))
-        return FrameResult(frame, FrameStatus.OK, features=features, kind="sharp")
-
-    def from_neighbour(image, pattern, frame, hint, settings=None, *args) -> FrameResult:
-        calls.append(f"{frame}<-{hint.neighbour}")
-        seed = Seed(hint.H_feature, -1, np.zeros((0, 2)), 1.0, "given", "neighbour")
-        return FrameResult(frame, FrameStatus.OK, f"seeded from neighbour {hint.neighbour}",
-                           features=_features(frame, 1.0), seed=seed, kind="sharp")
-
-    monkeypatch.setattr(task_module, "extract_frame", extract)
-    monkeypatch.setattr(task_module, "seed_from_neighbour", from_neighbour)
-    return calls
+    """The runner's stand-in engine (:mod:`tests.runs.stand_in`); returns its calls."""
+    return stand_in.install(monkeypatch)
 
 
 def _dataset(root: Path, values: list[int]) -> Path:
@@ -90,7 +61,8 @@ def test_an_interrupted_extraction_resumes_when_the_folder_is_opened_again(
     assert [e.record.status for e in entries] == pending
     assert entries[0].record == state.entries()[0].record
     result = reopened.results()["sharp/0.png"][0]
-    assert result.growth is None and np.array_equal(result.features.x, _features("sharp/0.png", 10.0).x)
+    assert result.growth is None
+    assert np.array_equal(result.features.x, stand_in.grid_features("sharp/0.png", 10.0).x)
     assert "1 extracted before" in reopened.notices[-1].text
     assert reopened.run_all() and reopened.wait(60)
     assert engine == ["sharp/0.png", "sharp/1.png", "sharp/2.png"]  # the finished frame was not redone
@@ -100,7 +72,7 @@ def test_an_interrupted_extraction_resumes_when_the_folder_is_opened_again(
 
 
 def test_a_frame_without_its_tag_is_seeded_from_its_neighbour(tmp_path: Path, engine: list[str]) -> None:
-    folder = _dataset(tmp_path / "data", [10, NO_TAG, 12])
+    folder = _dataset(tmp_path / "data", [10, stand_in.NO_TAG, 12])
     state = AppState()
     assert state.load_folder(folder, out=tmp_path / "out")
     assert state.run_all() and state.wait(60)
