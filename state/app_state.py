@@ -224,8 +224,8 @@ class AppState:
             for record, result in found:
                 entry = self._entry(record.frame)
                 entry.record = record
-                if sizes[record.frame] is not None:
-                    self._sizes[record.frame] = sizes[record.frame]
+                if (size := sizes[record.frame]) is not None:
+                    self._sizes[record.frame] = size
                     self._keep(entry, result)
         return len(found)
 

@@ -128,10 +128,6 @@ class Verdict:
     velocity_px: float | None = None
 
 
-_VERDICT_FLOATS = ("calibration_median_error", "centre_sigma_major", "median_error", "mean_error",
-                   "angle_deg", "velocity_px")
-
-
 @dataclass(frozen=True)
 class FrameRecord:
     """What is known about one frame.
@@ -228,44 +224,42 @@ class FrameRecord:
             ValueError: an unknown status, or a count or figure that is not a number.
             KeyError: no ``frame``.
         """
-        status = FrameStatus(row.get("status") or FrameStatus.PENDING.value)
-        common = dict(frame=str(row["frame"]), status=status,
-                      seeded_by=str(row.get("seeded_by", "")), psf=str(row.get("psf", "")),
-                      kind=str(row.get("kind", "")), blur_px=_number(row.get("blur_px"), float),
-                      noise_dn=_number(row.get("noise_dn"), float),
-                      features=_number(row.get("features"), int) or 0)
+        frame = str(row["frame"])
+        status = FrameStatus(str(row.get("status") or FrameStatus.PENDING.value))
+        seeded_by, psf, kind = (str(row.get(k, "")) for k in ("seeded_by", "psf", "kind"))
+        blur_px, noise_dn = _float(row.get("blur_px")), _float(row.get("noise_dn"))
+        features = _int(row.get("features")) or 0
         if "extraction" in row:
-            return cls(**common, verdict=_verdict(row))
-        stages = {k[len("seconds_"):]: float(v) for k, v in row.items()  # type: ignore[arg-type]
-                  if k.startswith("seconds_") and not k.startswith("seconds_fit_") and v not in ("", None)}
-        fit = {k[len("seconds_fit_"):]: float(v) for k, v in row.items()  # type: ignore[arg-type]
-               if k.startswith("seconds_fit_") and v not in ("", None)}
-        tried = row.get("neighbours_tried")
-        field_doc = row.get("psf_field")
-        return cls(**common, message=str(row.get("message", "")),
-                   psf_field=dict(field_doc) if isinstance(field_doc, Mapping) else None,
-                   blocks=_number(row.get("blocks"), int) or 0,
-                   accepted=_number(row.get("accepted"), int) or 0,
-                   seconds=_number(row.get("seconds"), float) or 0.0, stages=stages, fit_stages=fit,
-                   key=str(row.get("key", "")), source=str(row.get("source", "")),
-                   neighbours_tried=None if tried is None else tuple(str(n) for n in tried))  # type: ignore[attr-defined]
+            return cls(frame, status, seeded_by=seeded_by, psf=psf, kind=kind, blur_px=blur_px,
+                       noise_dn=noise_dn, features=features, verdict=_verdict(row))
+        seconds = {k: v for k, value in row.items()
+                   if k.startswith("seconds_") and (v := _float(value)) is not None}
+        tried, field_doc = row.get("neighbours_tried"), row.get("psf_field")
+        return cls(frame, status, str(row.get("message", "")), seeded_by, psf,
+                   dict(field_doc) if isinstance(field_doc, Mapping) else None, kind, blur_px, noise_dn,
+                   _int(row.get("blocks")) or 0, _int(row.get("accepted")) or 0, features,
+                   _float(row.get("seconds")) or 0.0,
+                   {k[len("seconds_"):]: v for k, v in seconds.items() if not k.startswith("seconds_fit_")},
+                   {k[len("seconds_fit_"):]: v for k, v in seconds.items() if k.startswith("seconds_fit_")},
+                   str(row.get("key", "")), str(row.get("source", "")),
+                   None if not isinstance(tried, Sequence) else tuple(str(n) for n in tried))
 
 
 def _verdict(row: Mapping[str, object]) -> Verdict:
     """The verdict of a calibrated frame's row."""
     def listed(name: str) -> list[float] | None:
         value = row.get(name)
-        return None if value in (None, "") else [float(x) for x in value]  # type: ignore[union-attr]
+        listed = isinstance(value, Sequence) and not isinstance(value, str)
+        return [float(x) for x in value] if listed else None  # type: ignore[attr-defined]
 
-    counts = row.get("filter_counts")
-    alignment = row.get("alignment")
-    return Verdict(reason=str(row.get("reason", "")), extraction=FrameStatus(row["extraction"]),
-                   blocks=_number(row.get("blocks"), int), kept=_number(row.get("kept"), int),
-                   filter_counts=None if not isinstance(counts, Mapping)
-                   else {str(k): int(n) for k, n in counts.items()},
-                   alignment=None if alignment in (None, "") else str(alignment),
-                   translation=listed("translation"), shift=listed("shift"),
-                   **{name: _number(row.get(name), float) for name in _VERDICT_FLOATS})
+    counts, alignment = row.get("filter_counts"), row.get("alignment")
+    return Verdict(str(row.get("reason", "")), FrameStatus(str(row["extraction"])),
+                   _float(row.get("calibration_median_error")), _int(row.get("blocks")),
+                   _int(row.get("kept")), _float(row.get("centre_sigma_major")),
+                   None if not isinstance(counts, Mapping) else {str(k): int(n) for k, n in counts.items()},
+                   None if alignment in (None, "") else str(alignment), _float(row.get("median_error")),
+                   _float(row.get("mean_error")), _float(row.get("angle_deg")), listed("translation"),
+                   listed("shift"), _float(row.get("velocity_px")))
 
 
 def _cell(value: float | None) -> float | str:
@@ -273,13 +267,14 @@ def _cell(value: float | None) -> float | str:
     return "" if value is None else value
 
 
-def _number(value: object, kind: type[int] | type[float]) -> int | float | None:
-    """A count or figure of a row (a JSON number or a CSV string); None for a missing or empty one."""
-    if value is None or value == "":
-        return None
-    if kind is int:
-        return int(value)  # type: ignore[call-overload]
-    return float(value)  # type: ignore[arg-type]
+def _float(value: object) -> float | None:
+    """A figure of a row (a JSON number or a CSV string); None for a missing or empty one."""
+    return None if value is None or value == "" else float(value)  # type: ignore[arg-type]
+
+
+def _int(value: object) -> int | None:
+    """A count of a row (a JSON number or a CSV string); None for a missing or empty one."""
+    return None if value is None or value == "" else int(value)  # type: ignore[call-overload]
 
 
 def write_frames_table(path: str | os.PathLike, records: Sequence[FrameRecord],

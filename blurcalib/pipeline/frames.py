@@ -79,7 +79,7 @@ def blurry_row(extracted: FrameRecord, outcome: BlurryOutcome | None, settings: 
         return _calibrated(extracted, "blurry", FrameStatus.NO_BLOCKS,
                            "a feature file holds no blocks to align to the parametric camera (the "
                            "generic model uses it)")
-    flt, figures = outcome.filter, {}
+    flt, figures = outcome.filter, dict[str, object]()
     velocity = (velocity_px or {}).get(outcome.frame.name)
     if velocity is not None and math.isfinite(velocity):
         figures.update(velocity_px=round(float(velocity), 3))

@@ -208,7 +208,8 @@ def run_frames(frames: Sequence[FrameInput | Path], pattern: StarPattern, out_di
     folder = RunFolder.claim(out_dir, settings, {f.name: frame_source(f) for f in inputs}, overwrite)
     sizes = frame_sizes(inputs)
     job = FrameJob(pattern, settings, expected_size or common_size(list(sizes.values())))
-    todo = names if only is None else [n for n in names if n in set(only)]
+    wanted = set(names if only is None else only)
+    todo = [n for n in names if n in wanted]
     run = _Run(inputs, folder, job, executor or InProcess(), todo, progress, cancel)
     run.resume(sizes, redo)
     skipped = [n for n in todo if n in run.records]
