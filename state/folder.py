@@ -47,8 +47,22 @@ EXPORT_DIR = "calibration_app"
 frames)."""
 
 
+SHOWN_PATH_CHARS = 120
+"""Longest path written whole in a message; longer ones keep their start and end."""
+
+
 class DatasetError(ValueError):
     """A folder cannot be opened as a dataset; the message names the path and the problem."""
+
+
+def shown_path(path: str | os.PathLike) -> str:
+    """A path for a message: whole up to :data:`SHOWN_PATH_CHARS` characters, else its start and
+    end around ``...`` (a 5,000-character path typed into the app stays one readable line)."""
+    text = os.fspath(path)
+    if len(text) <= SHOWN_PATH_CHARS:
+        return text
+    keep = (SHOWN_PATH_CHARS - 3) // 2
+    return f"{text[:keep]}...{text[-keep:]}"
 
 
 @dataclass(frozen=True)
@@ -92,7 +106,8 @@ def find_pattern(folder: Path, pattern: str | os.PathLike | None) -> Path:
     for candidate in (folder / PATTERN_FILE, folder.parent / PATTERN_FILE):
         if candidate.is_file():
             return candidate
-    raise DatasetError(f"{folder}: no {PATTERN_FILE} in the folder or its parent; name the pattern file")
+    raise DatasetError(f"{shown_path(folder)}: no {PATTERN_FILE} in the folder or its parent; name the "
+                       f"pattern file")
 
 
 def frame_files(folder: Path) -> list[Path]:
@@ -110,8 +125,8 @@ def frame_files(folder: Path) -> list[Path]:
             except FrameError:
                 continue
         if not found:
-            raise DatasetError(f"{folder}: no image files (png, jpg, tif, bmp) in the folder or its "
-                               "sub-folders") from None
+            raise DatasetError(f"{shown_path(folder)}: no image files (png, jpg, tif, bmp) in the folder or "
+                               "its sub-folders") from None
         return found
 
 
@@ -124,20 +139,33 @@ def _kind(name: str, truth: DatasetTruth | None) -> str:
 
 
 def _load_pattern(path: Path) -> StarPattern:
+    """The pattern, or a :class:`DatasetError` that quotes nothing of the file (its path may have
+    been typed by a client that cannot read the file: :attr:`PatternFileError.summary`)."""
     try:
         return load_pattern(path)
     except PatternFileError as exc:
-        raise DatasetError(str(exc)) from None
+        raise DatasetError(exc.summary.replace(str(path), shown_path(path))) from None
 
 
 def discover(folder: str | os.PathLike, pattern: str | os.PathLike | None = None) -> Dataset:
     """Open ``folder`` (a folder of frames, or a video file) as a dataset.
 
     Raises:
-        DatasetError: the folder or video is missing, holds no frames, or the pattern is missing
-            or malformed (the message names the path).
+        DatasetError: the folder or video is missing, cannot be read (a path too long, no
+            permission), holds no frames, or the pattern is missing or malformed (the message
+            names the path, shortened by :func:`shown_path`, and quotes nothing of the pattern
+            file).
     """
     root = Path(folder).expanduser()
+    try:
+        return _discover(root, pattern)
+    except OSError as exc:
+        raise DatasetError(f"{shown_path(root)}: cannot open ({exc.strerror or type(exc).__name__})"
+                           ) from None
+
+
+def _discover(root: Path, pattern: str | os.PathLike | None) -> Dataset:
+    """:func:`discover` of an expanded path; OSError passes through."""
     if root.is_file() and is_video(root):
         pattern_path = find_pattern(root.parent, pattern)
         star = _load_pattern(pattern_path)
@@ -148,8 +176,8 @@ def discover(folder: str | os.PathLike, pattern: str | os.PathLike | None = None
         return Dataset(root.parent, pattern_path, star,
                        tuple(FrameFile(f.name, f.path, "blurry", f.index) for f in frames), None, source=root)
     if not root.is_dir():
-        raise DatasetError(f"{root}: no such folder or video" if not root.exists()
-                           else f"{root}: neither a folder nor a video file (mp4, avi, mkv, mov)")
+        raise DatasetError(f"{shown_path(root)}: no such folder or video" if not root.exists()
+                           else f"{shown_path(root)}: neither a folder nor a video file (mp4, avi, mkv, mov)")
     pattern_path = find_pattern(root, pattern)
     star = _load_pattern(pattern_path)
     paths = frame_files(root)

@@ -13,8 +13,9 @@ from blurcalib.calib.sequence import SequenceSettings
 from blurcalib.calib.trust import TrustSettings
 from blurcalib.calib.validation import ValidationSettings
 from blurcalib.cli import main
+from blurcalib.io.feature_input import FeatureInputError, read_feature_input
 from blurcalib.io.results import FeatureFlags, FeatureTable, write_features
-from blurcalib.pipeline.run import PipelineError, PipelineSettings, read_feature_input, run_from_features
+from blurcalib.pipeline.run import PipelineSettings, run_from_features
 from blurcalib.target.pattern import layout_pattern, load_pattern
 from tests.conftest import FIXTURE_YAML
 from tests.test_generic_joint import simulated_features
@@ -65,7 +66,7 @@ def test_features_csv_calibrates_with_shifts_and_trust(features_csv, tmp_path, c
 
 
 def test_features_csv_needs_the_image_size(features_csv) -> None:
-    with pytest.raises(PipelineError, match="--image-size"):
+    with pytest.raises(FeatureInputError, match="--image-size"):
         read_feature_input(features_csv, layout_pattern())
     table, size = read_feature_input(features_csv, layout_pattern(), (1280, 720))
     assert size == (1280, 720) and int(((table.flags & BLURRY) == BLURRY).sum()) > 0
@@ -73,7 +74,7 @@ def test_features_csv_needs_the_image_size(features_csv) -> None:
 
 def test_features_outside_the_image_size(features_csv, tmp_path) -> None:
     """A wrong --image-size is named before any calibration runs, and nothing is written."""
-    with pytest.raises(PipelineError, match="outside the 640 x 480 image"):
+    with pytest.raises(FeatureInputError, match="outside the 640 x 480 image"):
         read_feature_input(features_csv, layout_pattern(), (640, 480))
     out = tmp_path / "out"
     code = main(["calibrate", "--features", str(features_csv), "--image-size", "640x480",
@@ -84,7 +85,7 @@ def test_features_outside_the_image_size(features_csv, tmp_path) -> None:
 def test_unknown_feature_file(tmp_path) -> None:
     path = tmp_path / "f.txt"
     path.write_text("x")
-    with pytest.raises(PipelineError, match="reference dataset"):
+    with pytest.raises(FeatureInputError, match="reference dataset"):
         read_feature_input(path, layout_pattern())
 
 

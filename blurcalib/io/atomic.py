@@ -29,6 +29,8 @@ import tempfile
 from collections.abc import Iterable, Iterator, Sequence
 from pathlib import Path
 
+from blurcalib.io.csv_reader import csv_chunks
+
 RUN_MANIFEST = "blurcalib-run.json"
 """The run manifest: ``{"tool": "blurcalib", "command": ..., "settings": {...}}``."""
 
@@ -294,7 +296,8 @@ def atomic_write_csv(path: str | os.PathLike, header: Sequence[str],
 def read_csv_columns(path: Path, required: Sequence[str], error: type[Exception], what: str,
                      optional: Sequence[str] = ()) -> tuple[dict[str, list[str]], int]:
     """The ``required`` columns of a CSV with a header, and those of ``optional`` it has, as
-    lists of strings, and its row count.
+    lists of strings, and its row count (the whole file: :func:`blurcalib.io.csv_reader.csv_chunks`
+    reads it in chunks).
 
     Args:
         path: the file.
@@ -304,25 +307,8 @@ def read_csv_columns(path: Path, required: Sequence[str], error: type[Exception]
             starts with the path.
         what: what the file is, for the messages (``"results file"``, ``"calibration file"``).
     """
-    try:
-        text = path.read_text(encoding="utf-8")
-    except FileNotFoundError:
-        raise error(f"{path}: {what} not found") from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise error(f"{path}: cannot read {what} ({exc})") from None
-    reader = csv.reader(io.StringIO(text, newline=""))
-    header = next(reader, None)
-    if header is None:
-        raise error(f"{path}: empty file (expected a header with columns {', '.join(required)})")
-    missing = [c for c in required if c not in header]
-    if missing:
-        raise error(f"{path}: missing column(s) {', '.join(repr(c) for c in missing)}")
-    rows = []
-    for row in reader:
-        if len(row) != len(header):
-            raise error(f"{path}: row {len(rows) + 1} (line {reader.line_num}) has "
-                        f"{len(row)} fields, expected {len(header)}")
-        rows.append(row)
-    by_index = list(zip(*rows, strict=True)) if rows else [() for _ in header]
-    wanted = [*required, *(name for name in optional if name in header)]
-    return {name: list(by_index[header.index(name)]) for name in wanted}, len(rows)
+    columns: dict[str, list[str]] = {}
+    for _, chunk in csv_chunks(path, required, error, what, optional):
+        for name, values in chunk.items():
+            columns.setdefault(name, []).extend(values)
+    return columns, len(columns[required[0]]) if required else 0

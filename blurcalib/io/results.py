@@ -34,6 +34,8 @@ from blurcalib.io.atomic import (
     ensure_writable_dir,
     read_csv_columns,
 )
+from blurcalib.io.csv_reader import csv_chunks
+from blurcalib.io.input_file import byte_size
 from blurcalib.psf.kernel import blur_per_square
 
 FEATURES_FILE = "features.csv"
@@ -57,9 +59,8 @@ BLOCK_COLUMNS: tuple[str, ...] = (
 
 BLUR_PER_SQUARE_LIMIT = 1.25
 """:attr:`BlockTable.blur_per_square` from which fewer blocks are found, and those found are poorer,
-even with the frame's path-PSF field (``scripts/bench_yield.py``: 85 % returned at 0.048 px from
-0.8, 77 % at 0.067 px from 1, 59 % at 0.059 px from 1.25, 22 % at 0.11 px from 1.5; with free
-PSFs alone it is 50 % from 0.8 and 10 % from 1)."""
+even with the frame's path-PSF field (``scripts/bench_yield.py`` prints the share returned by
+class of blur per square; docs/decisions/path-psf-field.md)."""
 
 CORNER_COLUMNS: tuple[str, ...] = ("frame", "cx2", "cy2", "X", "Y", "x", "y", "blocks")
 """Columns of ``corners.csv``: the corner's feature coordinates doubled (``cx2 = 2 fx + 1`` for
@@ -403,42 +404,68 @@ def write_results(folder: str | os.PathLike, features: Sequence[FeatureObservati
 
 
 # ------------------------------------------------------------------------------------- reading
+def _quoted(value: str, limit: int = 40) -> str:
+    """A field's text for a message, shortened to ``limit`` characters."""
+    return repr(value) if len(value) <= limit else repr(value[:limit - 3]) + "..."
+
+
 def _parse(path: Path, name: str, values: list[str], convert: Callable[[str], object],
-           dtype: type, kind: str) -> np.ndarray:
+           dtype: type, kind: str, first_row: int = 1) -> np.ndarray:
     try:
         return np.array(list(map(convert, values)), dtype=dtype)
-    except ValueError:
-        for row, value in enumerate(values, start=1):
+    except (ValueError, OverflowError):
+        for row, value in enumerate(values, start=first_row):
             try:
-                convert(value)
-            except ValueError:
-                raise ResultsFileError(f"{path}: column '{name}', row {row}: cannot parse {value!r} "
+                np.array(convert(value), dtype=dtype)
+            except (ValueError, OverflowError):
+                raise ResultsFileError(f"{path}: column '{name}', row {row}: cannot parse {_quoted(value)} "
                                        f"as {kind}") from None
         raise
 
 
-def _floats(path: Path, cols: dict[str, list[str]], name: str) -> np.ndarray:
-    return _parse(path, name, cols[name], float, np.float64, "a float")
+def _floats(path: Path, cols: dict[str, list[str]], name: str, first_row: int = 1) -> np.ndarray:
+    return _parse(path, name, cols[name], float, np.float64, "a float", first_row)
 
 
-def _ints(path: Path, cols: dict[str, list[str]], name: str) -> np.ndarray:
-    return _parse(path, name, cols[name], int, np.int64, "an integer")
+def _ints(path: Path, cols: dict[str, list[str]], name: str, first_row: int = 1) -> np.ndarray:
+    return _parse(path, name, cols[name], int, np.int64, "a 64-bit integer", first_row)
 
 
-def read_feature_table(path: str | os.PathLike) -> FeatureTable:
-    """Read a ``features.csv`` into columns.
+def table_bytes(rows: int, longest_name: int) -> int:
+    """Memory (bytes) of a :class:`FeatureTable` of ``rows`` rows whose longest frame name has
+    ``longest_name`` characters: nine 8-byte columns and the frame column, 4 bytes per character
+    of its longest name in every row."""
+    return rows * (9 * 8 + 4 * longest_name)
 
+
+def read_feature_table(path: str | os.PathLike, max_bytes: int | None = None) -> FeatureTable:
+    """Read a ``features.csv`` into columns, a chunk of rows at a time.
+
+    Args:
+        path: the file.
+        max_bytes: the most memory the table may take (:func:`table_bytes`; None: any); the
+            file is refused as soon as the rows read so far take more.
     Raises:
-        ResultsFileError: missing file, missing column, wrong field count or an unparsable value
+        ResultsFileError: missing file, not a regular file, missing column, wrong field count, an
+            unparsable value or a value beyond 64 bits, or more rows than ``max_bytes`` allows
             (the message names the file and the column/row; rows count from 1 after the header).
     """
     p = Path(path)
-    cols, _ = read_csv_columns(p, FEATURE_COLUMNS, ResultsFileError, "results file")
-    return FeatureTable(
-        np.array(cols["frame"], dtype=np.str_),
-        *(_ints(p, cols, n) for n in ("feature_id", "fx", "fy")),
-        *(_floats(p, cols, n) for n in ("X", "Y", "x", "y", "weight")),
-        _ints(p, cols, "flags"))
+    parts, rows, longest = [], 0, 0
+    for first, cols in csv_chunks(p, FEATURE_COLUMNS, ResultsFileError, "results file"):
+        part = FeatureTable(
+            np.array(cols["frame"], dtype=np.str_),
+            *(_ints(p, cols, n, first) for n in ("feature_id", "fx", "fy")),
+            *(_floats(p, cols, n, first) for n in ("X", "Y", "x", "y", "weight")),
+            _ints(p, cols, "flags", first))
+        parts.append(part)
+        rows, longest = rows + len(part), max(longest, part.frame.dtype.itemsize // 4)
+        if max_bytes is not None and table_bytes(rows, longest) > max_bytes:
+            raise ResultsFileError(
+                f"{p}: too large: its first {rows} rows (frame names of up to {longest} characters) "
+                f"take {byte_size(table_bytes(rows, longest))} in memory, more than the "
+                f"{byte_size(max_bytes)} a features file may fill")
+    return parts[0] if len(parts) == 1 else FeatureTable.concat(parts)
 
 
 def read_features(path: str | os.PathLike) -> list[FeatureObservation]:

@@ -199,12 +199,12 @@ def experiment_parser(name: str, description: str, outputs: str, settings: type 
     with the default of its field of the ``settings`` dataclass."""
     parser = argparse.ArgumentParser(prog=f"blurcalib experiment {name}", description=description)
     parser.add_argument("--out", default=str(DEFAULT_OUT),
-                        help=f"output folder for {outputs} (%(default)s)")
-    parser.add_argument("--seed", type=int, default=0, help="random seed (%(default)s)")
+                        help=f"output folder for {outputs} (default %(default)s)")
+    parser.add_argument("--seed", type=int, default=0, help="random seed (default %(default)s)")
     for o in options:
         default = getattr(settings, o.field)
         parser.add_argument(o.flag, dest=o.field, metavar=o.flag[2:].replace("-", "_").upper(),
-                            type=type(default), default=default, help=f"{o.help} (%(default)s)")
+                            type=type(default), default=default, help=f"{o.help} (default %(default)s)")
     return parser
 
 

@@ -73,6 +73,7 @@ from blurcalib.io.atomic import (
     claim_output_dir,
     ensure_writable_dir,
 )
+from blurcalib.io.feature_input import FeatureInputError, read_feature_input
 from blurcalib.io.frames import frame_size, frame_size_problem
 from blurcalib.io.record import FrameRecord, FrameStatus
 from blurcalib.io.refformat import to_ref_dataset, write_ref_dataset
@@ -351,76 +352,29 @@ def _calibration_seconds(run: CalibrationRun) -> dict[str, float]:
     return seconds
 
 
-def read_feature_input(path: str | os.PathLike, pattern: StarPattern,
-                       image_size: tuple[int, int] | None = None) -> tuple[FeatureTable, tuple[int, int]]:
-    """Features to calibrate from, and the image size: the reference tool's dataset ``.bin``
-    (pixel-corner convention on disk; every frame sharp) or blurcalib's ``features.csv`` (rows
-    flagged ``BLURRY_FRAME`` are blurry frames, those flagged ``FILTERED_OUT`` are left out; the
-    size must be given, the file does not hold it).
-
-    Raises:
-        PipelineError: an unknown suffix, an unreadable or malformed file, or a ``features.csv``
-            without ``image_size``.
-    """
-    from blurcalib.io.refformat import RefFormatError, read_ref_dataset, ref_feature_table
-    from blurcalib.io.results import ResultsFileError
-
-    p = Path(path)
-    try:
-        if p.suffix.lower() == ".bin":
-            dataset = read_ref_dataset(p)
-            table, size = ref_feature_table(dataset, pattern), image_size or dataset.image_size
-        elif p.suffix.lower() == ".csv":
-            if image_size is None:
-                raise PipelineError(f"{p}: a features.csv does not hold the image size: give "
-                                    f"--image-size WxH")
-            table, size = read_feature_table(p), image_size
-            table = table.select((table.flags & int(FeatureFlags.FILTERED_OUT)) == 0)
-            if len(table) and int(table.feature_id.max()) >= pattern.num_features:
-                raise PipelineError(f"{p}: feature id {int(table.feature_id.max())} is not one of the "
-                                    f"pattern's {pattern.num_features} features")
-        else:
-            raise PipelineError(f"{p}: features must be a reference dataset (.bin) or a blurcalib "
-                                f"features.csv")
-    except (OSError, RefFormatError, ResultsFileError, ValueError) as exc:
-        raise PipelineError(f"{p}: {exc}") from None
-    _check_inside(p, table, size)
-    return table, size
-
-
-def _check_inside(path: Path, table: FeatureTable, size: tuple[int, int]) -> None:
-    """Raise :class:`PipelineError` when a feature lies outside the image ``size`` (px, OpenCV
-    convention: the image spans ``[-0.5, W - 0.5] x [-0.5, H - 0.5]``): a wrong ``--image-size``."""
-    if not len(table):
-        return
-    width, height = size
-    x_max, y_max = float(table.x.max()), float(table.y.max())
-    x_min, y_min = float(table.x.min()), float(table.y.min())
-    if x_min < -0.5 or y_min < -0.5 or x_max > width - 0.5 or y_max > height - 0.5:
-        raise PipelineError(f"{path}: features span x {x_min:.1f} to {x_max:.1f} px, y {y_min:.1f} to "
-                            f"{y_max:.1f} px, outside the {width} x {height} image: is the image size right "
-                            f"(--image-size WxH)?")
-
-
 def run_from_features(path: str | os.PathLike, pattern: StarPattern, out_dir: str | os.PathLike,
                       settings: PipelineSettings | None = None, image_size: tuple[int, int] | None = None,
                       overwrite: bool = False) -> PipelineReport:
-    """Calibrate from an existing feature file instead of images (:func:`read_feature_input`):
-    the parametric camera on the sharp frames, then the generic cameras, their assessment and
-    the same outputs as :func:`run_pipeline`. Blurry frames enter the generic fit on the joint
-    route (a free shift each); without blocks there is no lens-bias correction (a blurcalib
-    ``features.csv`` is already corrected) and no parametric alignment.
+    """Calibrate from an existing feature file instead of images
+    (:func:`blurcalib.io.feature_input.read_feature_input`): the parametric camera on the sharp
+    frames, then the generic cameras, their assessment and the same outputs as
+    :func:`run_pipeline`. Blurry frames enter the generic fit on the joint route (a free shift
+    each); without blocks there is no lens-bias correction (a blurcalib ``features.csv`` is
+    already corrected) and no parametric alignment.
 
     Raises:
-        PipelineError: unusable input (see :func:`read_feature_input`, too few sharp frames, or
-            ``route="aligned"``, which needs the blocks).
+        PipelineError: unusable input (see :func:`blurcalib.io.feature_input.read_feature_input`,
+            too few sharp frames, or ``route="aligned"``, which needs the blocks).
         OutputError: as :func:`run_pipeline`.
     """
     s = settings or PipelineSettings()
     if s.calibration.generic.route != "joint":
         raise PipelineError("calibrating from features needs the joint route (the aligned route aligns "
                             "blocks to the parametric camera): use --route joint")
-    table, size = read_feature_input(path, pattern, image_size)
+    try:
+        table, size = read_feature_input(path, pattern, image_size)
+    except FeatureInputError as exc:
+        raise PipelineError(str(exc)) from None
     out = claim_output_dir(out_dir, "calibrate", {**asdict(s), "features": str(Path(path).resolve())},
                            overwrite)
     shutil.rmtree(out / STAGING_DIR, ignore_errors=True)
