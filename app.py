@@ -1,10 +1,13 @@
 """blurcalib's browser app: watch features and PSFs being extracted, tune the quality filter,
 inspect blocks, see the error field and the frames' poses, and learn the translational ambiguity.
 
-    python app.py [FOLDER] [--pattern P.yaml] [--port N]
+    python app.py [FOLDER] [--pattern P.yaml] [--out DIR] [--port N]
 
 With no folder it opens a small simulated dataset, rendered on first use into the user's cache
-folder (``~/.cache/blurcalib/app_default``, or under ``$XDG_CACHE_HOME``). The app serves on
+folder (``~/.cache/blurcalib/app_default``, or under ``$XDG_CACHE_HOME``). Extracted frames are
+written into ``--out`` (by default a folder of the dataset's own under
+``~/.cache/blurcalib/results/``, so that a read-only dataset works): opening the dataset again
+shows them as done, and a run resumes where the last one stopped. The app serves on
 127.0.0.1 (port 8080 by default, the next free one if taken) and prints its URL; only pages of
 that origin can drive it, and it is never shared (``views/security.py``). A ``--host`` that other
 machines can reach (``0.0.0.0``) is refused without ``--allow-remote``, and warned about with it.
@@ -74,8 +77,8 @@ def _progress(done: int, total: int, name: str) -> None:
 
 def serve(folder: str | os.PathLike | None = None, pattern: str | os.PathLike | None = None,
           port: int = 8080, *, host: str = "127.0.0.1", allow_remote: bool = False,
-          settings: RunSettings | None = None,
-          calibration: CalibrationSettings | None = None) -> tuple[viser.ViserServer, App]:
+          settings: RunSettings | None = None, calibration: CalibrationSettings | None = None,
+          out: str | os.PathLike | None = None) -> tuple[viser.ViserServer, App]:
     """Start the app on ``host:port`` (``port`` 0: any free port; read the real one with
     ``server.get_port()``) and open ``folder`` (default: the built-in simulated dataset).
 
@@ -90,6 +93,8 @@ def serve(folder: str | os.PathLike | None = None, pattern: str | os.PathLike | 
         allow_remote: listen on a host other machines can reach (:func:`views.security.check_host`).
         settings: extraction settings per frame kind.
         calibration: the calibration's settings.
+        out: the folder the frames of ``folder`` are extracted into (default: the dataset's own
+            folder in the user's cache, :func:`state.folder.default_output_folder`).
     Returns:
         The viser server and the app; stop with ``app.close()`` then ``server.stop()``.
     Raises:
@@ -132,7 +137,7 @@ def serve(folder: str | os.PathLike | None = None, pattern: str | os.PathLike | 
         app.panels.append(AmbiguityPanel(server))
     views.dock_left()
     views.set_width(VIEWS_WIDTH)
-    state.load_folder(folder, pattern)
+    state.load_folder(folder, pattern, out)
     return server, app
 
 
@@ -175,6 +180,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="dataset folder (default: a built-in simulated dataset)")
     p.add_argument("--pattern", metavar="FILE",
                    help="pattern YAML (default: pattern.yaml in the folder or its parent)")
+    p.add_argument("--out", metavar="DIR",
+                   help="output folder of the extracted frames, resumed when opened again (default: the "
+                        "dataset's own folder under ~/.cache/blurcalib/results)")
     p.add_argument("--port", type=_port, default=8080, metavar="N",
                    help="TCP port (default %(default)s; the next free one if taken)")
     p.add_argument("--host", default="127.0.0.1", metavar="ADDRESS",
@@ -203,7 +211,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         if warning is not None:
             print(f"app.py: warning: {warning}", file=sys.stderr, flush=True)
         server, app = serve(args.folder, args.pattern, args.port, host=args.host,
-                            allow_remote=args.allow_remote)
+                            allow_remote=args.allow_remote, out=args.out)
     except ServeError as exc:
         print(f"app.py: error: {exc}", file=sys.stderr)
         return 2

@@ -199,15 +199,18 @@ def _run_pipeline(sharp: list[Path], blurry: list[Path], pattern: StarPattern, o
     their own blur), or on a feature file (``features``), and print its figures."""
     from blurcalib.calib.trust import summary_lines
     from blurcalib.pipeline.run import PipelineError, run_from_features, run_pipeline
+    from blurcalib.runs.events import FrameDone, RunEvent
 
     bars: dict[str, tqdm] = {}
 
-    def update(stage: str, done: int, total: int, row: dict) -> None:
+    def update(stage: str, event: RunEvent) -> None:
+        if not isinstance(event, FrameDone):
+            return
         if stage not in bars:
-            bars[stage] = tqdm(total=total, desc=f"extracting {stage}", unit="frame",
+            bars[stage] = tqdm(total=event.total, desc=f"extracting {stage}", unit="frame",
                                file=sys.stderr, dynamic_ncols=True, disable=None)
-        bars[stage].n = done
-        bars[stage].set_postfix_str(f"{row['frame']}: {row['status']}", refresh=True)
+        bars[stage].n = event.done
+        bars[stage].set_postfix_str(f"{event.record.frame}: {event.record.status.value}", refresh=True)
 
     try:
         if features is not None:
@@ -359,6 +362,8 @@ def cmd_extract(args: argparse.Namespace) -> int:
     (docs/results-format.md); prints a status per frame and the totals. Resumable: a frame is
     redone only when its input, the pattern or the settings changed, or when it failed."""
     from blurcalib.extract.frame import ExtractSettings
+    from blurcalib.io.record import FrameStatus
+    from blurcalib.runs.events import FrameDone, RunEvent
     from blurcalib.runs.folder import extract_to_folder
 
     pattern = load_pattern(args.pattern)
@@ -379,23 +384,23 @@ def cmd_extract(args: argparse.Namespace) -> int:
     settings = replace(base, window=window, deconv=deconv, grow=grow, local_alignment=args.local_alignment)
     bar = tqdm(total=len(paths), desc="extracting", unit="frame", file=sys.stderr,
                dynamic_ncols=True, disable=None)
-    counts: dict[str, int] = {}
 
-    def update(done: int, total: int, row: dict) -> None:
-        counts[row["status"]] = counts.get(row["status"], 0) + 1
-        bar.n = done
-        bar.set_postfix_str(f"{row['frame']}: {row['status']} {row['features']} features",
-                            refresh=True)
-        if row["status"] != "ok":
-            tqdm.write(f"{row['frame']}: {row['status']}: {row['message']}", file=sys.stderr)
+    def update(event: RunEvent) -> None:
+        if not isinstance(event, FrameDone):
+            return
+        row = event.record
+        bar.n = event.done
+        bar.set_postfix_str(f"{row.frame}: {row.status.value} {row.features} features", refresh=True)
+        if row.status is not FrameStatus.OK:
+            tqdm.write(f"{row.frame}: {row.status.value}: {row.message}", file=sys.stderr)
 
     with bar:
         summary = extract_to_folder(paths, pattern, Path(args.out), settings,
                                     workers=args.workers, progress=update,
                                     overwrite=args.overwrite, cluster=args.cluster)
-    total_features = sum(int(r.get("features", 0)) for r in summary.frames)
-    ok = sum(r["status"] == "ok" for r in summary.frames)
-    print(f"{ok}/{count(len(summary.frames), 'frame')} ok, {count(total_features, 'feature')}"
+    total_features = sum(r.features for r in summary.records)
+    ok = sum(r.status is FrameStatus.OK for r in summary.records)
+    print(f"{ok}/{count(len(summary.records), 'frame')} ok, {count(total_features, 'feature')}"
           + (f" ({count(len(summary.skipped), 'frame')} already done, skipped)" if summary.skipped else ""))
     for kind, path in summary.outputs.items():
         print(f"  {kind}: {path}")
@@ -681,7 +686,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("view", help="start the browser app (viser)", description=_plain(cmd_view.__doc__),
                        add_help=False)
     p.add_argument("rest", nargs=argparse.REMAINDER, metavar="OPTIONS",
-                   help="[FOLDER] [--pattern P.yaml] [--port N] (see python app.py --help)")
+                   help="[FOLDER] [--pattern P.yaml] [--out DIR] [--port N] (see python app.py --help)")
     p.set_defaults(func=cmd_view)
 
     p = sub.add_parser("synth", help="simulate sharp and blurry frames with ground truth",

@@ -31,6 +31,7 @@ os.environ.setdefault("OMP_NUM_THREADS", "1")
 import benchrecord
 
 from blurcalib.extract.frame import ExtractSettings
+from blurcalib.io.record import FrameRecord, FrameStatus
 from blurcalib.runs.folder import extract_to_folder
 from blurcalib.runs.runtime import configure_threads
 from blurcalib.target.pattern import load_pattern
@@ -40,11 +41,11 @@ WORKER_MALLOC = {"MALLOC_MMAP_THRESHOLD_": 33554432, "MALLOC_TRIM_THRESHOLD_": 1
 """glibc settings of the worker processes (32 MiB, 1 GiB): large tensors stay on the heap."""
 
 
-def _report(label: str, kind: str, rows: list[dict], wall: float, cpu: float, client_cpu: float,
+def _report(label: str, kind: str, rows: list[FrameRecord], wall: float, cpu: float, client_cpu: float,
             record: benchrecord.BenchRecord) -> None:
     n = len(rows)
-    ok = sum(r["status"] == "ok" for r in rows)
-    features = sum(int(r.get("features", 0)) for r in rows)
+    ok = sum(r.status is FrameStatus.OK for r in rows)
+    features = sum(r.features for r in rows)
     print(f"{label:10s} {kind:6s} {ok:2d}/{n} ok {features:5d} features   wall {wall / n:6.2f} s/frame   "
           f"compute CPU {cpu / n:6.2f} s/frame   client CPU {client_cpu / n:5.2f} s/frame", flush=True)
     record.add(f"{label}, {kind} frames", frames=n, frames_ok=ok, features=features,
@@ -92,7 +93,7 @@ def main() -> None:
         t0, c0 = time.perf_counter(), time.process_time()
         done = extract_to_folder(paths, pattern, args.out / "local" / kind, settings, overwrite=True)
         cpu = time.process_time() - c0
-        _report("local 1", kind, done.frames, time.perf_counter() - t0, cpu, 0.0, record)
+        _report("local 1", kind, done.records, time.perf_counter() - t0, cpu, 0.0, record)
     os.environ["PYTHONPATH"] = os.pathsep.join([str(ROOT), *filter(None, [os.environ.get("PYTHONPATH")])])
     for n in args.workers:
         t0 = time.perf_counter()
@@ -115,7 +116,7 @@ def main() -> None:
                 wall, client_cpu = time.perf_counter() - t0, time.process_time() - c0
                 after = client.run(time.process_time)
                 cpu = sum(after[w] - before[w] for w in after)
-                _report(f"dask {n}", kind, done.frames, wall, cpu, client_cpu, record)
+                _report(f"dask {n}", kind, done.records, wall, cpu, client_cpu, record)
                 tasks = [t for t in client.get_task_stream(start=start)
                          if "_single_threaded" in t["key"]]
                 busy = sum(s["stop"] - s["start"] for t in tasks for s in t["startstops"]

@@ -9,7 +9,9 @@ names the ground truth uses. A video file opens as a dataset of its frames, name
 
 from __future__ import annotations
 
+import hashlib
 import os
+import re
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -35,6 +37,10 @@ DEFAULT_CONFIG = SynthConfig(sharp=2, blurry=4, blur_min_px=3.0, blur_max_px=8.0
 
 BUILTIN_DIR = Path("blurcalib") / "app_default"
 """The built-in dataset's folder inside the user's cache folder (:func:`builtin_dataset_folder`)."""
+
+RESULTS_DIR = Path("blurcalib") / "results"
+"""The folder, inside the user's cache folder, of the app's results of each dataset
+(:func:`default_output_folder`)."""
 
 EXPORT_DIR = "calibration_app"
 """Folder, inside the dataset folder, that the app exports its calibration into (its images are not
@@ -199,12 +205,27 @@ def default_camera() -> TrueCamera:
     return TrueCamera(full.model.scaled(0.5), waves)
 
 
+def user_cache() -> Path:
+    """The user's cache folder: ``$XDG_CACHE_HOME``, or else ``~/.cache``."""
+    cache = os.environ.get("XDG_CACHE_HOME", "").strip()
+    return Path(cache) if cache and Path(cache).is_absolute() else Path.home() / ".cache"
+
+
 def builtin_dataset_folder() -> Path:
     """Where the app keeps its built-in dataset: ``blurcalib/app_default`` in the user's cache
-    folder, ``$XDG_CACHE_HOME`` or else ``~/.cache`` (never inside the installed package)."""
-    cache = os.environ.get("XDG_CACHE_HOME", "").strip()
-    root = Path(cache) if cache and Path(cache).is_absolute() else Path.home() / ".cache"
-    return root / BUILTIN_DIR
+    folder (:func:`user_cache`; never inside the installed package)."""
+    return user_cache() / BUILTIN_DIR
+
+
+def default_output_folder(dataset: str | os.PathLike) -> Path:
+    """Where the app writes a dataset's results when no output folder is given:
+    ``blurcalib/results/<name>-<digest>`` in the user's cache folder (:func:`user_cache`), the
+    digest the first 12 hex digits of the SHA-256 of the dataset's resolved path (a folder, or a
+    video file), so that a read-only dataset can be extracted and each dataset has its own."""
+    path = Path(dataset).expanduser().resolve()
+    digest = hashlib.sha256(os.fsencode(path)).hexdigest()[:12]
+    name = re.sub(r"[^A-Za-z0-9._-]", "_", path.name) or "root"
+    return user_cache() / RESULTS_DIR / f"{name}-{digest}"
 
 
 def default_dataset(root: str | os.PathLike, config: SynthConfig = DEFAULT_CONFIG,

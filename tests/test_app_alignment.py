@@ -9,9 +9,10 @@ import pytest
 
 from blurcalib.calib.sharp import calibrate_sharp, save_calibration
 from blurcalib.camera.parametric import BrownConrady, project_points
-from blurcalib.extract.frame import FrameResult, FrameStatus
+from blurcalib.extract.frame import FrameResult
 from blurcalib.geometry.pose import Pose
 from blurcalib.growth.quality import QualitySettings
+from blurcalib.io.record import FrameStatus
 from blurcalib.io.results import BlockStatus, BlockTable, FeatureFlags, FeatureObservation, FeatureTable
 from blurcalib.sim.truth import DatasetTruth, TrueCamera
 from blurcalib.target.pattern import layout_pattern
@@ -22,7 +23,7 @@ from state.alignment import (
     calibration_folders,
     find_reference,
 )
-from state.app_state import frame_filter
+from state.blocks import frame_filter
 from state.figures import cell_means, error_field
 from state.folder import Dataset
 

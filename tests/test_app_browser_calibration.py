@@ -56,7 +56,7 @@ def test_calibration_view_in_chromium(tmp_path: Path) -> None:
             page.get_by_role("button", name="Run calibration").click()
             shown = page.get_by_text(re.compile(r"generic median error: [\d.]+ px"))
             expect(shown).to_be_visible(timeout=300_000)
-            assert {e.status for e in app.state.entries()} == {"ok"}
+            assert {e.record.status.value for e in app.state.entries()} == {"ok"}
             median = float(re.search(r"generic median error: ([\d.]+) px", shown.inner_text())[1])
             result = app.calibration.result
             assert abs(median - result.generic.median_error) <= 5e-5

@@ -20,6 +20,7 @@ from blurcalib.calib.validation import ValidationSettings
 from blurcalib.camera.files import read_generic_yaml
 from blurcalib.camera.parametric import load_camera_yaml
 from blurcalib.growth.quality import QualitySettings
+from blurcalib.io.record import FrameStatus
 from blurcalib.io.results import FeatureTable
 from blurcalib.paper.generic import projection_errors
 from blurcalib.sim.synth import SynthConfig
@@ -299,9 +300,9 @@ def test_sharp_frames_only_label_and_held_out_table(defaults: AppState) -> None:
     assert uncertainty_image(result).shape[1] < 2 * uncertainty_image(result).shape[0]  # one map
 
 
-def test_coverage_fills_in_frame_by_frame_and_a_failed_run_says_why(state: AppState) -> None:
+def test_coverage_fills_in_frame_by_frame_and_a_failed_run_says_why(state: AppState, tmp_path: Path) -> None:
     fresh = AppState(FAST)
-    assert fresh.load_folder(state.dataset.folder)
+    assert fresh.load_folder(state.dataset.folder, out=tmp_path / "fresh")  # not the extracted frames
     runner = CalibrationRunner(fresh, SETTINGS)
     assert runner.inputs().image_size == (0, 0)
     assert set(runner.statuses().values()) == {"not extracted"}
@@ -321,5 +322,5 @@ def test_coverage_fills_in_frame_by_frame_and_a_failed_run_says_why(state: AppSt
     assert runner.statuses()["sharp/0001.png"] == "not extracted"
     # Run calibration extracts the rest first: every frame is used.
     assert runner.run() and runner.wait(900)
-    assert {e.status for e in fresh.entries()} == {"ok"}
+    assert {e.record.status for e in fresh.entries()} == {FrameStatus.OK}
     assert runner.result is not None and set(runner.statuses().values()) == {USED}

@@ -13,12 +13,13 @@ from blurcalib.camera.parametric import BrownConrady
 from blurcalib.extract.frame import ExtractSettings
 from blurcalib.growth.quality import QualitySettings, noise_scale
 from blurcalib.growth.settings import GrowSettings
+from blurcalib.io.record import FrameStatus
 from blurcalib.io.results import BlockStatus
 from blurcalib.sim.synth import SynthConfig
 from blurcalib.sim.truth import TrueCamera
 from state import AppState, DatasetError, RunSettings, Topic, default_dataset, discover
 from state.alignment import AlignmentCache, AlignmentError
-from state.app_state import filter_counts
+from state.blocks import filter_counts
 from state.demo import MAX_SHIFT, TILE_PX, alignment_demo, ambiguity_demo
 from state.figures import alignment_poses, error_field, feature_poses, truth_poses, used_frame_fields
 
@@ -93,17 +94,18 @@ def test_run_updates_live_then_result_and_refilter_changes_counts(finished: tupl
     state, topics = finished
     state.select_frame(1)
     view = state.view()
-    assert view.entry.status == "ok" and view.entry.blocks == len(view.result.blocks) >= 30
+    record = view.entry.record
+    assert record.status is FrameStatus.OK and record.blocks == len(view.result.blocks) >= 30
     assert len(view.live) == len(view.result.blocks)
     assert topics.count(Topic.LIVE) >= len(view.live) and Topic.RESULT in topics
     progress = state.progress()
     assert progress.frames_done == progress.frames_total == 2 and progress.fraction == 1.0
     kept = filter_counts(view.filter).kept
-    assert 0 < kept <= view.entry.accepted
+    assert 0 < kept <= view.entry.record.accepted
     try:
         state.refilter(tau_loss=0.0)
         assert filter_counts(state.view().filter).kept == 0
-        assert filter_counts(state.view().filter).removed_loss == view.entry.accepted
+        assert filter_counts(state.view().filter).removed_loss == view.entry.record.accepted
         state.refilter(tau_loss=1e6, tau_be=1.0)
         assert filter_counts(state.view().filter).kept >= kept
         state.refilter(min_sigma_major=0.0)
@@ -131,9 +133,10 @@ def test_cancel_stops_after_the_first_front(dataset: Path) -> None:
     assert state.run_all()
     assert state.wait(300)
     entries = state.entries()
-    assert entries[0].status == "cancelled" and entries[1].status == "pending"
+    assert entries[0].record.status is FrameStatus.CANCELLED
+    assert entries[1].record.status is FrameStatus.PENDING
     assert {e.front for e in state.view().live} == {0}
-    assert state.view().result is not None and entries[0].blocks == len(state.view().live)
+    assert state.view().result is not None and entries[0].record.blocks == len(state.view().live)
     assert not state.is_running and not state.progress().cancelling
 
 
@@ -149,11 +152,12 @@ def test_bad_frames_get_a_status_and_a_notice(dataset: Path, tmp_path: Path) -> 
     notices = []
     state.subscribe_notices(notices.append)
     assert state.load_folder(folder)
-    assert state.entries()[0].status == "unreadable" and "truncated" in state.entries()[0].message
+    first = state.entries()[0].record
+    assert first.status is FrameStatus.UNREADABLE and "truncated" in first.message
     assert notices[-1].level == "error" and state.view().image is None
     assert state.run_all()
     assert state.wait(300)
-    status = {e.name: e.status for e in state.entries()}
+    status = {e.name: e.record.status.value for e in state.entries()}
     assert status == {"a_truncated.png": "unreadable", "b_notag.png": "not_seeded", "c_good.png": "ok"}
     assert any(n.level == "warning" and "no AprilTag" in n.text for n in notices)
     assert not state.run_all() and notices[-1].title == "Nothing to run"
@@ -171,7 +175,8 @@ def test_pattern_that_matches_nothing_leaves_frames_unseeded(dataset: Path, tmp_
     assert state.run_frame()
     assert state.wait(300)
     entry = state.entries()[0]
-    assert entry.status == "not_seeded" and "found tag ids [0], the pattern has [5]" in entry.message
+    assert entry.record.status is FrameStatus.NOT_SEEDED
+    assert "found tag ids [0], the pattern has [5]" in entry.record.message
     assert state.notices[-1].level == "warning" and len(state.view().result.blocks) == 0
 
 
@@ -213,7 +218,7 @@ def test_uploaded_pattern_starts_a_dataset_of_uploads(dataset: Path, tmp_path: P
     assert state.add_frame(frame, "upload/frame.png", "sharp") == 0
     assert state.run_frame() and state.wait(300)
     entry = state.entries()[0]
-    assert entry.status == "ok" and entry.accepted > 10
+    assert entry.record.status is FrameStatus.OK and entry.record.accepted > 10
 
 
 @pytest.mark.slow
@@ -225,7 +230,7 @@ def test_replacing_the_pattern_clears_results_and_keeps_truth_only_for_the_same_
     same = tmp_path / "same.yaml"
     same.write_text("# the same target\n" + (dataset / "pattern.yaml").read_text())
     assert state.set_pattern(same)
-    assert state.results() == {} and {e.status for e in state.entries()} == {"pending"}
+    assert state.results() == {} and {e.record.status for e in state.entries()} == {FrameStatus.PENDING}
     assert state.dataset.truth is not None and len(state.entries()) == 2
     other = tmp_path / "other.yaml"
     other.write_text((dataset / "pattern.yaml").read_text().replace("index: ", "index: 1"))
@@ -335,9 +340,9 @@ def test_views_draw_rgb_images(finished: tuple[AppState, list[Topic]]) -> None:
     finished.select_frame(1)
     view = finished.view()
     # where the frame's time went: the growth's stages, in the order they ran
-    line = stage_line(view.result, least_s=0.0)
+    line = stage_line(view.entry.record, least_s=0.0)
     assert line.startswith("time by stage: seeding ") and line.index("free PSFs") < line.index("alignment")
-    assert stage_line(view.result, least_s=1e9) == ""
+    assert stage_line(view.entry.record, least_s=1e9) == ""
     worst = jump_target(view, "highest loss")
     loss = view.result.blocks.loss
     assert loss[worst] == loss[np.isfinite(loss)].max()

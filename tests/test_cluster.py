@@ -13,8 +13,10 @@ import pytest
 from blurcalib.camera.parametric import BrownConrady
 from blurcalib.cli import main
 from blurcalib.extract.frame import ExtractSettings
+from blurcalib.io.record import FrameStatus
 from blurcalib.io.results import read_features
 from blurcalib.runs.cluster import ClusterError, run_on_cluster
+from blurcalib.runs.events import FrameDone, RunEvent
 from blurcalib.runs.folder import extract_to_folder
 from blurcalib.runs.runtime import configure_threads
 from blurcalib.sim.synth import Simulator, SynthConfig
@@ -79,12 +81,17 @@ def test_cluster_run_matches_local_run_and_resumes(tmp_path, frames, cluster, on
     paths, sim = frames
     settings = ExtractSettings.sharp()
     local = extract_to_folder(paths, sim.pattern, tmp_path / "local", settings)
-    assert [r["status"] for r in local.frames] == ["ok"] * 3
+    assert [r.status for r in local.records] == [FrameStatus.OK] * 3
     # a cluster run that finds one frame already done extracts only the other two
     extract_to_folder(paths[:1], sim.pattern, tmp_path / "dask", settings)
     seen = []
+
+    def progress(event: RunEvent) -> None:
+        assert isinstance(event, FrameDone)  # a cluster task reports its frame once done
+        seen.append((event.done, event.total, event.record.frame))
+
     run = extract_to_folder(paths, sim.pattern, tmp_path / "dask", settings, cluster=cluster,
-                            progress=lambda done, total, row: seen.append((done, total, row["frame"])))
+                            progress=progress)
     assert run.skipped == ["f0.png"]
     assert sorted(name for _, _, name in seen) == ["f1.png", "f2.png"]
     assert [(done, total) for done, total, _ in seen] == [(2, 3), (3, 3)]

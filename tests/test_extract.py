@@ -10,16 +10,12 @@ import pytest
 
 import blurcalib.extract.frame as extract_module
 import blurcalib.growth.grow as grow_module
-import blurcalib.runs.folder as folder_module
+import blurcalib.runs.executors as executors_module
+import blurcalib.runs.neighbours as neighbours_module
+import blurcalib.runs.task as task_module
 from blurcalib.camera.parametric import BrownConrady
 from blurcalib.deconv.settings import DeconvSettings
-from blurcalib.extract.frame import (
-    SHARP_BELOW_PX,
-    ExtractSettings,
-    FrameResult,
-    FrameStatus,
-    extract_frame,
-)
+from blurcalib.extract.frame import SHARP_BELOW_PX, ExtractSettings, FrameResult, extract_frame
 from blurcalib.extract.local_alignment import align_locally, shared_corners
 from blurcalib.geometry.homography import apply_homography, homography_centre, translation
 from blurcalib.growth.fronts import refine_ring
@@ -33,18 +29,20 @@ from blurcalib.growth.seed import (
 )
 from blurcalib.growth.window import SHARP_START, WindowPolicy
 from blurcalib.io.atomic import RUN_MANIFEST, OutputError
+from blurcalib.io.frame_files import frame_result_paths, read_frame_status
 from blurcalib.io.frames import load_frame
+from blurcalib.io.record import FrameStatus
 from blurcalib.io.refformat import read_ref_dataset
 from blurcalib.io.results import (
     FeatureFlags,
     FeatureObservation,
     FeatureTable,
-    frame_result_paths,
     read_feature_table,
     read_features,
-    read_frame_status,
 )
-from blurcalib.runs.folder import NeighbourSeed, extract_to_folder, seed_from_neighbour
+from blurcalib.runs.executors import ProcessPool
+from blurcalib.runs.folder import extract_to_folder
+from blurcalib.runs.neighbours import NeighbourSeed, seed_from_neighbour
 from blurcalib.sim.synth import Simulator, SynthConfig
 from blurcalib.sim.truth import TrueCamera
 from blurcalib.target.pattern import layout_pattern, load_pattern
@@ -133,7 +131,7 @@ def test_sharp_frame_features_match_truth(sim: Simulator, sharp_frame) -> None:
     assert list(stages) == ["seed", "free", "fit_other", "align"]  # a sharp frame: no field, final fit
     assert all(v >= 0 for v in stages.values())
     assert sum(stages.values()) == pytest.approx(sum(result.seconds.values()))
-    row = result.summary()
+    row = result.record().to_row()
     assert row["seconds_fit_free"] == round(result.growth.seconds["free"], 3)
     assert row["seconds_fit_free"] <= row["seconds_fit"]
 
@@ -171,7 +169,7 @@ def test_folder_run_records_bad_frames_and_resumes(tmp_path, sim: Simulator, sha
     out = tmp_path / "out"
     summary = extract_to_folder(paths, sim.pattern, out, ExtractSettings.sharp(),
                                 expected_size=(480, 360))
-    status = {r["frame"]: r["status"] for r in summary.frames}
+    status = {r.frame: r.status.value for r in summary.records}
     assert status == {"a_good.png": "ok", "b_empty.png": "unreadable",
                       "c_truncated.png": "unreadable", "d_small.png": "wrong_size",
                       "e_notag.png": "not_seeded"}
@@ -186,7 +184,7 @@ def test_folder_run_records_bad_frames_and_resumes(tmp_path, sim: Simulator, sha
                               expected_size=(480, 360))
     # finished frames are kept; unreadable and wrong-size frames are looked at again
     assert again.skipped == ["a_good.png", "e_notag.png"]
-    assert {r["frame"]: r["status"] for r in again.frames} == status
+    assert {r.frame: r.status.value for r in again.records} == status
     after = {p.name: p.read_bytes() for p in out.iterdir() if p.is_file()}
     for name in ("features.csv", "blocks.csv", "psfs.npz", "corners.csv", "blurcalib-run.json"):
         assert after[name] == before[name], name
@@ -246,7 +244,7 @@ def engine(monkeypatch: pytest.MonkeyPatch) -> list[str]:
         return FrameResult(frame, FrameStatus.OK, features=FeatureTable.from_observations([obs]),
                            corners=[[frame, 1, 1, 0.005, 0.005, 1.0, 2.0, 2]])
 
-    monkeypatch.setattr(folder_module, "extract_frame", fake)
+    monkeypatch.setattr(task_module, "extract_frame", fake)
     return calls
 
 
@@ -267,11 +265,11 @@ def test_one_bad_frame_never_stops_the_batch(tmp_path, engine) -> None:
     paths = [_image(frames / "a.png", 10), _image(frames / "b_boom.png", 20),
              _image(frames / "c_1x1.png", 30, (1, 1)), _image(frames / "d.png", 40)]
     summary = extract_to_folder(paths, layout_pattern(), tmp_path / "out")
-    rows = {r["frame"]: r for r in summary.frames}
-    assert {n: r["status"] for n, r in rows.items()} == {
+    rows = {r.frame: r for r in summary.records}
+    assert {n: r.status.value for n, r in rows.items()} == {
         "a.png": "ok", "b_boom.png": "failed", "c_1x1.png": "unreadable", "d.png": "ok"}
-    assert rows["b_boom.png"]["message"] == "KeyError: 'boom in the solver'"
-    assert "is 1x1 px, smaller than the 32x32 px" in rows["c_1x1.png"]["message"]
+    assert rows["b_boom.png"].message == "KeyError: 'boom in the solver'"
+    assert "is 1x1 px, smaller than the 32x32 px" in rows["c_1x1.png"].message
     assert set(_table(tmp_path / "out")) == {"a.png", "d.png"}
     # the failed frame is retried on the next run, the finished ones are not
     (frames / "b_boom.png").rename(frames / "b.png")
@@ -288,7 +286,7 @@ def test_real_engine_on_degenerate_frames(tmp_path, sim: Simulator) -> None:
     paths = [_image(frames / "one.png", 200, (1, 1)), _image(frames / "flat.png", 128, (40, 40))]
     summary = extract_to_folder(paths, sim.pattern, tmp_path / "out", ExtractSettings.sharp(),
                                 expected_size=None)
-    got = {r["frame"]: r["status"] for r in summary.frames}
+    got = {r.frame: r.status.value for r in summary.records}
     assert got == {"one.png": "unreadable", "flat.png": "not_seeded"}
 
 
@@ -358,10 +356,10 @@ def test_mixed_frame_sizes_get_a_status(tmp_path, engine) -> None:
     paths = [_image(frames / "a_small.png", 10, (40, 40)), _image(frames / "b.png", 20),
              _image(frames / "c.png", 30)]
     summary = extract_to_folder(paths, layout_pattern(), tmp_path / "out")
-    rows = {r["frame"]: r for r in summary.frames}
-    assert rows["a_small.png"]["status"] == "wrong_size"
-    assert "is 40x40, expected 64x48" in rows["a_small.png"]["message"]
-    assert [rows[n]["status"] for n in ("b.png", "c.png")] == ["ok", "ok"]
+    rows = {r.frame: r for r in summary.records}
+    assert rows["a_small.png"].status is FrameStatus.WRONG_SIZE
+    assert "is 40x40, expected 64x48" in rows["a_small.png"].message
+    assert [rows[n].status for n in ("b.png", "c.png")] == [FrameStatus.OK, FrameStatus.OK]
     assert set(_table(tmp_path / "out")) == {"b.png", "c.png"}
 
 
@@ -413,7 +411,7 @@ def test_auto_kind_classifies_each_frame_by_its_blur(sim: Simulator, sharp_frame
     assert {ev.front for ev in with_blurry_window} == {0}
     assert len(with_blurry_window) == int((sharp.growth.front == 0).sum())
     assert blurry.kind == "blurry" and blurry.blur_px > SHARP_BELOW_PX
-    assert sharp.summary()["kind"] == "sharp" and sharp.summary()["blur_px"] == round(sharp.blur_px, 3)
+    assert sharp.record().kind == "sharp" and sharp.record().blur_px == round(sharp.blur_px, 3)
     # a frame found sharp ends as the sharp settings extract it, with the sharp-frame flag
     explicit = extract_frame(sharp_frame.image, sim.pattern, "s.png", ExtractSettings.sharp())
     assert np.array_equal(sharp.features.x, explicit.features.x)
@@ -472,7 +470,7 @@ def test_neighbour_seed_is_verified_and_a_square_off_refused(sim: Simulator, sha
     moved = _shifted(sharp_frame.image, 6.0, -4.0)  # the next frame: the camera moved by (6, -4) px
     hint = NeighbourSeed("0.png", H, "no AprilTag")
     result = seed_from_neighbour(moved, sim.pattern, "1.png", hint, ExtractSettings.auto())
-    assert result.status is FrameStatus.OK and result.summary()["seeded_by"] == "neighbour"
+    assert result.status is FrameStatus.OK and result.record().seeded_by == "neighbour"
     assert "0.png" in result.message and result.kind == "sharp"
     common, i, j = np.intersect1d(f.feature_id, result.features.feature_id, return_indices=True)
     assert len(common) > 100
@@ -504,10 +502,10 @@ def test_folder_run_seeds_a_frame_from_its_neighbour(tmp_path, sim: Simulator, s
     out = tmp_path / "out"
     summary = extract_to_folder([frames / "0.png", frames / "1.png"], sim.pattern, out,
                                 ExtractSettings.auto())
-    rows = {r["frame"]: r for r in summary.frames}
-    assert rows["0.png"]["seeded_by"] == "tag" and rows["1.png"]["seeded_by"] == "neighbour"
-    assert rows["1.png"]["status"] == "ok" and "neighbour 0.png" in rows["1.png"]["message"]
-    assert rows["1.png"]["kind"] == "sharp" and rows["1.png"]["neighbours_tried"] == ["0.png"]
+    rows = {r.frame: r for r in summary.records}
+    assert rows["0.png"].seeded_by == "tag" and rows["1.png"].seeded_by == "neighbour"
+    assert rows["1.png"].status is FrameStatus.OK and "neighbour 0.png" in rows["1.png"].message
+    assert rows["1.png"].kind == "sharp" and rows["1.png"].neighbours_tried == ("0.png",)
     table = read_feature_table(out / "features.csv")
     a, b = (table.select(table.frame == n) for n in ("0.png", "1.png"))
     common, i, j = np.intersect1d(a.feature_id, b.feature_id, return_indices=True)
@@ -539,35 +537,35 @@ def test_idle_workers_try_a_frames_next_neighbour_at_once(tmp_path, sim: Simulat
         return ThreadPoolExecutor(workers)
 
     monkeypatch.setattr(extract_module, "seed_frame", no_tag_in_moved)
-    monkeypatch.setattr(folder_module, "ProcessPoolExecutor", pool)
+    monkeypatch.setattr(executors_module, "ProcessPoolExecutor", pool)
     paths = [frames / n for n in ("0.png", "1.png", "2.png")]
     runs = {}
     for workers in (1, 2):
         summary = extract_to_folder(paths, sim.pattern, tmp_path / f"out{workers}", ExtractSettings.auto(),
                                     workers=workers)
-        runs[workers] = {r["frame"]: r for r in summary.frames}
-    assert runs[1]["1.png"]["neighbours_tried"] == ["0.png"]
-    assert runs[2]["1.png"]["neighbours_tried"] == ["0.png", "2.png"]
+        runs[workers] = {r.frame: r for r in summary.records}
+    assert runs[1]["1.png"].neighbours_tried == ("0.png",)
+    assert runs[2]["1.png"].neighbours_tried == ("0.png", "2.png")
     for rows in runs.values():
-        assert rows["1.png"]["status"] == "ok" and "neighbour 0.png" in rows["1.png"]["message"]
+        assert rows["1.png"].status is FrameStatus.OK and "neighbour 0.png" in rows["1.png"].message
     one, two = (read_feature_table(tmp_path / f"out{w}" / "features.csv") for w in (1, 2))
     a, b = (t.select(t.frame == "1.png") for t in (one, two))
     assert len(a) > 100 and np.array_equal(a.feature_id, b.feature_id)
     assert np.abs(a.x - b.x).max() < 1e-4 and np.abs(a.y - b.y).max() < 1e-4
     # the sequence moves the target by about a fifth of a square per frame: with a limit below
     # that, no neighbour is tried and the frame's message says why
-    monkeypatch.setattr(folder_module, "NEIGHBOUR_MOTION_SQUARES", 0.05)
+    monkeypatch.setattr(neighbours_module, "NEIGHBOUR_MOTION_SQUARES", 0.05)
     summary = extract_to_folder(paths, sim.pattern, tmp_path / "still", ExtractSettings.auto(), workers=2)
-    row = {r["frame"]: r for r in summary.frames}["1.png"]
-    assert row["status"] == "not_seeded" and "neighbours_tried" not in row
+    row = {r.frame: r for r in summary.records}["1.png"]
+    assert row.status is FrameStatus.NOT_SEEDED and row.neighbours_tried is None
     note = "not seeded from its neighbours: its sequence moves the target by 0.2 squares per frame"
-    assert note in row["message"]
-    assert read_frame_status(tmp_path / "still", "1.png")["message"] == row["message"]
+    assert note in row.message
+    assert read_frame_status(tmp_path / "still", "1.png").message == row.message
 
 
 def test_folders_with_other_settings_share_one_frame_pool(tmp_path, sim: Simulator, sharp_frame,
                                                           monkeypatch) -> None:
-    """Two folders extracted through one :class:`FramePool` start its workers once, and each
+    """Two folders extracted through one :class:`ProcessPool` start its workers once, and each
     frame is processed with its own call's settings (the sharp call's frames are recorded sharp
     with the sharp window, the other's blurry), as each call alone would."""
     from concurrent.futures import ThreadPoolExecutor
@@ -578,19 +576,19 @@ def test_folders_with_other_settings_share_one_frame_pool(tmp_path, sim: Simulat
         started.append(workers)
         return ThreadPoolExecutor(workers)
 
-    monkeypatch.setattr(folder_module, "ProcessPoolExecutor", pool)
+    monkeypatch.setattr(executors_module, "ProcessPoolExecutor", pool)
     folder = tmp_path / "frames"
     folder.mkdir()
     for name in ("0.png", "1.png"):
         cv2.imwrite(str(folder / name), sharp_frame.image)
     paths = [folder / "0.png", folder / "1.png"]
     kinds = {"sharp": ExtractSettings.sharp(), "blurry": ExtractSettings()}
-    with folder_module.FramePool(2) as shared:
-        rows = {k: extract_to_folder(paths, sim.pattern, tmp_path / k, s, pool=shared).frames
+    with ProcessPool(2) as shared:
+        rows = {k: extract_to_folder(paths, sim.pattern, tmp_path / k, s, pool=shared).records
                 for k, s in kinds.items()}
     assert started == [2]
     for kind, settings in kinds.items():
-        assert [r["kind"] for r in rows[kind]] == [kind, kind]
+        assert [r.kind for r in rows[kind]] == [kind, kind]
         alone = extract_frame(sharp_frame.image.astype(np.float32), sim.pattern, "0.png", settings)
         table = read_feature_table(tmp_path / kind / "features.csv")
         first = table.select(table.frame == "0.png")
@@ -606,8 +604,8 @@ def test_sequence_motion_is_the_median_step_in_squares_per_frame() -> None:
     frames = [(0, H, f), (1, moved[0], f), (3, moved[1], f), (4, moved[2], f)]
     # steps: 0.5 squares in 1 frame, 1.5 in 2 frames, 0.3 in 1 frame (the mean features of each
     # frame are the same points here)
-    assert abs(folder_module.sequence_motion(frames) - 0.5) < 1e-9
-    assert np.isnan(folder_module.sequence_motion(frames[:1]))
+    assert abs(neighbours_module.sequence_motion(frames) - 0.5) < 1e-9
+    assert np.isnan(neighbours_module.sequence_motion(frames[:1]))
 
 
 @pytest.mark.slow

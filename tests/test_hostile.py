@@ -24,7 +24,7 @@ import torch
 
 from blurcalib.camera.generic import MAX_GRID_NODES, check_grid_size
 from blurcalib.cli import main
-from blurcalib.extract.duplicates import DUPLICATE_STATUS, find_duplicates, mark_duplicates
+from blurcalib.extract.duplicates import find_duplicates, mark_duplicates
 from blurcalib.io import atomic
 from blurcalib.io.atomic import (
     OutputError,
@@ -33,8 +33,10 @@ from blurcalib.io.atomic import (
     claim_output_dir,
     output_lock,
 )
+from blurcalib.io.frame_files import read_frame_status, write_frame_results
 from blurcalib.io.frames import FrameError, frame_size, list_frames, load_frame
-from blurcalib.io.results import BlockTable, FeatureTable, read_frame_status, write_frame_results
+from blurcalib.io.record import FrameRecord, FrameStatus
+from blurcalib.io.results import BlockTable, FeatureTable
 from blurcalib.runs.cluster import ClusterError, check_address, run_on_cluster
 from blurcalib.runs.runtime import available_cores, capped_count
 from blurcalib.target.pattern import MAX_STAR_SEGMENTS, PatternFileError, load_pattern
@@ -436,9 +438,9 @@ def test_extract_refuses_another_datasets_frames_of_the_same_names(
     assert _run(capsys, ["extract", tmp_path / "a", *base])[0] == 1
     code, err = _run(capsys, ["extract", tmp_path / "b", *base])
     assert code == 2 and f"its frame 0.png was extracted from {tmp_path / 'a' / '0.png'}" in err
-    assert read_frame_status(out, "0.png")["source"] == str(tmp_path / "a" / "0.png")
+    assert read_frame_status(out, "0.png").source == str(tmp_path / "a" / "0.png")
     assert _run(capsys, ["extract", tmp_path / "b", *base, "--overwrite"])[0] == 1
-    assert read_frame_status(out, "0.png")["source"] == str(tmp_path / "b" / "0.png")
+    assert read_frame_status(out, "0.png").source == str(tmp_path / "b" / "0.png")
     assert _run(capsys, ["extract", tmp_path / "b", *base])[0] == 1  # the same dataset resumes
 
 
@@ -460,7 +462,7 @@ def test_strict_json_for_reports_and_frame_statuses(tmp_path: Path) -> None:
         FeatureTable.empty(),
         BlockTable.empty(),
         [],
-        {"frame": "a.png", "status": "ok", "seconds": float("nan")},
+        FrameRecord("a.png", FrameStatus.OK, seconds=float("nan")),
     )
     status = next((tmp_path / "frames").glob("*.status.json"))
     assert strict(status.read_text())["seconds"] is None
@@ -698,12 +700,11 @@ def test_copies_of_one_frame_are_duplicates_and_distinct_views_are_not() -> None
     assert [(d.frame, d.original) for d in found] == [
         (f"sharp/{k}.png", "sharp/0.png") for k in range(1, 5)
     ] + [("sharp/damaged.png", "sharp/0.png")]
-    rows = [{"frame": n, "status": "ok"} for n in order]
-    assert mark_duplicates(rows, _table(frames)) == {d.frame for d in found}
-    assert rows[1]["status"] == DUPLICATE_STATUS and rows[1]["message"].startswith(
-        "same view as sharp/0.png: 245"
-    )
-    assert [r["status"] for r in rows[-2:]] == ["ok", "ok"]
+    rows = mark_duplicates([FrameRecord(n, FrameStatus.OK) for n in order], _table(frames))
+    assert {r.frame for r in rows if r.status is FrameStatus.DUPLICATE} == {d.frame for d in found}
+    assert rows[1].status is FrameStatus.DUPLICATE
+    assert rows[1].message.startswith("same view as sharp/0.png: 245")
+    assert [r.status for r in rows[-2:]] == [FrameStatus.OK, FrameStatus.OK]
 
 
 @pytest.mark.slow

@@ -6,6 +6,7 @@ import csv
 import json
 import os
 import shutil
+from functools import partial
 from pathlib import Path
 
 import cv2
@@ -23,8 +24,10 @@ from blurcalib.camera.parametric import BrownConrady
 from blurcalib.cli import main
 from blurcalib.growth.quality import QualitySettings
 from blurcalib.io.atomic import OutputError
+from blurcalib.io.record import FrameStatus
 from blurcalib.io.results import FeatureFlags, read_feature_table
 from blurcalib.pipeline.run import PUBLISHED, PipelineError, PipelineSettings, run_pipeline
+from blurcalib.runs.events import FrameDone, RunEvent
 from blurcalib.sim.accuracy import camera_accuracy_lines
 from blurcalib.sim.evaluate import camera_accuracy, evaluate_features
 from blurcalib.sim.synth import SynthConfig, write_dataset
@@ -72,6 +75,12 @@ def _published(out) -> dict[str, bytes]:
     return {str(p.relative_to(out)): p.read_bytes() for p in files if p.is_file()}
 
 
+def _done(seen: list[tuple[str, str]], stage: str, event: RunEvent) -> None:
+    """A pipeline's progress callback: the frames finished, by stage, into ``seen``."""
+    if isinstance(event, FrameDone):
+        seen.append((stage, event.record.frame))
+
+
 @pytest.mark.slow
 def test_pipeline_end_to_end(finished, dataset) -> None:
     out, report = finished
@@ -82,7 +91,7 @@ def test_pipeline_end_to_end(finished, dataset) -> None:
     assert set(statuses) == {f"sharp/{i:04d}.png" for i in range(6)} | {
         "blurry/0000.png", "blurry/0001.png", "blurry/0002_1x1.png"}
     bad = next(r for r in report.frames if r.frame == "blurry/0002_1x1.png")
-    assert bad.status == "unreadable" and "is 1x1 px, smaller than" in bad.reason
+    assert bad.status is FrameStatus.UNREADABLE and "is 1x1 px, smaller than" in bad.verdict.reason
     assert "used" in statuses.values() or "ill_conditioned" in statuses.values()
     for key in ("features", "reference_features", "frames", "error_directions_sharp",
                 "frame_errors"):
@@ -126,10 +135,10 @@ def test_pipeline_delivers_the_generic_camera(finished, dataset) -> None:
         assert (out / "calibration" / name).is_file()
     rows = {r.frame: r for r in report.frames}
     for r in rows.values():
-        assert r.status == "used" or r.reason, r
+        assert r.status is FrameStatus.USED or r.verdict.reason, r
     # Joint route: a blurry frame with enough kept blocks is used whatever its orientation.
-    assert all(r.status == "used" for r in rows.values()
-               if r.kind == "blurry" and r.alignment in ("ok", "ill_conditioned"))
+    assert all(r.status is FrameStatus.USED for r in rows.values()
+               if r.kind == "blurry" and r.verdict.alignment in ("ok", "ill_conditioned"))
     parametric = camera_accuracy(truth.camera, report_camera(out))
     assert camera_accuracy(truth.camera, generic).median < parametric.median
 
@@ -151,7 +160,7 @@ def test_rerun_resumes_and_a_killed_write_never_mixes_runs(tmp_path, finished, d
     shutil.copytree(finished[0], out)
     seen: list[tuple[str, str]] = []
     run_pipeline(*_frames(dataset), layout_pattern(), out, _settings(),
-                 progress=lambda stage, done, total, row: seen.append((stage, row["frame"])))
+                 progress=partial(_done, seen))
     assert seen == [("blurry", "0002_1x1.png")]  # only the unreadable frame is retried
     reference = _published(out)
     run_pipeline(*_frames(dataset), layout_pattern(), out, _settings())
@@ -210,7 +219,7 @@ def test_calibrate_reuses_an_extract_output(tmp_path, finished, dataset) -> None
     extracted = (out / "blurry" / "features.csv").read_bytes()
     seen: list[tuple[str, str]] = []
     report = run_pipeline(*_frames(dataset), layout_pattern(), out, _settings(),
-                          progress=lambda stage, done, total, row: seen.append((stage, row["frame"])))
+                          progress=partial(_done, seen))
     assert [name for stage, name in seen if stage == "blurry"] == ["0002_1x1.png"]
     assert sorted(name for stage, name in seen if stage == "sharp") == [f"{i:04d}.png" for i in range(6)]
     assert (out / "blurry" / "features.csv").read_bytes() == extracted

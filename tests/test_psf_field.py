@@ -225,7 +225,7 @@ def test_extract_records_the_field_and_the_option_turns_it_off(tmp_path) -> None
     import csv
 
     from blurcalib.cli import main
-    from blurcalib.io.results import read_frame_status
+    from blurcalib.io.frame_files import read_frame_status
     from blurcalib.target.pattern import load_pattern
     from tests.conftest import FIXTURE_YAML
     from tests.test_seed import _homography, _render
@@ -242,9 +242,9 @@ def test_extract_records_the_field_and_the_option_turns_it_off(tmp_path) -> None
         with open(out / "frames.csv", newline="") as handle:
             rows[name] = next(csv.DictReader(handle))
         status = read_frame_status(out, "blurry.png")
-        assert status is not None and ("psf_field" in status) == (name == "field")
+        assert status is not None and (status.psf_field is not None) == (name == "field")
         if name == "field":
-            field = PathField.from_dict(status["psf_field"])
+            field = PathField.from_dict(status.psf_field)
             length = np.linalg.norm(field.theta(np.array([[320.0, 240.0]]))[0, :2])
             assert abs(length - 22.0) < 2.0, length
     assert rows["field"]["psf"] == "field" and rows["free"]["psf"] == "free"

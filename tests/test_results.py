@@ -8,6 +8,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from blurcalib.io.frame_files import (
+    collect_results,
+    frame_result_paths,
+    frame_stem,
+    read_frame_status,
+    write_frame_results,
+)
+from blurcalib.io.record import FrameRecord, FrameStatus
 from blurcalib.io.results import (
     BlockStatus,
     BlockTable,
@@ -15,14 +23,9 @@ from blurcalib.io.results import (
     FeatureObservation,
     FeatureTable,
     ResultsFileError,
-    collect_results,
-    frame_result_paths,
-    frame_stem,
     read_block_table,
     read_feature_table,
     read_features,
-    read_frame_status,
-    write_frame_results,
     write_results,
 )
 from blurcalib.psf.kernel import boundary_energy, psf_moments
@@ -146,9 +149,9 @@ def test_corrupt_files_raise(tmp_path: Path) -> None:
 
 def _write_frame(folder: Path, name: str, n: int, seed: int, blocks: int = 2) -> Path:
     corners = [[name, 1, 3, 0.005, 0.015, 10.5, 20.25, 2]]
-    status = {"frame": name, "status": "ok", "message": "", "key": f"key-{seed}"}
+    record = FrameRecord(name, FrameStatus.OK, key=f"key-{seed}")
     return write_frame_results(folder, name, _features(name, n, seed), _blocks(name, blocks, seed),
-                               corners, status)
+                               corners, record)
 
 
 def test_per_frame_results_resume_and_collect(tmp_path: Path) -> None:
@@ -156,7 +159,7 @@ def test_per_frame_results_resume_and_collect(tmp_path: Path) -> None:
     paths = _write_frame(tmp_path, "a.png", 3, 0)
     assert paths.features == tmp_path / "frames" / "a.png.features.csv"
     assert paths.status == tmp_path / "frames" / "a.png.status.json"
-    assert read_frame_status(tmp_path, "a.png")["key"] == "key-0"
+    assert read_frame_status(tmp_path, "a.png").key == "key-0"
     # an interrupted frame (no marker) is not finished; its status is not trusted
     interrupted = _write_frame(tmp_path, "c.png", 2, 2, blocks=0)
     interrupted.done.unlink()
@@ -165,9 +168,9 @@ def test_per_frame_results_resume_and_collect(tmp_path: Path) -> None:
         collect_results(tmp_path, ["a.png", "c.png"])
     with pytest.raises(ValueError, match=r"frame 'a\.png' passed for frame 'c\.png'"):
         write_frame_results(tmp_path, "c.png", _features("a.png", 1, 0), BlockTable.empty(), [],
-                            {"frame": "c.png"})
+                            FrameRecord("c.png"))
     with pytest.raises(ValueError, match=r"status row of frame 'a\.png' passed for frame 'c\.png'"):
-        write_frame_results(tmp_path, "c.png", [], BlockTable.empty(), [], {"frame": "a.png"})
+        write_frame_results(tmp_path, "c.png", [], BlockTable.empty(), [], FrameRecord("a.png"))
     # exactly the frames asked for are collected, in the order asked
     outputs = collect_results(tmp_path, ["a.png", "seq/b.png"])
     assert read_features(tmp_path / "features.csv") == _features("a.png", 3, 0) + _features("seq/b.png", 4, 1)
@@ -196,8 +199,8 @@ def test_frame_stems_are_unique_per_frame_name(tmp_path: Path, a: str, b: str) -
     _write_frame(tmp_path, b, 2, 1)
     collect_results(tmp_path, [a, b])
     assert [f.frame for f in read_features(tmp_path / "features.csv")] == [a] * 3 + [b] * 2
-    assert read_frame_status(tmp_path, a)["key"] == "key-0"
-    assert read_frame_status(tmp_path, b)["key"] == "key-1"
+    assert read_frame_status(tmp_path, a).key == "key-0"
+    assert read_frame_status(tmp_path, b).key == "key-1"
 
 
 def test_frame_stem_keeps_plain_names() -> None:

@@ -29,6 +29,7 @@ from blurcalib.camera.files import read_generic_yaml
 from blurcalib.camera.parametric import BrownConrady
 from blurcalib.camera.shutter import row_time
 from blurcalib.geometry.pose import Pose
+from blurcalib.io.record import FrameRecord, FrameStatus
 from blurcalib.io.results import FEATURE_COLUMNS, FeatureFlags, FeatureTable
 from blurcalib.pipeline.frames import blurry_row, write_frames
 from blurcalib.pipeline.run import GLOBAL_SHUTTER_DIR, PipelineSettings, run_pipeline
@@ -293,9 +294,9 @@ def test_frames_csv_holds_the_blur_velocity(tmp_path) -> None:
     outcome = BlurryOutcome(BlurryFrame("blurry/a.png"), entered=True, shift=np.array([0.5, -0.25]))
     other = BlurryOutcome(BlurryFrame("blurry/b.png"), entered=True, shift=np.array([0.0, 0.0]))
     velocity = {"blurry/a.png": 7.2549}
-    rows = [blurry_row({"frame": name, "status": "ok"}, o, SequenceSettings(), velocity)
+    rows = [blurry_row(FrameRecord(name, FrameStatus.OK), o, SequenceSettings(), velocity)
             for name, o in (("a.png", outcome), ("b.png", other))]
-    assert rows[0].used and rows[0].velocity_px == 7.255 and rows[1].velocity_px is None
+    assert rows[0].used and rows[0].verdict.velocity_px == 7.255 and rows[1].verdict.velocity_px is None
     with open(write_frames(tmp_path / "frames.csv", rows), newline="", encoding="utf-8") as fh:
         table = list(csv.DictReader(fh))
     assert [r["velocity_px"] for r in table] == ["7.255", ""]

@@ -208,6 +208,23 @@ def _command(folder: Path) -> str | None:
     return None if manifest is None else manifest.get("command")
 
 
+def output_dir_problem(path: str | os.PathLike, command: str, extractions: Sequence[str] = ()) -> str | None:
+    """Why :func:`claim_output_dir` would refuse ``path`` as the output folder of a ``command``
+    run without ``overwrite`` (a message naming the folder), or None when it would take it;
+    nothing is written."""
+    folder = Path(path)
+    if not folder.is_dir() or not any(folder.iterdir()):
+        return None
+    manifest = run_manifest(folder)
+    if manifest is None and not all(p.name in extractions and _command(p) == "extract"
+                                    for p in folder.iterdir()):
+        return f"{folder}: output folder is not empty and is not a blurcalib output (no {RUN_MANIFEST})"
+    if manifest is not None and manifest.get("command") != command:
+        return (f"{folder}: output folder holds a blurcalib {manifest.get('command')!r} output, "
+                f"not {command!r}")
+    return None
+
+
 def claim_output_dir(path: str | os.PathLike, command: str, settings: dict,
                      overwrite: bool = False, extractions: Sequence[str] = ()) -> Path:
     """Make ``path`` the output folder of a ``command`` run and write its run manifest.
@@ -230,16 +247,9 @@ def claim_output_dir(path: str | os.PathLike, command: str, settings: dict,
         OutputError: the folder holds something else, or cannot be created or written.
     """
     folder = Path(path)
-    if folder.is_dir() and not overwrite and any(folder.iterdir()):
-        manifest = run_manifest(folder)
-        if manifest is None and not all(p.name in extractions and _command(p) == "extract"
-                                        for p in folder.iterdir()):
-            raise OutputError(f"{folder}: output folder is not empty and is not a blurcalib "
-                              f"output (no {RUN_MANIFEST}); use --overwrite to write into it")
-        if manifest is not None and manifest.get("command") != command:
-            raise OutputError(f"{folder}: output folder holds a blurcalib "
-                              f"{manifest.get('command')!r} output, not {command!r}; use "
-                              f"--overwrite to write into it")
+    problem = None if overwrite else output_dir_problem(folder, command, extractions)
+    if problem is not None:
+        raise OutputError(f"{problem}; use --overwrite to write into it")
     ensure_writable_dir(folder)
     _check_writable_tree(folder)
     remove_temporaries(folder)

@@ -22,7 +22,7 @@ extension, ``#`` and ``i`` in six digits (``walk#000123``), in every table.
 
 Frames of one input form a *sequence* (:attr:`FrameInput.sequence`): the frames of a video, or
 the images of a folder in natural order. Neighbours in a sequence see the target from nearby
-poses (:func:`blurcalib.runs.folder.seed_from_neighbour`).
+poses (:func:`blurcalib.runs.neighbours.seed_from_neighbour`).
 """
 
 from __future__ import annotations
@@ -224,7 +224,7 @@ def read_video_frame(path: str | os.PathLike, index: int) -> np.ndarray:
 
 def _located(path: Path) -> Path:
     """The absolute path a file is named by: the file it resolves to, or, for a broken symbolic
-    link, the link itself (as :func:`blurcalib.runs.folder.frame_names` names plain paths)."""
+    link, the link itself (as :func:`blurcalib.runs.output.frame_names` names plain paths)."""
     return path.resolve() if path.exists() else path.parent.resolve() / path.name
 
 
@@ -313,8 +313,8 @@ def _check_unique(frames: list[FrameInput]) -> None:
 
 
 def in_sequences(frames: list[FrameInput]) -> list[FrameInput]:
-    """Image frames placed in the sequence of their folder, ranked in list order (video frames
-    keep theirs)."""
+    """Image frames placed in the sequence of their folder, ranked in list order; video frames
+    keep theirs, or, without one, are placed in their video's at their index."""
     rank: dict[str, int] = {}
     out = []
     for f in frames:
@@ -322,5 +322,7 @@ def in_sequences(frames: list[FrameInput]) -> list[FrameInput]:
             folder = str(_located(f.path).parent)
             f = FrameInput(f.name, f.path, None, folder, rank.get(folder, 0))
             rank[folder] = f.order + 1
+        elif not f.sequence:
+            f = FrameInput(f.name, f.path, f.index, str(_located(f.path)), f.index)
         out.append(f)
     return out

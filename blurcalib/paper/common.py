@@ -19,10 +19,11 @@ from typing import TypeVar
 import numpy as np
 
 from blurcalib.deconv.settings import DeconvSettings
-from blurcalib.extract.frame import ExtractSettings, FrameResult, FrameStatus, extract_frame
+from blurcalib.extract.frame import ExtractSettings, FrameResult, extract_frame
 from blurcalib.growth.settings import GrowSettings
 from blurcalib.growth.window import WindowPolicy
 from blurcalib.io.atomic import OutputError
+from blurcalib.io.record import FrameStatus
 from blurcalib.runs.runtime import check_device
 from blurcalib.sim.synth import Simulator, SynthConfig
 from blurcalib.sim.truth import FrameTruth, TrueCamera, d435i_like_camera
