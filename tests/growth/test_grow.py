@@ -318,7 +318,7 @@ def test_a_tag_ring_fitted_far_above_the_noise_is_fitted_again_from_its_first_fi
     from blurcalib.growth.ledger import Growth
     from blurcalib.growth.seed import block_homography
     from blurcalib.psf.path import PathField
-    from tests.test_psf_field import SEGMENTS, _render_plane
+    from tests.deconv.test_field import SEGMENTS, _render_plane
 
     pattern = layout_pattern()
     H = np.array([[24.0, 2.0, 40.0], [-1.5, 24.0, 30.0], [1e-4, 5e-5, 1.0]])
