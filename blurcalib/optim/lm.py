@@ -18,13 +18,16 @@ floors and ridges of its diagonal are its own); this module runs the loop around
   trial, ``lambda <- lambda grow`` after a rejected one; no trial is made above ``ceiling``;
 * **stopping** (:class:`Stopping`, reasons :class:`Stop`): per item, the accepted steps, the
   rejections in a row, the cost's relative change and the problem's own tests of a step; the
-  trial steps of the whole batch. An item that stops drops out of the later trials.
+  trial steps of the whole batch. An item that stops drops out of the later trials;
+* **lock-step rounds** (:attr:`Stopping.lockstep`, optional): the items tried retry together
+  from their linearisations until none of them is rejected, and only then move.
 
 Every trial step appends an :class:`LmStep` to the run's log (the damping tried, the costs,
-which items were tried and accepted), logged at debug level. A batched problem keeps its items'
-state in numpy arrays or torch tensors (any device); the loop's own per-item state lives beside
-it, and the loop synchronises with the device once per trial step (the ``nonzero`` that selects
-the items going) and not otherwise.
+which items were tried, accepted and moved), logged at debug level. A batched problem keeps its
+items' state in numpy arrays or torch tensors (any device); the loop's own per-item state lives
+beside it, and the loop synchronises with the device once per trial step (the ``nonzero`` that
+selects the items going; in lock-step rounds also the test whether all were accepted) and not
+otherwise.
 
 :func:`run_batch` runs a batched problem (:class:`BatchProblem`); :func:`run_single` runs one
 problem written as functions of its point (:class:`SingleProblem`) on it.
@@ -138,6 +141,13 @@ class Stopping:
             ``c - c' <= rtol c``, ends the item (converged).
         rtol_rejected: also a rejected trial that raises it by at most that share,
             ``c' - c <= rtol c`` (the cost's resolution reached).
+        lockstep: rounds of at most this many trials in which the items tried retry together
+            (None: an item moves as soon as its trial is accepted). In a round every item tried
+            retries from its linearisation, at its own damping (relaxed after an accepted trial,
+            grown after a rejected one), until none of them is rejected or the round's trials
+            are spent; then the items whose last trial was accepted move and those whose last
+            trial was rejected stop (:attr:`Stop.REJECTIONS`): the batch is linearised once per
+            round. A round synchronises with the device at each trial.
     """
 
     max_iterations: int | None = None
@@ -145,6 +155,7 @@ class Stopping:
     max_rejections: int | None = None
     rtol: float | None = None
     rtol_rejected: bool = False
+    lockstep: int | None = None
 
     def converged(self, trial: Array, current: Array, accepted: Array) -> Array | None:
         """``(R,)`` bool, the items whose trial ends them by :attr:`rtol`, or None."""
@@ -166,11 +177,12 @@ class LmRule:
 
     def __post_init__(self) -> None:
         s = self.stopping
+        each_bounded = s.max_rejections is not None or s.lockstep is not None
         bounded = (s.max_trials is not None or math.isfinite(self.damping.ceiling)
-                   or (s.max_rejections is not None and s.max_iterations is not None))
+                   or (each_bounded and s.max_iterations is not None))
         if not bounded:
-            raise ValueError("a fit needs max_trials, a finite damping ceiling, or max_rejections and "
-                             "max_iterations")
+            raise ValueError("a fit needs max_trials, a finite damping ceiling, or max_iterations with "
+                             "max_rejections or lockstep")
 
 
 @dataclass
@@ -183,6 +195,8 @@ class LmStep:
         cost: the items' costs after the step.
         tried: the items that made a trial.
         accepted: the items whose trial was accepted.
+        moved: the items that moved to their trial point (the accepted ones, or in a lock-step
+            round none until it ends).
     """
 
     index: int
@@ -190,6 +204,7 @@ class LmStep:
     cost: Array
     tried: Array
     accepted: Array
+    moved: Array
 
     def describe(self) -> str:
         """One line (a host synchronisation on a device)."""
@@ -292,14 +307,17 @@ class _Items:
         self.stop = self.ops.where(self.going & mask, int(reason), self.stop)
         self.going = self.going & ~mask
 
-    def tried(self, rows: Array, accepted: Array, done: Array | None) -> None:
-        """Count the trials of ``rows (R,)``; stop those ``done (R,)`` (converged)."""
+    def moved(self, rows: Array, accepted: Array) -> None:
+        """Count the accepted steps ``accepted (R,)`` of the items ``rows (R,)`` and their rejections
+        in a row."""
         self.steps[rows] += accepted
-        self.trials[rows] += 1
         self.rejected[rows] = self.ops.where(accepted, 0, self.rejected[rows] + 1)
-        if done is not None:
-            self.stop[rows] = self.ops.where(done, int(Stop.CONVERGED), self.stop[rows])
-            self.going[rows] = self.going[rows] & ~done
+
+    def halt_rows(self, rows: Array, mask: Array | None, reason: Stop) -> None:
+        """Stop the items ``rows[mask]`` (``mask (R,)``; None: none) still going, for ``reason``."""
+        if mask is not None:
+            self.stop[rows] = self.ops.where(mask & self.going[rows], int(reason), self.stop[rows])
+            self.going[rows] = self.going[rows] & ~mask
 
 
 def run_batch(problem: BatchProblem, rule: LmRule, lam: Array | None = None) -> LmRun:
@@ -310,6 +328,7 @@ def run_batch(problem: BatchProblem, rule: LmRule, lam: Array | None = None) -> 
     items = _Items(ops, problem.cost)
     lam = ops.full(problem.cost, d.start, ops.float64) if lam is None else ops.copy(lam)
     steps: list[LmStep] = []
+    retries = 0  # trials so far of a lock-step round
     for index in range(s.max_trials) if s.max_trials is not None else itertools.count():
         if math.isfinite(d.ceiling):
             items.halt(lam > d.ceiling, Stop.DAMPING)
@@ -327,18 +346,33 @@ def run_batch(problem: BatchProblem, rule: LmRule, lam: Array | None = None) -> 
         current = problem.cost[rows]
         trial = problem.trial(rows, index, s.max_trials is not None and index == s.max_trials - 1)
         accepted = rule.acceptance.test(trial, current, ops)
-        done = _either(s.converged(trial, current, accepted), problem.accept(rows, accepted))
         lam_tried = ops.copy(lam)
         lam[rows] = d.update(lam[rows], accepted, ops)
-        items.tried(rows, accepted, done)
-        accepted_all = ops.full(tried, False, ops.bool_)
-        accepted_all[rows] = accepted
-        steps.append(LmStep(index, lam_tried, ops.copy(problem.cost), tried, accepted_all))
+        items.trials[rows] += 1
+        retries += 1
+        moved = accepted
+        if s.lockstep is not None and retries < s.lockstep and not bool(accepted.all()):
+            moved = ops.full(accepted, False, ops.bool_)  # the round goes on
+        else:
+            retries = 0
+            done = _either(s.converged(trial, current, accepted), problem.accept(rows, accepted))
+            items.halt_rows(rows, done, Stop.CONVERGED)
+            items.moved(rows, accepted)
+            items.halt_rows(rows, None if s.lockstep is None else ~accepted, Stop.REJECTIONS)
+        steps.append(LmStep(index, lam_tried, ops.copy(problem.cost), tried,
+                            _scattered(ops, tried, rows, accepted), _scattered(ops, tried, rows, moved)))
         if log.isEnabledFor(logging.DEBUG):
             log.debug(steps[-1].describe())
     items.halt(items.going, Stop.TRIALS)
     iterations = items.steps + (items.rejected > 0)
     return LmRun(lam, items.stop, items.steps, iterations, items.trials, steps)
+
+
+def _scattered(ops: _Ops, like: Array, rows: Array, values: Array) -> Array:
+    """``(B,)`` bool: ``values (R,)`` at ``rows``, False elsewhere."""
+    out = ops.full(like, False, ops.bool_)
+    out[rows] = values
+    return out
 
 
 def _either(a: Array | None, b: Array | None) -> Array | None:

@@ -247,6 +247,41 @@ def test_items_whose_step_is_not_worth_a_trial_stop_untried() -> None:
     np.testing.assert_array_equal(problem.x[1], [0.0, 0.0])
 
 
+class ScriptedBatch:
+    """Items whose trials are accepted or rejected as their ``outcomes`` say (the cost falls or
+    rises by 1)."""
+
+    def __init__(self, outcomes: list[list[bool]]) -> None:
+        self.outcomes = [list(o) for o in outcomes]
+        self.cost = np.full(len(outcomes), 100.0)
+
+    def solve(self, lam, going) -> None:
+        return None
+
+    def trial(self, rows, index: int, last: bool):
+        self.moved = np.array([self.cost[b] + (-1.0 if self.outcomes[b].pop(0) else 1.0) for b in rows])
+        return self.moved
+
+    def accept(self, rows, accepted) -> None:
+        self.cost[rows[accepted]] = self.moved[accepted]
+
+
+def test_lockstep_rounds_move_items_together_and_stop_those_still_rejected() -> None:
+    rejected = [False, False, False]
+    problem = ScriptedBatch([[True] * 9, [False, True, *rejected], [True, True, *rejected]])
+    rule = LmRule(Damping(1.0, 2.0, 4.0), Stopping(max_iterations=4, lockstep=3))
+    run = run_batch(problem, rule)
+    moved = np.stack([step.moved for step in run.log]).tolist()
+    # round 1: item 1 rejected first, all accepted at the second trial; round 2: items 1 and 2 are
+    # rejected at every trial: after 3 trials item 0 moves and they stop; item 0 goes on alone
+    assert moved[:5] == [[False] * 3, [True] * 3, [False] * 3, [False] * 3, [True, False, False]]
+    assert run.stop.tolist() == [Stop.ITERATIONS, Stop.REJECTIONS, Stop.REJECTIONS]
+    assert run.steps.tolist() == [4, 1, 1] and problem.cost.tolist() == [96.0, 99.0, 99.0]
+    assert run.trials.tolist() == [7, 5, 5] and len(run.log) == 7
+    assert [float(step.lam[0]) for step in run.log[:5]] == [1.0, 0.5, 0.25, 0.125, 0.0625]
+    assert [float(step.lam[1]) for step in run.log[:5]] == [1.0, 4.0, 2.0, 8.0, 32.0]
+
+
 def test_rules_are_checked() -> None:
     with pytest.raises(ValueError, match="max_trials"):
         LmRule(Damping(1.0, 2.0, 4.0), Stopping(max_iterations=5))
