@@ -48,7 +48,7 @@ import numpy as np
 import torch
 from scipy.stats import chi2
 
-from blurcalib.calib.bundle import robust_weights
+from blurcalib.calib.bundle_problem import robust_weights
 from blurcalib.calib.frame_block import rolling_frame_jacobian, rolling_points, rolling_prior_weights
 from blurcalib.calib.joint import GenericCalibration, JointSettings, calibrate_generic
 from blurcalib.calib.sharp import Calibration
