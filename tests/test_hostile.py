@@ -646,6 +646,7 @@ def test_malformed_cluster_address_fails_fast(tmp_path: Path, capsys: pytest.Cap
     assert not (tmp_path / "o").exists()
 
 
+@pytest.mark.cluster
 def test_malformed_cluster_address_is_refused_before_connecting() -> None:
     """No wait for a scheduler that cannot exist."""
     pytest.importorskip("distributed", reason="Dask is not installed: pip install 'blurcalib[cluster]'")

@@ -22,7 +22,7 @@ from blurcalib.runs.runtime import configure_threads
 from blurcalib.sim.synth import Simulator, SynthConfig
 from blurcalib.sim.truth import TrueCamera
 
-pytestmark = pytest.mark.slow
+pytestmark = [pytest.mark.slow, pytest.mark.cluster]
 
 distributed = pytest.importorskip(
     "distributed", reason="Dask is not installed: pip install 'blurcalib[cluster]'")

@@ -42,7 +42,7 @@ def _sequence(folder: Path, values: list[int]) -> list[Path]:
     return paths
 
 
-@pytest.fixture(params=["in_process", "process_pool", "dask"])
+@pytest.fixture(params=["in_process", "process_pool", pytest.param("dask", marks=pytest.mark.cluster)])
 def executor(request: pytest.FixtureRequest, monkeypatch: pytest.MonkeyPatch):
     """Each executor, its frames computed in this process so that the stand-in engine holds: the
     pool's processes replaced by threads, the Dask cluster's workers threads of this process."""
