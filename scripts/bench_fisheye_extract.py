@@ -23,7 +23,7 @@ extraction and of the correction, per frame.
 ``--cache DIR`` keeps each frame's extracted blocks (``DIR/<dataset>/<frame>.csv|.npz``) so that
 a second run measures the correction alone; ``--results`` takes each dataset's blocks from a
 ``blurcalib extract`` results folder instead (``blocks.csv`` and ``psfs.npz``, one folder per
-dataset, in the same order).
+dataset, in the same order). The figures are also recorded as JSON (``scripts/benchrecord.py``).
 """
 
 from __future__ import annotations
@@ -33,6 +33,7 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import benchrecord
 import cv2
 import numpy as np
 
@@ -57,6 +58,17 @@ class Tally:
     visible: int = 0
     raw: list[np.ndarray] = field(default_factory=list)
     fit: list[np.ndarray] = field(default_factory=list)
+
+    def figures(self) -> dict[str, float]:
+        """The figures of :meth:`line` for the record."""
+        raw = np.concatenate(self.raw) if self.found else np.zeros(0)
+        fit = np.concatenate(self.fit) if self.found else np.zeros(0)
+        fitted = np.isfinite(fit).any()
+        return {"found": self.found, "visible": self.visible,
+                "yield_pct": 100.0 * self.found / max(self.visible, 1),
+                "raw_median_px": float(np.median(raw)) if raw.size else float("nan"),
+                "pose_fit_median_px": float(np.nanmedian(fit)) if fitted else float("nan"),
+                "pose_fit_p90_px": float(np.nanpercentile(fit, 90)) if fitted else float("nan")}
 
     def line(self) -> str:
         share = 100.0 * self.found / max(self.visible, 1)
@@ -99,7 +111,8 @@ def errors(truth: DatasetTruth, frame: FrameTruth, pattern: StarPattern, blocks:
     return raw, fit
 
 
-def bench(data: Path, cache: Path | None, results: Path | None = None) -> None:
+def bench(data: Path, record: benchrecord.BenchRecord, cache: Path | None, results: Path | None = None
+          ) -> None:
     truth = load_ground_truth(data)
     pattern = load_pattern(data / "pattern.yaml")
     lens = truth.camera.model
@@ -132,13 +145,16 @@ def bench(data: Path, cache: Path | None, results: Path | None = None) -> None:
                 rows = in_band[blocks.feature_id]
                 t.raw.append(raw[rows])
                 t.fit.append(fit[rows])
-    print(f"{data}: {type(lens).__name__}, {field_deg(lens):.0f} deg horizontal, {len(truth.frames)} frames")
+    lens_text = f"{type(lens).__name__}, {field_deg(lens):.0f} deg horizontal, {len(truth.frames)} frames"
+    title = f"{data.name}: {lens_text}"
+    print(f"{data}: {lens_text}")
     for label in ("as extracted", "lens-bias corrected"):
         print(f"  {label}:")
         for kind in ("sharp", "blurry"):
             if (label, kind, None) not in tallies:
                 continue
             print(f"    {kind:6s} {tallies[label, kind, None].line()}")
+            record.add(f"{title}, {kind}, {label}", **tallies[label, kind, None].figures())
             for band in BANDS:
                 t = tallies[label, kind, band]
                 if t.visible:
@@ -146,6 +162,9 @@ def bench(data: Path, cache: Path | None, results: Path | None = None) -> None:
     extract = np.array(cpu["extract"])
     timing = f"median {np.nanmedian(extract):.1f} s" if np.isfinite(extract).any() else "cached"
     print(f"  CPU per frame: extraction {timing}, correction median {np.median(cpu['correct']):.3f} s")
+    extraction = float(np.nanmedian(extract)) if np.isfinite(extract).any() else float("nan")
+    record.add(f"{title}, CPU per frame (shared machine)", extraction_cpu_s=extraction,
+               correction_cpu_s=float(np.median(cpu["correct"])))
 
 
 def field_deg(lens: BrownConrady | ParametricCamera) -> float:
@@ -162,12 +181,15 @@ def main() -> None:
     parser.add_argument("--cache", type=Path, default=None, help="folder for the extracted blocks")
     parser.add_argument("--results", type=Path, nargs="+", default=None,
                         help="each dataset's blurcalib extract results folder, in the datasets' order")
+    benchrecord.add_option(parser)
     args = parser.parse_args()
     if args.results is not None and len(args.results) != len(args.datasets):
         parser.error(f"--results names {len(args.results)} folders for {len(args.datasets)} datasets")
+    record = benchrecord.start(__file__, args)
     print("CPU times on a shared machine; accuracy and yield against the simulated truth.")
     for k, data in enumerate(args.datasets):
-        bench(data, args.cache, args.results[k] if args.results is not None else None)
+        bench(data, record, args.cache, args.results[k] if args.results is not None else None)
+    record.write()
 
 
 if __name__ == "__main__":
