@@ -11,7 +11,7 @@ fitted ``H`` is the homography nearest to ``W`` over the square, and its centre 
 the D435I-like lens (``synth.d435i_like_camera``) star centres sit ~0.002 px outwards near the
 image centre and 0.006-0.008 px inwards beyond 450 px from it, with no such trend when the lens
 has no distortion; through a 130 degree Kannala-Brandt fisheye (``sim.truth.fisheye_camera``)
-it reaches tenths of a pixel (``docs/fisheye.md``). The bias is systematic, as large as or
+it reaches a few tenths of a pixel (``docs/generic.md``). The bias is systematic, as large as or
 larger than the features' noise, and shortens the calibrated focal length.
 
 Given a camera (the sharp-set parametric calibration), the bias is predicted block by block::
