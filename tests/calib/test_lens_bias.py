@@ -16,6 +16,7 @@ from blurcalib.camera.brown_conrady import BrownConradyCamera
 from blurcalib.camera.parametric import BrownConrady
 from blurcalib.extract.frame import ExtractSettings, extract_frame
 from blurcalib.geometry.homography import translation
+from blurcalib.io.results import BlockTable
 from blurcalib.sim.synth import Simulator, SynthConfig
 from blurcalib.sim.truth import TrueCamera, d435i_like_camera, fisheye_camera
 
@@ -86,11 +87,12 @@ def test_family_camera_gives_the_brown_conrady_bias() -> None:
     assert np.abs(centre_bias(wide, H, 1.5)).max() < 1e-8
 
 
-def _plane_block(camera, angle_deg: float, azimuth_deg: float, tilt_deg: float, half_px: float
-                 ) -> tuple[np.ndarray, np.ndarray]:
+def _plane_block(camera, angle_deg: float, azimuth_deg: float, tilt_deg: float, half_px: float,
+                 extent: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
     """The image ``W (225, 2)`` of a square target patch ``[-1, 1]^2`` (block coordinates on the
     15 x 15 lattice) seen ``angle_deg`` off the axis, tilted ``tilt_deg`` from facing the camera,
-    about ``2 half_px`` px wide, and its least-squares homography ``G (3, 3)``."""
+    about ``2 half_px`` px wide, and the least-squares homography ``G (3, 3)`` of its image over
+    ``|q|_inf <= extent``."""
     a, b = np.radians(angle_deg), np.radians(azimuth_deg)
     v = np.array([np.sin(a) * np.cos(b), np.sin(a) * np.sin(b), np.cos(a)])
     R = facing_rotations(v[None])[0].T  # facing frame -> camera
@@ -101,7 +103,9 @@ def _plane_block(camera, angle_deg: float, azimuth_deg: float, tilt_deg: float, 
     steps = np.linspace(-1.0, 1.0, 15)
     q = np.stack(np.meshgrid(steps, steps), -1).reshape(-1, 2)
     W = camera.project(v + step * (q[:, :1] * ex + q[:, 1:] * ey))
-    return W, fit_homographies(q, W[None])[0]
+    wide = camera.project(v + step * extent * (q[:, :1] * ex + q[:, 1:] * ey))
+    G = fit_homographies(q, wide[None])[0] @ np.diag([1.0 / extent, 1.0 / extent, 1.0])
+    return W, G
 
 
 @pytest.mark.parametrize(("angle", "tilt"),
@@ -120,6 +124,24 @@ def test_fisheye_bias_matches_the_truth_of_a_plane(angle: float, tilt: float) ->
     assert np.linalg.norm(predicted - truth) < tolerance
     corrected = translation(-predicted[None])[0] @ G
     assert np.linalg.norm(corrected[:2, 2] / corrected[2, 2] - W[len(W) // 2]) < tolerance
+
+
+def test_correct_blocks_moves_fisheye_centres_onto_the_star() -> None:
+    """Blocks fitted over their square or 1.5 x it (``loss_extent``) through the 130 degree
+    fisheye preset: corrected, each centre is its star's image ``W(0)`` within 1 % of the bias."""
+    lens = fisheye_camera(130.0, 0).model
+    cases = [(20.0, 10.0, 30.0, 1.0), (55.0, 200.0, -40.0, 1.5), (62.0, 330.0, 20.0, 1.5)]
+    blocks = [_plane_block(lens, a, b, t, 15.0, e) for a, b, t, e in cases]
+    star = np.array([W[len(W) // 2] for W, _ in blocks])
+    n = len(blocks)
+    table = BlockTable(["f"] * n, np.arange(n), np.arange(n), np.zeros(n, dtype=int), ["accepted"] * n,
+                       *(np.zeros(n) for _ in BlockTable._SCALARS), np.zeros((n, 2)),
+                       np.stack([G for _, G in blocks]), np.zeros((n, 6)), np.zeros((n, 3, 3)),
+                       loss_extent=np.array([e for *_, e in cases]))
+    raw = np.linalg.norm(table.centre - star, axis=1)
+    fixed = np.linalg.norm(correct_blocks(table, lens).centre - star, axis=1)
+    assert raw.min() > 0.02
+    assert np.all(fixed < 0.01 * raw)
 
 
 def test_pixels_without_a_ray_have_no_bias() -> None:
