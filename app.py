@@ -1,13 +1,17 @@
 """blurcalib's browser app: watch features and PSFs being extracted, tune the quality filter,
 inspect blocks, see the error field and the frames' poses, and learn the translational ambiguity.
 
-    python app.py [FOLDER] [--pattern P.yaml] [--port N]
+    python app.py [FOLDER] [--pattern P.yaml] [--out DIR] [--port N]
 
 With no folder it opens a small simulated dataset, rendered on first use into the user's cache
-folder (``~/.cache/blurcalib/app_default``, or under ``$XDG_CACHE_HOME``). The app serves on
+folder (``~/.cache/blurcalib/app_default``, or under ``$XDG_CACHE_HOME``). Extracted frames are
+written into ``--out`` (by default a folder of the dataset's own under
+``~/.cache/blurcalib/results/``, so that a read-only dataset works): opening the dataset again
+shows them as done, and a run resumes where the last one stopped. The app serves on
 127.0.0.1 (port 8080 by default, the next free one if taken) and prints its URL; only pages of
-that origin can drive it, and it is never shared (``views/security.py``). All browser tabs share
-one state (``state/``); each panel is a module of ``views/``.
+that origin can drive it, and it is never shared (``views/security.py``). A ``--host`` that other
+machines can reach (``0.0.0.0``) is refused without ``--allow-remote``, and warned about with it.
+All browser tabs share one state (``state/``); each panel is a module of ``views/``.
 """
 
 from __future__ import annotations
@@ -36,7 +40,7 @@ from views.frame_view import FrameViewPanel
 from views.frames import FramesPanel
 from views.inspect import InspectPanel
 from views.psf_field import PsfFieldPanel
-from views.security import ServeError, secure_viser_server
+from views.security import ServeError, check_host, check_listen, secure_viser_server
 from views.tuning import TuningPanel
 
 VIEWS_WIDTH = 760
@@ -72,8 +76,9 @@ def _progress(done: int, total: int, name: str) -> None:
 
 
 def serve(folder: str | os.PathLike | None = None, pattern: str | os.PathLike | None = None,
-          port: int = 8080, *, host: str = "127.0.0.1", settings: RunSettings | None = None,
-          calibration: CalibrationSettings | None = None) -> tuple[viser.ViserServer, App]:
+          port: int = 8080, *, host: str = "127.0.0.1", allow_remote: bool = False,
+          settings: RunSettings | None = None, calibration: CalibrationSettings | None = None,
+          out: str | os.PathLike | None = None) -> tuple[viser.ViserServer, App]:
     """Start the app on ``host:port`` (``port`` 0: any free port; read the real one with
     ``server.get_port()``) and open ``folder`` (default: the built-in simulated dataset).
 
@@ -85,13 +90,19 @@ def serve(folder: str | os.PathLike | None = None, pattern: str | os.PathLike | 
         pattern: the pattern YAML (default: ``pattern.yaml`` in the folder or its parent).
         port: TCP port.
         host: interface to listen on.
+        allow_remote: listen on a host other machines can reach (:func:`views.security.check_host`).
         settings: extraction settings per frame kind.
         calibration: the calibration's settings.
+        out: the folder the frames of ``folder`` are extracted into (default: the dataset's own
+            folder in the user's cache, :func:`state.folder.default_output_folder`).
     Returns:
         The viser server and the app; stop with ``app.close()`` then ``server.stop()``.
     Raises:
-        ServeError: the app cannot listen on ``host:port``.
+        ServeError: the app cannot listen on ``host:port``, or ``host`` is reachable from other
+            machines without ``allow_remote``.
     """
+    check_listen(host, port)
+    check_host(host, allow_remote)
     server = secure_viser_server(host, port, "blurcalib")
     if folder is None:
         builtin = builtin_dataset_folder()
@@ -126,7 +137,7 @@ def serve(folder: str | os.PathLike | None = None, pattern: str | os.PathLike | 
         app.panels.append(AmbiguityPanel(server))
     views.dock_left()
     views.set_width(VIEWS_WIDTH)
-    state.load_folder(folder, pattern)
+    state.load_folder(folder, pattern, out)
     return server, app
 
 
@@ -165,15 +176,24 @@ def _ignore(signum: int, frame: object) -> None:
 def build_parser() -> argparse.ArgumentParser:
     """The command line of ``python app.py``."""
     p = argparse.ArgumentParser(prog="app.py", description=__doc__.split("\n\n")[0])
-    p.add_argument("folder", nargs="?", help="dataset folder (default: a built-in simulated dataset)")
-    p.add_argument("--pattern", help="pattern YAML (default: pattern.yaml in the folder or its parent)")
-    p.add_argument("--port", type=_port, default=8080,
-                   help="TCP port (%(default)s; the next free one if taken)")
-    p.add_argument("--host", default="127.0.0.1",
-                   help="interface to listen on (%(default)s; 0.0.0.0 exposes the app to the network)")
-    p.add_argument("--threads", type=positive_int, default=1,
-                   help="compute threads of the extraction and calibration (%(default)s, the engine's "
-                        "policy: more only helps on an otherwise idle machine)")
+    p.add_argument("folder", nargs="?", metavar="FOLDER",
+                   help="dataset folder (default: a built-in simulated dataset)")
+    p.add_argument("--pattern", metavar="FILE",
+                   help="pattern YAML (default: pattern.yaml in the folder or its parent)")
+    p.add_argument("--out", metavar="DIR",
+                   help="output folder of the extracted frames, resumed when opened again (default: the "
+                        "dataset's own folder under ~/.cache/blurcalib/results)")
+    p.add_argument("--port", type=_port, default=8080, metavar="N",
+                   help="TCP port (default %(default)s; the next free one if taken)")
+    p.add_argument("--host", default="127.0.0.1", metavar="ADDRESS",
+                   help="interface to listen on (default %(default)s); one other machines can reach "
+                        "(0.0.0.0) needs --allow-remote")
+    p.add_argument("--allow-remote", action="store_true",
+                   help="listen on a --host other machines can reach: any client there can browse and read "
+                        "files, export into any folder and run jobs as this user (a warning is printed)")
+    p.add_argument("--threads", type=positive_int, default=1, metavar="N",
+                   help="compute threads of the extraction and calibration (default %(default)s: more "
+                        "only helps on an otherwise idle machine)")
     return p
 
 
@@ -186,7 +206,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     configure_threads(threads)
     keep_large_allocations()
     try:
-        server, app = serve(args.folder, args.pattern, args.port, host=args.host)
+        check_listen(args.host, args.port)
+        warning = check_host(args.host, args.allow_remote)
+        if warning is not None:
+            print(f"app.py: warning: {warning}", file=sys.stderr, flush=True)
+        server, app = serve(args.folder, args.pattern, args.port, host=args.host,
+                            allow_remote=args.allow_remote, out=args.out)
     except ServeError as exc:
         print(f"app.py: error: {exc}", file=sys.stderr)
         return 2

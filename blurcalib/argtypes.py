@@ -7,11 +7,16 @@ import argparse
 import math
 
 from blurcalib.calib.rolling_shutter import parse_rolling_shutter
+from blurcalib.io.frames import frame_size_problem
 from blurcalib.runs.cluster import ClusterError, check_address
 from blurcalib.target.pattern import PAGE_SIZES_MM
 
-__all__ = ["cluster_address", "image_size", "page_size", "positive_int", "positive_number", "readout_ratio",
-           "rolling_shutter_mode"]
+__all__ = ["cluster_address", "fold_count", "image_size", "non_negative_number", "page_size", "positive_int",
+           "positive_number", "psf_window", "readout_ratio", "rolling_shutter_mode"]
+
+MAX_PSF_WINDOW = 255
+"""Largest ``--psf-size`` (px): four times the largest window the growth reaches by itself (61 px);
+every block's deconvolution grows with its square."""
 
 
 def page_size(text: str) -> tuple[float, float]:
@@ -30,13 +35,15 @@ def page_size(text: str) -> tuple[float, float]:
 
 
 def image_size(text: str) -> tuple[int, int]:
-    """An image size ``WxH`` in px, both >= 1."""
+    """An image size ``WxH`` in px that a frame may have
+    (:func:`blurcalib.io.frames.frame_size_problem`: sides of 32 px or more, at most 50 MP)."""
     try:
         w, h = (int(v) for v in text.lower().split("x"))
     except ValueError:
         raise argparse.ArgumentTypeError(f"expected WxH in px (e.g. 1280x720), got {text!r}") from None
-    if w < 1 or h < 1:
-        raise argparse.ArgumentTypeError(f"width and height must be >= 1 px, got {text!r}")
+    problem = frame_size_problem(w, h)
+    if problem is not None:
+        raise argparse.ArgumentTypeError(problem.removeprefix("is "))
     return w, h
 
 
@@ -51,14 +58,45 @@ def positive_int(text: str) -> int:
     return value
 
 
-def positive_number(text: str) -> float:
-    """A finite number > 0."""
+def _finite_number(text: str, zero_allowed: bool) -> float:
+    """A finite number > 0, or >= 0 with ``zero_allowed``."""
+    least = ">= 0" if zero_allowed else "> 0"
     try:
         value = float(text)
     except ValueError:
-        raise argparse.ArgumentTypeError(f"must be a number > 0, got {text!r}") from None
-    if not (math.isfinite(value) and value > 0):
-        raise argparse.ArgumentTypeError(f"must be a finite number > 0, got {text!r}")
+        raise argparse.ArgumentTypeError(f"must be a number {least}, got {text!r}") from None
+    if not (math.isfinite(value) and (value >= 0 if zero_allowed else value > 0)):
+        raise argparse.ArgumentTypeError(f"must be a finite number {least}, got {text!r}")
+    return value
+
+
+def positive_number(text: str) -> float:
+    """A finite number > 0."""
+    return _finite_number(text, zero_allowed=False)
+
+
+def non_negative_number(text: str) -> float:
+    """A finite number >= 0."""
+    return _finite_number(text, zero_allowed=True)
+
+
+def fold_count(text: str) -> int:
+    """A number of validation folds: a whole number >= 2."""
+    value = positive_int(text)
+    if value < 2:
+        raise argparse.ArgumentTypeError(f"must be >= 2 (each fold's frames are scored by the others), "
+                                         f"got {value}")
+    return value
+
+
+def psf_window(text: str) -> int:
+    """A PSF window side in px: odd, from 3 to :data:`MAX_PSF_WINDOW`; 0 picks the default."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"must be an odd whole number of px, got {text!r}") from None
+    if value != 0 and not (3 <= value <= MAX_PSF_WINDOW and value % 2):
+        raise argparse.ArgumentTypeError(f"must be odd, from 3 to {MAX_PSF_WINDOW} px, got {value}")
     return value
 
 

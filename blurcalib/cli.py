@@ -23,10 +23,13 @@ from tqdm import tqdm
 from blurcalib import __version__
 from blurcalib.argtypes import (
     cluster_address,
+    fold_count,
     image_size,
+    non_negative_number,
     page_size,
     positive_int,
     positive_number,
+    psf_window,
     readout_ratio,
     rolling_shutter_mode,
 )
@@ -79,7 +82,9 @@ def _progress(desc: str) -> tuple[tqdm, Callable[[int, int, str], None]]:
 
 # ----------------------------------------------------------------------------- subcommands
 def cmd_pattern(args: argparse.Namespace) -> int:
-    """``blurcalib pattern``: a printable target (vector PDF, PNG, YAML)."""
+    """Write a printable star target: a vector PDF, a PNG and the pattern YAML, laid out as the
+    reference tool's generator lays it out (the defaults reproduce its A4 17 x 24 pattern byte for
+    byte). Prints the layout and the files written."""
     from blurcalib.target.printable import write_printable
 
     try:
@@ -104,6 +109,10 @@ def cmd_pattern(args: argparse.Namespace) -> int:
     return 0
 
 
+FISHEYE_FOV = 130.0
+"""``synth --lens fisheye``'s default horizontal field of view (deg)."""
+
+
 def _check_empty_output(out: Path, overwrite: bool) -> None:
     if out.exists() and not out.is_dir():
         raise CliError(f"{out}: output path exists and is not a folder")
@@ -114,19 +123,25 @@ def _check_empty_output(out: Path, overwrite: bool) -> None:
 
 def _simulate(out: Path, args: argparse.Namespace, pattern: StarPattern | None) -> None:
     from blurcalib.sim.synth import SynthConfig, write_dataset
+    from blurcalib.sim.truth import fisheye_camera
 
     readout = args.rolling_shutter if isinstance(args.rolling_shutter, float) else 0.0  # demo: off, auto
+    lens, fov = getattr(args, "lens", "standard"), getattr(args, "fov", None)
+    if fov is not None and lens != "fisheye":
+        raise CliError("--fov sets the field of view of --lens fisheye")
     try:
         config = SynthConfig(sharp=args.sharp, blurry=args.blurry, blur_min_px=args.blur_min,
                              blur_max_px=args.blur_max, max_tilt_deg=args.max_tilt,
                              noise_sigma=args.noise, seed=args.seed,
                              rolling_shutter=readout)
+        camera = fisheye_camera(FISHEYE_FOV if fov is None else fov, args.seed) if lens == "fisheye" else None
     except ValueError as exc:
         raise CliError(str(exc)) from None
     start = time.perf_counter()
     bar, update = _progress("simulating")
     with bar:
-        truth = write_dataset(out, config, pattern=pattern, progress=update, workers=args.workers)
+        truth = write_dataset(out, config, pattern=pattern, camera=camera, progress=update,
+                              workers=args.workers)
     elapsed = time.perf_counter() - start
     blurry = [f for f in truth.frames if f.kind == "blurry"]
     print(f"simulated {count(len(truth.frames), 'frame')} ({config.sharp} sharp, {len(blurry)} blurry) "
@@ -140,7 +155,9 @@ def _simulate(out: Path, args: argparse.Namespace, pattern: StarPattern | None) 
 
 
 def cmd_synth(args: argparse.Namespace) -> int:
-    """``blurcalib synth``: simulate sharp and blurry frames with ground truth."""
+    """Simulate sharp and blurry frames of the star target with exact ground truth
+    (ground_truth.json; docs/synthetic-data.md). Prints the frames written and the blurry frames'
+    blur."""
     out = Path(args.out)
     _check_empty_output(out, args.overwrite)
     pattern = load_pattern(args.pattern) if args.pattern else None
@@ -182,15 +199,18 @@ def _run_pipeline(sharp: list[Path], blurry: list[Path], pattern: StarPattern, o
     their own blur), or on a feature file (``features``), and print its figures."""
     from blurcalib.calib.trust import summary_lines
     from blurcalib.pipeline.run import PipelineError, run_from_features, run_pipeline
+    from blurcalib.runs.events import FrameDone, RunEvent
 
     bars: dict[str, tqdm] = {}
 
-    def update(stage: str, done: int, total: int, row: dict) -> None:
+    def update(stage: str, event: RunEvent) -> None:
+        if not isinstance(event, FrameDone):
+            return
         if stage not in bars:
-            bars[stage] = tqdm(total=total, desc=f"extracting {stage}", unit="frame",
+            bars[stage] = tqdm(total=event.total, desc=f"extracting {stage}", unit="frame",
                                file=sys.stderr, dynamic_ncols=True, disable=None)
-        bars[stage].n = done
-        bars[stage].set_postfix_str(f"{row['frame']}: {row['status']}", refresh=True)
+        bars[stage].n = event.done
+        bars[stage].set_postfix_str(f"{event.record.frame}: {event.record.status.value}", refresh=True)
 
     try:
         if features is not None:
@@ -231,8 +251,15 @@ def _run_pipeline(sharp: list[Path], blurry: list[Path], pattern: StarPattern, o
 
 
 def cmd_calibrate(args: argparse.Namespace) -> int:
-    """``blurcalib calibrate``: extract, calibrate the sharp set, filter, align the blurry set,
-    fit the generic camera and assess it (held-out error, uncertainty)."""
+    """Calibrate a camera from one capture: extract star features from sharp and blurry frames,
+    calibrate Brown-Conrady on the sharp ones, fit the generic camera to sharp and blurry frames
+    together and assess it on frames it has not seen (docs/pipeline.md).
+
+    Writes into --out the generic camera (calibration/intrinsics0.yaml, the reference tool's
+    format), the Brown-Conrady camera (calibration/camera.yaml, OpenCV's), the observations
+    (features.csv, features.bin), each frame's status (frames.csv) and report.json, written last
+    (docs/results-format.md). Prints both cameras' reprojection errors, the held-out errors, the
+    projection uncertainty and the frames used. Resumable: extracted frames are reused."""
     from blurcalib.io.frames import FrameError, frame_size, list_frames
     from blurcalib.io.sources import FrameInput
 
@@ -245,6 +272,8 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     if args.blurry and not args.sharp:
         raise CliError("--blurry DIR goes with --sharp DIR (or give every folder as INPUT)")
     if args.features is not None:
+        if args.model == "generic":
+            _check_grid([_features_image_size(Path(args.features), args.image_size)], args.cell_px)
         _run_pipeline([], [], pattern, Path(args.out), args, features=Path(args.features))
         return 0
     if args.frames:
@@ -264,6 +293,17 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     return 0
 
 
+def _features_image_size(path: Path, given: tuple[int, int] | None) -> tuple[int, int] | None:
+    """The image size of a ``--features`` file: ``--image-size``, or a reference dataset's own from
+    its header; None when neither is known, or the size is one no frame may have (the reader
+    says so)."""
+    from blurcalib.io.frames import frame_size_problem
+    from blurcalib.io.refformat import ref_dataset_image_size
+
+    size = given or (ref_dataset_image_size(path) if path.suffix.lower() == ".bin" else None)
+    return size if size is not None and frame_size_problem(*size) is None else None
+
+
 def _check_grid(sizes: Iterable[tuple[int, int] | None], cell_px: float) -> None:
     """Refuse ``--cell-px`` whose generic grid over the whole frame could not be fitted
     (:func:`blurcalib.camera.generic.check_grid_size`), before any frame is extracted; the frames'
@@ -279,7 +319,9 @@ def _check_grid(sizes: Iterable[tuple[int, int] | None], cell_px: float) -> None
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
-    """``blurcalib demo``: simulate a dataset, run the whole pipeline on it, measure accuracy."""
+    """Simulate the default dataset (20 sharp and 60 blurry 1280x720 frames) into OUT/data, run
+    calibrate on it into OUT/calibration and print each camera against the true one. A complete
+    dataset is reused, and the calibration resumes where it stopped."""
     from blurcalib.io.frames import list_frames
     from blurcalib.io.results import read_feature_table
     from blurcalib.sim.evaluate import evaluate_features
@@ -312,8 +354,16 @@ def cmd_demo(args: argparse.Namespace) -> int:
 
 
 def cmd_extract(args: argparse.Namespace) -> int:
-    """``blurcalib extract``: star features, PSFs and per-block figures from frames."""
+    """Extract star features, PSFs and per-block figures from frames. Each frame is classified
+    sharp or blurry by its own measured blur and seeded on its AprilTag, or in a video or folder
+    from its nearest extracted neighbour; its blocks are grown from there.
+
+    Writes features.csv, blocks.csv, psfs.npz, corners.csv and frames.csv into --out
+    (docs/results-format.md); prints a status per frame and the totals. Resumable: a frame is
+    redone only when its input, the pattern or the settings changed, or when it failed."""
     from blurcalib.extract.frame import ExtractSettings
+    from blurcalib.io.record import FrameStatus
+    from blurcalib.runs.events import FrameDone, RunEvent
     from blurcalib.runs.folder import extract_to_folder
 
     pattern = load_pattern(args.pattern)
@@ -334,23 +384,23 @@ def cmd_extract(args: argparse.Namespace) -> int:
     settings = replace(base, window=window, deconv=deconv, grow=grow, local_alignment=args.local_alignment)
     bar = tqdm(total=len(paths), desc="extracting", unit="frame", file=sys.stderr,
                dynamic_ncols=True, disable=None)
-    counts: dict[str, int] = {}
 
-    def update(done: int, total: int, row: dict) -> None:
-        counts[row["status"]] = counts.get(row["status"], 0) + 1
-        bar.n = done
-        bar.set_postfix_str(f"{row['frame']}: {row['status']} {row['features']} features",
-                            refresh=True)
-        if row["status"] != "ok":
-            tqdm.write(f"{row['frame']}: {row['status']}: {row['message']}", file=sys.stderr)
+    def update(event: RunEvent) -> None:
+        if not isinstance(event, FrameDone):
+            return
+        row = event.record
+        bar.n = event.done
+        bar.set_postfix_str(f"{row.frame}: {row.status.value} {row.features} features", refresh=True)
+        if row.status is not FrameStatus.OK:
+            tqdm.write(f"{row.frame}: {row.status.value}: {row.message}", file=sys.stderr)
 
     with bar:
         summary = extract_to_folder(paths, pattern, Path(args.out), settings,
                                     workers=args.workers, progress=update,
                                     overwrite=args.overwrite, cluster=args.cluster)
-    total_features = sum(int(r.get("features", 0)) for r in summary.frames)
-    ok = sum(r["status"] == "ok" for r in summary.frames)
-    print(f"{ok}/{count(len(summary.frames), 'frame')} ok, {count(total_features, 'feature')}"
+    total_features = sum(r.features for r in summary.records)
+    ok = sum(r.status is FrameStatus.OK for r in summary.records)
+    print(f"{ok}/{count(len(summary.records), 'frame')} ok, {count(total_features, 'feature')}"
           + (f" ({count(len(summary.skipped), 'frame')} already done, skipped)" if summary.skipped else ""))
     for kind, path in summary.outputs.items():
         print(f"  {kind}: {path}")
@@ -370,7 +420,8 @@ def _frame_inputs(args: argparse.Namespace) -> list:
 
 
 def cmd_experiment(args: argparse.Namespace) -> int:
-    """``blurcalib experiment NAME``: reproduce one of the paper's experiments."""
+    """Reproduce one of the paper's experiments on simulated data (docs/experiments.md); the
+    options of each are in blurcalib experiment NAME --help."""
     from blurcalib.paper import alignment, generic, patterns, psf_quality, threshold_sweep
 
     runners = {"patterns": patterns.main, "alignment": alignment.main,
@@ -380,7 +431,7 @@ def cmd_experiment(args: argparse.Namespace) -> int:
 
 
 def cmd_view(args: argparse.Namespace) -> int:
-    """``blurcalib view``: start the browser app (``app.py`` of the source checkout)."""
+    """Start the browser app (app.py of the source checkout); every option goes to the app."""
     import subprocess
 
     app = Path(__file__).resolve().parents[1] / "app.py"
@@ -402,155 +453,171 @@ def _plain(doc: str | None) -> str:
     return (doc or "").replace("``", "")
 
 
-def _add_synth_options(p: argparse.ArgumentParser, rolling_shutter: bool = True) -> None:
+def _add_synth_options(p: argparse._ActionsContainer, rolling_shutter: bool = True) -> None:
     from blurcalib.sim.synth import SynthConfig
 
-    p.add_argument("--sharp", type=int, default=SynthConfig.sharp,
-                   help="number of sharp frames (%(default)s)")
-    p.add_argument("--blurry", type=int, default=SynthConfig.blurry,
-                   help="number of blurry frames (%(default)s)")
-    p.add_argument("--blur-min", type=float, default=SynthConfig.blur_min_px,
-                   help="smallest median blur length of a blurry frame, px (%(default)s)")
-    p.add_argument("--blur-max", type=float, default=SynthConfig.blur_max_px,
-                   help="largest median blur length of a blurry frame, px (%(default)s)")
-    p.add_argument("--max-tilt", type=float, default=SynthConfig.max_tilt_deg,
-                   help="largest angle between optical axis and target normal, deg (%(default)s)")
-    p.add_argument("--noise", type=float, default=SynthConfig.noise_sigma,
-                   help="noise standard deviation at mid grey, grey levels (%(default)s)")
-    p.add_argument("--seed", type=int, default=SynthConfig.seed, help="random seed (%(default)s)")
+    g = p.add_argument_group("simulation")
+    g.add_argument("--sharp", type=int, default=SynthConfig.sharp, metavar="N",
+                   help="number of sharp frames (default %(default)s)")
+    g.add_argument("--blurry", type=int, default=SynthConfig.blurry, metavar="N",
+                   help="number of blurry frames (default %(default)s)")
+    g.add_argument("--blur-min", type=float, default=SynthConfig.blur_min_px, metavar="PX",
+                   help="smallest median blur length of a blurry frame, px (default %(default)s)")
+    g.add_argument("--blur-max", type=float, default=SynthConfig.blur_max_px, metavar="PX",
+                   help="largest median blur length of a blurry frame, px (default %(default)s)")
+    g.add_argument("--max-tilt", type=float, default=SynthConfig.max_tilt_deg, metavar="DEG",
+                   help="largest angle between the target's normal and the optical axis (a fisheye: the "
+                        "ray the target is seen along), deg (default %(default)s)")
+    g.add_argument("--noise", type=float, default=SynthConfig.noise_sigma, metavar="SIGMA",
+                   help="noise standard deviation at mid grey, grey levels (default %(default)s)")
+    g.add_argument("--seed", type=int, default=SynthConfig.seed, metavar="N",
+                   help="random seed (default %(default)s)")
     if rolling_shutter:
-        p.add_argument("--rolling-shutter", type=readout_ratio, default=SynthConfig.rolling_shutter,
+        g.add_argument("--rolling-shutter", type=readout_ratio, default=SynthConfig.rolling_shutter,
                        metavar="R", help="readout time of a rolling shutter in exposure times: row v is "
-                                         "exposed over its own window (%(default)s: a global shutter; "
-                                         "docs/rolling-shutter.md)")
-    p.add_argument("--workers", type=int, default=min(2, os.cpu_count() or 1),
-                   help="frames rendered in parallel (%(default)s)")
-    p.add_argument("--overwrite", action="store_true",
+                                         "exposed over its own window (default %(default)s: a global "
+                                         "shutter; docs/rolling-shutter.md)")
+    g.add_argument("--workers", type=int, default=min(2, os.cpu_count() or 1), metavar="N",
+                   help="frames rendered in parallel (default 2, or 1 on a one-core machine)")
+    g.add_argument("--overwrite", action="store_true",
                    help="write into a non-empty output folder")
 
 
-def _add_run_options(p: argparse.ArgumentParser, workers: bool = True) -> None:
+def _add_run_options(p: argparse._ActionsContainer, workers: bool = True) -> None:
+    g = p.add_argument_group("where it runs")
     if workers:
-        p.add_argument("--workers", type=positive_int, default=available_cores(),
-                       help="frames processed in parallel, one process each (%(default)s: one per core); "
+        g.add_argument("--workers", type=positive_int, default=available_cores(), metavar="N",
+                       help="frames processed in parallel, one process each (default: one per core); "
                             "the calibration then computes with as many threads")
-    p.add_argument("--threads", type=positive_int, default=1,
+    g.add_argument("--threads", type=positive_int, default=1, metavar="N",
                    help="compute threads of this process, for frames it runs itself (--workers 1); "
-                        "worker processes use one (%(default)s; more only helps on an idle machine)")
-    p.add_argument("--cluster", metavar="ADDRESS", type=cluster_address,
-                   help="run frames as tasks on this Dask scheduler (tcp://host:8786; docs/cluster.md)")
-    p.add_argument("--device", default="cpu",
-                   help="torch device of the block solver and the bundle adjustment (cpu, cuda, cuda:N); "
-                        "workers share one GPU badly, so with many cores cpu extracts a folder faster "
-                        "(docs/calibration.md)")
+                        "worker processes use one (default %(default)s; more only helps on an idle machine)")
+    g.add_argument("--cluster", metavar="ADDRESS", type=cluster_address,
+                   help="run frames as tasks on this Dask scheduler, e.g. tcp://host:8786 (docs/cluster.md)")
+    g.add_argument("--device", default="cpu",
+                   help="torch device of the block solver and the bundle adjustment: cpu, cuda or cuda:N "
+                        "(default %(default)s); workers share one GPU badly, so with many cores cpu "
+                        "extracts a folder faster (docs/calibration.md)")
 
 
-def _add_fit_options(p: argparse.ArgumentParser, which: str) -> None:
+def _add_fit_options(p: argparse._ActionsContainer, which: str) -> None:
     p.add_argument("--final-fit", choices=get_args(FinalFitFrames), default=GrowSettings.final_fit_frames,
                    help=f"which {which}frames without the path-PSF field get a final fit of each block "
-                        "over 1.5 x its square: those whose PSF window grew with the blur, all (more "
-                        "accurate features, about 1 s more per frame with little blur) or none "
-                        "(%(default)s; docs/deconvolution.md)")
+                        "over 1.5 x its square: those whose PSF window grew with the blur (adaptive), "
+                        "all (more accurate features, about 1 s more per frame with little blur) or "
+                        "none (default %(default)s; docs/deconvolution.md)")
     p.add_argument("--no-psf-field", action="store_true",
                    help=f"fit {which}frames with free PSFs only: no field of motion-path PSFs in frames "
                         "whose blur is long (for a rolling shutter, whose paths bend with the image row; "
                         "docs/deconvolution.md; sharp frames never use it)")
 
 
-def _add_pipeline_options(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--tau-be", type=float, default=QualitySettings.tau_be,
-                   help="largest PSF boundary energy kept (%(default)s)")
-    p.add_argument("--tau-loss", type=float, default=QualitySettings.tau_loss,
+def _add_pipeline_options(p: argparse._ActionsContainer) -> None:
+    g = p.add_argument_group("blurry frames: extraction, block filter and alignment")
+    g.add_argument("--tau-be", type=non_negative_number, default=QualitySettings.tau_be, metavar="BE",
+                   help="largest PSF boundary energy kept (default %(default)s)")
+    g.add_argument("--tau-loss", type=positive_number, default=QualitySettings.tau_loss, metavar="L",
                    help="largest block loss kept, grey levels^2: at a noise of 2 grey levels, scaled with "
-                        "each block's noise variance (relative), or as given (absolute) (%(default)s)")
-    p.add_argument("--loss-threshold", choices=list(get_args(LossMode)), default=QualitySettings.loss_mode,
-                   help="--tau-loss in the frame's own noise units, estimated from the image, or the "
-                        "paper's absolute grey levels^2 (%(default)s; docs/pipeline.md)")
-    p.add_argument("--min-sigma-major", type=float, default=QualitySettings.min_sigma_major,
+                        "each block's noise variance (relative), or as given (absolute) "
+                        "(default %(default)s)")
+    g.add_argument("--loss-threshold", choices=list(get_args(LossMode)), default=QualitySettings.loss_mode,
+                   help="--tau-loss in the frame's own noise units, estimated from the image (relative), "
+                        "or the paper's absolute grey levels^2 (default %(default)s; docs/pipeline.md)")
+    g.add_argument("--min-sigma-major", type=non_negative_number, default=QualitySettings.min_sigma_major,
+                   metavar="PX",
                    help="drop blurry frames whose centre median sigma_major is below this, px "
-                        "(%(default)s: keep every frame; the paper's choice for its camera is 3.8)")
-    p.add_argument("--loss", choices=LOSSES, default=AlignmentSettings.loss,
-                   help="robust loss of the global alignment (%(default)s)")
-    p.add_argument("--bias", choices=[b for b in BIASES if b != "none"], default=AlignmentSettings.bias,
-                   help="bias model of the global alignment (%(default)s)")
-    p.add_argument("--local-alignment", action="store_true",
+                        "(default %(default)s: keep every frame; the paper's choice for its camera is 3.8)")
+    g.add_argument("--loss", choices=LOSSES, default=AlignmentSettings.loss,
+                   help="robust loss of the global alignment (default %(default)s)")
+    g.add_argument("--bias", choices=[b for b in BIASES if b != "none"], default=AlignmentSettings.bias,
+                   help="bias model of the global alignment (default %(default)s)")
+    g.add_argument("--local-alignment", action="store_true",
                    help="use the local-alignment translations for blurry frames")
-    _add_fit_options(p, "blurry ")
-    p.add_argument("--model", choices=MODELS, default=SequenceSettings.model,
+    _add_fit_options(g, "blurry ")
+    g = p.add_argument_group("the camera")
+    g.add_argument("--model", choices=MODELS, default=SequenceSettings.model,
                    help="camera model delivered: the generic B-spline ray grid fitted to sharp and blurry "
-                        "frames together, or Brown-Conrady from the sharp set only (%(default)s)")
-    p.add_argument("--route", choices=ROUTES, default=JointSettings.route,
+                        "frames together, or Brown-Conrady from the sharp set only (default %(default)s)")
+    g.add_argument("--route", choices=ROUTES, default=JointSettings.route,
                    help="blurry frames in the generic fit: star centres with a free per-frame shift "
-                        "(joint), or aligned to the parametric camera first, the paper's route (%(default)s)")
-    p.add_argument("--cell-px", type=positive_number, default=JointSettings.cell_px,
-                   help="cell length of the generic model's grid, px (%(default)s)")
-    p.add_argument("--no-lens-correction", action="store_true",
+                        "(joint), or aligned to the parametric camera first, the paper's route "
+                        "(default %(default)s)")
+    g.add_argument("--cell-px", type=positive_number, default=JointSettings.cell_px, metavar="PX",
+                   help="cell length of the generic model's grid, px (default %(default)s)")
+    g.add_argument("--no-lens-correction", action="store_true",
                    help="keep star centres as extracted instead of removing the bias of block homographies "
                         "under the sharp-set camera's distortion (docs/generic.md)")
-    p.add_argument("--validation", choices=list(get_args(ValidationMethod)),
-                   default=ValidationSettings.method,
-                   help="held-out validation of the cameras: k-fold over frames, each held-out frame "
-                        "scored by cameras fitted without it, or none (%(default)s; docs/validation.md)")
-    p.add_argument("--rolling-shutter", type=rolling_shutter_mode, default=RollingShutterSettings.mode,
+    g.add_argument("--rolling-shutter", type=rolling_shutter_mode, default=RollingShutterSettings.mode,
                    metavar="off|auto|R",
                    help="the rolling shutter in the generic fit: off (a global shutter; a warning when the "
                         "blurry frames' features say otherwise), auto (estimate the readout ratio and model "
                         "it when significant) or a number R: model it whatever the test says (the ratio "
-                        "is still estimated); with demo, R also simulates that rolling shutter (%(default)s; "
-                        "docs/rolling-shutter.md)")
-    p.add_argument("--folds", type=positive_int, default=ValidationSettings.folds,
-                   help="number of folds of the validation (%(default)s; needs at least "
+                        "is still estimated); with demo, R also simulates that rolling shutter "
+                        "(default %(default)s; docs/rolling-shutter.md)")
+    g = p.add_argument_group("assessment")
+    g.add_argument("--validation", choices=list(get_args(ValidationMethod)),
+                   default=ValidationSettings.method,
+                   help="held-out validation of the cameras: k-fold over frames, each held-out frame "
+                        "scored by cameras fitted without it, or none (default %(default)s; "
+                        "docs/validation.md)")
+    g.add_argument("--folds", type=fold_count, default=ValidationSettings.folds, metavar="K",
+                   help="number of folds of the validation (default %(default)s; needs at least "
                         f"{ValidationSettings.min_frames} frames)")
 
 
-def _add_source_options(p: argparse.ArgumentParser, nargs: str = "+") -> None:
+def _add_source_options(p: argparse._ActionsContainer, nargs: str = "+") -> None:
     """The frame inputs (positional ``INPUT...``, ``nargs``), ``--every``, ``--max-frames`` and
     ``--sharp-below``, read by :func:`_frame_inputs`."""
     from blurcalib.extract.frame import SHARP_BELOW_PX
 
     p.add_argument("frames", nargs=nargs, metavar="INPUT",
-                   help="folders of frames, image files (png, jpg, tiff, bmp) or videos (mp4, avi, mkv, "
-                        "mov); a video's frames are named VIDEO#000123")
-    p.add_argument("--every", type=positive_int, default=1,
-                   help="keep every N-th frame of each folder and video (%(default)s)")
-    p.add_argument("--max-frames", type=positive_int, default=None,
+                   help="folders of frames, image files (png, jpg, tiff, bmp; 8 or 16 bit, colour is "
+                        "converted to grey) or videos (mp4, avi, mkv, mov); a video's frames are named "
+                        "VIDEO#000123")
+    p.add_argument("--every", type=positive_int, default=1, metavar="N",
+                   help="keep every N-th frame of each folder and video (default %(default)s)")
+    p.add_argument("--max-frames", type=positive_int, default=None, metavar="N",
                    help="keep at most N frames of each folder and video (default: all)")
-    p.add_argument("--sharp-below", type=float, default=SHARP_BELOW_PX,
+    p.add_argument("--sharp-below", type=positive_number, default=SHARP_BELOW_PX, metavar="PX",
                    help="frames whose measured blur (median blur extent of the tag ring's PSFs) is "
-                        "below this are sharp, px (%(default)s; docs/pipeline.md)")
+                        "below this are sharp, px (default %(default)s; docs/pipeline.md)")
 
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="blurcalib",
         description="Sub-pixel star features and spatially varying PSFs from motion-blurred "
-                    "calibration frames.")
+                    "calibration frames, and the generic camera calibrated from sharp and blurry "
+                    "frames together.")
     parser.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
     p = sub.add_parser("demo", help="simulate the default dataset and run the pipeline on it",
                        description=_plain(cmd_demo.__doc__))
-    p.add_argument("--out", default=str(DEFAULT_DEMO_DIR),
-                   help="output folder (%(default)s); its data/ is reused when complete")
+    p.add_argument("--out", default=str(DEFAULT_DEMO_DIR), metavar="DIR",
+                   help="output folder (default %(default)s); its data/ is reused when complete")
     _add_synth_options(p, rolling_shutter=False)
     _add_pipeline_options(p)
     _add_run_options(p, workers=False)
     p.set_defaults(func=cmd_demo)
 
-    p = sub.add_parser("calibrate", help="the whole pipeline on folders of sharp and blurry frames",
+    p = sub.add_parser("calibrate", help="the whole pipeline on one capture: frames in, cameras out",
                        description=_plain(cmd_calibrate.__doc__))
-    _add_source_options(p, nargs="*")
-    p.add_argument("--sharp", help="folder of sharp frames (instead of INPUT: the kinds given, not measured)")
-    p.add_argument("--blurry",
+    g = p.add_argument_group("inputs")
+    _add_source_options(g, nargs="*")
+    g.add_argument("--sharp", metavar="DIR",
+                   help="folder of sharp frames (instead of INPUT: the kinds given, not measured)")
+    g.add_argument("--blurry", metavar="DIR",
                    help="folder of blurry frames, with --sharp (optional: a sharp-only calibration)")
-    p.add_argument("--features", metavar="FILE",
+    g.add_argument("--features", metavar="FILE",
                    help="calibrate from a feature file instead of frames: the reference tool's dataset "
                         "(.bin) or a blurcalib features.csv (rows flagged BLURRY_FRAME get a free shift)")
-    p.add_argument("--image-size", type=image_size, metavar="WxH",
+    g.add_argument("--image-size", type=image_size, metavar="WxH",
                    help="image size of a features.csv, px (a .bin holds its own)")
-    p.add_argument("--pattern", required=True, help="pattern YAML of the target")
-    p.add_argument("--out", required=True, help="output folder (resumable)")
-    p.add_argument("--overwrite", action="store_true",
+    g.add_argument("--pattern", required=True, metavar="FILE", help="pattern YAML of the target")
+    g = p.add_argument_group("output")
+    g.add_argument("--out", required=True, metavar="DIR", help="output folder (resumable)")
+    g.add_argument("--overwrite", action="store_true",
                    help="write into a non-empty folder that is not a calibrate output")
     _add_run_options(p)
     _add_pipeline_options(p)
@@ -558,70 +625,84 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("pattern", help="write a printable star target (PDF, PNG, YAML)",
                        description=_plain(cmd_pattern.__doc__))
-    p.add_argument("--out", required=True,
+    p.add_argument("--out", required=True, metavar="PATH",
                    help="output path without extension, e.g. targets/star_a4")
     p.add_argument("--page", type=page_size, default=PAGE_SIZES_MM["A4"],
-                   help="A4, letter or WIDTHxHEIGHT in mm (A4)")
+                   help="A4, letter or WIDTHxHEIGHT in mm (default A4)")
     p.add_argument("--square-mm", type=float, default=_default(layout_pattern, "approx_square_length_mm"),
-                   help="approximate square length, mm (%(default)s); adjusted to fit the page")
-    p.add_argument("--tag", type=int, default=_default(layout_pattern, "tag_index"),
-                   help="tag36h11 id (%(default)s)")
+                   metavar="MM", help="approximate square length, mm (default %(default)s); adjusted to "
+                                      "fit the page")
+    p.add_argument("--tag", type=int, default=_default(layout_pattern, "tag_index"), metavar="ID",
+                   help="tag36h11 id (default %(default)s)")
     p.add_argument("--segments", type=int, default=_default(layout_pattern, "num_star_segments"),
-                   help="star segments, a multiple of 4 (%(default)s)")
-    p.add_argument("--margin-mm", type=float, default=_default(layout_pattern, "margin_mm"),
-                   help="page margin, mm (%(default)s)")
+                   metavar="N", help="star segments, a multiple of 4 (default %(default)s)")
+    p.add_argument("--margin-mm", type=float, default=_default(layout_pattern, "margin_mm"), metavar="MM",
+                   help="page margin, mm (default %(default)s)")
     p.add_argument("--dpi", type=positive_number, default=300.0,
-                   help="PNG resolution (%(default)s; the PNG may have at most 150 megapixels)")
-    p.add_argument("--formats", default="pdf,png,yaml", help="comma list (%(default)s)")
+                   help="PNG resolution (default %(default)s; the PNG may have at most 150 megapixels)")
+    p.add_argument("--formats", default="pdf,png,yaml", metavar="LIST",
+                   help="comma list of pdf, png, yaml (default %(default)s)")
     p.add_argument("--overwrite", action="store_true", help="replace existing files")
     p.set_defaults(func=cmd_pattern)
 
     p = sub.add_parser("extract", help="extract star features and PSFs from frames",
                        description=_plain(cmd_extract.__doc__))
-    _add_source_options(p)
-    p.add_argument("--pattern", required=True, help="pattern YAML of the target")
-    p.add_argument("--out", required=True, help="output folder (resumable: done frames are skipped)")
-    p.add_argument("--kind", choices=["auto", "sharp", "blurry"], default="auto",
+    g = p.add_argument_group("inputs")
+    _add_source_options(g)
+    g.add_argument("--pattern", required=True, metavar="FILE", help="pattern YAML of the target")
+    g = p.add_argument_group("output")
+    g.add_argument("--out", required=True, metavar="DIR",
+                   help="output folder (resumable: done frames are skipped)")
+    g.add_argument("--overwrite", action="store_true",
+                   help="write into a non-empty folder that is not an extract output")
+    g = p.add_argument_group("extraction")
+    g.add_argument("--kind", choices=["auto", "sharp", "blurry"], default="auto",
                    help="auto: each frame is sharp or blurry by its own measured blur (--sharp-below); "
                         f"sharp: small PSF window ({SHARP_START} px) and sharp-frame flags; "
-                        "blurry: a window that fits the blur (%(default)s)")
-    p.add_argument("--sharp", action="store_true", help="the same as --kind sharp")
-    p.add_argument("--psf-size", type=int, default=0,
-                   help=f"PSF window side, odd px ({WindowPolicy.start} blurry frames, {SHARP_START} sharp)")
-    p.add_argument("--local-alignment", action="store_true",
+                        "blurry: a window that fits the blur (default %(default)s)")
+    g.add_argument("--sharp", action="store_true", help="the same as --kind sharp")
+    g.add_argument("--psf-size", type=psf_window, default=0, metavar="PX",
+                   help=f"starting PSF window side, odd px; it grows with the blur (default "
+                        f"{WindowPolicy.start} for blurry frames, {SHARP_START} for sharp ones)")
+    g.add_argument("--local-alignment", action="store_true",
                    help="move star centres by the local-alignment translations")
-    _add_fit_options(p, "")
+    _add_fit_options(g, "")
     _add_run_options(p)
-    p.add_argument("--overwrite", action="store_true",
-                   help="write into a non-empty folder that is not an extract output")
     p.set_defaults(func=cmd_extract)
 
     p = sub.add_parser("experiment", help="reproduce one of the paper's experiments",
                        description=_plain(cmd_experiment.__doc__))
     p.add_argument("name", choices=["patterns", "alignment", "psf-quality", "threshold-sweep", "generic"],
+                   metavar="NAME",
                    help="patterns: star vs checkerboard PSF recovery (fig:exp2_test); "
                         "alignment: global alignment verification (tab:exp4, fig:exp41, fig:exp42); "
                         "psf-quality: PSF field and quality scatter plots (fig:exp_real1, "
                         "fig:exp_real2); threshold-sweep: error against tau_L (fig:exp_real3); "
                         "generic: generic camera from sharp and blurry frames vs the truth")
-    p.add_argument("rest", nargs=argparse.REMAINDER,
+    p.add_argument("rest", nargs=argparse.REMAINDER, metavar="OPTIONS",
                    help="options of the experiment (see blurcalib experiment NAME --help)")
     p.set_defaults(func=cmd_experiment)
 
     p = sub.add_parser("view", help="start the browser app (viser)", description=_plain(cmd_view.__doc__),
                        add_help=False)
-    p.add_argument("rest", nargs=argparse.REMAINDER,
-                   help="[FOLDER] [--pattern P.yaml] [--port N] (see python app.py --help)")
+    p.add_argument("rest", nargs=argparse.REMAINDER, metavar="OPTIONS",
+                   help="[FOLDER] [--pattern P.yaml] [--out DIR] [--port N] (see python app.py --help)")
     p.set_defaults(func=cmd_view)
 
     p = sub.add_parser("synth", help="simulate sharp and blurry frames with ground truth",
                        description=_plain(cmd_synth.__doc__))
-    p.add_argument("--out", required=True, help="output folder")
-    p.add_argument("--pattern", help="pattern YAML (default: the reference A4 17x24 target)")
+    p.add_argument("--out", required=True, metavar="DIR", help="output folder")
+    p.add_argument("--pattern", metavar="FILE", help="pattern YAML (default: the reference A4 17x24 target)")
+    p.add_argument("--lens", choices=["standard", "fisheye"], default="standard",
+                   help="standard: a 90 degree Brown-Conrady lens like a RealSense D435I's; fisheye: a "
+                        "Kannala-Brandt lens of --fov horizontal field whose image circle is 200 degrees "
+                        "(both 1280x720 px with a smooth lens deviation of 0.3 px; default %(default)s)")
+    p.add_argument("--fov", type=float, metavar="DEG",
+                   help=f"horizontal field of view of --lens fisheye, deg, up to 200 "
+                        f"(default {FISHEYE_FOV:g})")
     _add_synth_options(p)
     p.set_defaults(func=cmd_synth)
     return parser
-
 
 def _output_lock(args: argparse.Namespace):
     """The lock on the output folder of a command that writes one (:func:`blurcalib.io.atomic.output_lock`):

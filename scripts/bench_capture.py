@@ -14,7 +14,8 @@ demo's defaults when ``--data`` holds none). Runs, each into its own folder unde
 For each: frames used (sharp and blurry as classified), the generic camera's error against the
 true camera (median over the image after the best-fit rotation, and its shape), the held-out
 median, and the wall time. Targets: mixed within 10 % of split and >= 95 % of frames used;
-video within 0.03 px of the truth and >= 90 % of frames used.
+video within 0.03 px of the truth and >= 90 % of frames used. The figures are also recorded as
+JSON (``scripts/benchrecord.py``).
 """
 
 from __future__ import annotations
@@ -23,6 +24,7 @@ import argparse
 import time
 from pathlib import Path
 
+import benchrecord
 import cv2
 import numpy as np
 
@@ -53,7 +55,9 @@ def main() -> None:
     parser.add_argument("--data", type=Path, default=Path("out/demo/data"))
     parser.add_argument("--out", type=Path, default=Path("out/bench_capture"))
     parser.add_argument("--workers", type=int, default=2)
+    benchrecord.add_option(parser)
     args = parser.parse_args()
+    record = benchrecord.start(__file__, args)
     if not (args.data / GROUND_TRUTH_FILE).is_file():
         write_dataset(args.data, SynthConfig(), workers=args.workers)
     truth = load_ground_truth(args.data)
@@ -84,9 +88,14 @@ def main() -> None:
               f"{kinds['blurry']} blurry); generic camera {acc.median:.4f} px from the truth (shape "
               f"{acc.shape_median:.4f} px); held-out median {held if held is None else f'{held:.4f}'} px; "
               f"{wall:.0f} s wall", flush=True)
+        record.add(name, frames=len(report["frames"]), frames_used=used, sharp_used=kinds["sharp"],
+                   blurry_used=kinds["blurry"], camera_error_px=acc.median, camera_shape_px=acc.shape_median,
+                   held_out_median_px=held, wall_s=wall)
     split, mixed, vid = results["split"], results["mixed"], results["video"]
     print(f"mixed against split: {mixed / split - 1:+.1%} (target within 10 %); video {vid:.4f} px from the "
           f"truth (target <= 0.03 px)")
+    record.add("comparison", mixed_over_split_pct=100 * (mixed / split - 1), video_error_px=vid)
+    record.write()
 
 
 if __name__ == "__main__":

@@ -15,7 +15,8 @@ from the scheduler's task stream). Wall times depend on the machine's load; CPU 
 
 The workers start with ``WORKER_MALLOC`` in their environment; ``--dask-malloc`` keeps Dask's
 default ``MALLOC_TRIM_THRESHOLD_=65536`` instead. Either way every task sets glibc's thresholds
-itself (:func:`blurcalib.runs.runtime.keep_large_allocations`, docs/cluster.md).
+itself (:func:`blurcalib.runs.runtime.keep_large_allocations`, docs/cluster.md). The figures are
+also recorded as JSON (``scripts/benchrecord.py``).
 """
 
 from __future__ import annotations
@@ -27,7 +28,10 @@ from pathlib import Path
 
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 
+import benchrecord
+
 from blurcalib.extract.frame import ExtractSettings
+from blurcalib.io.record import FrameRecord, FrameStatus
 from blurcalib.runs.folder import extract_to_folder
 from blurcalib.runs.runtime import configure_threads
 from blurcalib.target.pattern import load_pattern
@@ -37,12 +41,16 @@ WORKER_MALLOC = {"MALLOC_MMAP_THRESHOLD_": 33554432, "MALLOC_TRIM_THRESHOLD_": 1
 """glibc settings of the worker processes (32 MiB, 1 GiB): large tensors stay on the heap."""
 
 
-def _report(label: str, kind: str, rows: list[dict], wall: float, cpu: float, client_cpu: float) -> None:
+def _report(label: str, kind: str, rows: list[FrameRecord], wall: float, cpu: float, client_cpu: float,
+            record: benchrecord.BenchRecord) -> None:
     n = len(rows)
-    ok = sum(r["status"] == "ok" for r in rows)
-    features = sum(int(r.get("features", 0)) for r in rows)
+    ok = sum(r.status is FrameStatus.OK for r in rows)
+    features = sum(r.features for r in rows)
     print(f"{label:10s} {kind:6s} {ok:2d}/{n} ok {features:5d} features   wall {wall / n:6.2f} s/frame   "
           f"compute CPU {cpu / n:6.2f} s/frame   client CPU {client_cpu / n:5.2f} s/frame", flush=True)
+    record.add(f"{label}, {kind} frames", frames=n, frames_ok=ok, features=features,
+               wall_s_per_frame=wall / n, compute_cpu_s_per_frame=cpu / n,
+               client_cpu_s_per_frame=client_cpu / n)
 
 
 def _noop(i: int) -> int:
@@ -67,7 +75,9 @@ def main() -> None:
     ap.add_argument("--out", type=Path, default=Path("/tmp/bench_cluster"))
     ap.add_argument("--no-local", dest="local", action="store_false", help="skip the local run")
     ap.add_argument("--dask-malloc", action="store_true", help="keep Dask's MALLOC_TRIM_THRESHOLD_")
+    benchrecord.add_option(ap)
     args = ap.parse_args()
+    record = benchrecord.start(__file__, args)
     import dask
     from distributed import Client, LocalCluster
 
@@ -83,7 +93,7 @@ def main() -> None:
         t0, c0 = time.perf_counter(), time.process_time()
         done = extract_to_folder(paths, pattern, args.out / "local" / kind, settings, overwrite=True)
         cpu = time.process_time() - c0
-        _report("local 1", kind, done.frames, time.perf_counter() - t0, cpu, 0.0)
+        _report("local 1", kind, done.records, time.perf_counter() - t0, cpu, 0.0, record)
     os.environ["PYTHONPATH"] = os.pathsep.join([str(ROOT), *filter(None, [os.environ.get("PYTHONPATH")])])
     for n in args.workers:
         t0 = time.perf_counter()
@@ -94,7 +104,9 @@ def main() -> None:
                   f"{next(iter(env.values()))}", flush=True)
             t0 = time.perf_counter()
             client.gather(client.map(_noop, range(500), pure=False))
-            print(f"dask {n}: no-op task round trip {(time.perf_counter() - t0) / 500 * 1e3:.1f} ms/task")
+            round_trip = (time.perf_counter() - t0) / 500 * 1e3
+            print(f"dask {n}: no-op task round trip {round_trip:.1f} ms/task")
+            record.add(f"dask {n}, overhead", noop_round_trip_ms_per_task=round_trip)
             for kind, (paths, settings) in runs.items():
                 client.get_task_stream(start=time.time())
                 before = client.run(time.process_time)
@@ -104,13 +116,16 @@ def main() -> None:
                 wall, client_cpu = time.perf_counter() - t0, time.process_time() - c0
                 after = client.run(time.process_time)
                 cpu = sum(after[w] - before[w] for w in after)
-                _report(f"dask {n}", kind, done.frames, wall, cpu, client_cpu)
+                _report(f"dask {n}", kind, done.records, wall, cpu, client_cpu, record)
                 tasks = [t for t in client.get_task_stream(start=start)
                          if "_single_threaded" in t["key"]]
                 busy = sum(s["stop"] - s["start"] for t in tasks for s in t["startstops"]
                            if s["action"] == "compute")
-                print(f"dask {n}: {kind:6s} {len(tasks)} tasks, idle worker time "
-                      f"{(wall * n - busy) / max(len(tasks), 1):.2f} s/task", flush=True)
+                idle = (wall * n - busy) / max(len(tasks), 1)
+                print(f"dask {n}: {kind:6s} {len(tasks)} tasks, idle worker time {idle:.2f} s/task",
+                      flush=True)
+                record.add(f"dask {n}, overhead", **{f"{kind}_idle_s_per_task": idle})
+    record.write()
 
 
 if __name__ == "__main__":

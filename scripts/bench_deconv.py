@@ -6,11 +6,13 @@ random curved motion path of 4 to 15 px plus a small Gaussian, gain and offset g
 and paper ~200 grey levels, Gaussian noise of 2 grey levels, 8-bit quantisation; the initial
 homography off by up to 1.5 px and 3 % scale), fits them all in one batch with each solver variant
 and prints the star-centre error (recovered ``H'(0, 0)`` after PSF re-centring against the true
-``H(0, 0)`` plus the true kernel's centroid), the residual and the time per block.
+``H(0, 0)`` plus the true kernel's centroid), the residual, the share of blocks whose fit
+converged (the yield) and the time per block. The figures are also recorded as JSON
+(``scripts/benchrecord.py``).
 
 Usage::
 
-    python scripts/bench_deconv.py [--blocks 64] [--seed 7] [--kernel-size 17] [--repeats 3]
+    python scripts/bench_deconv.py [--blocks 64] [--seed 7] [--kernel-size 17] [--repeats 3] [--threads 1]
 """
 
 from __future__ import annotations
@@ -19,7 +21,9 @@ import argparse
 import dataclasses
 import time
 
+import benchrecord
 import numpy as np
+import torch
 
 from blurcalib.deconv.blocks import fit_blocks
 from blurcalib.deconv.result import BlockFit
@@ -41,16 +45,18 @@ def errors(fit: BlockFit, sim: SimulatedBlocks) -> np.ndarray:
 
 
 def timed_fit(sim: SimulatedBlocks, kernel_size: int, settings: DeconvSettings, repeats: int
-              ) -> tuple[BlockFit, float]:
-    """Fit all blocks ``repeats`` times; returns the fit and the median wall time (s)."""
-    times = []
+              ) -> tuple[BlockFit, float, float]:
+    """Fit all blocks ``repeats`` times; returns the fit and the median wall and process CPU
+    times (s)."""
+    times, cpus = [], []
     fit = None
     for _ in range(repeats):
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         fit = fit_blocks(sim.image, sim.H0, 16, kernel_size, settings)
         times.append(time.perf_counter() - t0)
+        cpus.append(time.process_time() - c0)
     assert fit is not None
-    return fit, float(np.median(times))
+    return fit, float(np.median(times)), float(np.median(cpus))
 
 
 def tiled(sim: SimulatedBlocks, copies: int) -> SimulatedBlocks:
@@ -71,7 +77,12 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=7)
     parser.add_argument("--kernel-size", type=int, default=17)
     parser.add_argument("--repeats", type=int, default=3, help="timed runs per variant (median)")
+    parser.add_argument("--threads", type=int, default=1,
+                        help="torch threads (1: per-process figures, as the command line's workers compute)")
+    benchrecord.add_option(parser)
     args = parser.parse_args()
+    record = benchrecord.start(__file__, args)
+    torch.set_num_threads(args.threads)
 
     t0 = time.perf_counter()
     sim = simulate_blocks(layout_pattern(), args.blocks, np.random.default_rng(args.seed))
@@ -80,22 +91,32 @@ def main() -> None:
     base = DeconvSettings()
     fit_blocks(sim.image, sim.H0[:4], 16, args.kernel_size, base)  # warm-up (allocator, lazy initialisation)
 
-    header = ("variant", "median", "p90", "max", "rms", "conv", "ms/block")
-    print("\n{:42s} {:>8s} {:>8s} {:>8s} {:>6s} {:>5s} {:>9s}".format(*header))
+    header = ("variant", "median", "p90", "max", "rms", "converged", "ms/block", "CPU ms")
+    print("\n{:42s} {:>8s} {:>8s} {:>8s} {:>6s} {:>9s} {:>9s} {:>7s}".format(*header))
     for name, changes in VARIANTS:
         settings = dataclasses.replace(base, **changes)
-        fit, seconds = timed_fit(sim, args.kernel_size, settings, args.repeats)
+        fit, seconds, cpu = timed_fit(sim, args.kernel_size, settings, args.repeats)
         err = errors(fit, sim)
         print(f"{name:42s} {np.median(err):8.4f} {np.percentile(err, 90):8.4f} {err.max():8.4f} "
-              f"{np.median(fit.residual_rms):6.2f} {fit.converged.mean():5.2f} "
-              f"{1000 * seconds / len(err):9.1f}")
+              f"{np.median(fit.residual_rms):6.2f} {100 * fit.converged.mean():8.0f}% "
+              f"{1000 * seconds / len(err):9.1f} {1000 * cpu / len(err):7.1f}")
+        record.add(name, blocks=len(err), converged_pct=100 * fit.converged.mean(),
+                   median_px=np.median(err), p90_px=np.percentile(err, 90), max_px=err.max(),
+                   residual_rms_grey=np.median(fit.residual_rms), wall_ms_per_block=1000 * seconds / len(err),
+                   cpu_ms_per_block=1000 * cpu / len(err))
 
     big = tiled(sim, 4)
-    fit, seconds = timed_fit(big, args.kernel_size, base, 1)
+    fit, seconds, cpu = timed_fit(big, args.kernel_size, base, 1)
     err = errors(fit, big)
     print(f"\n{len(err)} blocks (the {args.blocks} above, four times), defaults: {seconds:.2f} s, "
-          f"{1000 * seconds / len(err):.1f} ms/block; median error {np.median(err):.4f} px, "
-          f"max {err.max():.4f} px")
+          f"{1000 * seconds / len(err):.1f} ms/block ({1000 * cpu / len(err):.1f} ms CPU); "
+          f"{100 * fit.converged.mean():.0f}% converged, "
+          f"median error {np.median(err):.4f} px, max {err.max():.4f} px")
+    record.add(f"{len(err)} blocks in one batch, defaults", blocks=len(err),
+               converged_pct=100 * fit.converged.mean(), median_px=np.median(err), max_px=err.max(),
+               wall_s=seconds, wall_ms_per_block=1000 * seconds / len(err),
+               cpu_ms_per_block=1000 * cpu / len(err))
+    record.write()
 
 
 if __name__ == "__main__":

@@ -16,6 +16,9 @@
    memory; for the semi-real frames (sharp and blurred) process CPU per frame and the mean wall
    time of each stage, the growth's split out (:meth:`FrameResult.stage_seconds`).
    Target: <= 10 s per 1280x720 frame with ~250 blocks and a 17x17 PSF, <= 3 GB.
+
+Each part prints its yield (frames extracted, blocks or features found) beside accuracy and time;
+the figures are also recorded as JSON (``scripts/benchrecord.py``).
 """
 
 from __future__ import annotations
@@ -26,6 +29,7 @@ import resource
 import time
 from pathlib import Path
 
+import benchrecord
 import cv2
 import numpy as np
 import torch
@@ -57,19 +61,19 @@ def _errors(result, truth_xy: np.ndarray, use_local: bool = False) -> tuple[np.n
     return ids, d - d.mean(axis=0)
 
 
-def simulated(frames: int, device: str) -> None:
+def simulated(frames: int, device: str, record: benchrecord.BenchRecord) -> None:
     print("== simulated blurry frames (blur 4-15 px, noise 2) ==")
     sim = Simulator(SynthConfig(sharp=0, blurry=frames, blur_min_px=4.0, blur_max_px=15.0,
                                 noise_sigma=2.0, seed=7))
     settings = ExtractSettings(deconv=DeconvSettings(device=device))
-    all_err, all_err_la, recovered, times, blocks = [], [], [], [], []
+    all_err, all_err_la, recovered, times, cpus, blocks = [], [], [], [], [], []
     split = {"seed": 0.0, "fit": 0.0, "align": 0.0}
     for i in range(frames):
         frame = sim.frame(i)
         t = frame.truth
-        start = time.perf_counter()
+        start, c0 = time.perf_counter(), time.process_time()
         result = extract_frame(frame.image.astype(np.float32), sim.pattern, t.name, settings)
-        elapsed = time.perf_counter() - start
+        elapsed, cpu = time.perf_counter() - start, time.process_time() - c0
         if result.status.value != "ok":
             print(f"{t.name}: {result.status.value} {result.message}")
             continue
@@ -87,6 +91,7 @@ def simulated(frames: int, device: str) -> None:
         all_err_la.append(n_la)
         recovered.append(rec)
         times.append(elapsed)
+        cpus.append(cpu)
         blocks.append(len(result.blocks))
         for k in split:
             split[k] += result.seconds.get(k, 0.0)
@@ -94,14 +99,22 @@ def simulated(frames: int, device: str) -> None:
         return
     n = np.concatenate(all_err)
     n_la = np.concatenate(all_err_la)
-    print(f"ALL: median {np.median(n):.4f} px, p90 {np.percentile(n, 90):.4f} px, "
-          f"max {n.max():.3f} px, recovered {100 * np.mean(recovered):.1f}% of visible blocks")
+    print(f"ALL: {len(all_err)}/{frames} frames extracted, recovered {100 * np.mean(recovered):.1f}% of "
+          f"visible blocks; median {np.median(n):.4f} px, p90 {np.percentile(n, 90):.4f} px, "
+          f"max {n.max():.3f} px")
     print(f"     with local alignment: median {np.median(n_la):.4f} px, "
           f"p90 {np.percentile(n_la, 90):.4f} px")
     total = sum(split.values())
     print(f"speed: {np.mean(times):.2f} s per frame, {1000 * sum(times) / sum(blocks):.1f} ms per "
           f"block ({np.mean(blocks):.0f} blocks per frame); seeding {100 * split['seed'] / total:.0f}%,"
-          f" fitting {100 * split['fit'] / total:.0f}%, alignment {100 * split['align'] / total:.0f}%")
+          f" fitting {100 * split['fit'] / total:.0f}%, alignment {100 * split['align'] / total:.0f}%; "
+          f"{np.mean(cpus):.2f} s CPU per frame")
+    record.add("simulated blurry frames (blur 4-15 px)", frames=frames, frames_extracted=len(all_err),
+               recovered_pct=100 * np.mean(recovered), median_px=np.median(n), p90_px=np.percentile(n, 90),
+               max_px=n.max(), local_alignment_median_px=np.median(n_la),
+               local_alignment_p90_px=np.percentile(n_la, 90), cpu_s_per_frame=np.mean(cpus),
+               wall_s_per_frame=np.mean(times), wall_ms_per_block=1000 * sum(times) / sum(blocks),
+               blocks_per_frame=np.mean(blocks))
 
 
 def _motion_kernel(angle: float, length: float, size: int) -> np.ndarray:
@@ -135,7 +148,7 @@ def blur_spatially_varying(image: np.ndarray, rng: np.random.Generator, size: in
     return out
 
 
-def semi_real(device: str) -> None:
+def semi_real(device: str, record: benchrecord.BenchRecord) -> None:
     print("== semi-real: fixture frames blurred with known centred, spatially varying kernels ==")
     pattern = load_pattern(REAL / "pattern.yaml")
     rng = np.random.default_rng(0)
@@ -168,14 +181,20 @@ def semi_real(device: str) -> None:
               f"p90 {np.percentile(n, 90):.4f} px, mean offset {np.round(d.mean(axis=0), 3)}")
     if meds:
         n = np.concatenate(meds)
-        print(f"ALL: median {np.median(n):.4f} px, p90 {np.percentile(n, 90):.4f} px")
-    _against_reference(runs["sharp"][0])
+        print(f"ALL: {len(meds)}/{len(runs['sharp'][0])} frames extracted sharp and blurred, "
+              f"{len(n)} common features; median {np.median(n):.4f} px, p90 {np.percentile(n, 90):.4f} px")
+        record.add("semi-real blurred fixture frames", frames=len(runs["sharp"][0]),
+                   frames_compared=len(meds), common_features=len(n), median_px=np.median(n),
+                   p90_px=np.percentile(n, 90))
+    _against_reference(runs["sharp"][0], record)
     for kind, (results, cpus) in runs.items():
         print(f"{kind} frames: CPU {np.mean(cpus):.2f} s per frame (median {np.median(cpus):.2f} s); stages, "
               "mean s wall: " + ", ".join(f"{k} {v:.2f}" for k, v in mean_stage_seconds(results).items()))
+        record.add(f"fixture frames, {kind}: time", frames=len(cpus), cpu_s_per_frame=np.mean(cpus),
+                   median_cpu_s_per_frame=np.median(cpus))
 
 
-def _against_reference(results: list) -> None:
+def _against_reference(results: list, record: benchrecord.BenchRecord) -> None:
     """Prints the sharp frames' star centres against the reference detector's features."""
     reference = read_ref_dataset(REAL / "features_10px.bin")
     names = {img.name for img in reference.images}
@@ -195,6 +214,9 @@ def _against_reference(results: list) -> None:
         n = np.concatenate(dist)
         print(f"sharp frames against the reference detector ({frames} frames): {len(n)} of its {total} "
               f"features within 1 px, median {np.median(n):.4f} px, p90 {np.percentile(n, 90):.4f} px")
+        record.add("sharp fixture frames against the reference detector", frames=frames,
+                   reference_features=total, within_1px=len(n), within_1px_pct=100 * len(n) / total,
+                   median_px=np.median(n), p90_px=np.percentile(n, 90))
 
 
 def main() -> None:
@@ -202,14 +224,18 @@ def main() -> None:
     parser.add_argument("--frames", type=int, default=6)
     parser.add_argument("--skip-semireal", action="store_true")
     parser.add_argument("--device", default="cpu")
+    benchrecord.add_option(parser)
     args = parser.parse_args()
+    record = benchrecord.start(__file__, args)
     torch.set_num_threads(1)  # per-process figures: torch's pool collapses when processes share the cores
     keep_large_allocations()  # as the command line and its workers do
-    simulated(args.frames, args.device)
+    simulated(args.frames, args.device, record)
     if not args.skip_semireal:
-        semi_real(args.device)
+        semi_real(args.device, record)
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     print(f"peak memory: {peak:.0f} MB")
+    record.add("memory", peak_mb=peak)
+    record.write()
 
 
 if __name__ == "__main__":

@@ -14,6 +14,9 @@ and the simulated comparison, printed.
    Target: generic below rational-8.
 3. **Accuracy against the truth**: ``blurcalib experiment generic`` (table (a)-(d)) with its
    targets checked.
+
+Each part prints the observations it kept (the yield) beside accuracy and time; the figures are
+also recorded as JSON (``scripts/benchrecord.py``).
 """
 
 from __future__ import annotations
@@ -26,6 +29,7 @@ import sys
 import time
 from pathlib import Path
 
+import benchrecord
 import cv2
 import numpy as np
 import torch
@@ -58,11 +62,12 @@ def speed_run(frames: int) -> dict:
     return {"frames": frames, "observations": int(sum(len(f.points) for f in sim)),
             "grid": list(initial.grid.shape[:2]), "init_s": t_init, "init_cpu_s": c_init,
             "ba_s": res.seconds, "ba_cpu_s": res.cpu_seconds, "iterations": res.iterations,
+            "inliers": int(res.inlier.sum()),
             "median_px": res.median_error,
             "peak_gb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20}
 
 
-def speed(sizes: list[int]) -> None:
+def speed(sizes: list[int], record: benchrecord.BenchRecord) -> None:
     print("== bundle adjustment speed (joint: sharp + blurry frames, free shifts) ==")
     targets = {80: 60.0, 200: 180.0}
     for n in sizes:
@@ -72,15 +77,20 @@ def speed(sizes: list[int]) -> None:
         target = targets.get(n)
         verdict = "" if target is None else f" (target <= {target:.0f} s: " \
             f"{'met' if r['ba_s'] <= target else 'MISSED'})"
-        print(f"{n} frames, {r['observations']} observations, grid {r['grid'][1]} x {r['grid'][0]}: "
-              f"BA {r['ba_s']:.1f} s wall / {r['ba_cpu_s']:.1f} s CPU, {r['iterations']} iterations"
+        print(f"{n} frames, {r['inliers']} of {r['observations']} observations kept, grid {r['grid'][1]} x "
+              f"{r['grid'][0]}: BA {r['ba_s']:.1f} s wall / {r['ba_cpu_s']:.1f} s CPU, "
+              f"{r['iterations']} iterations"
               f"{verdict}; "
               f"initial grid fit {r['init_s']:.1f} s wall / {r['init_cpu_s']:.1f} s CPU; "
               f"median reprojection {r['median_px']:.4f} px; peak memory {r['peak_gb']:.2f} GB "
               f"(target <= 2 GB: {'met' if r['peak_gb'] <= 2 else 'MISSED'})")
+        record.add(f"bundle adjustment, {n} frames", frames=n, observations=r["observations"],
+                   observations_kept=r["inliers"], grid=f"{r['grid'][1]} x {r['grid'][0]}",
+                   median_reprojection_px=r["median_px"], ba_wall_s=r["ba_s"], ba_cpu_s=r["ba_cpu_s"],
+                   iterations=r["iterations"], initial_fit_cpu_s=r["init_cpu_s"], peak_gb=r["peak_gb"])
 
 
-def real_frames(cell_px: float) -> None:
+def real_frames(cell_px: float, record: benchrecord.BenchRecord) -> None:
     print(f"== real frames (real_star16, reference features, {cell_px:g} px cells) ==")
     data = read_ref_dataset(REAL / "features_10px.bin")
     geo = data.geometry
@@ -103,7 +113,9 @@ def real_frames(cell_px: float) -> None:
         results[name] = (K, dist, float(np.median(err)))
         print(f"{name}: median reprojection error {np.median(err):.4f} px, "
               f"RMS {np.sqrt(np.mean(err**2)):.4f} px "
-              f"({len(pts)} frames, {len(err)} features)")
+              f"({len(pts)} of {len(data.images)} frames, {len(err)} features)")
+        record.add(f"real frames, {name}", frames_used=len(pts), features=len(err),
+                   median_reprojection_px=np.median(err), rms_reprojection_px=np.sqrt(np.mean(err**2)))
     K, dist, _ = results["Brown-Conrady (5)"]
     param = BrownConrady.from_matrix(K, dist.reshape(-1)[:5], W, H)
     area = calibrated_area(np.concatenate(obs), W, H)
@@ -120,12 +132,22 @@ def real_frames(cell_px: float) -> None:
           f"{'met' if res.median_error < rational else 'MISSED'})")
     for line in res.warnings:
         print(f"  warning: {line}")
+    record.add("real frames, generic", frames_used=len(pts), features=len(res.inlier),
+               features_kept=int(res.inlier.sum()), grid=f"{initial.grid_width} x {initial.grid_height}",
+               median_reprojection_px=res.median_error, rms_reprojection_px=res.rms_error,
+               wall_s=res.seconds, cpu_s=res.cpu_seconds)
 
 
-def accuracy() -> None:
+def accuracy(record: benchrecord.BenchRecord) -> None:
     print("== accuracy against the truth (blurcalib experiment generic) ==")
     exp = experiment.run_generic_experiment(progress=False)
     print(experiment.format_table(exp))
+    for name, row in exp.table.items():
+        record.add(f"experiment generic, {name}",
+                   **{f"{region}_{stat}_px": value for region, stats in row.items()
+                      for stat, value in zip(("median", "p95", "max"), stats, strict=True)})
+    record.add("experiment generic, frames", **exp.frames, blurry_dropped_by_filter_d=exp.dropped_by_filter,
+               calibrated_area_pct=100 * exp.area_fraction)
     a, b, c = (exp.table[m] for m in experiment.MODELS[:3])
     print(f"targets: (c) median over the calibrated area {c['area'][0]:.4f} px <= 0.02 "
           f"({'met' if c['area'][0] <= 0.02 else 'MISSED'}), area {100 * exp.area_fraction:.1f}% >= 95% "
@@ -143,18 +165,21 @@ def main() -> int:
     ap.add_argument("--skip-real", action="store_true")
     ap.add_argument("--skip-experiment", action="store_true")
     ap.add_argument("--speed-run", type=int, help=argparse.SUPPRESS)
+    benchrecord.add_option(ap)
     args = ap.parse_args()
     if args.speed_run:
         print(json.dumps(speed_run(args.speed_run)))
         return 0
+    record = benchrecord.start(__file__, args)
     torch.set_num_threads(1)
-    print("(timings on a shared 2-core machine; torch single-threaded)")
+    print("(torch single-threaded)")
     if args.frames:
-        speed(args.frames)
+        speed(args.frames, record)
     if not args.skip_real:
-        real_frames(args.real_cell_px)
+        real_frames(args.real_cell_px, record)
     if not args.skip_experiment:
-        accuracy()
+        accuracy(record)
+    record.write()
     return 0
 
 

@@ -24,7 +24,7 @@ time of each stage (:meth:`blurcalib.extract.frame.FrameResult.stage_seconds`). 
   none (``GrowSettings(retry_below_blur_per_square=0)``).
 
 Targets: >= 90% of the reference features, median <= 0.07 px, CPU per frame no more than 20%
-above ``hints-front-retry``.
+above ``hints-front-retry``. The figures are also recorded as JSON (``scripts/benchrecord.py``).
 """
 
 from __future__ import annotations
@@ -35,6 +35,7 @@ import time
 from collections import Counter
 from pathlib import Path
 
+import benchrecord
 import cv2
 import numpy as np
 import torch
@@ -108,7 +109,9 @@ def main() -> None:
     parser.add_argument("--frames", type=int, default=3, help="fixture frames (0.png, 1.png, ...)")
     parser.add_argument("--variants", default=",".join(VARIANTS),
                         help="comma-separated, of " + ", ".join(VARIANTS))
+    benchrecord.add_option(parser)
     args = parser.parse_args()
+    record = benchrecord.start(__file__, args)
     torch.set_num_threads(1)
     keep_large_allocations()  # as the command line and its workers do
     variants = args.variants.split(",")
@@ -149,6 +152,10 @@ def main() -> None:
               f"blocks {dict(statuses[v])}")
         print(f"{v:15s} stages, mean s wall per frame: "
               + ", ".join(f"{k} {t:.2f}" for k, t in mean_stage_seconds(results[v]).items()))
+        record.add(v, frames=len(names), reference_features=total, found_within_1px=found[v],
+                   yield_pct=100 * found[v] / max(total, 1), median_px=median, p90_px=p90,
+                   cpu_s_per_frame=np.mean(cpus[v]))
+    record.write()
 
 
 if __name__ == "__main__":

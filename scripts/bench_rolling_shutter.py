@@ -14,7 +14,7 @@ truth, >= 90% of the blurry frames used and the ratio within 10% of 2; with the 
 ``auto`` finds no rolling shutter and gives the camera of ``off``.
 
 Rendering, extraction and calibration take tens of minutes on 2 cores; every stage is cached in
-``--cache`` and reused.
+``--cache`` and reused. The figures are also recorded as JSON (``scripts/benchrecord.py``).
 """
 
 from __future__ import annotations
@@ -28,6 +28,7 @@ import time
 from dataclasses import replace
 from pathlib import Path
 
+import benchrecord
 import numpy as np
 import torch
 
@@ -107,7 +108,8 @@ def calibrate(out: Path, pattern: StarPattern, mode: str | float) -> tuple[Calib
     return run, time.perf_counter() - t0
 
 
-def extraction_accuracy(out: Path, truth: DatasetTruth, pattern: StarPattern) -> str:
+def extraction_accuracy(out: Path, truth: DatasetTruth, pattern: StarPattern,
+                        record: benchrecord.BenchRecord, section: str) -> str:
     """Yield and error of the blurry frames' accepted star centres against the row-time truth
     (after each frame's mean offset, the translational ambiguity)."""
     blocks = _named(read_block_table(out / "blurry"), "blurry")
@@ -116,18 +118,25 @@ def extraction_accuracy(out: Path, truth: DatasetTruth, pattern: StarPattern) ->
     per_frame = evaluate_features(features, truth, pattern, required_flags=0)
     visible = sum(int(f.block_inside.sum()) for f in truth.frames if f.kind == "blurry")
     err = np.array([f.median_vs_mean for f in per_frame])
+    record.add(section, stars_in_image=visible, stars_accepted=len(features),
+               accepted_pct=100 * len(features) / max(visible, 1), median_row_time_truth_px=np.median(err))
     return (f"{len(features)} of {visible} blurry-frame stars in the image accepted "
             f"({100 * len(features) / max(visible, 1):.0f}%), median error to the row-time truth "
             f"{np.median(err):.3f} px (median of the frames' medians)")
 
 
-def report(label: str, run: CalibrationRun, seconds: float, truth: TrueCamera) -> dict:
+def report(label: str, run: CalibrationRun, seconds: float, truth: TrueCamera,
+           record: benchrecord.BenchRecord) -> dict:
     acc = camera_accuracy(truth, run.generic.model)
     rs = run.rolling_shutter
     used = len(run.generic.blurry_frames)
     ratio = "" if rs is None else f"; r = {rs.ratio:.3f} +- {rs.sigma:.3f} ({rs.message})"
     print(f"{label}: generic camera to the truth median {acc.median:.4f} px, p95 {acc.p95:.4f}, max "
           f"{acc.max:.4f}; blurry frames used {used}/30{ratio}; {seconds:.0f} s")
+    record.add(label, blurry_frames=30, blurry_frames_used=used, camera_median_px=acc.median,
+               camera_p95_px=acc.p95, camera_max_px=acc.max, readout_ratio=None if rs is None else rs.ratio,
+               readout_ratio_sigma=None if rs is None else rs.sigma,
+               model_applied=rs is not None and rs.applied, calibration_wall_s=seconds)
     return {"median": acc.median, "used": used, "ratio": math.nan if rs is None else rs.ratio,
             "applied": rs is not None and rs.applied}
 
@@ -137,24 +146,27 @@ def main() -> int:
     ap.add_argument("--cache", type=Path, default=Path("/tmp/blurcalib_bench_rolling_shutter"))
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--render-only", action="store_true", help=argparse.SUPPRESS)
+    benchrecord.add_option(ap)
     args = ap.parse_args()
+    record = benchrecord.start(__file__, args)
     for name, ratio in (("rolling", READOUT), ("global", 0.0)):
         render(args.cache / name / "data", ratio, args.workers)
     if args.render_only:
         return 0
     torch.set_num_threads(1)
-    print("(timings under load: a shared 2-core machine; torch single-threaded)")
+    print("(torch single-threaded)")
     results = {}
     for name in ("rolling", "global"):
         folder = args.cache / name
         truth = load_ground_truth(folder / "data")
         pattern = load_pattern(folder / "data" / "pattern.yaml")
         out = extract(folder, args.workers)
-        print(f"== {name} shutter: {extraction_accuracy(out, truth, pattern)}")
+        accuracy = extraction_accuracy(out, truth, pattern, record, f"{name} shutter, extraction")
+        print(f"== {name} shutter: {accuracy}")
         for mode in ("off", "auto"):
             run, seconds = calibrate(out, pattern, mode)
             label = f"{name} shutter, --rolling-shutter {mode}"
-            results[name, mode] = report(label, run, seconds, truth.camera)
+            results[name, mode] = report(label, run, seconds, truth.camera, record)
     auto, g_off, g_auto = results["rolling", "auto"], results["global", "off"], results["global", "auto"]
 
     def verdict(ok: bool) -> str:
@@ -166,6 +178,7 @@ def main() -> int:
           f"({verdict(abs(auto['ratio'] - READOUT) <= 0.1 * READOUT)}); global shutter with auto: model "
           f"not applied ({verdict(not g_auto['applied'])}), camera {g_auto['median']:.4f} px against "
           f"off's {g_off['median']:.4f} px")
+    record.write()
     return 0
 
 

@@ -19,7 +19,8 @@ assessment with the default validation and uncertainty
 (:func:`blurcalib.calib.trust.assess_calibration`). Printed per size: observations, seconds
 per stage (wall / CPU), the peak resident memory of the process (``ru_maxrss``), the generic
 cameras' median error to the truth over the image (after the best-fit rotation), the held-out
-medians and the frames used. Timings depend on the machine's load.
+medians and the frames used (the yield). Timings depend on the machine's load. The figures are
+also recorded as JSON (``scripts/benchrecord.py``).
 """
 
 from __future__ import annotations
@@ -33,6 +34,7 @@ import subprocess
 import sys
 import time
 
+import benchrecord
 import numpy as np
 
 BLURRY_SHIFT_PX = 3.0
@@ -129,10 +131,12 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=3)
     parser.add_argument("--device", default="cpu", help="torch device of the bundle adjustments (cpu, cuda)")
     parser.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
+    benchrecord.add_option(parser)
     args = parser.parse_args()
     if args.child:
         print(json.dumps(run_size(args.frames[0], args.blurry_share, args.noise, args.seed, args.device)))
         return
+    record = benchrecord.start(__file__, args)
     env = {**os.environ, "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
     print(f"simulated features: {args.blurry_share:.0%} blurry frames (free shift each), noise "
           f"{args.noise} px, lens seed {args.seed}; one torch thread; device {args.device}; timings depend "
@@ -156,6 +160,13 @@ def main() -> None:
               f"{r['error_sharp_px']:.4f} px); held-out medians {held} px; median sigma "
               f"{r['sigma_median_px']:.4f} px; frames used {r['used']} of {n}; "
               f"{r['iterations']} LM iterations")
+        record.add(f"{n} frames", frames=n, frames_used=r["used"], observations=r["observations"],
+                   error_px=r["error_px"], error_sharp_only_px=r["error_sharp_px"],
+                   **{f"held_out_{k}_px": v for k, v in r["held_out"].items()},
+                   sigma_median_px=r["sigma_median_px"], wall_s=total, cpu_s=total_cpu,
+                   **{f"{k}_cpu_s": v for k, v in c.items()}, peak_gb=r["peak_gb"],
+                   lm_iterations=r["iterations"])
+    record.write()
 
 
 if __name__ == "__main__":

@@ -13,7 +13,9 @@ at the end the peak resident memory (``getrusage`` maxrss). ``--pair`` then runs
 frames in two processes at once and prints the ratio of their wall time to a single run's, and
 the throughput of the two (wall seconds per frame with one process per core, as ``blurcalib
 extract`` runs a folder on a 2-core machine).
-Targets: <= 2 s per frame, ratio <= 2.5, <= 1 GB per worker.
+Targets: <= 2 s per frame, ratio <= 2.5, <= 1 GB per worker. The frames seeded and the features
+returned of the visible blocks (the yield) are printed beside; the figures are also recorded as
+JSON (``scripts/benchrecord.py``).
 """
 
 from __future__ import annotations
@@ -25,6 +27,7 @@ import subprocess
 import sys
 import time
 
+import benchrecord
 import numpy as np
 
 
@@ -68,7 +71,8 @@ def run(frames: int, seed: int, threads: int, device: str, quiet: bool) -> dict:
         # an older checkout has no growth stages
         stages = result.stage_seconds() if hasattr(result, "stage_seconds") else result.seconds
         row = {"frame": t.name, "cpu": cpu, "wall": wall, "blocks": len(result.blocks),
-               "features": len(result.features), "median_px": err, "far": far, "stages": stages,
+               "features": len(result.features), "visible": int(t.block_inside.sum()), "median_px": err,
+               "far": far, "stages": stages,
                **{k: result.seconds.get(k, 0.0) for k in ("seed", "fit", "align")}}
         rows.append(row)
         if not quiet:
@@ -100,9 +104,11 @@ def main() -> None:
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--pair", action="store_true", help="also time two runs at once")
     parser.add_argument("--json", action="store_true", help=argparse.SUPPRESS)
+    benchrecord.add_option(parser)
     args = parser.parse_args()
+    record = None if args.json else benchrecord.start(__file__, args)
     res = run(args.frames, args.seed, args.threads, args.device, quiet=args.json)
-    if args.json:
+    if record is None:
         print(json.dumps(res))
         return
     rows = [r for r in res["rows"] if r["blocks"]]  # frames that were seeded
@@ -118,16 +124,25 @@ def main() -> None:
     names = list(dict.fromkeys(k for r in rows for k in r["stages"]))
     print("stages, mean s wall per frame: "
           + ", ".join(f"{k} {np.mean([r['stages'].get(k, 0.0) for r in rows]):.2f}" for k in names))
-    print(f"median star-centre error: {np.nanmedian([r['median_px'] for r in rows]):.4f} px "
-          "(median of the frames' medians), "
+    returned = sum(r["features"] for r in rows) / max(sum(r["visible"] for r in rows), 1)
+    median = np.nanmedian([r["median_px"] for r in rows])
+    print(f"{n} of {len(res['rows'])} frames seeded, {100 * returned:.1f}% of their visible features "
+          f"returned; median star-centre error: {median:.4f} px (median of the frames' medians), "
           f"{sum(r['far'] for r in rows)} features off by > 0.5 px")
     print(f"peak memory: {res['peak_mb']:.0f} MB")
+    record.add("close-up frames (blur 4-15 px)", frames=len(res["rows"]), frames_seeded=n,
+               returned_pct=100 * returned, median_px=median, off_by_over_half_px=sum(r["far"] for r in rows),
+               blocks_per_frame=blocks, threads=args.threads, cpu_s_per_frame=cpu, wall_s_per_frame=wall,
+               peak_mb=res["peak_mb"])
     if args.pair:
         single = _wall(_child(args.frames, args.seed, args.threads, args.device))
         procs = [_child(args.frames, args.seed, args.threads, args.device) for _ in range(2)]
         both = max(_wall(p) for p in procs)
         print(f"two runs at once: {both:.1f} s vs {single:.1f} s alone (ratio {both / single:.2f}); "
               f"throughput with one process per core: {both / (2 * n):.2f} s wall per frame")
+        record.add("two runs at once", ratio_to_one_run=both / single,
+                   wall_s_per_frame_two_processes=both / (2 * n))
+    record.write()
 
 
 if __name__ == "__main__":

@@ -17,7 +17,8 @@ area, the focal-scale part of the error field (:func:`blurcalib.sim.evaluate.cam
 RMS sigma and ratio with other ``prior_scale`` values (the pipeline's is
 ``TrustSettings().prior_scale``). Then the border-band sigma of (c) over
 (b) (target <= 0.6). Timings depend on the machine's load
-(torch single-threaded).
+(torch single-threaded). The frames and observations each fit kept (the yield) are printed beside;
+the figures are also recorded as JSON (``scripts/benchrecord.py``).
 """
 
 from __future__ import annotations
@@ -25,6 +26,7 @@ from __future__ import annotations
 import argparse
 import time
 
+import benchrecord
 import numpy as np
 import torch
 
@@ -54,7 +56,9 @@ def main() -> None:
     parser.add_argument("--blurry", type=int, default=60)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--device", default="cpu")
+    benchrecord.add_option(parser)
     args = parser.parse_args()
+    record = benchrecord.start(__file__, args)
     torch.set_num_threads(1)
     settings = experiment.GenericSettings(sharp=args.sharp, blurry=args.blurry, seed=args.seed)
     truth = d435i_like_camera(settings.seed, settings.deviation_px)
@@ -83,7 +87,8 @@ def main() -> None:
         inner = ok & ~band
         ratio = _rms(err[ok]) / _rms(unc.sigma_px[ok])
         bands[name] = unc.border_band()
-        print(f"{name}: {len(res.poses)} frames, {int(res.inlier.sum())} observations, "
+        print(f"{name}: {len(res.poses)} of {len(subset)} frames, {int(res.inlier.sum())} of "
+              f"{len(res.inlier)} observations kept, "
               f"{unc.sigma_px.size} lattice pixels ({unc.shape[1]} x {unc.shape[0]})")
         print(f"  noise estimate {unc.noise_px:.4f} px (effective parameters "
               f"{unc.effective_parameters:.0f}); projection_uncertainty {wall:.1f} s wall / {cpu:.1f} s CPU")
@@ -97,6 +102,13 @@ def main() -> None:
         acc = camera_accuracy(truth, res.model)
         print(f"  focal-scale part at the corner: true {acc.scale_px:+.4f} px, predicted 1-sigma "
               f"{unc.scale_px:.4f} px; true error without the affine part {acc.shape_median:.4f} px median")
+        record.add(name, frames=len(subset), frames_used=len(res.poses), observations=len(res.inlier),
+                   observations_kept=int(res.inlier.sum()), rms_true_error_px=_rms(err[ok]),
+                   rms_sigma_px=_rms(unc.sigma_px[ok]), true_over_predicted=ratio,
+                   median_true_error_px=np.median(err[ok]), median_sigma_px=unc.median(),
+                   border_band_sigma_px=bands[name], focal_scale_true_px=acc.scale_px,
+                   focal_scale_sigma_px=unc.scale_px, shape_median_px=acc.shape_median,
+                   uncertainty_cpu_s=cpu)
         for scale in PRIOR_SCALES:
             other = projection_uncertainty(res, prior_scale=scale)
             print(f"  prior_scale {scale}: RMS sigma {_rms(other.sigma_px[ok]):.4f} px, ratio "
@@ -106,6 +118,8 @@ def main() -> None:
     q = sc / sb
     print(f"border-band sigma, {c} over {b}: {sc:.4f} / {sb:.4f} = {q:.3f} "
           f"(target <= 0.6: {'met' if q <= 0.6 else 'MISSED'})")
+    record.add("border band, sharp + blurry over sharp-only", sigma_ratio=q)
+    record.write()
 
 
 if __name__ == "__main__":

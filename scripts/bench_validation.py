@@ -10,7 +10,8 @@ scores its generic and parametric cameras on frames they have not seen
 (:func:`blurcalib.calib.validation.kfold_validation`). OpenCV's rational model (``CALIB_RATIONAL_MODEL``,
 8 distortion coefficients) is fitted on the same training frames of each fold, and each held-out
 frame's pose is fitted alone (``solvePnP`` then ``solvePnPRefineLM``) with the camera held; the
-medians are over all held-out features. Prints time beside the figures.
+medians are over all held-out features. Prints the frames used (the yield) and the time beside
+the figures, and records them as JSON (``scripts/benchrecord.py``).
 """
 
 from __future__ import annotations
@@ -20,6 +21,7 @@ import tempfile
 import time
 from pathlib import Path
 
+import benchrecord
 import cv2
 import numpy as np
 import torch
@@ -27,7 +29,8 @@ import torch
 from blurcalib.calib.sequence import SequenceSettings
 from blurcalib.calib.trust import TrustSettings
 from blurcalib.calib.validation import ValidationSettings, assign_folds
-from blurcalib.pipeline.run import PipelineSettings, read_feature_input, run_from_features
+from blurcalib.io.feature_input import read_feature_input
+from blurcalib.pipeline.run import PipelineSettings, run_from_features
 from blurcalib.target.pattern import load_pattern
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -57,7 +60,9 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--folds", type=int, default=5)
     parser.add_argument("--fixtures", type=Path, default=ROOT.parent / "shared" / "fixtures")
+    benchrecord.add_option(parser)
     args = parser.parse_args()
+    record = benchrecord.start(__file__, args)
     torch.set_num_threads(1)
     cv2.setNumThreads(1)
     real = args.fixtures / "real_star16"
@@ -76,8 +81,11 @@ def main() -> None:
     rational = rational_held_out(table, pattern, size, fold_of, v["folds"])
     g = report["generic"]
     used = report["counts"]["sharp"].get("used", 0)
-    print(f"real fixture camera, reference features: {used} frames used; generic training median "
-          f"{g['median_error_px']:.4f} px ({g['grid_width']} x {g['grid_height']} grid)")
+    print(f"real fixture camera, reference features: {used} of {len(frames)} frames used; generic training "
+          f"median {g['median_error_px']:.4f} px ({g['grid_width']} x {g['grid_height']} grid)")
+    record.add("real fixture camera", frames=len(frames), frames_used=used,
+               generic_training_median_px=g["median_error_px"],
+               grid=f"{g['grid_width']} x {g['grid_height']}")
     print(f"held-out ({v['folds']}-fold over frames, each held-out frame's pose fitted alone):")
     print(f"  generic (blurcalib)             median {v['generic']['median_px']:.4f} px, "
           f"RMS {v['generic']['rms_px']:.4f} px ({v['generic']['frames']} frames)")
@@ -86,6 +94,11 @@ def main() -> None:
     if v.get("parametric"):
         print(f"  Brown-Conrady (blurcalib)       median {v['parametric']['median_px']:.4f} px, "
               f"RMS {v['parametric']['rms_px']:.4f} px")
+    record.add("held out", folds=v["folds"], generic_median_px=v["generic"]["median_px"],
+               generic_rms_px=v["generic"]["rms_px"], rational8_median_px=np.median(rational),
+               rational8_rms_px=np.sqrt(np.mean(rational ** 2)),
+               brown_conrady_median_px=(v.get("parametric") or {}).get("median_px"),
+               brown_conrady_rms_px=(v.get("parametric") or {}).get("rms_px"))
     unc = report["uncertainty"]["generic"]
     print(f"projection uncertainty: median {unc['median_px']:.4f} px, border band {unc['border_px']:.4f} px; "
           f"cross-validation diff median "
@@ -93,6 +106,12 @@ def main() -> None:
     print(f"calibrate --features: {wall:.1f} s wall, {cpu:.1f} s CPU; of which assessment "
           f"{report['seconds'].get('assessment', float('nan')):.1f} s (calibration "
           f"{report['seconds'].get('calibration', float('nan')):.1f} s)")
+    cross = report["cross_validation"]
+    record.add("uncertainty", median_px=unc["median_px"], border_band_px=unc["border_px"],
+               cross_validation_median_px=cross["median_px"] if cross else None)
+    record.add("time", wall_s=wall, cpu_s=cpu, assessment_wall_s=report["seconds"].get("assessment"),
+               calibration_wall_s=report["seconds"].get("calibration"))
+    record.write()
 
 
 if __name__ == "__main__":

@@ -41,7 +41,8 @@ of each stage (:meth:`blurcalib.extract.frame.FrameResult.stage_seconds`). ``--c
 simulated frames (pickled) so that a re-run skips the simulation; ``--part I/N`` runs every N-th
 frame from the I-th (to spread a run over processes; the figures are then per part).
 ``--device cuda`` runs the block solves of parts 1 and 2 on the GPU (the first frame then also
-pays for CUDA's start: compare the medians).
+pays for CUDA's start: compare the medians). The figures are also recorded as JSON
+(``scripts/benchrecord.py``).
 """
 
 from __future__ import annotations
@@ -52,6 +53,7 @@ import pickle
 import time
 from pathlib import Path
 
+import benchrecord
 import numpy as np
 import torch
 
@@ -139,7 +141,7 @@ def perturbed(simulated: list[SimulatedFrame], seed: int, sigma: float = 0.01) -
 
 
 def spread(title: str, sim: Simulator, simulated: list[SimulatedFrame], settings: ExtractSettings,
-           first: SetFigures, repeats: int) -> None:
+           first: SetFigures, repeats: int, record: benchrecord.BenchRecord) -> None:
     """:func:`run` again ``repeats`` times on :func:`perturbed` frames (seeds 1, 2, ...), one
     line each, then the range of each figure over those runs and ``first`` (the frames as they
     are). Nothing when ``repeats`` is 0."""
@@ -148,7 +150,7 @@ def spread(title: str, sim: Simulator, simulated: list[SimulatedFrame], settings
     runs = [first]
     for k in range(1, repeats + 1):
         runs.append(run(f"{title}, perturbed by 0.01 grey levels (seed {k})", sim, perturbed(simulated, k),
-                        settings, per_frame=False))
+                        settings, None, per_frame=False))
     print(f"== {title}: spread over {len(runs)} runs (as they are, then {repeats} perturbed) ==")
     for k, fig in enumerate(runs):
         print(f"  run {k}: {fig.line()}")
@@ -160,6 +162,12 @@ def spread(title: str, sim: Simulator, simulated: list[SimulatedFrame], settings
     print(f"  range: {span('returned', '%', 100.0, 1)} returned, median {span('median', ' px')}, "
           f"p90 {span('p90', ' px')}, pose-consistent {span('pose_median', ' px')}, "
           f"{span('cpu', ' s', digits=1)} CPU per frame")
+    figures = {}
+    for name, unit, scale in (("returned", "pct", 100.0), ("median", "px", 1.0), ("p90", "px", 1.0),
+                              ("pose_median", "px", 1.0), ("cpu", "s_per_frame", 1.0)):
+        values = [scale * getattr(f, name) for f in runs]
+        figures[f"{name}_{unit}_min"], figures[f"{name}_{unit}_max"] = min(values), max(values)
+    record.add(f"{title}: spread over {len(runs)} runs", runs=len(runs), **figures)
 
 
 def _by_ratio(ratio_visible: list[np.ndarray], ratio_returned: list[np.ndarray],
@@ -178,7 +186,7 @@ def _by_ratio(ratio_visible: list[np.ndarray], ratio_returned: list[np.ndarray],
 
 
 def run(title: str, sim: Simulator, simulated: list[SimulatedFrame], settings: ExtractSettings,
-        per_frame: bool = True) -> SetFigures:
+        record: benchrecord.BenchRecord | None, per_frame: bool = True) -> SetFigures:
     print(f"== {title} ==")
     errors, returned, walls, cpus, results = [], [], [], [], []
     errors_q, returned_q = [], []
@@ -247,6 +255,16 @@ def run(title: str, sim: Simulator, simulated: list[SimulatedFrame], settings: E
     print("stages, mean s wall per frame: "
           + ", ".join(f"{k} {v:.2f}" for k, v in mean_stage_seconds(results).items()))
     growth = np.concatenate(errors) if errors else np.full(1, np.nan)
+    filtered = np.concatenate(errors_q) if errors_q else np.full(1, np.nan)
+    if record is not None:
+        record.add(title, frames=len(simulated), frames_extracted=extracted,
+                   returned_pct=100 * np.mean(returned), median_px=np.median(growth),
+                   p90_px=np.percentile(growth, 90), max_px=np.max(growth),
+                   off_by_over_1px=int((growth > 1).sum()),
+                   filtered_returned_pct=100 * np.mean(returned_q), filtered_max_px=np.max(filtered),
+                   pose_consistent_median_px=np.median(pose), pose_consistent_p90_px=np.percentile(pose, 90),
+                   short_blur_returned_pct=100 * short_returned / max(short_total, 1),
+                   cpu_s_per_frame=np.mean(cpus), wall_s_per_frame=np.mean(walls))
     return SetFigures(float(np.mean(returned)), float(np.median(growth)), float(np.percentile(growth, 90)),
                       float(np.median(pose)), float(np.mean(cpus)))
 
@@ -273,7 +291,7 @@ def photometric_frame(sim: Simulator, index: int, white: float, electrons_per_le
     return SimulatedFrame(render.sensor_image(irradiance, truth, rng), truth)
 
 
-def photometry(title: str, frames: list[SimulatedFrame], pattern) -> None:
+def photometry(title: str, frames: list[SimulatedFrame], pattern, record: benchrecord.BenchRecord) -> None:
     """Noise estimate and blocks kept with the relative and the absolute loss threshold."""
     print(f"== {title} ==")
     modes = {"relative": QualitySettings(), "absolute": QualitySettings(loss_mode="absolute")}
@@ -300,6 +318,8 @@ def photometry(title: str, frames: list[SimulatedFrame], pattern) -> None:
               f"of {int(acc.sum()):3d}", flush=True)
     n = len(frames)
     print("frames used: " + ", ".join(f"{m} {used[m]}/{n} ({100 * used[m] / max(n, 1):.0f}%)" for m in modes))
+    record.add(title, frames=n, **{f"used_{m}_loss_threshold": used[m] for m in modes},
+               **{f"used_{m}_loss_threshold_pct": 100 * used[m] / max(n, 1) for m in modes})
 
 
 def main() -> None:
@@ -314,7 +334,9 @@ def main() -> None:
     parser.add_argument("--cache", type=Path, default=None, help="folder for simulated frames")
     parser.add_argument("--part", default="0/1", help="I/N: every N-th frame from the I-th")
     parser.add_argument("--device", default="cpu", help="torch device of the block solves (cpu, cuda)")
+    benchrecord.add_option(parser)
     args = parser.parse_args()
+    record = benchrecord.start(__file__, args)
     deconv = DeconvSettings(device=args.device)
     first, step = (int(v) for v in args.part.split("/"))
     torch.set_num_threads(1)
@@ -323,25 +345,27 @@ def main() -> None:
         sim, heavy = frames((12.0, 25.0), args.heavy, 11, args.cache)
         heavy = heavy[first::step]
         title, settings = "12-25 px blur, adaptive window (default)", ExtractSettings(deconv=deconv)
-        spread(title, sim, heavy, settings, run(title, sim, heavy, settings), args.repeat)
+        spread(title, sim, heavy, settings, run(title, sim, heavy, settings, record), args.repeat, record)
     if args.light:
         sim, light = frames((4.0, 15.0), args.light, 7, args.cache)
         light = light[first::step]
-        run("4-15 px blur, fixed 17 px window (before)", sim, light,
-            ExtractSettings(window=WindowPolicy(largest=17), deconv=deconv))
+        run("4-15 px blur, fixed 17 px window", sim, light,
+            ExtractSettings(window=WindowPolicy(largest=17), deconv=deconv), record)
         title, settings = "4-15 px blur, adaptive window (default)", ExtractSettings(deconv=deconv)
-        spread(title, sim, light, settings, run(title, sim, light, settings), args.repeat)
+        spread(title, sim, light, settings, run(title, sim, light, settings, record), args.repeat, record)
     if args.photometry:
         sim = Simulator(SynthConfig(sharp=0, blurry=args.photometry, blur_min_px=4.0, blur_max_px=15.0,
                                     seed=23))
         grid = [(w, e) for w in (150.0, 183.0, 217.0, 250.0) for e in (5.0, 10.0, 20.0)]
         looks = [grid[i % len(grid)] for i in range(args.photometry)]
         shot = [photometric_frame(sim, i, w, e) for i, (w, e) in enumerate(looks)][first::step]
-        photometry("white 150-250 grey levels, 5-20 electrons per level, 4-15 px blur", shot, sim.pattern)
+        photometry("white 150-250 grey levels, 5-20 electrons per level, 4-15 px blur", shot, sim.pattern,
+                   record)
     if args.demo:
         sim = Simulator(SynthConfig())
         demo = [sim.frame(sim.config.sharp + i) for i in range(args.demo)][first::step]
-        photometry("demo frames (SynthConfig())", demo, sim.pattern)
+        photometry("demo frames (SynthConfig())", demo, sim.pattern, record)
+    record.write()
 
 
 if __name__ == "__main__":

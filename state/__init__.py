@@ -4,9 +4,10 @@
 thresholds, the selection and the run queue; views subscribe to its :class:`Topic` changes.
 """
 
-from state.app_state import AppState, FrameEntry, FrameView, RunProgress, RunSettings
+from state.app_state import AppState, FrameEntry, FrameView
 from state.events import Notice, Topic
 from state.folder import Dataset, DatasetError, default_dataset, discover
+from state.worker import RunProgress, RunSettings
 
 __all__ = ["AppState", "Dataset", "DatasetError", "FrameEntry", "FrameView", "Notice", "RunProgress",
            "RunSettings", "Topic", "default_dataset", "discover"]

@@ -43,9 +43,10 @@ from blurcalib.calib.sharp import (
     load_calibration,
 )
 from blurcalib.camera.parametric import BrownConrady
-from blurcalib.extract.frame import FrameResult, FrameStatus
+from blurcalib.extract.frame import FrameResult
 from blurcalib.geometry.pose import Pose
 from blurcalib.growth.quality import FrameFilter
+from blurcalib.io.record import FrameStatus
 from blurcalib.io.results import FeatureTable
 from blurcalib.target.pattern import StarPattern
 from state.app_state import AppState
@@ -343,7 +344,7 @@ class AlignmentCache:
             if dataset.truth is None:
                 results = state.results()
                 sharp = {e.name: (results[e.name][0], results[e.name][2]) for e in state.entries()
-                         if e.kind == "sharp" and e.status == FrameStatus.OK.value and e.name in results}
+                         if e.kind == "sharp" and e.record.status is FrameStatus.OK and e.name in results}
             same = sharp.keys() == self._sharp.keys() and all(
                 sharp[n][0] is self._sharp[n][0] for n in sharp)
             if dataset is not self._dataset or not same:
@@ -395,7 +396,7 @@ class AlignmentCache:
         choice = self.reference()
         if choice.reference is None:
             return None
-        ok = {e.name for e in self.state.entries() if e.status == FrameStatus.OK.value}
+        ok = {e.name for e in self.state.entries() if e.record.status is FrameStatus.OK}
         aligned: dict[str, FrameAlignment] = {}
         ill, failed, dropped = [], {}, 0
         for name, (result, flt, size) in sorted(self.state.results().items()):

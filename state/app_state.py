@@ -3,43 +3,48 @@
 Everything a view shows is read from :class:`AppState`; every change goes through its methods,
 which hold one lock while they change fields and then tell the subscribers which
 :class:`~state.events.Topic` changed (:mod:`state.events`, outside the lock, from the thread that
-made the change: a viser callback or the run worker). Extraction runs in one worker thread, frame
-after frame from a queue, and stops between growth fronts when cancelled; the worker stays here
-because each of its status changes must be atomic with the store's fields.
+made the change: a viser callback or the run worker). Extraction runs in one worker thread
+(:mod:`state.worker`, over the runner of ``blurcalib extract``) and writes every finished frame
+into the dataset's output folder (``OUT/sharp/``, ``OUT/blurry/``: ``extract`` outputs, as
+``blurcalib calibrate`` lays out its own); opening the dataset again shows the frames finished
+with the same pattern, settings and files as done, read back from there.
 """
 
 from __future__ import annotations
 
-import logging
 import os
 import threading
-import time
-from collections import OrderedDict, deque
-from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field, replace
-from functools import partial
+from collections import OrderedDict
+from collections.abc import Callable, Collection, Sequence
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
 
-from blurcalib.extract.frame import ExtractSettings, FrameResult, FrameStatus, extract_frame
-from blurcalib.geometry.homography import homography_centre
+from blurcalib.extract.frame import FrameResult
 from blurcalib.growth.ledger import GrowthEvent
-from blurcalib.growth.quality import FrameFilter, QualitySettings, filter_frame
-from blurcalib.growth.seed import block_homography
+from blurcalib.growth.quality import FrameFilter, QualitySettings
+from blurcalib.io.atomic import output_dir_problem
 from blurcalib.io.frames import FrameError
-from blurcalib.io.results import BlockStatus
-from blurcalib.io.sources import FrameInput
+from blurcalib.io.record import EXTRACTION_OUTCOMES, FrameRecord, FrameStatus
+from blurcalib.io.sources import FrameInput, in_sequences
+from blurcalib.runs.events import FrameDone, FrameGrew, FrameStarted, RunEvent
+from blurcalib.runs.folder import RunSummary, finished_frames
+from blurcalib.runs.output import frame_sizes
 from blurcalib.sim.truth import FrameTruth
 from blurcalib.target.pattern import PatternFileError, StarPattern, load_pattern
+from state.blocks import expected_blocks, frame_filter
 from state.events import Events, Notice, Topic
-from state.folder import Dataset, DatasetError, FrameFile, discover
-
-log = logging.getLogger(__name__)
+from state.folder import Dataset, DatasetError, FrameFile, default_output_folder, discover
+from state.worker import Batch, ExtractionWorker, RunProgress, RunSettings
 
 FRAME_KINDS = ("blurry", "sharp")
-DONE_STATUSES = frozenset(s.value for s in FrameStatus) - {FrameStatus.FAILED.value}
+DONE_STATUSES = EXTRACTION_OUTCOMES - {FrameStatus.FAILED}
 """Frame statuses that ``run_all`` does not redo (a failed frame is retried)."""
+KEPT = frozenset({FrameStatus.OK, FrameStatus.NOT_SEEDED, FrameStatus.NO_BLOCKS, FrameStatus.CANCELLED})
+"""Frame statuses whose result is kept for the views (the others grew nothing)."""
+UPLOADS_OUTPUT = "results"
+"""The output folder of a dataset of uploads, inside the folder its pattern was uploaded to."""
 
 
 @dataclass
@@ -49,66 +54,23 @@ class FrameEntry:
     Attributes:
         name: path relative to the dataset folder (``VIDEO#000123`` for a video's frame).
         path: the file (the video for a video's frame).
-        kind: ``blurry`` or ``sharp`` (chooses the extraction settings).
-        status: ``pending``, ``queued``, ``running``, ``cancelled`` or a
-            :class:`blurcalib.extract.frame.FrameStatus` value.
-        message: why, when the status is not ``ok``.
-        blocks, accepted: attempted and accepted blocks of the last run.
-        seconds: time of the last run.
+        kind: ``blurry`` or ``sharp`` (chooses the extraction settings and output folder).
+        record: what is known about it (:class:`blurcalib.io.record.FrameRecord`): its status
+            (``pending``, ``queued``, ``running``, ``cancelled`` or its extraction's outcome), the
+            message why, its block counts and seconds of the last run.
         index: the frame's index in the video ``path`` (None for an image file).
     """
 
     name: str
     path: Path
     kind: str
-    status: str = "pending"
-    message: str = ""
-    blocks: int = 0
-    accepted: int = 0
-    seconds: float = 0.0
+    record: FrameRecord
     index: int | None = None
 
-
-@dataclass(frozen=True)
-class RunSettings:
-    """Extraction settings per frame kind."""
-
-    blurry: ExtractSettings = field(default_factory=ExtractSettings)
-    sharp: ExtractSettings = field(default_factory=ExtractSettings.sharp)
-
-    def for_kind(self, kind: str) -> ExtractSettings:
-        """The settings of frames of ``kind``."""
-        return self.sharp if kind == "sharp" else self.blurry
-
-
-@dataclass(frozen=True)
-class RunProgress:
-    """Where the run stands.
-
-    Attributes:
-        running: the worker is busy.
-        frame: the frame being extracted.
-        frame_blocks: blocks decided so far in it.
-        frame_expected: blocks expected in it (features whose star lies in the image).
-        frames_done, frames_total: frames finished and queued in this run.
-        cancelling: a cancel was requested and the worker has not stopped yet.
-    """
-
-    running: bool = False
-    frame: str = ""
-    frame_blocks: int = 0
-    frame_expected: int = 0
-    frames_done: int = 0
-    frames_total: int = 0
-    cancelling: bool = False
-
-    @property
-    def fraction(self) -> float:
-        """Share of the run done, 0..1 (within a frame: decided over expected blocks)."""
-        if self.frames_total == 0:
-            return 0.0
-        within = min(self.frame_blocks / self.frame_expected, 0.99) if self.frame_expected else 0.0
-        return min((self.frames_done + (within if self.running else 0.0)) / self.frames_total, 1.0)
+    @classmethod
+    def of(cls, frame: FrameFile) -> FrameEntry:
+        """A pending entry for a dataset's frame."""
+        return cls(frame.name, frame.path, frame.kind, FrameRecord(frame.name), frame.index)
 
 
 @dataclass(frozen=True)
@@ -140,58 +102,6 @@ class FrameView:
     quality: QualitySettings
 
 
-@dataclass(frozen=True)
-class FilterCounts:
-    """Blocks of one frame by outcome of the quality filter."""
-
-    kept: int
-    removed_be: int
-    removed_loss: int
-    disconnected: int
-    rejected: int
-
-    @property
-    def removed(self) -> int:
-        """Blocks the growth accepted and the filter removed."""
-        return self.removed_be + self.removed_loss + self.disconnected
-
-
-def filter_counts(flt: FrameFilter) -> FilterCounts:
-    """Counts of a frame's filter result."""
-    counts = flt.counts()
-    removed_be = counts.get(BlockStatus.FILTERED_BOUNDARY_ENERGY.value, 0)
-    removed_loss = counts.get(BlockStatus.FILTERED_LOSS.value, 0)
-    disconnected = counts.get(BlockStatus.DISCONNECTED.value, 0)
-    kept = int(flt.kept.sum())
-    rejected = len(flt.status) - kept - removed_be - removed_loss - disconnected
-    return FilterCounts(kept, removed_be, removed_loss, disconnected, rejected)
-
-
-def frame_filter(result: FrameResult, image_size: tuple[int, int], quality: QualitySettings,
-                 kind: str = "blurry") -> FrameFilter | None:
-    """The quality filter of a result's blocks (None when it has none).
-
-    The σ_major pre-filter applies to blurry frames only: a sharp frame has little blur by design.
-    """
-    if not len(result.blocks):
-        return None
-    if kind == "sharp":
-        quality = replace(quality, min_sigma_major=0.0)
-    return filter_frame(result.blocks, image_size, quality)
-
-
-def expected_blocks(pattern: StarPattern, event: GrowthEvent, image_size: tuple[int, int]) -> int:
-    """Features whose star centre, predicted from one block's homography, lies in the image."""
-    B = block_homography(np.eye(3), np.array([event.fx]), np.array([event.fy]))[0]
-    H_feature = event.H @ np.linalg.inv(B)
-    f = pattern.features
-    centres = homography_centre(block_homography(H_feature, f[:, 0], f[:, 1]))
-    w, h = image_size
-    inside = (centres[:, 0] >= 0) & (centres[:, 0] <= w - 1) & (centres[:, 1] >= 0) \
-        & (centres[:, 1] <= h - 1)
-    return int(inside.sum())
-
-
 class AppState:
     """The state of one app instance (shared by all browser tabs)."""
 
@@ -210,10 +120,10 @@ class AppState:
         self._results: dict[str, FrameResult] = {}
         self._filters: dict[str, FrameFilter] = {}
         self._live: dict[str, dict[int, GrowthEvent]] = {}  # frame -> feature id -> last event
-        self._queue: deque[str] = deque()
-        self._cancel = threading.Event()
-        self._worker: threading.Thread | None = None
+        self.output: Path | None = None
+        self._worker = ExtractionWorker(self, self._lock, self._kind_of)
         self._progress = RunProgress()
+        self._done: set[str] = set()  # frames of the run finished so far
 
     # ----------------------------------------------------------------------------- events
     def subscribe(self, listener: Callable[[Topic], None]) -> None:
@@ -234,11 +144,20 @@ class AppState:
         return self.events.notices
 
     # ------------------------------------------------------------------------------ folders
-    def load_folder(self, folder: str | os.PathLike, pattern: str | os.PathLike | None = None) -> bool:
-        """Open a dataset folder and select its first frame.
+    def load_folder(self, folder: str | os.PathLike, pattern: str | os.PathLike | None = None,
+                    out: str | os.PathLike | None = None) -> bool:
+        """Open a dataset folder, show the frames extracted into its output folder before as
+        done (:meth:`resume`) and select its first frame.
 
-        On any problem (a run in progress, a missing folder, no images, a bad pattern) the
-        previous state is kept and an error notice says why.
+        Args:
+            folder: the dataset (a folder of frames, or a video file).
+            pattern: its pattern YAML (default: ``pattern.yaml`` in the folder or its parent).
+            out: the output folder (default: :func:`state.folder.default_output_folder` of the
+                dataset): ``OUT/sharp/`` and ``OUT/blurry/`` hold the frames of each kind.
+
+        On any problem (a run in progress, a missing folder, no images, a bad pattern, an
+        output folder that holds something else) the previous state is kept and an error notice
+        says why.
 
         Returns:
             Whether the folder was opened.
@@ -251,25 +170,70 @@ class AppState:
         except DatasetError as exc:
             self.notify("error", "Cannot open the folder", str(exc))
             return False
+        output = Path(out) if out is not None else default_output_folder(dataset.source or dataset.folder)
+        problem = output_dir_problem(output, "calibrate", FRAME_KINDS)
+        if problem is not None:
+            self.notify("error", "Cannot open the folder", f"{problem}: choose another output folder")
+            return False
+        self._open(dataset, output)
+        for warning in dataset.warnings:
+            self.notify("warning", "Ground truth not used", warning)
+        resumed = self.resume()
+        done = f", {resumed} extracted before (in {output})" if resumed else ""
+        self.notify("info", "Folder opened",
+                    f"{dataset.folder}: {len(dataset.frames)} frames, pattern {dataset.pattern_path.name}"
+                    + (", with ground truth" if dataset.truth is not None else "") + done)
+        self.events.emit(Topic.FOLDER, Topic.FRAMES, Topic.RUN, Topic.RESULT, Topic.FILTER)
+        self.select_frame(0)
+        return True
+
+    def _open(self, dataset: Dataset, output: Path) -> None:
+        """Make ``dataset`` the open one, every frame pending, results in ``output``."""
         with self._lock:
             self.dataset = dataset
-            self.frames = [FrameEntry(f.name, f.path, f.kind, index=f.index) for f in dataset.frames]
+            self.output = output
+            self.frames = [FrameEntry.of(f) for f in dataset.frames]
             self.current = -1
             self.selected = None
             self._images.clear()
             self._sizes.clear()
+            self._clear_results()
+
+    def _clear_results(self) -> None:
+        with self._lock:
             self._results.clear()
             self._filters.clear()
             self._live.clear()
             self._progress = RunProgress()
-        for warning in dataset.warnings:
-            self.notify("warning", "Ground truth not used", warning)
-        self.notify("info", "Folder opened",
-                    f"{dataset.folder}: {len(dataset.frames)} frames, pattern {dataset.pattern_path.name}"
-                    + (", with ground truth" if dataset.truth is not None else ""))
-        self.events.emit(Topic.FOLDER, Topic.FRAMES, Topic.RUN)
-        self.select_frame(0)
-        return True
+
+    def resume(self) -> int:
+        """Show the frames finished in the output folder with the current pattern, settings and
+        files (:func:`blurcalib.runs.folder.finished_frames`) as done, their results read back
+        (no growth ledger: the views draw their blocks, PSFs and features from the files);
+        returns how many."""
+        with self._lock:
+            dataset, output = self.dataset, self.output
+            kinds = {kind: self._inputs(kind) for kind in FRAME_KINDS}
+        if dataset is None or output is None:
+            return 0
+        found = [done for kind, frames in kinds.items() if frames for done in
+                 finished_frames(frames, dataset.pattern, output / kind, self.settings.for_kind(kind))]
+        names = {record.frame for record, _ in found}
+        sizes = frame_sizes([f for frames in kinds.values() for f in frames if f.name in names])
+        with self._lock:
+            for record, result in found:
+                entry = self._entry(record.frame)
+                entry.record = record
+                if (size := sizes[record.frame]) is not None:
+                    self._sizes[record.frame] = size
+                    self._keep(entry, result)
+        return len(found)
+
+    def _inputs(self, kind: str) -> list[FrameInput]:
+        """The frames of ``kind`` as the runner takes them: each in the sequence of its folder, or
+        of its video (:func:`blurcalib.io.sources.in_sequences`)."""
+        with self._lock:
+            return in_sequences([FrameInput(e.name, e.path, e.index) for e in self.frames if e.kind == kind])
 
     def set_pattern(self, path: str | os.PathLike) -> bool:
         """Extract with the pattern YAML ``path`` (an upload) from now on.
@@ -301,12 +265,11 @@ class AppState:
                                   truth=old.truth if pattern == old.pattern else None)
             dropped_truth = old is not None and old.truth is not None and dataset.truth is None
             self.dataset = dataset
-            self.frames = [FrameEntry(f.name, f.path, f.kind, index=f.index) for f in self.frames]
+            if old is None:
+                self.output = path.parent / UPLOADS_OUTPUT
+            self.frames = [replace(f, record=FrameRecord(f.name)) for f in self.frames]
             self.selected = None
-            self._results.clear()
-            self._filters.clear()
-            self._live.clear()
-            self._progress = RunProgress()
+            self._clear_results()
         if dropped_truth:
             self.notify("warning", "Ground truth not used", f"{path.name} is not the pattern the dataset was "
                                                             "simulated with")
@@ -333,7 +296,7 @@ class AppState:
                 n += 1
                 stem = Path(name)
                 unique = str(stem.with_name(f"{stem.stem}-{n}{stem.suffix}"))
-            self.frames.append(FrameEntry(unique, Path(path), kind))
+            self.frames.append(FrameEntry(unique, Path(path), kind, FrameRecord(unique)))
             self.dataset = replace(self.dataset,
                                    frames=(*self.dataset.frames, FrameFile(unique, Path(path), kind)))
             index = len(self.frames) - 1
@@ -369,10 +332,14 @@ class AppState:
                 return entry
         raise KeyError(name)
 
-    def _set_status(self, name: str, status: str, message: str = "") -> None:
+    def _kind_of(self, name: str) -> str:
+        with self._lock:
+            return self._entry(name).kind
+
+    def _set_status(self, name: str, status: FrameStatus, message: str = "") -> None:
         with self._lock:
             entry = self._entry(name)
-            entry.status, entry.message = status, message
+            entry.record = replace(entry.record, status=status, message=message)
 
     def select_frame(self, index: int) -> bool:
         """Make frame ``index`` the current one and load its image.
@@ -388,7 +355,7 @@ class AppState:
         try:
             self.image(entry.name)
         except FrameError as exc:
-            self._set_status(entry.name, FrameStatus.UNREADABLE.value, str(exc))
+            self._set_status(entry.name, FrameStatus.UNREADABLE, str(exc))
             self.notify("error", "Unreadable frame", str(exc))
             self.events.emit(Topic.FRAMES)
         self.events.emit(Topic.CURRENT, Topic.SELECTION)
@@ -403,9 +370,7 @@ class AppState:
             entry.kind = kind
             result = self._results.get(entry.name)
             if result is not None:
-                flt = frame_filter(result, self._sizes[entry.name], self.quality, kind)
-                if flt is not None:
-                    self._filters[entry.name] = flt
+                self._keep(entry, result)
         self.events.emit(Topic.FRAMES, Topic.FILTER)
 
     def entries(self) -> list[FrameEntry]:
@@ -446,8 +411,7 @@ class AppState:
     @property
     def is_running(self) -> bool:
         """The worker is extracting (or about to)."""
-        with self._lock:
-            return self._worker is not None
+        return self._worker.running
 
     def progress(self) -> RunProgress:
         """The run's progress."""
@@ -455,105 +419,119 @@ class AppState:
             return self._progress
 
     def run_frame(self, index: int | None = None) -> bool:
-        """Extract frame ``index`` (default the current one) in the worker thread."""
+        """Extract frame ``index`` (default the current one) in the worker thread, again if it
+        was extracted before."""
         with self._lock:
             index = self.current if index is None else index
             if not 0 <= index < len(self.frames):
                 return False
             name = self.frames[index].name
-        return self._start([name])
+        return self._start([name], redo=True)
 
     def run_all(self) -> bool:
         """Extract every frame not extracted yet (failed frames again), in list order."""
         with self._lock:
             names = [f.name for f in self.frames
-                     if f.name not in self._results and f.status not in DONE_STATUSES]
+                     if f.name not in self._results and f.record.status not in DONE_STATUSES]
         if not names:
             self.notify("info", "Nothing to run", "every frame has been extracted")
             return False
-        return self._start(names)
+        return self._start(names, redo=False)
 
-    def _start(self, names: Sequence[str]) -> bool:
+    def _start(self, names: Sequence[str], redo: bool) -> bool:
         with self._lock:
-            if self.dataset is None:
+            if self.dataset is None or self.output is None:
                 return False
-            new = [n for n in names if n not in self._queue and n != self._progress.frame]
-            if not new or self._progress.cancelling:
+            waiting = set(self._worker.queued())
+            new = [n for n in names if n not in waiting and n != self._progress.frame]
+            if not new or self._worker.cancelling:
                 return False
-            if self._worker is None:
-                self._cancel.clear()
+            if not self._worker.running:
+                self._done.clear()
                 self._progress = RunProgress(running=True, frames_total=len(new))
             else:
-                self._progress = replace(self._progress,
-                                         frames_total=self._progress.frames_total + len(new))
-            self._queue.extend(new)
+                self._progress = replace(self._progress, frames_total=self._progress.frames_total + len(new))
             for n in new:
-                self._entry(n).status = "queued"
-            if self._worker is None:
-                self._worker = threading.Thread(target=self._work, name="blurcalib-run", daemon=True)
-                self._worker.start()
+                self._set_status(n, FrameStatus.QUEUED)
+            self._worker.start(new, redo)
         self.events.emit(Topic.FRAMES, Topic.RUN)
         return True
 
     def cancel(self) -> None:
         """Stop the run after the current growth front; queued frames go back to pending."""
         with self._lock:
-            if self._worker is None:
+            if not self._worker.running:
                 return
-            self._cancel.set()
-            for n in self._queue:
-                self._entry(n).status = "pending"
-            self._queue.clear()
+            for n in self._worker.cancel():
+                self._set_status(n, FrameStatus.PENDING)
             self._progress = replace(self._progress, cancelling=True)
         self.events.emit(Topic.FRAMES, Topic.RUN)
 
     def wait(self, timeout: float | None = None) -> bool:
         """Wait for the run to end; returns whether it did within ``timeout`` seconds."""
-        with self._lock:
-            worker = self._worker
-        if worker is None:
-            return True
-        worker.join(timeout)
-        return not worker.is_alive()
+        return self._worker.wait(timeout)
 
-    def _work(self) -> None:
-        while True:
-            with self._lock:
-                if not self._queue or self._cancel.is_set():
-                    self._worker = None
-                    self._progress = replace(self._progress, running=False, cancelling=False, frame="")
-                    break
-                name = self._queue.popleft()
-                self._entry(name).status = "running"
-                self._live[name] = {}
-                self._progress = replace(self._progress, frame=name, frame_blocks=0, frame_expected=0)
-            self.events.emit(Topic.FRAMES, Topic.RUN, Topic.LIVE)
-            t0 = time.perf_counter()
-            try:
-                self._run_one(name, t0)
-            except Exception as exc:  # the worker must survive any failure of one frame
-                log.exception("extraction of %s failed", name)
-                self._finish(name, None, FrameStatus.FAILED.value, f"{type(exc).__name__}: {exc}", t0)
+    # ------------------------------------------------------------------- the worker's reports
+    def batch(self, names: Sequence[str], redo: Collection[str]) -> Batch | None:
+        """The worker's batch of ``names`` (frames of one kind): see :class:`state.worker.Batch`."""
+        with self._lock:
+            if self.dataset is None or self.output is None:
+                return None
+            kind = self._entry(names[0]).kind
+            pattern, settings, output = self.dataset.pattern, self.settings.for_kind(kind), self.output
+        return Batch(self._inputs(kind), list(names), list(redo), pattern, settings, output / kind)
+
+    def on_run_event(self, event: RunEvent) -> None:
+        """A frame of the worker's batch started, grew or finished."""
+        if isinstance(event, FrameStarted):
+            self._started(event.frame)
+        elif isinstance(event, FrameGrew):
+            self._grew(event.frame, event.event)
+        elif isinstance(event, FrameDone):
+            self._finish(event.record, event.result)
+
+    def on_batch_end(self, names: Sequence[str], summary: RunSummary | None, error: str) -> None:
+        """The worker's batch ended: frames it skipped as finished before are read back, the
+        frames it did not reach are pending again (failed, with ``error``, when it could not run)."""
+        if summary is not None and summary.skipped:
+            self.resume()
+        with self._lock:
+            for n in names:
+                if self._entry(n).record.status in (FrameStatus.QUEUED, FrameStatus.RUNNING):
+                    self._set_status(n, FrameStatus.FAILED if error else FrameStatus.PENDING, error)
+        if error:
+            self.notify("error", "Cannot extract", error)
+        self.events.emit(Topic.FRAMES, Topic.RESULT, Topic.FILTER, Topic.RUN)
+
+    def on_run_end(self) -> None:
+        """The worker stops (called with the lock held)."""
+        self._progress = replace(self._progress, running=False, cancelling=False, frame="")
+
+    def on_run_ended(self) -> None:
+        """The worker stopped."""
         self.events.emit(Topic.RUN)
 
-    def _run_one(self, name: str, t0: float) -> None:
+    def _size(self, name: str) -> tuple[int, int] | None:
+        """A frame's ``(width, height)``, read from its file's header when not known yet."""
         with self._lock:
+            if name in self._sizes:
+                return self._sizes[name]
             entry = self._entry(name)
-            settings = self.settings.for_kind(entry.kind)
-            pattern = self.dataset.pattern
-        try:
-            image = self.image(name)
-        except FrameError as exc:
-            self._finish(name, None, FrameStatus.UNREADABLE.value, str(exc), t0)
-            return
-        result = extract_frame(image, pattern, name, settings, on_event=partial(self._on_event, name),
-                               should_stop=self._cancel.is_set)
-        if self._cancel.is_set():
-            self._finish(name, result, "cancelled", "cancelled: the blocks grown so far are kept", t0)
-        else:
-            self._finish(name, result, result.status.value, result.message, t0)
+        size = FrameInput(name, entry.path, entry.index).size()
+        if size is not None:
+            with self._lock:
+                self._sizes[name] = size
+        return size
 
-    def _on_event(self, name: str, event: GrowthEvent) -> None:
+    def _started(self, name: str) -> None:
+        self._size(name)
+        with self._lock:
+            self._set_status(name, FrameStatus.RUNNING)
+            self._live[name] = {}
+            self._progress = replace(self._progress, frame=name, frame_blocks=0, frame_expected=0)
+        self.events.emit(Topic.FRAMES, Topic.RUN, Topic.LIVE)
+
+    def _grew(self, name: str, event: GrowthEvent) -> None:
         with self._lock:
             events = self._live.setdefault(name, {})
             events[event.feature_id] = event  # a block judged again (retried, re-checked) counts once
@@ -564,27 +542,31 @@ class AppState:
                                      frame_expected=max(expected, len(events)))
         self.events.emit(Topic.LIVE, Topic.RUN)
 
-    def _finish(self, name: str, result: FrameResult | None, status: str, message: str, t0: float) -> None:
+    def _keep(self, entry: FrameEntry, result: FrameResult) -> None:
+        """Keep a frame's result and its filter at the current thresholds (under the lock)."""
+        self._results[entry.name] = result
+        flt = frame_filter(result, self._sizes[entry.name], self.quality, entry.kind)
+        if flt is None:
+            self._filters.pop(entry.name, None)
+        else:
+            self._filters[entry.name] = flt
+
+    def _finish(self, record: FrameRecord, result: FrameResult) -> None:
+        name, status = record.frame, record.status
+        size = self._size(name)
         with self._lock:
             entry = self._entry(name)
-            entry.status, entry.message = status, message
-            entry.seconds = time.perf_counter() - t0
-            if result is not None:
-                entry.blocks = len(result.blocks)
-                entry.accepted = int(result.blocks.accepted.sum())
-                self._results[name] = result
-                flt = frame_filter(result, self._sizes[name], self.quality, entry.kind)
-                if flt is None:
-                    self._filters.pop(name, None)
-                else:
-                    self._filters[name] = flt
+            entry.record = record
+            if status in KEPT and size is not None:
+                self._keep(entry, result)
             if entry.name == self._current_name():
                 self.selected = None
-            self._progress = replace(self._progress, frames_done=self._progress.frames_done + 1,
-                                     frame_blocks=0, frame_expected=0)
-        if status not in (FrameStatus.OK.value, "cancelled"):
-            self.notify("warning" if status != FrameStatus.FAILED.value else "error",
-                        f"{name}: {status.replace('_', ' ')}", message)
+            self._done.add(name)
+            self._progress = replace(self._progress, frames_done=len(self._done), frame_blocks=0,
+                                     frame_expected=0)
+        if status not in (FrameStatus.OK, FrameStatus.CANCELLED):
+            self.notify("warning" if status is not FrameStatus.FAILED else "error",
+                        f"{name}: {status.value.replace('_', ' ')}", record.message)
         self.events.emit(Topic.FRAMES, Topic.RESULT, Topic.FILTER, Topic.SELECTION, Topic.RUN)
 
     def _current_name(self) -> str | None:
@@ -599,9 +581,7 @@ class AppState:
                                                 ("min_sigma_major", min_sigma_major)) if v is not None}
             self.quality = replace(self.quality, **changes)
             for name, result in self._results.items():
-                flt = frame_filter(result, self._sizes[name], self.quality, self._entry(name).kind)
-                if flt is not None:
-                    self._filters[name] = flt
+                self._keep(self._entry(name), result)
             quality = self.quality
         self.events.emit(Topic.FILTER)
         return quality

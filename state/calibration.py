@@ -58,9 +58,9 @@ from blurcalib.calib.sequence import (
 from blurcalib.calib.sharp import Calibration, CalibrationError
 from blurcalib.calib.trust import Trust
 from blurcalib.camera.parametric import save_camera_yaml
-from blurcalib.extract.frame import FrameStatus
 from blurcalib.growth.quality import QualitySettings
 from blurcalib.io.atomic import ensure_writable_dir
+from blurcalib.io.record import RUN_STATES, FrameStatus
 from blurcalib.io.results import BlockTable, FeatureTable
 from blurcalib.io.text import count
 from blurcalib.sim.evaluate import projection_errors
@@ -76,9 +76,9 @@ OPENCV_CAMERA_FILE = "camera.yaml"
 (:func:`blurcalib.camera.parametric.save_camera_yaml`)."""
 STAGES = ("extracting frames", "collecting features", *(s.value for s in Stage), "figures")
 """The run's stages; the first only when frames are extracted (or being extracted) first."""
-IN_PROGRESS = frozenset({"queued", "running"})
+IN_PROGRESS = frozenset({FrameStatus.QUEUED, FrameStatus.RUNNING})
 """Frame statuses of an extraction under way."""
-USED = "used"
+USED = FrameStatus.USED.value
 
 
 @dataclass(frozen=True)
@@ -189,9 +189,10 @@ def collect_inputs(state: AppState, settings: CalibrationSettings | None = None)
     reasons: dict[str, str] = {}
     sharp, blurry, blocks = [], [], []
     for entry in entries:
-        if entry.status != FrameStatus.OK.value or entry.name not in results:
-            reasons[entry.name] = "not extracted" if entry.status in ("pending", "queued", "running") \
-                else f"not extracted ({entry.status.replace('_', ' ')})"
+        status = entry.record.status
+        if status is not FrameStatus.OK or entry.name not in results:
+            reasons[entry.name] = "not extracted" if status in RUN_STATES - {FrameStatus.CANCELLED} \
+                else f"not extracted ({status.value.replace('_', ' ')})"
             continue
         result, flt, size = results[entry.name]
         if size != image_size:
@@ -472,7 +473,7 @@ class CalibrationRunner:
     def _extract(self) -> bool:
         """Extract the frames not extracted yet in the state's worker and wait for it; False when
         cancelled."""
-        missing = [e for e in self.state.entries() if e.status not in DONE_STATUSES | IN_PROGRESS]
+        missing = [e for e in self.state.entries() if e.record.status not in DONE_STATUSES | IN_PROGRESS]
         if not missing and not self.state.is_running:
             return True
         self._stage(0)

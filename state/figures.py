@@ -15,10 +15,11 @@ import numpy as np
 from blurcalib.calib.joint import GenericCalibration
 from blurcalib.calib.sharp import CalibrationError, calibrate_pinhole
 from blurcalib.camera.parametric import BrownConrady
-from blurcalib.extract.frame import FrameResult, FrameStatus
+from blurcalib.extract.frame import FrameResult
 from blurcalib.geometry.homography import apply_homography
 from blurcalib.geometry.pose import Pose
 from blurcalib.growth.quality import FrameFilter
+from blurcalib.io.record import FrameStatus
 from blurcalib.sim.truth import DatasetTruth, FrameTruth
 from blurcalib.target.pattern import StarPattern
 from state.alignment import AlignmentCache, FrameAlignment
@@ -112,9 +113,9 @@ def _field(source: str, result: FrameResult, flt: FrameFilter | None, truth: Fra
             truth_xy = [position[int(f)] for f in result.blocks.feature_id[idx]]
             error = result.blocks.centre[idx] - np.stack(truth_xy)
         else:
-            if result.local is None or result.growth is None:
+            if result.local is None:
                 return None
-            accepted = np.flatnonzero(result.growth.accepted)
+            accepted = np.flatnonzero(result.blocks.accepted)
             row = {int(b): r for r, b in enumerate(accepted)}
             idx = np.array([i for i in idx if int(i) in row], dtype=np.int64)
             if len(idx) == 0:
@@ -168,7 +169,7 @@ def used_frame_fields(state: AppState, alignments: AlignmentCache, source: str |
     if chosen not in available:
         return None
     results = state.results()
-    ok = {e.name for e in state.entries() if e.status == FrameStatus.OK.value}
+    ok = {e.name for e in state.entries() if e.record.status is FrameStatus.OK}
     used = {name: r for name, r in results.items() if name in ok and r[1] is not None and r[1].frame_ok}
     sizes = Counter(size for _, _, size in used.values())
     size = sizes.most_common(1)[0][0] if sizes else (0, 0)

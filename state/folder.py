@@ -9,7 +9,9 @@ names the ground truth uses. A video file opens as a dataset of its frames, name
 
 from __future__ import annotations
 
+import hashlib
 import os
+import re
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -36,13 +38,31 @@ DEFAULT_CONFIG = SynthConfig(sharp=2, blurry=4, blur_min_px=3.0, blur_max_px=8.0
 BUILTIN_DIR = Path("blurcalib") / "app_default"
 """The built-in dataset's folder inside the user's cache folder (:func:`builtin_dataset_folder`)."""
 
+RESULTS_DIR = Path("blurcalib") / "results"
+"""The folder, inside the user's cache folder, of the app's results of each dataset
+(:func:`default_output_folder`)."""
+
 EXPORT_DIR = "calibration_app"
 """Folder, inside the dataset folder, that the app exports its calibration into (its images are not
 frames)."""
 
 
+SHOWN_PATH_CHARS = 120
+"""Longest path written whole in a message; longer ones keep their start and end."""
+
+
 class DatasetError(ValueError):
     """A folder cannot be opened as a dataset; the message names the path and the problem."""
+
+
+def shown_path(path: str | os.PathLike) -> str:
+    """A path for a message: whole up to :data:`SHOWN_PATH_CHARS` characters, else its start and
+    end around ``...`` (a 5,000-character path typed into the app stays one readable line)."""
+    text = os.fspath(path)
+    if len(text) <= SHOWN_PATH_CHARS:
+        return text
+    keep = (SHOWN_PATH_CHARS - 3) // 2
+    return f"{text[:keep]}...{text[-keep:]}"
 
 
 @dataclass(frozen=True)
@@ -86,7 +106,8 @@ def find_pattern(folder: Path, pattern: str | os.PathLike | None) -> Path:
     for candidate in (folder / PATTERN_FILE, folder.parent / PATTERN_FILE):
         if candidate.is_file():
             return candidate
-    raise DatasetError(f"{folder}: no {PATTERN_FILE} in the folder or its parent; name the pattern file")
+    raise DatasetError(f"{shown_path(folder)}: no {PATTERN_FILE} in the folder or its parent; name the "
+                       f"pattern file")
 
 
 def frame_files(folder: Path) -> list[Path]:
@@ -104,8 +125,8 @@ def frame_files(folder: Path) -> list[Path]:
             except FrameError:
                 continue
         if not found:
-            raise DatasetError(f"{folder}: no image files (png, jpg, tif, bmp) in the folder or its "
-                               "sub-folders") from None
+            raise DatasetError(f"{shown_path(folder)}: no image files (png, jpg, tif, bmp) in the folder or "
+                               "its sub-folders") from None
         return found
 
 
@@ -118,20 +139,33 @@ def _kind(name: str, truth: DatasetTruth | None) -> str:
 
 
 def _load_pattern(path: Path) -> StarPattern:
+    """The pattern, or a :class:`DatasetError` that quotes nothing of the file (its path may have
+    been typed by a client that cannot read the file: :attr:`PatternFileError.summary`)."""
     try:
         return load_pattern(path)
     except PatternFileError as exc:
-        raise DatasetError(str(exc)) from None
+        raise DatasetError(exc.summary.replace(str(path), shown_path(path))) from None
 
 
 def discover(folder: str | os.PathLike, pattern: str | os.PathLike | None = None) -> Dataset:
     """Open ``folder`` (a folder of frames, or a video file) as a dataset.
 
     Raises:
-        DatasetError: the folder or video is missing, holds no frames, or the pattern is missing
-            or malformed (the message names the path).
+        DatasetError: the folder or video is missing, cannot be read (a path too long, no
+            permission), holds no frames, or the pattern is missing or malformed (the message
+            names the path, shortened by :func:`shown_path`, and quotes nothing of the pattern
+            file).
     """
     root = Path(folder).expanduser()
+    try:
+        return _discover(root, pattern)
+    except OSError as exc:
+        raise DatasetError(f"{shown_path(root)}: cannot open ({exc.strerror or type(exc).__name__})"
+                           ) from None
+
+
+def _discover(root: Path, pattern: str | os.PathLike | None) -> Dataset:
+    """:func:`discover` of an expanded path; OSError passes through."""
     if root.is_file() and is_video(root):
         pattern_path = find_pattern(root.parent, pattern)
         star = _load_pattern(pattern_path)
@@ -142,8 +176,8 @@ def discover(folder: str | os.PathLike, pattern: str | os.PathLike | None = None
         return Dataset(root.parent, pattern_path, star,
                        tuple(FrameFile(f.name, f.path, "blurry", f.index) for f in frames), None, source=root)
     if not root.is_dir():
-        raise DatasetError(f"{root}: no such folder or video" if not root.exists()
-                           else f"{root}: neither a folder nor a video file (mp4, avi, mkv, mov)")
+        raise DatasetError(f"{shown_path(root)}: no such folder or video" if not root.exists()
+                           else f"{shown_path(root)}: neither a folder nor a video file (mp4, avi, mkv, mov)")
     pattern_path = find_pattern(root, pattern)
     star = _load_pattern(pattern_path)
     paths = frame_files(root)
@@ -171,12 +205,27 @@ def default_camera() -> TrueCamera:
     return TrueCamera(full.model.scaled(0.5), waves)
 
 
+def user_cache() -> Path:
+    """The user's cache folder: ``$XDG_CACHE_HOME``, or else ``~/.cache``."""
+    cache = os.environ.get("XDG_CACHE_HOME", "").strip()
+    return Path(cache) if cache and Path(cache).is_absolute() else Path.home() / ".cache"
+
+
 def builtin_dataset_folder() -> Path:
     """Where the app keeps its built-in dataset: ``blurcalib/app_default`` in the user's cache
-    folder, ``$XDG_CACHE_HOME`` or else ``~/.cache`` (never inside the installed package)."""
-    cache = os.environ.get("XDG_CACHE_HOME", "").strip()
-    root = Path(cache) if cache and Path(cache).is_absolute() else Path.home() / ".cache"
-    return root / BUILTIN_DIR
+    folder (:func:`user_cache`; never inside the installed package)."""
+    return user_cache() / BUILTIN_DIR
+
+
+def default_output_folder(dataset: str | os.PathLike) -> Path:
+    """Where the app writes a dataset's results when no output folder is given:
+    ``blurcalib/results/<name>-<digest>`` in the user's cache folder (:func:`user_cache`), the
+    digest the first 12 hex digits of the SHA-256 of the dataset's resolved path (a folder, or a
+    video file), so that a read-only dataset can be extracted and each dataset has its own."""
+    path = Path(dataset).expanduser().resolve()
+    digest = hashlib.sha256(os.fsencode(path)).hexdigest()[:12]
+    name = re.sub(r"[^A-Za-z0-9._-]", "_", path.name) or "root"
+    return user_cache() / RESULTS_DIR / f"{name}-{digest}"
 
 
 def default_dataset(root: str | os.PathLike, config: SynthConfig = DEFAULT_CONFIG,

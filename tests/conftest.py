@@ -9,6 +9,7 @@ folder is absent (a plain clone), and fail instead when ``BLURCALIB_REQUIRE_FIXT
 from __future__ import annotations
 
 import os
+from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
@@ -33,3 +34,14 @@ def shared_fixtures() -> Path:
             pytest.fail(reason)
         pytest.skip(reason)
     return SHARED
+
+
+@pytest.fixture(scope="session", autouse=True)
+def user_cache(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Path]:
+    """The user's cache folder (``XDG_CACHE_HOME``) of the whole session: a temporary one, so that
+    the app's results (:func:`state.folder.default_output_folder`) and built-in dataset never land
+    in the real cache, nor come from an earlier session's."""
+    with pytest.MonkeyPatch.context() as patch:
+        cache = tmp_path_factory.mktemp("cache")
+        patch.setenv("XDG_CACHE_HOME", str(cache))
+        yield cache

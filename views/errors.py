@@ -30,6 +30,7 @@ import viser
 import viser.transforms as vtf
 
 from blurcalib.calib import report
+from blurcalib.io.record import FrameStatus
 from blurcalib.io.text import count
 from blurcalib.target.pattern import StarPattern
 from state import AppState, Topic
@@ -215,7 +216,8 @@ class ErrorsPanel:
 
     def _draw_frame(self) -> None:
         view = self.state.view()
-        if view is None or view.image is None or view.result is None or view.entry.status == "running":
+        if (view is None or view.image is None or view.result is None
+                or view.entry.record.status is FrameStatus.RUNNING):
             self.image.image = placeholder("run the frame to see its error field")
             self.text.content = ""
             return

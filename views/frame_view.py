@@ -13,6 +13,7 @@ import numpy as np
 import viser
 
 from blurcalib.geometry.homography import homography_centre
+from blurcalib.io.record import FrameStatus
 from blurcalib.io.results import BlockStatus
 from state import AppState, FrameView, Topic
 from state.figures import block_quads
@@ -51,7 +52,7 @@ def draw_frame(view: FrameView, mode: str, centres: bool, seeds: bool, width: in
     canvas, s = fit_width(grey_rgb(view.image, 0.85), width)
     canvas = np.ascontiguousarray(canvas)
     result, flt, q = view.result, view.filter, view.quality
-    live = result is None or view.entry.status == "running"
+    live = result is None or view.entry.record.status is FrameStatus.RUNNING
     if live:
         if not view.live:
             return canvas

@@ -9,8 +9,8 @@ from pathlib import Path
 
 import viser
 
-from blurcalib.extract.frame import FrameResult
 from blurcalib.io.frames import IMAGE_EXTENSIONS
+from blurcalib.io.record import RUN_STATES, FrameRecord, FrameStatus
 from blurcalib.io.text import count
 from state import AppState, FrameView, Notice, RunProgress, Topic
 from state.app_state import FRAME_KINDS
@@ -24,13 +24,13 @@ NO_FRAMES = "(no frames)"
 STAGE_NAMES = {"seed": "seeding", "neighbour": "seeding from a neighbour", "free": "free PSFs",
                "field": "path-PSF field", "final": "final fit", "judge": "second judgement",
                "fit_other": "other", "align": "alignment"}
-"""Names of :meth:`blurcalib.extract.frame.FrameResult.stage_seconds`'s stages."""
+"""Names of :meth:`blurcalib.io.record.FrameRecord.stage_seconds`'s stages."""
 
 
-def stage_line(result: FrameResult, least_s: float = 0.05) -> str:
+def stage_line(record: FrameRecord, least_s: float = 0.05) -> str:
     """Markdown: where a frame's time went, the stages of at least ``least_s`` seconds in the
-    order they ran (:meth:`FrameResult.stage_seconds`); empty when none took that long."""
-    parts = [f"{STAGE_NAMES.get(k, k)} {v:.1f} s" for k, v in result.stage_seconds().items() if v >= least_s]
+    order they ran (:meth:`FrameRecord.stage_seconds`); empty when none took that long."""
+    parts = [f"{STAGE_NAMES.get(k, k)} {v:.1f} s" for k, v in record.stage_seconds().items() if v >= least_s]
     return "time by stage: " + ", ".join(parts) if parts else ""
 
 
@@ -145,7 +145,8 @@ class FramesPanel:
         state = self.state
         progress = state.progress()
         view = state.view()
-        frames = [(f.name, f.kind, f.status, f.accepted, f.blocks) for f in state.entries()]
+        frames = [(f.name, f.kind, f.record.status, f.record.accepted, f.record.blocks)
+                  for f in state.entries()]
         use = self.calibration.statuses() if self.calibration is not None else {}
         dataset = state.dataset
         folder = (dataset.source or dataset.folder) if dataset is not None else None
@@ -177,34 +178,35 @@ class FramesPanel:
                          f"decided (frame {min(progress.frames_done + 1, progress.frames_total)} of "
                          f"{progress.frames_total})")
         if view is not None:
-            e = view.entry
-            if e.status == "ok":
-                lines.append(f"**done**: {e.accepted} of {count(e.blocks, 'block')} accepted "
-                             f"({md(e.name)}, {e.seconds:.1f} s)")
-                growth = view.result.growth if view.result is not None else None
-                if growth is not None and growth.psf_field is not None:
+            e, r = view.entry, view.entry.record
+            if r.status is FrameStatus.OK:
+                lines.append(f"**done**: {r.accepted} of {count(r.blocks, 'block')} accepted "
+                             f"({md(e.name)}, {r.seconds:.1f} s)")
+                if r.psf == "field":
                     lines.append("PSFs from the frame's **motion-path field** (its blur is long for "
                                  "its squares; docs/deconvolution.md)")
-                stages = stage_line(view.result) if view.result is not None else ""
+                if r.seeded_by == "neighbour":
+                    lines.append(md(r.message))
+                stages = stage_line(r)
                 if stages:
                     lines.append(stages)
-            elif e.status == "cancelled":
-                lines.append(f"**cancelled**: {e.accepted} of {count(e.blocks, 'block')} accepted "
+            elif r.status is FrameStatus.CANCELLED:
+                lines.append(f"**cancelled**: {r.accepted} of {count(r.blocks, 'block')} accepted "
                              f"({md(e.name)})")
-            elif e.status in ("pending", "queued", "running"):
+            elif r.status in RUN_STATES:
                 if not progress.running:
                     lines.append(f"{md(e.name)} ({e.kind}): not extracted yet, press **Run frame**")
             else:
-                lines.append(f"**{e.status.replace('_', ' ')}**: {md(e.message)}")
+                lines.append(f"**{r.status.value.replace('_', ' ')}**: {md(r.message)}")
         notice = self._last_notice
         if notice is not None:
             lines.append(f"*{md(notice.title)}*: {md(notice.text)}")
         return "\n\n".join(lines)
 
     @staticmethod
-    def _table(frames: list[tuple[str, str, str, int, int]], use: dict[str, str]) -> str:
+    def _table(frames: list[tuple[str, str, FrameStatus, int, int]], use: dict[str, str]) -> str:
         """One row per frame; the last column is ``used`` by the calibration or why not."""
         rows = ["| frame | kind | status | accepted | calibration |", "|---|---|---|---|---|"]
-        rows += [f"| {md(n)} | {k} | {s.replace('_', ' ')} | {a}/{b} | {md(use.get(n, ''))} |"
+        rows += [f"| {md(n)} | {k} | {s.value.replace('_', ' ')} | {a}/{b} | {md(use.get(n, ''))} |"
                  for n, k, s, a, b in frames]
         return "\n".join(rows)

@@ -2,11 +2,12 @@
 
 The inspector shows one block of the current frame: its observed window with the loss's pixels
 outlined, the fitted model (:func:`blurcalib.deconv.blocks.render_model`, no re-fit), the residual and
-the PSF, with its figures. The plots are loss vs blur size (sigma_major) coloured by
-eccentricity and loss vs boundary energy coloured by sigma_major, with the thresholds; kept
-blocks are dots, removed ones crosses, the selected one ringed. viser cannot report clicks inside
-an image, so a block is chosen by its number or by a "jump to" choice (the extreme points); a
-finished frame with no block selected opens on its first block, block 0.
+the PSF, with its figures; a frame read back from its output folder keeps no fit, and shows its
+observed window with the block's square outlined, and its PSF. The plots are loss vs blur size
+(sigma_major) coloured by eccentricity and loss vs boundary energy coloured by sigma_major, with
+the thresholds; kept blocks are dots, removed ones crosses, the selected one ringed. viser cannot
+report clicks inside an image, so a block is chosen by its number or by a "jump to" choice (the
+extreme points); a finished frame with no block selected opens on its first block, block 0.
 """
 
 from __future__ import annotations
@@ -21,6 +22,7 @@ from matplotlib.figure import Figure
 from blurcalib.deconv.blocks import render_model
 from blurcalib.io.results import BLUR_PER_SQUARE_LIMIT, BlockTable
 from state import AppState, FrameView, Topic
+from state.figures import block_quads
 from views.common import Coalescer, grey_rgb, heat, hstack, label, placeholder, upscale
 
 JUMPS = ("choose…", "highest loss", "lowest loss", "highest boundary energy", "largest blur (σ_major)",
@@ -49,11 +51,40 @@ def jump_target(view: FrameView, choice: str) -> int | None:
     return int(np.argmax(np.where(fitted & np.isfinite(key), key, -np.inf)))
 
 
+def stored_block_images(view: FrameView, index: int) -> np.ndarray:
+    """Observed window (the block's square outlined) and PSF of block ``index`` of a frame read
+    back from its files, whose fit (its window, mask and model) is not kept: the model and the
+    residual panels say so."""
+    blocks = view.result.blocks
+    if not np.isfinite(blocks.loss[index]) or view.image is None:
+        return placeholder(f"block {index} was not fitted (status {blocks.status[index]})",
+                           (4 * PANEL_PX, PANEL_PX))
+    square = block_quads(blocks.H[[index]])[0]
+    h, w = view.image.shape
+    margin = 0.25 * float(np.ptp(square, axis=0).max())
+    x0, y0 = np.clip(np.floor(square.min(axis=0) - margin).astype(int), 0, [w - 1, h - 1])
+    x1, y1 = np.clip(np.ceil(square.max(axis=0) + margin).astype(int) + 1, 1, [w, h])
+    window = view.image[y0:y1, x0:x1]
+    lo, hi = float(np.percentile(window, 1)), float(np.percentile(window, 99))
+    observed = upscale(grey_rgb((window - lo) * 255.0 / max(hi - lo, 1.0)), PANEL_PX)
+    s = PANEL_PX / window.shape[0]
+    cv2.polylines(observed, [np.round((square - [x0 - 0.5, y0 - 0.5]) * s).astype(np.int32)], True,
+                  (255, 220, 0), 1, cv2.LINE_AA)
+    psf = upscale(heat(blocks.psf[index]), PANEL_PX)
+    for panel, text in ((observed, "observed"), (psf, "PSF")):
+        label(panel, text, (6, 18), 0.5)
+    kept = placeholder("model: run the frame", (PANEL_PX, PANEL_PX))
+    return hstack([observed, kept, placeholder("again to see it", (PANEL_PX, PANEL_PX)), psf])
+
+
 def block_images(view: FrameView, index: int) -> np.ndarray:
-    """Observed window (loss pixels outlined), model, residual and PSF of block ``index``."""
+    """Observed window (loss pixels outlined), model, residual and PSF of block ``index``; for a
+    frame read back from its files, :func:`stored_block_images`."""
     result = view.result
-    if result is None or result.growth is None or view.image is None:
+    if result is None or view.image is None:
         return placeholder("no result", (4 * PANEL_PX, PANEL_PX))
+    if result.growth is None:
+        return stored_block_images(view, index)
     try:
         m = render_model(result.growth.fit, view.image, index)
     except ValueError as exc:

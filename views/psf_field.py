@@ -12,6 +12,7 @@ import numpy as np
 import viser
 
 from blurcalib.geometry.homography import homography_centre
+from blurcalib.io.record import FrameStatus
 from blurcalib.io.results import BlockStatus
 from state import AppState, FrameView, Topic
 from state.figures import block_quads
@@ -28,7 +29,7 @@ def psf_mosaic(view: FrameView, tile: float, show: str, width: int = DISPLAY_WID
     canvas, s = fit_width(grey_rgb(view.image, 0.3), width)
     canvas = np.ascontiguousarray(canvas)
     result = view.result
-    if result is None or view.entry.status == "running":
+    if result is None or view.entry.record.status is FrameStatus.RUNNING:
         items = [(e.H, e.psf) for e in view.live if e.status is BlockStatus.ACCEPTED]
     else:
         blocks = result.blocks

@@ -25,7 +25,9 @@ that goes beyond the size its upload declared; and :func:`safe_upload_name` turn
 file name into one that can be stored (no folders, no NUL or control characters, at most
 :data:`MAX_UPLOAD_NAME` characters). :func:`check_listen` tries the address before the server
 starts, so that a port or host that cannot be used is a one-line error, not a server thread that
-dies while the app waits for it.
+dies while the app waits for it. :func:`check_host` refuses a host that other machines can reach
+(``0.0.0.0``) unless the caller allows it, with a warning: the origin check keeps hostile web
+pages out, but a client on the network needs no web page.
 
 viser builds its websockets server inside ``ViserServer.__init__`` with no hook for either, so
 :func:`secure_viser_server` wraps ``websockets.asyncio.server.serve`` only while the server is
@@ -98,6 +100,42 @@ def check_listen(host: str, port: int) -> None:
         except OSError as exc:
             if exc.errno != errno.EADDRINUSE:
                 raise ServeError(f"cannot listen on {host}:{port} ({exc.strerror or exc})") from None
+
+
+def is_local_host(host: str) -> bool:
+    """Whether ``host`` names this machine's loopback interface only (``127.0.0.1``, ``::1``,
+    ``localhost``, or a name that resolves to loopback addresses alone): no other machine can
+    reach a server listening there. ``0.0.0.0`` and ``::`` (every interface) are not local."""
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        pass
+    try:
+        found = {info[4][0] for info in socket.getaddrinfo(host, None, type=socket.SOCK_STREAM)}
+    except (socket.gaierror, UnicodeError):
+        return False
+    return bool(found) and all(ipaddress.ip_address(a.split("%")[0]).is_loopback for a in found)
+
+
+def check_host(host: str, allow_remote: bool) -> str | None:
+    """Refuse a host other machines can reach unless ``allow_remote``; a warning to print when it
+    is allowed.
+
+    Anyone who reaches the app can browse, read and export into any folder this user can, and
+    start runs: the origin check keeps other web pages out, not other machines.
+
+    Returns:
+        None for a local host (:func:`is_local_host`), else the warning.
+    Raises:
+        ServeError: a host other machines can reach, without ``allow_remote``.
+    """
+    if is_local_host(host):
+        return None
+    exposed = (f"--host {host} exposes the app to the network: any client that reaches it can browse and "
+               f"read files, export into any folder and run jobs as this user")
+    if not allow_remote:
+        raise ServeError(f"{exposed}; add --allow-remote to do so on a network you trust")
+    return f"{exposed} (--allow-remote)"
 
 
 def safe_upload_name(name: str) -> str:

@@ -19,7 +19,7 @@ from blurcalib.growth.quality import QualitySettings
 from blurcalib.io.text import count
 from state import AppState, Topic
 from state.alignment import AlignmentCache, AlignmentError
-from state.app_state import filter_counts
+from state.blocks import filter_counts
 from views.common import Coalescer, md
 
 

@@ -1,4 +1,5 @@
-"""The reference tool's camera files (``intrinsics0.yaml``): CentralGenericModel and CentralOpenCVModel.
+"""The reference tool's camera files (``intrinsics0.yaml``): CentralGenericModel, CentralOpenCVModel
+and CentralThinPrismFisheyeModel.
 
 Both are written as the reference tool's ``io/calibration_io.cc`` writes them: one ``key : value``
 line per field in a fixed order, numbers with 14 significant digits (C++ ``setprecision(14)``),
@@ -22,6 +23,11 @@ and renormalises every vector.
 ``parameters : [fx, fy, cx, cy, k1, k2, k3, k4, k5, k6, p1, p2]`` (OpenCV's rational model in
 another order; ``cx, cy`` pixel-corner, i.e. OpenCV's plus 0.5). blurcalib's Brown-Conrady
 camera maps to ``[fx, fy, cx + .5, cy + .5, k1, k2, k3, 0, 0, 0, p1, p2]``.
+
+``CentralThinPrismFisheyeModel``: ``type``, ``width``, ``height``,
+``use_equidistant_projection : true`` (or ``false``),
+``parameters : [fx, fy, cx, cy, k1, k2, k3, k4, p1, p2, sx1, sy1]`` (``cx, cy`` pixel-corner).
+A Kannala-Brandt camera is this model with ``p1 = p2 = sx1 = sy1 = 0``.
 """
 
 from __future__ import annotations
@@ -31,20 +37,30 @@ from pathlib import Path
 
 import numpy as np
 
+from blurcalib.camera.brown_conrady import BrownConradyCamera
 from blurcalib.camera.generic import PIXEL_CORNER_OFFSET, CentralGeneric
+from blurcalib.camera.kannala_brandt import KannalaBrandtCamera
+from blurcalib.camera.lens import ParametricCamera
 from blurcalib.camera.parametric import BrownConrady
+from blurcalib.camera.rational import RationalCamera
+from blurcalib.camera.thin_prism import ThinPrismFisheyeCamera
 from blurcalib.io.atomic import atomic_write_text
 
 __all__ = [
     "RefCameraError",
     "read_generic_yaml",
     "read_opencv_yaml",
+    "read_parametric_yaml",
     "write_generic_yaml",
     "write_opencv_yaml",
+    "write_parametric_yaml",
 ]
 
 GENERIC_TYPES = ("CentralGenericModel", "CentralGenericBSplineModel")
 OPENCV_TYPE = "CentralOpenCVModel"
+THIN_PRISM_TYPE = "CentralThinPrismFisheyeModel"
+_OPENCV_ORDER = ("fx", "fy", "cx", "cy", "k1", "k2", "k3", "k4", "k5", "k6", "p1", "p2")
+_THIN_PRISM_ORDER = ThinPrismFisheyeCamera.PARAM_NAMES
 GRID_COMMENT = ("# The grid is stored in row-major order, top to bottom. Each row is stored left to "
                 "right. Each grid point is stored as x, y, z.")
 _INT_FIELDS = ("width", "height", "calibration_min_x", "calibration_min_y", "calibration_max_x",
@@ -83,15 +99,25 @@ def write_generic_yaml(path: str | os.PathLike, model: CentralGeneric) -> Path:
 
 def write_opencv_yaml(path: str | os.PathLike, camera: BrownConrady) -> Path:
     """Write a Brown-Conrady camera as the reference tool's ``CentralOpenCVModel`` file."""
-    o = PIXEL_CORNER_OFFSET
-    params = [camera.fx, camera.fy, camera.cx + o, camera.cy + o, camera.k1, camera.k2, camera.k3,
-              0.0, 0.0, 0.0, camera.p1, camera.p2]
-    lines = [
-        f"type : {OPENCV_TYPE}",
-        f"width : {camera.width}",
-        f"height : {camera.height}",
-        "parameters : [" + ", ".join(_num(v) for v in params) + "]",
-    ]
+    return write_parametric_yaml(path, BrownConradyCamera.from_brown_conrady(camera))
+
+
+def write_parametric_yaml(path: str | os.PathLike, camera: ParametricCamera) -> Path:
+    """Write a parametric camera as the reference tool's file (atomically): Brown-Conrady and
+    the rational model as ``CentralOpenCVModel``, Kannala-Brandt and the thin-prism fisheye as
+    ``CentralThinPrismFisheyeModel``."""
+    values = {name: 0.0 for name in _OPENCV_ORDER + _THIN_PRISM_ORDER} | camera.named()
+    values["cx"] += PIXEL_CORNER_OFFSET
+    values["cy"] += PIXEL_CORNER_OFFSET
+    order: tuple[str, ...]
+    if isinstance(camera, BrownConradyCamera | RationalCamera):
+        kind, order, extra = OPENCV_TYPE, _OPENCV_ORDER, []
+    else:
+        equidistant = camera.angular
+        kind, order = THIN_PRISM_TYPE, _THIN_PRISM_ORDER
+        extra = [f"use_equidistant_projection : {'true' if equidistant else 'false'}"]
+    lines = [f"type : {kind}", f"width : {camera.width}", f"height : {camera.height}", *extra,
+             "parameters : [" + ", ".join(_num(values[n]) for n in order) + "]"]
     return atomic_write_text(path, "\n".join(lines) + "\n")
 
 
@@ -185,22 +211,59 @@ def read_opencv_yaml(path: str | os.PathLike) -> BrownConrady:
         RefCameraError: naming the file and the field; also when ``k4..k6`` are non-zero
             (a rational model blurcalib's Brown-Conrady camera cannot hold).
     """
-    path = Path(path)
+    camera = _read_parametric(Path(path), (OPENCV_TYPE,))
+    if not isinstance(camera, BrownConradyCamera):
+        raise RefCameraError(f"{path}: field 'parameters' has non-zero k4..k6 (rational model); "
+                             "only Brown-Conrady (k1, k2, k3, p1, p2) is supported")
+    return camera.to_brown_conrady()
+
+
+def read_parametric_yaml(path: str | os.PathLike) -> ParametricCamera:
+    """Read a ``CentralOpenCVModel`` or ``CentralThinPrismFisheyeModel`` file as the smallest
+    model of the family that holds it: Brown-Conrady when ``k4..k6`` are 0, else the rational
+    model; Kannala-Brandt for an equidistant thin-prism fisheye without ``p1, p2, sx1, sy1``.
+
+    Raises:
+        RefCameraError: naming the file and the missing or malformed field.
+    """
+    return _read_parametric(Path(path), (OPENCV_TYPE, THIN_PRISM_TYPE))
+
+
+def _read_parametric(path: Path, allowed: tuple[str, ...]) -> ParametricCamera:
     fields = _read_fields(path)
-    _type(path, fields, (OPENCV_TYPE,))
+    kind = _type(path, fields, allowed)
     width = _int_field(path, fields, "width")
     height = _int_field(path, fields, "height")
     params = _list_field(path, fields, "parameters")
-    if params.size != 12:
-        raise RefCameraError(f"{path}: field 'parameters' has {params.size} numbers, expected 12 "
-                             "[fx, fy, cx, cy, k1, k2, k3, k4, k5, k6, p1, p2]")
-    fx, fy, cx, cy, k1, k2, k3, k4, k5, k6, p1, p2 = (float(v) for v in params)
-    if k4 != 0 or k5 != 0 or k6 != 0:
-        raise RefCameraError(f"{path}: field 'parameters' has non-zero k4..k6 (rational model); "
-                             "only Brown-Conrady (k1, k2, k3, p1, p2) is supported")
-    o = PIXEL_CORNER_OFFSET
+    order = _OPENCV_ORDER if kind == OPENCV_TYPE else _THIN_PRISM_ORDER
+    if params.size != len(order):
+        raise RefCameraError(f"{path}: field 'parameters' has {params.size} numbers, expected {len(order)} "
+                             f"[{', '.join(order)}]")
+    values = dict(zip(order, (float(v) for v in params), strict=True))
+    values["cx"] -= PIXEL_CORNER_OFFSET
+    values["cy"] -= PIXEL_CORNER_OFFSET
+    equidistant = True
+    if kind == THIN_PRISM_TYPE:
+        flag = _field(path, fields, "use_equidistant_projection")
+        if flag not in ("true", "false"):
+            raise RefCameraError(f"{path}: field 'use_equidistant_projection' must be true or false, "
+                                 f"got {flag[:20]!r}")
+        equidistant = flag == "true"
     try:
-        return BrownConrady(fx=fx, fy=fy, cx=cx - o, cy=cy - o, k1=k1, k2=k2, p1=p1, p2=p2, k3=k3,
-                            width=width, height=height)
+        return _smallest_model(kind, values, width, height, equidistant)
     except ValueError as exc:
         raise RefCameraError(f"{path}: field 'parameters': {exc}") from None
+
+
+def _smallest_model(kind: str, values: dict[str, float], width: int, height: int, equidistant: bool
+                    ) -> ParametricCamera:
+    """The smallest model of the family holding a reference file's parameters."""
+    if kind == OPENCV_TYPE:
+        rational = any(values[k] != 0 for k in ("k4", "k5", "k6"))
+        cls = RationalCamera if rational else BrownConradyCamera
+        return cls.from_values(width, height, **{n: values[n] for n in cls.PARAM_NAMES})
+    if equidistant and all(values[k] == 0 for k in ("p1", "p2", "sx1", "sy1")):
+        return KannalaBrandtCamera.from_values(
+            width, height, **{n: values[n] for n in KannalaBrandtCamera.PARAM_NAMES})
+    return ThinPrismFisheyeCamera(np.array([values[n] for n in _THIN_PRISM_ORDER]), width, height,
+                                  equidistant=equidistant)

@@ -34,11 +34,12 @@ import math
 from collections.abc import Callable
 from dataclasses import dataclass
 
-import cv2
 import numpy as np
 import scipy.linalg
 import torch
 from numpy.typing import ArrayLike
+
+from blurcalib.camera.remap import OutputProjection, output_maps
 
 __all__ = [
     "DEFAULT_CELL_PX",
@@ -451,9 +452,15 @@ class CentralGeneric:
 
         Points whose ray leaves the calibrated area get the clamped pixel and ``inside`` False.
         """
+        return self.project_valid(points_cam, init)
+
+    def project_valid(self, points_cam: ArrayLike, init: ArrayLike | None = None, tol_px: float = 1e-8
+                      ) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`project` solved to ``tol_px`` (the interface of
+        :class:`blurcalib.camera.remap.RayProjector`)."""
         pts = torch.as_tensor(np.asarray(points_cam, dtype=np.float64).reshape(-1, 3))
         start = None if init is None else torch.as_tensor(np.asarray(init, np.float64).reshape(-1, 2))
-        u, inside = self.spline().project(pts, start)
+        u, inside = self.spline().project(pts, start, tol_px=tol_px)
         return u.numpy(), inside.numpy()
 
     def rotated(self, R: ArrayLike) -> CentralGeneric:
@@ -556,49 +563,16 @@ def _solve_banded_spd(A: np.ndarray, b: np.ndarray, bandwidth: int, ridge: float
     return scipy.linalg.solveh_banded(band, b, lower=True)
 
 
-MAP_TOL_PX = 1e-4
-"""Convergence of :func:`undistortion_map`'s per-pixel projections (px): float32 maps of a
-1280 px image resolve about 1e-4 px."""
-
-
 def undistortion_map(model: CentralGeneric, fx: float, fy: float, cx: float, cy: float,
                      width: int | None = None, height: int | None = None, coarse_px: int = 16
                      ) -> tuple[np.ndarray, np.ndarray]:
     """Maps for ``cv2.remap`` from the generic camera's image to a pinhole camera's.
 
     The pinhole camera ``K = [[fx, 0, cx], [0, fy, cy], [0, 0, 1]]`` (OpenCV pixels, same camera
-    frame) of ``width x height`` px (default the model's). Pixel ``(x, y)`` of the output looks
-    along ``((x - cx) / fx, (y - cy) / fy, 1)``; ``map_x, map_y (height, width)`` float32 hold its
-    position in the generic image, -1 where the ray leaves the calibrated area (so remap fills
-    the border value there). The projection is solved per pixel to :data:`MAP_TOL_PX`,
-    warm-started from a bilinear interpolation of a solve every ``coarse_px`` pixels.
+    frame) of ``width x height`` px (default the model's): pixel ``(x, y)`` of the output looks
+    along ``((x - cx) / fx, (y - cy) / fy, 1)``. :func:`blurcalib.camera.remap.output_maps` with a
+    pinhole output: -1 where the ray leaves the calibrated area.
     """
-    width = model.width if width is None else width
-    height = model.height if height is None else height
-    sp = model.spline()
-
-    def rays(xs: np.ndarray, ys: np.ndarray) -> torch.Tensor:
-        xx, yy = np.meshgrid(xs, ys)
-        pts = np.stack([(xx - cx) / fx, (yy - cy) / fy, np.ones_like(xx)], -1)
-        return torch.as_tensor(pts.reshape(-1, 3))
-
-    cxs = np.append(np.arange(0, width - 1, coarse_px, dtype=np.float64), width - 1)
-    cys = np.append(np.arange(0, height - 1, coarse_px, dtype=np.float64), height - 1)
-    coarse, _ = sp.project(rays(cxs, cys))
-    coarse = coarse.numpy().reshape(len(cys), len(cxs), 2)
-    fx_idx = np.interp(np.arange(width), cxs, np.arange(len(cxs)))
-    fy_idx = np.interp(np.arange(height), cys, np.arange(len(cys)))
-    init = np.stack([cv2.remap(coarse[..., k].astype(np.float32), *np.meshgrid(
-        fx_idx.astype(np.float32), fy_idx.astype(np.float32)), cv2.INTER_LINEAR,
-        borderMode=cv2.BORDER_REPLICATE) for k in range(2)], -1).reshape(-1, 2)
-    all_rays = rays(np.arange(width, dtype=np.float64), np.arange(height, dtype=np.float64))
-    u = torch.empty(len(all_rays), 2, dtype=torch.float64)
-    inside = torch.empty(len(all_rays), dtype=torch.bool)
-    chunk = 1 << 17
-    for i in range(0, len(all_rays), chunk):
-        start = torch.as_tensor(init[i:i + chunk].astype(np.float64))
-        u[i:i + chunk], inside[i:i + chunk] = sp.project(all_rays[i:i + chunk], start, tol_px=MAP_TOL_PX)
-    out = u.numpy().copy()
-    out[~inside.numpy()] = -1.0
-    maps = out.reshape(height, width, 2).astype(np.float32)
-    return np.ascontiguousarray(maps[..., 0]), np.ascontiguousarray(maps[..., 1])
+    output = OutputProjection("pinhole", fx, fy, cx, cy, model.width if width is None else width,
+                              model.height if height is None else height)
+    return output_maps(model, output, coarse_px)

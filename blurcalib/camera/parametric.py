@@ -33,13 +33,13 @@ import math
 import os
 from collections.abc import Mapping
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Any
 
 import cv2
 import numpy as np
 from numpy.typing import ArrayLike
 
+from blurcalib.camera.storage import CameraFileError, StorageReader, read_text, write_storage
 from blurcalib.geometry.pose import Pose, as_points
 from blurcalib.io.atomic import atomic_write_text
 
@@ -151,7 +151,7 @@ def _dist_from_array(dist: ArrayLike) -> tuple[float, float, float, float, float
     return k1, k2, p1, p2, k3
 
 
-def _as_int(value: Any, name: str) -> int:
+def as_int(value: Any, name: str) -> int:
     """Integer-valued ``value`` as int; rejects bools and non-integral numbers."""
     if isinstance(value, bool | np.bool_):
         raise ValueError(f"{name} must be an integer, got {value!r}")
@@ -208,7 +208,7 @@ class BrownConrady:
         if self.fx <= 0.0 or self.fy <= 0.0:
             raise ValueError(f"focal lengths must be positive, got fx={self.fx}, fy={self.fy}")
         for name in _SIZE_FIELDS:
-            size = _as_int(getattr(self, name), name)
+            size = as_int(getattr(self, name), name)
             if size <= 0:
                 raise ValueError(f"{name} must be positive, got {size}")
             object.__setattr__(self, name, size)
@@ -461,27 +461,6 @@ def project_poses(intrinsics: ArrayLike, rvecs: ArrayLike, tvecs: ArrayLike, poi
 # ---------------------------------------------------------------------------
 
 
-class CameraFileError(ValueError):
-    """A camera file is missing, unreadable or malformed; the message names the file."""
-
-
-def _read_text(path: str | os.PathLike[str]) -> str:
-    try:
-        text = Path(path).read_text(encoding="utf-8")
-    except FileNotFoundError as exc:
-        raise CameraFileError(f"camera file {os.fspath(path)!r} does not exist") from exc
-    except (OSError, UnicodeDecodeError) as exc:
-        raise CameraFileError(f"cannot read camera file {os.fspath(path)!r}: {exc}") from exc
-    if not text.strip():
-        raise CameraFileError(f"camera file {os.fspath(path)!r} is empty")
-    return text
-
-
-def _cv_message(exc: BaseException) -> str:
-    """OpenCV's own message (the binding wraps cv2.error parse failures in a SystemError)."""
-    return str(exc.__cause__ or exc).strip()
-
-
 def save_camera_yaml(path: str | os.PathLike[str], camera: BrownConrady) -> None:
     """Write ``camera`` as OpenCV FileStorage YAML, atomically.
 
@@ -489,13 +468,8 @@ def save_camera_yaml(path: str | os.PathLike[str], camera: BrownConrady) -> None
     ``image_width``, ``image_height`` (px). Doubles are written with 17 significant
     digits, so :func:`load_camera_yaml` restores the camera exactly.
     """
-    flags = cv2.FILE_STORAGE_WRITE | cv2.FILE_STORAGE_MEMORY | cv2.FILE_STORAGE_FORMAT_YAML
-    storage = cv2.FileStorage("", flags)
-    storage.write("camera_matrix", camera.K)
-    storage.write("distortion_coefficients", camera.dist.reshape(1, 5))
-    storage.write("image_width", camera.width)
-    storage.write("image_height", camera.height)
-    atomic_write_text(path, storage.releaseAndGetString())
+    write_storage(path, {"camera_matrix": camera.K, "distortion_coefficients": camera.dist.reshape(1, 5),
+                         "image_width": camera.width, "image_height": camera.height})
 
 
 def load_camera_yaml(path: str | os.PathLike[str]) -> BrownConrady:
@@ -507,44 +481,11 @@ def load_camera_yaml(path: str | os.PathLike[str]) -> BrownConrady:
     Raises:
         CameraFileError: missing, unreadable or malformed file; the message names the file.
     """
-    name = os.fspath(path)
-    text = _read_text(path)
-    try:
-        storage = cv2.FileStorage(text, cv2.FILE_STORAGE_READ | cv2.FILE_STORAGE_MEMORY)
-    except (cv2.error, SystemError) as exc:
-        raise CameraFileError(f"camera file {name!r} is not valid OpenCV YAML: {_cv_message(exc)}") from exc
-    try:
-        nodes = {}
-        for key in ("camera_matrix", "distortion_coefficients", "image_width", "image_height"):
-            node = storage.getNode(key)
-            if node.isNone():
-                raise CameraFileError(f"camera file {name!r} is missing key {key!r}")
-            nodes[key] = node
-        mats = {}
-        for key in ("camera_matrix", "distortion_coefficients"):
-            mat = nodes[key].mat() if nodes[key].isMap() else None
-            if mat is None:
-                raise CameraFileError(f"camera file {name!r}: {key} is not an OpenCV matrix")
-            mats[key] = mat
-        sizes = {}
-        for key in ("image_width", "image_height"):
-            if not (nodes[key].isInt() or nodes[key].isReal()):
-                raise CameraFileError(f"camera file {name!r}: {key} must be a number")
-            sizes[key] = nodes[key].real()
-        return BrownConrady.from_matrix(
-            mats["camera_matrix"],
-            mats["distortion_coefficients"],
-            sizes["image_width"],
-            sizes["image_height"],
-        )
-    except (cv2.error, SystemError) as exc:
-        raise CameraFileError(f"camera file {name!r} is malformed: {_cv_message(exc)}") from exc
-    except CameraFileError:
-        raise
-    except ValueError as exc:
-        raise CameraFileError(f"camera file {name!r} is invalid: {exc}") from exc
-    finally:
-        storage.release()
+    with StorageReader(path) as file:
+        file.require("camera_matrix", "distortion_coefficients", "image_width", "image_height")
+        K, dist = file.matrix("camera_matrix"), file.matrix("distortion_coefficients")
+        width, height = (as_int(file.number(key), key) for key in ("image_width", "image_height"))
+        return BrownConrady.from_matrix(K, dist, width, height)
 
 
 def save_camera_json(path: str | os.PathLike[str], camera: BrownConrady) -> None:
@@ -560,7 +501,7 @@ def load_camera_json(path: str | os.PathLike[str]) -> BrownConrady:
             the message names the file and the problem.
     """
     name = os.fspath(path)
-    text = _read_text(path)
+    text = read_text(path)
     try:
         data = json.loads(text)
     except json.JSONDecodeError as exc:

@@ -53,7 +53,7 @@ Three entry points, one per start of the PSF:
   re-centred PSF of the accepted neighbours that predicted it); stage 1 and the integer
   re-centring are skipped, the first support is the hint's, and
   :attr:`DeconvSettings.hinted_stages` stages run (one by default: half the kernel solves;
-  measured in ``docs/deconvolution.md``);
+  ``docs/decisions/psf-hints.md``);
 * :func:`fit_blocks_fixed`: each block's PSF is given (the frame's motion-path PSF field,
   :mod:`blurcalib.psf.path`) and kept: only ``H``, ``alpha`` and the brightness are fitted, in
   one stage of :attr:`DeconvSettings.fixed_steps` LM steps, and the re-centring moves ``H`` by
@@ -62,8 +62,8 @@ Three entry points, one per start of the PSF:
 All blocks of a batch are solved together as padded ``(b, ...)`` tensors on
 :attr:`DeconvSettings.device` (after the coarse kernel in groups of similar kernel support,
 :attr:`DeconvSettings.stage_batch_size`): the solver loops over stages and LM steps, never over
-blocks, pixels or kernel entries (one gather builds all patches of a step). Measurements behind
-the defaults: ``docs/deconvolution.md`` and ``scripts/bench_deconv.py``.
+blocks, pixels or kernel entries (one gather builds all patches of a step). The evidence for the
+defaults: ``docs/decisions/`` and ``scripts/bench_deconv.py``.
 """
 
 from __future__ import annotations

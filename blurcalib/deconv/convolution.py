@@ -33,12 +33,10 @@ def denormals_flushed(func: Callable[_P, _R]) -> Callable[_P, _R]:
     ``torch.set_flush_denormal``), and give the thread its own setting back after it. The block
     solver, the field fit and the extraction of a frame run so.
 
-    A float32 kernel cast from the float64 kernel solve holds entries below 1.2e-38 (5 % of the
-    entries in heavy frame 4 of ``scripts/bench_yield.py``), and each multiply-add of the
-    direct convolution with one runs through the CPU's slow path: that frame's direct
-    convolutions took 2.9 s of CPU with them and 0.53 s flushed, with the same features. Values
-    that small are zero for grey levels; other code of the thread (a float64 round trip of the
-    smallest doubles) may need them, hence the restore.
+    A float32 kernel cast from the float64 kernel solve can hold entries below 1.2e-38, and each
+    multiply-add of the direct convolution with one runs through the CPU's slow path
+    (docs/decisions/denormals-flushed.md). Values that small are zero for grey levels; other code
+    of the thread (a float64 round trip of the smallest doubles) may need them, hence the restore.
     """
     @functools.wraps(func)
     def run(*args: _P.args, **kwargs: _P.kwargs) -> _R:

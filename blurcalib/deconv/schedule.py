@@ -63,11 +63,11 @@ class BatchFit:
 
 _GROUP_COST = 8.6e7
 """Fixed cost of solving one more stage group (its Python-level tensor operations), in units of
-the multiply-adds of a normal matrix ``D D^T`` (measured on one CPU thread: ~3 ms per kernel
-solve against ~0.035 ns per multiply-add)."""
+the multiply-adds of a normal matrix ``D D^T``: about 3 ms a kernel solve against about 0.035 ns
+a multiply-add on one CPU thread."""
 _LATENT_COST = 4.3e3
 """Cost of one latent-grid pixel of a kernel solve (the pattern, its Jacobian and the
-convolutions: ~150 ns, measured with FFT convolutions), in the same units."""
+convolutions: about 150 ns with FFT convolutions), in the same units."""
 
 
 def stage_groups(support: np.ndarray, pixels: np.ndarray, size: np.ndarray, radius: int, most: int

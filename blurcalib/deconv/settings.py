@@ -13,7 +13,8 @@ import torch
 
 @dataclass(frozen=True)
 class DeconvSettings:
-    """Settings of the block solver; the defaults are the measured choice (docs/deconvolution.md).
+    """Settings of the block solver (docs/deconvolution.md; the evidence for the defaults:
+    docs/decisions/).
 
     Attributes:
         ridge: ``lambda`` of ``eq:deconvolution``, relative to the mean energy of a kernel

@@ -21,10 +21,11 @@ from __future__ import annotations
 
 from collections import Counter, defaultdict
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
+from blurcalib.io.record import FrameRecord, FrameStatus
 from blurcalib.io.results import FeatureTable
 
 DUPLICATE_TOLERANCE_PX = 0.25
@@ -38,10 +39,6 @@ MIN_SHARED_FEATURES = 8
 
 _CELL_PX = 2.0
 """Cell of the candidate index (px): duplicates put most shared features in the same cell."""
-
-DUPLICATE_STATUS = "duplicate"
-"""The ``frames.csv`` status of a frame left out as a duplicate view."""
-
 
 @dataclass(frozen=True)
 class Duplicate:
@@ -122,20 +119,16 @@ def _compare(table: FeatureTable, rows: np.ndarray, ids: np.ndarray, xy: np.ndar
     return Duplicate(name, original, len(shared), median)
 
 
-def mark_duplicates(rows: Sequence[dict], table: FeatureTable) -> set[str]:
-    """Find the duplicate views among the extracted frames ``rows`` (``frame`` and ``status``
-    keys, in the order of preference) and give each its :data:`DUPLICATE_STATUS` status and the
-    reason (``message``), naming the frame it duplicates; the rows are changed in place.
+def mark_duplicates(records: Sequence[FrameRecord], table: FeatureTable) -> list[FrameRecord]:
+    """The extracted frames ``records`` (in the order of preference) with each duplicate view
+    given the status ``duplicate`` and the reason as its message, naming the frame it
+    duplicates; only frames with status ``ok`` are compared.
 
     Args:
-        rows: the extraction rows; only frames with status ``ok`` are compared.
+        records: the extraction's records.
         table: their feature observations.
-    Returns:
-        The names of the duplicate frames.
     """
-    order = [r["frame"] for r in rows if r["status"] == "ok"]
+    order = [r.frame for r in records if r.status is FrameStatus.OK]
     duplicates = {d.frame: d for d in find_duplicates(table, order)}
-    for row in rows:
-        if row["frame"] in duplicates:
-            row.update(status=DUPLICATE_STATUS, message=duplicates[row["frame"]].reason)
-    return set(duplicates)
+    return [replace(r, status=FrameStatus.DUPLICATE, message=duplicates[r.frame].reason)
+            if r.frame in duplicates else r for r in records]

@@ -17,7 +17,6 @@ import math
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
-from enum import Enum
 
 import numpy as np
 
@@ -35,6 +34,7 @@ from blurcalib.growth.seed import (
 )
 from blurcalib.growth.settings import GrowSettings
 from blurcalib.growth.window import SHARP_START, WindowPolicy
+from blurcalib.io.record import FrameRecord, FrameStatus, split_fit_seconds
 from blurcalib.io.results import (
     BlockTable,
     FeatureFlags,
@@ -43,24 +43,6 @@ from blurcalib.io.results import (
 from blurcalib.io.text import printable_name
 from blurcalib.psf.kernel import blur_extent
 from blurcalib.target.pattern import StarPattern
-
-FRAMES_TABLE = "frames.csv"
-
-
-class FrameStatus(str, Enum):
-    """Outcome of one frame."""
-
-    OK = "ok"
-    NOT_SEEDED = "not_seeded"
-    NO_BLOCKS = "no_blocks"
-    UNREADABLE = "unreadable"
-    WRONG_SIZE = "wrong_size"
-    FAILED = "failed"
-
-
-FINAL_STATUSES = frozenset({FrameStatus.OK.value, FrameStatus.NOT_SEEDED.value,
-                            FrameStatus.NO_BLOCKS.value})
-"""Outcomes a resumed run keeps; unreadable, wrong-size and failed frames are retried."""
 
 FRAME_KINDS: tuple[str, ...] = ("auto", "sharp", "blurry")
 """Values of :attr:`ExtractSettings.kind`."""
@@ -168,39 +150,28 @@ class FrameResult:
         """Wall time (s) by stage, the growth's split out: ``seed``, then :attr:`Growth.seconds`
         (``free``, ``field``, ``final``, ``judge``) and ``fit_other`` (the rest of ``fit``: the
         frame's noise, a growth started again with a sharp frame's settings), then ``align``;
-        stages not run are absent."""
-        growth = self.growth.seconds if self.growth is not None else {}
-        out = {}
-        for k, v in self.seconds.items():
-            if k == "fit":
-                out.update(growth)
-                out["fit_other"] = v - sum(growth.values())
-            else:
-                out[k] = v
-        return out
+        stages not run are absent (:func:`blurcalib.io.record.split_fit_seconds`)."""
+        return split_fit_seconds(self.seconds, self.growth.seconds if self.growth is not None else {})
 
-    def summary(self) -> dict:
-        """A JSON-serialisable one-line summary (the row of ``frames.csv``; ``psf`` says whether
-        the blocks were fitted with the frame's path-PSF field, ``field``, or with free PSFs,
-        ``free``, and ``psf_field`` holds the field, :meth:`blurcalib.psf.path.PathField.to_dict`;
-        ``kind`` and ``blur_px`` the frame's kind and measured blur, ``noise_dn`` its noise
-        (:attr:`blurcalib.growth.noise.NoiseModel.sigma`, grey levels), empty when unknown;
-        ``seconds`` the total and ``seconds_*`` each stage, ``seconds_fit_*`` the growth's within
-        ``seconds_fit``)."""
-        accepted = int(self.blocks.accepted.sum())
+    def record(self) -> FrameRecord:
+        """The frame's record (:class:`blurcalib.io.record.FrameRecord`, the row of ``frames.csv``):
+        ``psf`` says whether the blocks were fitted with the frame's path-PSF field, ``field``, or
+        with free PSFs, ``free``, and ``psf_field`` holds the field; the blur, the noise
+        (:attr:`blurcalib.growth.noise.NoiseModel.sigma`, grey levels) and the seconds are rounded
+        to 3 decimals, the message made printable (:func:`blurcalib.io.text.printable_name`)."""
         path_field = self.growth.psf_field if self.growth is not None else None
-        psf = {"psf": "" if self.growth is None else "free" if path_field is None else "field"}
-        if path_field is not None:
-            psf["psf_field"] = path_field.to_dict()
-        return {"frame": self.frame, "status": self.status.value, "message": printable_name(self.message),
-                "seeded_by": self.seed.method if self.seed is not None else "", **psf,
-                "kind": self.kind, "blur_px": round(self.blur_px, 3) if math.isfinite(self.blur_px) else "",
-                "noise_dn": round(self.noise.sigma, 3) if self.noise is not None else "",
-                "blocks": len(self.blocks), "accepted": accepted, "features": len(self.features),
-                "seconds": round(sum(self.seconds.values()), 3),
-                **{f"seconds_{k}": round(v, 3) for k, v in self.seconds.items()},
-                **{f"seconds_fit_{k}": round(v, 3)
-                   for k, v in (self.growth.seconds if self.growth is not None else {}).items()}}
+        fit = self.growth.seconds if self.growth is not None else {}
+        return FrameRecord(
+            self.frame, self.status, printable_name(self.message),
+            seeded_by=self.seed.method if self.seed is not None else "",
+            psf="" if self.growth is None else "free" if path_field is None else "field",
+            psf_field=None if path_field is None else path_field.to_dict(), kind=self.kind,
+            blur_px=round(self.blur_px, 3) if math.isfinite(self.blur_px) else None,
+            noise_dn=round(self.noise.sigma, 3) if self.noise is not None else None,
+            blocks=len(self.blocks), accepted=int(self.blocks.accepted.sum()), features=len(self.features),
+            seconds=round(sum(self.seconds.values()), 3),
+            stages={k: round(v, 3) for k, v in self.seconds.items()},
+            fit_stages={k: round(v, 3) for k, v in fit.items()})
 
 
 def mean_stage_seconds(results: Sequence[FrameResult]) -> dict[str, float]:

@@ -35,10 +35,8 @@ from blurcalib.target.pattern import StarPattern
 def field_degree(xy: np.ndarray, image_size: tuple[int, int], count: int | None = None) -> int:
     """Polynomial degree of a path field fitted from blocks at ``xy (B, 2)`` px (``count`` of
     them, default ``B``): 2 from 30 blocks spanning 0.3 of the image's longer side, 1 from 10
-    spanning 0.1, else 0 (a field of higher degree than its blocks span would be extrapolated).
-    Measured on a 22 px blur: the tag ring (24 blocks over 0.14 of the image) fitted with
-    degree 0 lands 0.28 px off the truth at a loss of twice the noise's variance, with degree 1
-    0.09 px off at the noise's."""
+    spanning 0.1, else 0 (a field of higher degree than its blocks span would be extrapolated;
+    a tag ring seeds with degree 0, then 1)."""
     ok = np.all(np.isfinite(xy), axis=1)
     if not ok.any():
         return 0
@@ -68,14 +66,13 @@ def field_rows(pattern: StarPattern, ids: np.ndarray, H: np.ndarray, image_shape
     :attr:`GrowSettings.field_blocks` of them spread over the frame (:func:`spread`).
 
     None lies on the pattern's rim (:func:`blurcalib.growth.final.inner`: their loss area would
-    reach the paper beyond the stars; farthest-point sampling picked them first, and 7 of 40
-    blocks fitted at 50 x the noise's variance). Where at least
+    reach the paper beyond the stars, and farthest-point sampling would pick them first). Where
+    at least
     :attr:`GrowSettings.field_min_blocks` can, only blocks whose loss area
     (:attr:`GrowSettings.final_extent` x the square, with ``deconv``'s margin) lies inside the
     image are chosen: farthest-point sampling picks blocks at the image's border first, and the
-    field's fit leaves out one whose area crosses it, so the field lost the blocks that held its
-    extent (measured on the heavy frames of ``scripts/bench_yield.py``: 7 of 14 field fits lost
-    1-4 of their 24 blocks).
+    field's fit leaves out one whose area crosses it, so the field would lose the blocks that
+    hold its extent (docs/decisions/field-seeds-inside-image.md).
     """
     off_rim = np.flatnonzero(inner(pattern, ids))
     status = block_windows(H[off_rim], image_shape, replace(deconv, loss_extent=settings.final_extent))[3]
@@ -144,14 +141,10 @@ def ring_seed(image: np.ndarray, pattern: StarPattern, growth: Growth, window: W
     the frame's noise variance ``noise_var`` (grey levels^2; None: never), both fits are made
     again, from the first fit's field and the predictions, and kept where their loss is within
     that limit. While the first fit's field is still wrong it can drag the homography along the
-    blur and settle there; started afresh with a field near the blur's, it does not. Measured
-    on frame 3 of ``scripts/bench_yield.py`` (22 px of blur on 20-24 px squares) over 14
-    perturbations of 0.01 grey levels: in 2 the ring ended 0.8 px off (median, after the mean
-    offset) at 2.6 and 4.3 x the noise's variance and the frame came out at 0.14 and 0.12 px;
-    made again, the ring ended at 1.3 x, as the rings that land do on that frame and the
-    demo's (1.3-1.4 x), and the frame at 0.075 and 0.067 px. The second fit is not kept on a
-    lower loss alone: on a frame of 7 px of blur on 8-9 px squares every tied fit of the ring
-    stays at 13-60 x the noise's variance, and the lower of two was once 1.3 px off.
+    blur and settle there; started afresh with a field near the blur's, it does not. The
+    second fit is not kept on a lower loss alone: where every tied fit of a ring stays far above
+    the noise's variance, the lower of two can be the one that is off
+    (docs/decisions/field-ring-refit.md).
     """
     h, w = image.shape
     ring = np.flatnonzero(growth.front == 0)
@@ -185,8 +178,7 @@ def local_predictions(pattern: StarPattern, ids: np.ndarray, accepted_H: dict[in
     exists, else ``fallback (B, 3, 3)`` (the mean of the adjacent blocks' predictions); and
     ``(B,)`` bool, where it exists. Under blur as long as the squares a
     block's fit stays where it starts along the blur, so a prediction from one or two neighbours
-    passes their errors on in chains (measured: 10 blocks 0.5-1 px off in a row); many
-    neighbours, most with shorter blur, hold it."""
+    would pass their errors on in chains; many neighbours, most with shorter blur, hold it."""
     ref = np.fromiter(accepted_H, dtype=np.int64, count=len(accepted_H))
     f = pattern.features[ids]
     homographies = neighbour_homographies(f, pattern.features[ref],
@@ -250,8 +242,9 @@ def field_growth(image: np.ndarray, pattern: StarPattern, growth: Growth, window
     ledger.replace_fits(seeds[ok], refit, np.flatnonzero(ok))
     for k in np.flatnonzero(ok):
         ledger.restate(int(seeds[k]), BlockStatus.ACCEPTED, refit, int(k))
-    # tried again below: blocks whose two fits disagree (measured: free fits next to the tag
-    # 0.6-1 px off), and with seeds from the ring the other blocks the growth accepted
+    # tried again below: blocks whose two fits disagree (a free fit next to the tag can be
+    # px off where the field's is right), and with seeds from the ring the other blocks the
+    # growth accepted
     acc = np.flatnonzero(growth.accepted)
     demoted = np.union1d(seeds[~ok], np.setdiff1d(acc, seeds) if from_ring else [])
     for k in demoted.astype(np.int64):

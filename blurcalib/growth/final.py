@@ -2,9 +2,9 @@
 
 Once grown, the accepted blocks of a frame whose window adapted are fitted once more with the loss
 over 1.5 x their square (:func:`final_fit`), started from their fit: the centre sees 2.25 x the
-pixels (12-25 px of blur: median 0.037 -> 0.030 px). Frames whose window did not adapt skip it by
-default (:attr:`blurcalib.growth.settings.GrowSettings.final_fit_frames`): there it costs about
-1 s per frame for a smaller gain.
+pixels. Frames whose window did not adapt skip it by default
+(:attr:`blurcalib.growth.settings.GrowSettings.final_fit_frames`): there it costs more for a
+smaller gain (docs/decisions/final-fit-extent.md).
 """
 
 from __future__ import annotations
@@ -32,8 +32,8 @@ def final_fit(image: np.ndarray, pattern: StarPattern, ids: np.ndarray, fit: Blo
     ``eq:deconvolution`` with the loss over ``|q|_inf <= e`` (``e`` =
     :attr:`GrowSettings.final_extent`: the star's square and a band of its neighbours' squares)
     instead of the square alone: the periodic latent pattern and a PSF that varies slowly over
-    the image hold there too, and the centre's noise falls with the pixels it sees (measured in
-    docs/deconvolution.md). Each block starts from its fitted ``H`` and re-centred PSF (the PSF
+    the image hold there too, and the centre's noise falls with the pixels it sees
+    (docs/decisions/final-fit-extent.md). Each block starts from its fitted ``H`` and re-centred PSF (the PSF
     as its hint: :attr:`DeconvSettings.hinted_stages` stages) in the window its PSF asks for
     (:meth:`WindowPolicy.choose`, at most the growth's largest). Blocks on the pattern's outer
     rim are left as they are (the grown area would reach the paper beyond the printed stars,

@@ -76,12 +76,11 @@ def fit_hinted(image: np.ndarray, H0: np.ndarray, num_segments: int, kernel_size
       (:func:`blurcalib.psf.kernel.blur_per_square` of the hint at ``H0`` below
       :attr:`GrowSettings.retry_below_blur_per_square`) are accepted when their last LM step moved
       the star centre less than :attr:`GrowSettings.hinted_converge_px`, and fitted again with
-      the full schedule when it moved more. There the one hinted stage is slow, not wrong: on real
-      frames under 5-12 px of blur (``scripts/bench_real_texture.py``, blur per square 0.14-0.40)
-      it still moves 0.05-0.15 px at its last step, within 0.15 px of the full schedule's fit.
-      Where the blur reaches half the square a block still moving is often px off, and the full
-      schedule settles px off too (``scripts/bench_speed.py``: 21 of 47 blocks > 0.5 px off at
-      0.56-0.99): those stay not converged.
+      the full schedule when it moved more. There the one hinted stage is slow, not wrong: on
+      low-contrast real frames it still moves by up to 0.15 px at its last step, within 0.15 px
+      of the full schedule's fit. Where the blur reaches half the square a block still moving is
+      often px off, and the full schedule settles px off too: those stay not converged
+      (docs/decisions/hinted-second-look.md).
     """
     s = settings or GrowSettings()
     if psf_hint is None:

@@ -3,7 +3,7 @@ blurred frames, the agreement of each block with its neighbours.
 
 Heavily blurred frames (blur extent above
 :attr:`blurcalib.growth.settings.GrowSettings.heavy_above_extent_px`, 18 px, in the front that
-made the window adapt, measured in the adapted window) are checked for blocks that settled px off
+made the window adapt, read in the adapted window) are checked for blocks that settled px off
 at a normal loss (a long PSF shifted in its window), which the loss, boundary energy and jump
 limit do not see and whose predictions drag their neighbours along in chains: every front's
 blocks must lie within :attr:`~blurcalib.growth.settings.GrowSettings.max_inconsistency_px`
@@ -65,8 +65,8 @@ def inconsistent(features: np.ndarray, centres: np.ndarray, ref_features: np.nda
     (itself excluded) give a homography feature coordinates -> px (RANSAC, ``tol_px / 2``); the
     block is inconsistent when its centre is more than ``tol_px`` from that homography's
     prediction. Blocks with fewer than ``min_points`` references (a homography extrapolated from
-    a thin strip of blocks is no judge: measured, a frame whose growth crept out of a ring of 4
-    blocks lost 96 of its 102 blocks with 6), fewer than ``min_inliers`` inliers, or references
+    a thin strip of blocks is no judge; docs/decisions/consistency-check.md), fewer than
+    ``min_inliers`` inliers, or references
     (nearly) on a line, are not judged. Over the few squares the neighbours span, lens
     distortion is far below a pixel; a block that settled with its long PSF shifted in the
     window (centre px off at a normal loss) is not.

@@ -63,7 +63,7 @@ def pixel_mask(tag: np.ndarray | None, kernel_size: int, footprint: np.ndarray |
     if footprint is None:
         r = kernel_size // 2 + 2
         footprint = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
-    # dilate the tag's neighbourhood only (the whole frame took ~3 ms per front)
+    # dilate the tag's neighbourhood only, not the whole frame
     ry, rx = footprint.shape[0] // 2, footprint.shape[1] // 2
     y0, y1 = max(y - ry, 0), min(y + h + ry, tag.shape[0])
     x0, x1 = max(x - rx, 0), min(x + w + rx, tag.shape[1])

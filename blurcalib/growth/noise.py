@@ -28,8 +28,8 @@ fitted and does not absorb the model errors the loss threshold is there to catch
 A bin's variance is at least that of rounding to whole grey levels of the 8-bit scale,
 :data:`QUANTISATION_VAR`: where a camera's noise is well below a grey level, flat areas round to
 one level (or, in a colour frame or a video, to one colour), the residual's median is 0 and such a
-bin would read no noise at all, at a precision that outweighed every other bin (a simulated frame
-of 0.38 grey levels of noise read 0.0; so did the real fixture frames, as images and as a video).
+bin would read no noise at all, at a precision that outweighed every other bin
+(docs/decisions/noise-quantisation-floor.md).
 """
 
 from __future__ import annotations

@@ -43,20 +43,16 @@ DEBLUR_ANGLES_RAD = (0.0, 0.26, -0.26)
 
 APRILTAG_REFINEMENT_OFFSET_PX = 0.5
 """aruco's CORNER_REFINE_APRILTAG corners sit +0.5 px from the OpenCV pixel-centre convention
-(measured on simulated frames against the true corners; also noted for pupil-apriltags)."""
+(against simulated frames' true corners; pupil-apriltags does the same)."""
 
 
 APRILTAG_QUAD_SIGMA_PX = 0.8
 """Gaussian blur (px) of the AprilTag quad detector's thresholded copy (aruco's
 ``aprilTagQuadSigma``; 0 in OpenCV). Image noise breaks the tag's edges into many small clusters
-whose line fits are most of a detection's time: measured on simulated 1280x720 frames (noise
-2 DN) one ``detectMarkers`` call takes 31-34 ms instead of 228-253 ms and finds as many tags or
-more (48 of 60 blurry frames instead of 45, all 20 sharp ones), on the real fixture frames 40
-instead of 44 ms with the same tags. The corners move by 0.07-0.16 px (median); the seed's
-prediction of the tag ring against the extracted features is 0.19 px (sharp) and 0.58 px
-(blurry) median, against 0.23 and 0.49 px without the blur. The deblurred search
-(:func:`detect_tags_deblurred`) keeps the unblurred detector: with the blur there, one of four
-heavily blurred frames seeded after deblurring grew 1.3 px off its stars."""
+whose line fits are most of a detection's time; the blur makes a detection several times faster
+and finds as many tags or more. The deblurred search (:func:`detect_tags_deblurred`) keeps the
+unblurred detector, whose corners seed heavily blurred frames better
+(docs/decisions/tag-detector-quad-sigma.md)."""
 
 
 class SeedError(RuntimeError):

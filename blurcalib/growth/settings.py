@@ -28,8 +28,8 @@ class GrowSettings:
         adapt_above_extent_px: the window adapts only in frames whose tag ring shows more blur
             than this (90th percentile of ``sqrt(12) sigma_major``, px) or whose ring PSFs
             reach the border (median boundary energy above ``refit_boundary_energy``); below,
-            the start window (:attr:`blurcalib.growth.window.WindowPolicy.start`) is kept (the
-            measured best for up to 15 px of blur).
+            the start window (:attr:`blurcalib.growth.window.WindowPolicy.start`) is kept
+            (docs/decisions/adaptive-window.md).
         refit_boundary_energy: blocks whose PSF has more than this share of its energy in the
             window's outer two-pixel ring are re-fitted with a larger window.
         max_inconsistency_px: in heavily blurred frames only (``heavy_above_extent_px``),

@@ -7,11 +7,9 @@ a straight blur with that second moment; odd, at least :attr:`WindowPolicy.start
 same prediction with a larger window, up to the cap, rather than dropped (:func:`fit_front`). All
 of this only in frames whose tag ring shows more than about 18 px of blur
 (:func:`needs_adaptive_window`), or from the first later front whose PSFs reach the window's
-border (the blur grows away from the tag); below, the start window is kept, measured best there
-(a later front's extent alone is no signal: the 6 frames of 4-15 px blur of
-``scripts/bench_yield.py`` read 18.4 px at most, and one of them lost accuracy with the larger
-window, 0.029 -> 0.037 px). Kernels of one growth are zero-padded (centred) to its largest
-window, which leaves them unchanged as convolution kernels.
+border (the blur grows away from the tag); below, the start window is kept (a later front's
+extent alone is no signal; docs/decisions/adaptive-window.md). Kernels of one growth are
+zero-padded (centred) to its largest window, which leaves them unchanged as convolution kernels.
 """
 
 from __future__ import annotations
@@ -32,8 +30,8 @@ from blurcalib.psf.kernel import blur_extent, blur_per_square
 SHARP_START = 9
 """Start window of sharp frames (px): 1.5 x (:attr:`WindowPolicy.per_extent`) the 5 px blur extent
 below which a frame is classified sharp, rounded up to odd, so it holds the PSF of any frame
-classified sharp. A 7 px window, which the PSFs of the real fixture frames (3.3-3.7 px of blur)
-reach, adapted on every real frame and cost 3.6-3.7 x the CPU (docs/deconvolution.md)."""
+classified sharp; a smaller window would adapt on sharp frames with a few px of blur
+(docs/decisions/sharp-window-9px.md)."""
 
 
 @dataclass(frozen=True)

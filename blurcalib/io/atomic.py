@@ -29,6 +29,8 @@ import tempfile
 from collections.abc import Iterable, Iterator, Sequence
 from pathlib import Path
 
+from blurcalib.io.csv_reader import csv_chunks
+
 RUN_MANIFEST = "blurcalib-run.json"
 """The run manifest: ``{"tool": "blurcalib", "command": ..., "settings": {...}}``."""
 
@@ -206,6 +208,23 @@ def _command(folder: Path) -> str | None:
     return None if manifest is None else manifest.get("command")
 
 
+def output_dir_problem(path: str | os.PathLike, command: str, extractions: Sequence[str] = ()) -> str | None:
+    """Why :func:`claim_output_dir` would refuse ``path`` as the output folder of a ``command``
+    run without ``overwrite`` (a message naming the folder), or None when it would take it;
+    nothing is written."""
+    folder = Path(path)
+    if not folder.is_dir() or not any(folder.iterdir()):
+        return None
+    manifest = run_manifest(folder)
+    if manifest is None and not all(p.name in extractions and _command(p) == "extract"
+                                    for p in folder.iterdir()):
+        return f"{folder}: output folder is not empty and is not a blurcalib output (no {RUN_MANIFEST})"
+    if manifest is not None and manifest.get("command") != command:
+        return (f"{folder}: output folder holds a blurcalib {manifest.get('command')!r} output, "
+                f"not {command!r}")
+    return None
+
+
 def claim_output_dir(path: str | os.PathLike, command: str, settings: dict,
                      overwrite: bool = False, extractions: Sequence[str] = ()) -> Path:
     """Make ``path`` the output folder of a ``command`` run and write its run manifest.
@@ -228,16 +247,9 @@ def claim_output_dir(path: str | os.PathLike, command: str, settings: dict,
         OutputError: the folder holds something else, or cannot be created or written.
     """
     folder = Path(path)
-    if folder.is_dir() and not overwrite and any(folder.iterdir()):
-        manifest = run_manifest(folder)
-        if manifest is None and not all(p.name in extractions and _command(p) == "extract"
-                                        for p in folder.iterdir()):
-            raise OutputError(f"{folder}: output folder is not empty and is not a blurcalib "
-                              f"output (no {RUN_MANIFEST}); use --overwrite to write into it")
-        if manifest is not None and manifest.get("command") != command:
-            raise OutputError(f"{folder}: output folder holds a blurcalib "
-                              f"{manifest.get('command')!r} output, not {command!r}; use "
-                              f"--overwrite to write into it")
+    problem = None if overwrite else output_dir_problem(folder, command, extractions)
+    if problem is not None:
+        raise OutputError(f"{problem}; use --overwrite to write into it")
     ensure_writable_dir(folder)
     _check_writable_tree(folder)
     remove_temporaries(folder)
@@ -284,7 +296,8 @@ def atomic_write_csv(path: str | os.PathLike, header: Sequence[str],
 def read_csv_columns(path: Path, required: Sequence[str], error: type[Exception], what: str,
                      optional: Sequence[str] = ()) -> tuple[dict[str, list[str]], int]:
     """The ``required`` columns of a CSV with a header, and those of ``optional`` it has, as
-    lists of strings, and its row count.
+    lists of strings, and its row count (the whole file: :func:`blurcalib.io.csv_reader.csv_chunks`
+    reads it in chunks).
 
     Args:
         path: the file.
@@ -294,25 +307,8 @@ def read_csv_columns(path: Path, required: Sequence[str], error: type[Exception]
             starts with the path.
         what: what the file is, for the messages (``"results file"``, ``"calibration file"``).
     """
-    try:
-        text = path.read_text(encoding="utf-8")
-    except FileNotFoundError:
-        raise error(f"{path}: {what} not found") from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise error(f"{path}: cannot read {what} ({exc})") from None
-    reader = csv.reader(io.StringIO(text, newline=""))
-    header = next(reader, None)
-    if header is None:
-        raise error(f"{path}: empty file (expected a header with columns {', '.join(required)})")
-    missing = [c for c in required if c not in header]
-    if missing:
-        raise error(f"{path}: missing column(s) {', '.join(repr(c) for c in missing)}")
-    rows = []
-    for row in reader:
-        if len(row) != len(header):
-            raise error(f"{path}: row {len(rows) + 1} (line {reader.line_num}) has "
-                        f"{len(row)} fields, expected {len(header)}")
-        rows.append(row)
-    by_index = list(zip(*rows, strict=True)) if rows else [() for _ in header]
-    wanted = [*required, *(name for name in optional if name in header)]
-    return {name: list(by_index[header.index(name)]) for name in wanted}, len(rows)
+    columns: dict[str, list[str]] = {}
+    for _, chunk in csv_chunks(path, required, error, what, optional):
+        for name, values in chunk.items():
+            columns.setdefault(name, []).extend(values)
+    return columns, len(columns[required[0]]) if required else 0

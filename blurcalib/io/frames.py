@@ -23,6 +23,8 @@ from typing import BinaryIO
 import cv2
 import numpy as np
 
+from blurcalib.io.input_file import InputFileError, open_input, read_input
+
 IMAGE_EXTENSIONS: tuple[str, ...] = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp")
 """Extensions (lower case) recognised as frames; matched case-insensitively."""
 
@@ -40,6 +42,11 @@ file header, before decoding). Extraction's memory grows with the frame: an
 8000 x 6000 colour JPEG peaked at 1.8 GB resident in one process (0.3 GB of it the interpreter
 and torch; loading 0.4 GB, tag detection 0.4 GB, block growth the rest), so a frame at the
 limit stays under 2 GB per worker."""
+
+MAX_FRAME_BYTES = 8 * MAX_FRAME_PIXELS + (1 << 20)
+"""Largest frame file read (bytes): a frame of :data:`MAX_FRAME_PIXELS` pixels stored without
+compression in 4 channels of 16 bits, plus 1 MiB of headers. A larger file is refused before it
+is read (so is anything that is not a regular file: a device or a FIFO behind a frame's name)."""
 
 _TIFF_SIGNATURES = (b"II*\x00", b"MM\x00*", b"II+\x00", b"MM\x00+")
 """The first four bytes of a TIFF or BigTIFF, little- or big-endian."""
@@ -234,11 +241,11 @@ def _header_size(handle: BinaryIO) -> tuple[int, int] | None:
 
 def frame_size(path: str | os.PathLike) -> tuple[int, int] | None:
     """``(width, height)`` of an image file in pixels, from its header (nothing is decoded), or
-    None when it cannot be read or is not a PNG, JPEG, TIFF or BMP file."""
+    None when it cannot be read, is not a regular file or is not a PNG, JPEG, TIFF or BMP file."""
     try:
-        with open(path, "rb") as handle:
+        with open_input(path, what="frame") as handle:
             return _header_size(handle)
-    except OSError:
+    except (OSError, InputFileError):
         return None
 
 
@@ -318,7 +325,8 @@ def load_frame(path: str | os.PathLike, expected_size: tuple[int, int] | None = 
     Returns:
         ``(H, W)`` float32 grey levels, 0..255.
     Raises:
-        FrameError: the file is missing (or a broken symbolic link), unreadable, empty, truncated,
+        FrameError: the file is missing (or a broken symbolic link), not a regular file (a
+            folder, a device, a FIFO), larger than :data:`MAX_FRAME_BYTES`, unreadable, empty, truncated,
             not a PNG, JPEG, TIFF or BMP file, a JPEG whose decoder reports damaged data, of an
             unsupported pixel type, or smaller or larger than :func:`frame_size_problem` allows
             (the size is checked from the file header, before decoding).
@@ -326,11 +334,11 @@ def load_frame(path: str | os.PathLike, expected_size: tuple[int, int] | None = 
     """
     path = Path(path)
     try:
-        data = path.read_bytes()
+        data = read_input(path, MAX_FRAME_BYTES, "frame")
     except FileNotFoundError:
         raise FrameError(f"{path}: {_missing(path)}") from None
-    except IsADirectoryError:
-        raise FrameError(f"{path}: is a folder, not an image file") from None
+    except InputFileError as exc:
+        raise FrameError(str(exc)) from None
     except OSError as exc:
         raise FrameError(f"{path}: cannot read ({exc.strerror or exc})") from None
     if not data:

@@ -27,6 +27,7 @@ from typing import Protocol
 import numpy as np
 
 from blurcalib.io.atomic import atomic_write_bytes
+from blurcalib.io.input_file import InputFileError, open_input, read_input
 from blurcalib.io.results import FeatureFlags, FeatureTable
 
 MAGIC = b"calib_data"
@@ -152,23 +153,27 @@ class _Reader:
         return np.frombuffer(self.take(count * dtype.itemsize, what), dtype=dtype)
 
 
-def read_ref_dataset(path: str | os.PathLike) -> RefDataset:
+def read_ref_dataset(path: str | os.PathLike, max_bytes: int | None = None) -> RefDataset:
     """Read a reference dataset file, converting positions to the OpenCV convention.
 
     Args:
         path: the binary file (``calib_data`` format, version 0, one camera).
+        max_bytes: the largest file read (None: any size).
     Returns:
         The dataset; positions have 0.5 px subtracted.
     Raises:
-        RefFormatError: the file is missing, unreadable or empty, has a bad magic or version, more
-            than one camera, is truncated, has bytes after its end, or a name that is not UTF-8
-            (the message names the file and the byte where the problem is).
+        RefFormatError: the file is missing, not a regular file (a device, a FIFO), larger than
+            ``max_bytes``, unreadable or empty, has a bad magic or version, more than one camera,
+            is truncated, has bytes after its end, or a name that is not UTF-8 (the message names
+            the file and the byte where the problem is).
     """
     path_s = str(path)
     try:
-        data = Path(path).read_bytes()
+        data = read_input(path, max_bytes, "reference dataset")
     except FileNotFoundError:
         raise RefFormatError(f"{path_s}: no such file") from None
+    except InputFileError as exc:
+        raise RefFormatError(str(exc)) from None
     except OSError as exc:
         raise RefFormatError(f"{path_s}: cannot read ({exc.strerror or exc})") from None
     if not data:
@@ -211,6 +216,22 @@ def read_ref_dataset(path: str | os.PathLike) -> RefDataset:
         raise RefFormatError(f"{path_s}: {len(data) - r.pos} unexpected bytes after the dataset's "
                              f"end at byte {r.pos}")
     return RefDataset(image_size=image_size, images=images, geometries=geometries)
+
+
+def ref_dataset_image_size(path: str | os.PathLike) -> tuple[int, int] | None:
+    """``(width, height)`` of a reference dataset's camera, read from its first 26 bytes (nothing
+    else is read); None when the file cannot be read or does not start as a single-camera dataset
+    of version 0 (:func:`read_ref_dataset` then says why)."""
+    head_size = len(MAGIC) + 4 * 4
+    try:
+        with open_input(path, what="reference dataset") as handle:
+            head = handle.read(head_size)
+    except (OSError, InputFileError):
+        return None
+    if len(head) < head_size or head[:len(MAGIC)] != MAGIC:
+        return None
+    version, cameras, width, height = struct.unpack(">IIII", head[len(MAGIC):])
+    return (width, height) if version == VERSION and cameras == 1 else None
 
 
 def _int32(values: np.ndarray, what: str) -> np.ndarray:
@@ -338,20 +359,27 @@ def ref_feature_table(dataset: RefDataset, pattern: TargetFeatures) -> FeatureTa
                              f"the pattern's {pattern.square_length_m:.6g} m")
     ids = {(int(fx), int(fy)): i for i, (fx, fy) in enumerate(pattern.features.tolist())}
     coords = {int(i): (int(fx), int(fy)) for i, fx, fy in zip(geo.ids, geo.fx, geo.fy, strict=True)}
-    frame, fid = [], []
-    for img in dataset.images:
-        for i in img.features.tolist():
-            c = coords.get(int(i))
-            if c not in ids:
-                raise RefFormatError(f"feature {i} of image {img.name!r} (coordinates {c}) is not a "
-                                     f"feature of the pattern")
-            fid.append(ids[c])
-        frame += [img.name] * len(img.features)
+    counts = [len(img.features) for img in dataset.images]
+    observed = (np.concatenate([img.features for img in dataset.images]).astype(np.int64)
+                if dataset.images else np.zeros(0, dtype=np.int64))
+    known, where = np.unique(observed, return_inverse=True)
+    mapped = []
+    for i in known.tolist():
+        if i in coords and coords[i] in ids:
+            mapped.append(ids[coords[i]])
+            continue
+        name = next(img.name for img in dataset.images if np.any(img.features == i))
+        if i not in coords:
+            raise RefFormatError(f"feature {i} of image {name!r} is not in the dataset's geometry (which "
+                                 f"lists {len(coords)} feature ids)")
+        raise RefFormatError(f"feature {i} of image {name!r}, at feature coordinates {coords[i]}, is not "
+                             f"a feature of the pattern")
+    fid_a = np.asarray(mapped, dtype=np.int64)[where] if len(known) else np.zeros(0, dtype=np.int64)
+    frame = np.repeat(np.array([img.name for img in dataset.images], dtype=np.str_), counts)
     xy = np.concatenate([img.xy for img in dataset.images]) if dataset.images else np.zeros((0, 2))
-    fid_a = np.asarray(fid, dtype=np.int64)
     feats = pattern.features[fid_a] if len(fid_a) else np.zeros((0, 2), dtype=np.int64)
     points = pattern.points_3d()[fid_a] if len(fid_a) else np.zeros((0, 3))
     flags = int(FeatureFlags.STAR_CENTRE | FeatureFlags.SHARP_FRAME)
-    return FeatureTable(frame=np.asarray(frame, dtype=np.str_), feature_id=fid_a, fx=feats[:, 0],
+    return FeatureTable(frame=frame, feature_id=fid_a, fx=feats[:, 0],
                         fy=feats[:, 1], X=points[:, 0], Y=points[:, 1], x=xy[:, 0], y=xy[:, 1],
                         weight=np.ones(len(fid_a)), flags=np.full(len(fid_a), flags, dtype=np.int64))

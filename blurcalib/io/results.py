@@ -13,19 +13,13 @@ Conventions (see ``docs/results-format.md``):
 
 One output folder holds ``features.csv`` (one row per feature observation), ``blocks.csv`` (one
 row per fitted block) and ``psfs.npz`` (the blocks' kernels and homographies, in the rows' order).
-Floats are written with ``repr`` so that float64 values round-trip exactly. For resumable runs,
-:func:`write_frame_results` writes the same files per frame under ``frames/`` (plus the frame's
-corners, its status record and, last, a ``done`` marker; :func:`frame_result_paths` names them),
-and :func:`collect_results` concatenates the frames of a run into the top-level files. Every
-file is written atomically.
+Floats are written with ``repr`` so that float64 values round-trip exactly. Resumable runs write
+the same files per frame (:mod:`blurcalib.io.frame_files`). Every file is written atomically.
 """
 
 from __future__ import annotations
 
-import hashlib
-import json
 import os
-import re
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from enum import Enum, IntFlag
@@ -36,12 +30,12 @@ import numpy as np
 from blurcalib.geometry.homography import homography_centre
 from blurcalib.io.atomic import (
     atomic_path,
-    atomic_write_csv,
-    atomic_write_json,
     atomic_write_text,
     ensure_writable_dir,
     read_csv_columns,
 )
+from blurcalib.io.csv_reader import csv_chunks
+from blurcalib.io.input_file import byte_size
 from blurcalib.psf.kernel import blur_per_square
 
 FEATURES_FILE = "features.csv"
@@ -49,8 +43,6 @@ BLOCKS_FILE = "blocks.csv"
 PSFS_FILE = "psfs.npz"
 CORNERS_FILE = "corners.csv"
 FRAMES_DIR = "frames"
-MAX_STEM_CHARS = 100
-"""Longest readable part of a per-frame file stem (:func:`frame_stem`)."""
 
 FEATURE_COLUMNS: tuple[str, ...] = ("frame", "feature_id", "fx", "fy", "X", "Y", "x", "y", "weight",
                                     "flags")
@@ -67,9 +59,8 @@ BLOCK_COLUMNS: tuple[str, ...] = (
 
 BLUR_PER_SQUARE_LIMIT = 1.25
 """:attr:`BlockTable.blur_per_square` from which fewer blocks are found, and those found are poorer,
-even with the frame's path-PSF field (``scripts/bench_yield.py``: 85 % returned at 0.048 px from
-0.8, 77 % at 0.067 px from 1, 59 % at 0.059 px from 1.25, 22 % at 0.11 px from 1.5; with free
-PSFs alone it is 50 % from 0.8 and 10 % from 1)."""
+even with the frame's path-PSF field (``scripts/bench_yield.py`` prints the share returned by
+class of blur per square; docs/decisions/path-psf-field.md)."""
 
 CORNER_COLUMNS: tuple[str, ...] = ("frame", "cx2", "cy2", "X", "Y", "x", "y", "blocks")
 """Columns of ``corners.csv``: the corner's feature coordinates doubled (``cx2 = 2 fx + 1`` for
@@ -365,13 +356,14 @@ def _csv_text(header: Sequence[str], columns: Sequence[list[str]]) -> str:
     return "\n".join(lines) + "\n"
 
 
-def _as_feature_table(features: Sequence[FeatureObservation] | FeatureTable) -> FeatureTable:
+def as_feature_table(features: Sequence[FeatureObservation] | FeatureTable) -> FeatureTable:
+    """``features`` as a :class:`FeatureTable`."""
     return features if isinstance(features, FeatureTable) else FeatureTable.from_observations(features)
 
 
 def write_features(path: str | os.PathLike, features: Sequence[FeatureObservation] | FeatureTable) -> Path:
     """Write ``features.csv`` (columns :data:`FEATURE_COLUMNS`) atomically; return its path."""
-    t = _as_feature_table(features)
+    t = as_feature_table(features)
     cols = [_str_strings(t.frame), *(_int_strings(getattr(t, n)) for n in ("feature_id", "fx", "fy")),
             *(_float_strings(getattr(t, n)) for n in ("X", "Y", "x", "y", "weight")),
             _int_strings(t.flags)]
@@ -404,7 +396,7 @@ def write_results(folder: str | os.PathLike, features: Sequence[FeatureObservati
     Raises:
         OutputError: the folder cannot be created or written.
     """
-    feature_table = _as_feature_table(features)
+    feature_table = as_feature_table(features)
     out = ensure_writable_dir(folder)
     paths = {"features": write_features(out / FEATURES_FILE, feature_table)}
     paths["blocks"], paths["psfs"] = write_blocks(out / BLOCKS_FILE, out / PSFS_FILE, blocks)
@@ -412,42 +404,68 @@ def write_results(folder: str | os.PathLike, features: Sequence[FeatureObservati
 
 
 # ------------------------------------------------------------------------------------- reading
+def _quoted(value: str, limit: int = 40) -> str:
+    """A field's text for a message, shortened to ``limit`` characters."""
+    return repr(value) if len(value) <= limit else repr(value[:limit - 3]) + "..."
+
+
 def _parse(path: Path, name: str, values: list[str], convert: Callable[[str], object],
-           dtype: type, kind: str) -> np.ndarray:
+           dtype: type, kind: str, first_row: int = 1) -> np.ndarray:
     try:
         return np.array(list(map(convert, values)), dtype=dtype)
-    except ValueError:
-        for row, value in enumerate(values, start=1):
+    except (ValueError, OverflowError):
+        for row, value in enumerate(values, start=first_row):
             try:
-                convert(value)
-            except ValueError:
-                raise ResultsFileError(f"{path}: column '{name}', row {row}: cannot parse {value!r} "
+                np.array(convert(value), dtype=dtype)
+            except (ValueError, OverflowError):
+                raise ResultsFileError(f"{path}: column '{name}', row {row}: cannot parse {_quoted(value)} "
                                        f"as {kind}") from None
         raise
 
 
-def _floats(path: Path, cols: dict[str, list[str]], name: str) -> np.ndarray:
-    return _parse(path, name, cols[name], float, np.float64, "a float")
+def _floats(path: Path, cols: dict[str, list[str]], name: str, first_row: int = 1) -> np.ndarray:
+    return _parse(path, name, cols[name], float, np.float64, "a float", first_row)
 
 
-def _ints(path: Path, cols: dict[str, list[str]], name: str) -> np.ndarray:
-    return _parse(path, name, cols[name], int, np.int64, "an integer")
+def _ints(path: Path, cols: dict[str, list[str]], name: str, first_row: int = 1) -> np.ndarray:
+    return _parse(path, name, cols[name], int, np.int64, "a 64-bit integer", first_row)
 
 
-def read_feature_table(path: str | os.PathLike) -> FeatureTable:
-    """Read a ``features.csv`` into columns.
+def table_bytes(rows: int, longest_name: int) -> int:
+    """Memory (bytes) of a :class:`FeatureTable` of ``rows`` rows whose longest frame name has
+    ``longest_name`` characters: nine 8-byte columns and the frame column, 4 bytes per character
+    of its longest name in every row."""
+    return rows * (9 * 8 + 4 * longest_name)
 
+
+def read_feature_table(path: str | os.PathLike, max_bytes: int | None = None) -> FeatureTable:
+    """Read a ``features.csv`` into columns, a chunk of rows at a time.
+
+    Args:
+        path: the file.
+        max_bytes: the most memory the table may take (:func:`table_bytes`; None: any); the
+            file is refused as soon as the rows read so far take more.
     Raises:
-        ResultsFileError: missing file, missing column, wrong field count or an unparsable value
+        ResultsFileError: missing file, not a regular file, missing column, wrong field count, an
+            unparsable value or a value beyond 64 bits, or more rows than ``max_bytes`` allows
             (the message names the file and the column/row; rows count from 1 after the header).
     """
     p = Path(path)
-    cols, _ = read_csv_columns(p, FEATURE_COLUMNS, ResultsFileError, "results file")
-    return FeatureTable(
-        np.array(cols["frame"], dtype=np.str_),
-        *(_ints(p, cols, n) for n in ("feature_id", "fx", "fy")),
-        *(_floats(p, cols, n) for n in ("X", "Y", "x", "y", "weight")),
-        _ints(p, cols, "flags"))
+    parts, rows, longest = [], 0, 0
+    for first, cols in csv_chunks(p, FEATURE_COLUMNS, ResultsFileError, "results file"):
+        part = FeatureTable(
+            np.array(cols["frame"], dtype=np.str_),
+            *(_ints(p, cols, n, first) for n in ("feature_id", "fx", "fy")),
+            *(_floats(p, cols, n, first) for n in ("X", "Y", "x", "y", "weight")),
+            _ints(p, cols, "flags", first))
+        parts.append(part)
+        rows, longest = rows + len(part), max(longest, part.frame.dtype.itemsize // 4)
+        if max_bytes is not None and table_bytes(rows, longest) > max_bytes:
+            raise ResultsFileError(
+                f"{p}: too large: its first {rows} rows (frame names of up to {longest} characters) "
+                f"take {byte_size(table_bytes(rows, longest))} in memory, more than the "
+                f"{byte_size(max_bytes)} a features file may fill")
+    return parts[0] if len(parts) == 1 else FeatureTable.concat(parts)
 
 
 def read_features(path: str | os.PathLike) -> list[FeatureObservation]:
@@ -494,10 +512,16 @@ def read_block_table(folder: str | os.PathLike) -> BlockTable:
         ResultsFileError: a missing file, column or array, an unparsable value or a mismatch
             between the two files (the message names the file and the column/row).
     """
-    return _read_block_table(Path(folder) / BLOCKS_FILE, Path(folder) / PSFS_FILE)
+    return read_block_files(Path(folder) / BLOCKS_FILE, Path(folder) / PSFS_FILE)
 
 
-def _read_block_table(csv_path: Path, npz_path: Path) -> BlockTable:
+def read_block_files(csv_path: Path, npz_path: Path) -> BlockTable:
+    """The block table of the files ``csv_path`` (``blocks.csv``'s columns) and ``npz_path``
+    (``psfs.npz``'s arrays): :func:`read_block_table` of any pair of them.
+
+    Raises:
+        ResultsFileError: a missing or malformed file, or files that do not match.
+    """
     cols, n = read_csv_columns(csv_path, BLOCK_COLUMNS[:-2], ResultsFileError, "results file",
                                optional=BLOCK_COLUMNS[-2:])
     frame = np.array(cols["frame"], dtype=np.str_)
@@ -518,135 +542,3 @@ def _read_block_table(csv_path: Path, npz_path: Path) -> BlockTable:
         np.stack([_floats(csv_path, cols, c) for c in ("centroid_x", "centroid_y")], axis=1), H,
         np.stack([_floats(csv_path, cols, c) for c in COEFF_COLUMNS], axis=1), arrays["psf"],
         *(_floats(csv_path, cols, c) if c in cols else None for c in BLOCK_COLUMNS[-2:]))
-
-
-# ------------------------------------------------------------------------------ per-frame files
-@dataclass(frozen=True)
-class FramePaths:
-    """The per-frame files of one frame under ``folder/frames/`` (``<stem>`` is
-    :func:`frame_stem` of the frame name); the one place that knows their names.
-
-    Attributes:
-        features: ``<stem>.features.csv``, the frame's rows of ``features.csv``.
-        blocks: ``<stem>.blocks.csv``, its rows of ``blocks.csv``.
-        psfs: ``<stem>.psfs.npz``, its rows of ``psfs.npz``.
-        corners: ``<stem>.corners.csv``, its rows of ``corners.csv``.
-        status: ``<stem>.status.json``, its status record: the row of ``frames.csv`` plus
-            the key of what produced the result.
-        done: ``<stem>.done``, the marker holding the frame name, written last.
-    """
-
-    features: Path
-    blocks: Path
-    psfs: Path
-    corners: Path
-    status: Path
-    done: Path
-
-
-def frame_stem(frame_name: str) -> str:
-    """File-name stem of a frame's per-frame files; different frame names get different stems.
-
-    The name, extension kept (``0.png`` and ``0.jpg`` differ), with folders joined by ``__``,
-    characters outside ``[A-Za-z0-9._-]`` and a leading ``.`` replaced by ``_``. Where that
-    changes the name, or the name has upper-case letters (a case-insensitive file system
-    would fold them) or more than :data:`MAX_STEM_CHARS` characters, the readable part is cut
-    to that length and ``~`` plus 12 hex digits of the name's SHA-256 are appended
-    (``seq/img 1.png`` -> ``seq__img_1.png~<hash>``). ``~`` is never kept from a name, so a
-    stem without it is the frame name itself and a stem with it is unique to one name.
-    """
-    parts = [p for p in re.split(r"[\\/]+", frame_name) if p]
-    if not parts:
-        raise ValueError(f"frame name {frame_name!r} has no file-name part")
-    safe = re.sub(r"[^A-Za-z0-9._-]", "_", "__".join(parts))
-    if safe.startswith("."):
-        safe = "_" + safe[1:]
-    if safe == frame_name and safe == safe.lower() and len(safe) <= MAX_STEM_CHARS:
-        return safe
-    digest = hashlib.sha256(frame_name.encode("utf-8", "surrogatepass")).hexdigest()[:12]
-    return f"{safe[:MAX_STEM_CHARS]}~{digest}"
-
-
-def frame_result_paths(folder: str | os.PathLike, frame_name: str) -> FramePaths:
-    """Paths of a frame's per-frame files under ``folder/frames/`` (see :class:`FramePaths`)."""
-    base = f"{Path(folder) / FRAMES_DIR / frame_stem(frame_name)}."
-    return FramePaths(features=Path(base + FEATURES_FILE), blocks=Path(base + BLOCKS_FILE),
-                      psfs=Path(base + PSFS_FILE), corners=Path(base + CORNERS_FILE),
-                      status=Path(base + "status.json"), done=Path(base + "done"))
-
-
-def write_frame_results(folder: str | os.PathLike, frame_name: str,
-                        features: Sequence[FeatureObservation] | FeatureTable,
-                        blocks: BlockTable,
-                        corners: Sequence[Sequence[object]], status: dict) -> FramePaths:
-    """Write one frame's results under ``folder/frames/`` for resumable runs.
-
-    The ``done`` marker is removed first and written last (holding the frame name), after the
-    features, blocks, PSFs, corners (rows of :data:`CORNER_COLUMNS`) and the status record
-    ``status`` (JSON); a frame counts as finished only once its marker exists, so an
-    interrupted write is redone on resume.
-
-    Raises:
-        ValueError: a row or the status record belongs to another frame.
-        OutputError: the folder cannot be written.
-    """
-    ft = _as_feature_table(features)
-    others = [("feature", str(f)) for f in ft.frame[ft.frame != frame_name][:1]]
-    others += [("block", str(f)) for f in blocks.frame[blocks.frame != frame_name][:1]]
-    others += [("corner", str(r[0])) for r in corners if r[0] != frame_name][:1]
-    if status.get("frame") != frame_name:
-        others.append(("status", str(status.get("frame"))))
-    if others:
-        kind, other = others[0]
-        raise ValueError(f"{kind} row of frame {other!r} passed for frame {frame_name!r}")
-    ensure_writable_dir(Path(folder) / FRAMES_DIR)
-    paths = frame_result_paths(folder, frame_name)
-    paths.done.unlink(missing_ok=True)
-    write_features(paths.features, ft)
-    write_blocks(paths.blocks, paths.psfs, blocks)
-    atomic_write_csv(paths.corners, CORNER_COLUMNS, corners)
-    atomic_write_json(paths.status, status)
-    atomic_write_text(paths.done, frame_name + "\n")
-    return paths
-
-
-def read_frame_status(folder: str | os.PathLike, frame_name: str) -> dict | None:
-    """The status record of a finished frame, or None when the frame is not finished: no
-    ``done`` marker, or a marker or status record that is unreadable or names another frame
-    (such a frame is simply redone)."""
-    paths = frame_result_paths(folder, frame_name)
-    try:
-        marker = paths.done.read_text(encoding="utf-8")
-        record = json.loads(paths.status.read_text(encoding="utf-8"))
-    except (OSError, ValueError):
-        return None
-    if marker != frame_name + "\n" or not isinstance(record, dict) or record.get("frame") != frame_name:
-        return None
-    return record
-
-
-def collect_results(folder: str | os.PathLike, frame_names: Sequence[str]) -> dict[str, Path]:
-    """Concatenate the per-frame files of ``frame_names``, in that order, into the top-level
-    ``features.csv``, ``blocks.csv``, ``psfs.npz`` and ``corners.csv`` of ``folder``.
-
-    Exactly these frames are collected: per-frame files of other frames (left by an earlier
-    run) stay under ``frames/`` but are not in the tables.
-
-    Returns:
-        The paths written by :func:`write_results`, plus ``"corners"``.
-    Raises:
-        ResultsFileError: a frame is not finished, or a per-frame file is missing or malformed.
-    """
-    paths = [frame_result_paths(folder, name) for name in frame_names]
-    for name, p in zip(frame_names, paths, strict=True):
-        if not p.done.is_file():
-            raise ResultsFileError(f"{p.done}: frame {name!r} has no finished per-frame results")
-    features = FeatureTable.concat([read_feature_table(p.features) for p in paths])
-    blocks = BlockTable.concat([_read_block_table(p.blocks, p.psfs) for p in paths])
-    corners: list[tuple[str, ...]] = []
-    for p in paths:
-        cols, _ = read_csv_columns(p.corners, CORNER_COLUMNS, ResultsFileError, "results file")
-        corners += zip(*(cols[c] for c in CORNER_COLUMNS), strict=True)
-    outputs = write_results(folder, features, blocks)
-    outputs["corners"] = atomic_write_csv(Path(folder) / CORNERS_FILE, CORNER_COLUMNS, corners)
-    return outputs

@@ -4,10 +4,17 @@ Each input is a folder (its image files, :func:`blurcalib.io.frames.list_frames`
 video file (:data:`VIDEO_EXTENSIONS`, decoded by OpenCV's ``cv2.VideoCapture``). Every frame is a
 :class:`FrameInput`: a name, the file and, for a video, the frame's index, so that a worker
 process reads just the frame it processes (nothing decodes a whole video into memory). A video
-frame is read by seeking to its index (``CAP_PROP_POS_FRAMES``): on an mp4v video of 1280 x 720
-px, opening it and reading one frame by seeking takes 40 ms (median, 72 ms at most; a sequential
-decode 10 ms per frame) and returns the same pixels as a sequential decode, a few hundredths of
-the seconds a frame's extraction takes.
+frame is read by seeking to its index (``CAP_PROP_POS_FRAMES``), which returns the same pixels
+as a sequential decode and costs a few hundredths of a frame's extraction. A video whose container
+cannot seek (one without a frame count or an index) is read by decoding the frames before the one
+wanted.
+
+A video's frame count is what decodes, not what its header claims (:func:`video_frame_count`),
+and at most :data:`MAX_VIDEO_FRAMES` frames of one video are listed. Every frame of a video is
+read at the size its stream header gives: OpenCV's decoder scales a frame stored at another size
+(a stream whose size changes part-way) to that size and says nothing, so such frames cannot be
+told apart and get no ``wrong_size`` status. They are a different camera: split such a video at
+the change, or extract its frames to image files, before calibrating.
 
 Names: an image is named by its path relative to the common folder of all inputs' files
 (``0.png``, ``seq1/0.png``); frame ``i`` of a video by the video's relative path without its
@@ -15,11 +22,12 @@ extension, ``#`` and ``i`` in six digits (``walk#000123``), in every table.
 
 Frames of one input form a *sequence* (:attr:`FrameInput.sequence`): the frames of a video, or
 the images of a folder in natural order. Neighbours in a sequence see the target from nearby
-poses (:func:`blurcalib.runs.folder.seed_from_neighbour`).
+poses (:func:`blurcalib.runs.neighbours.seed_from_neighbour`).
 """
 
 from __future__ import annotations
 
+import math
 import os
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -40,6 +48,10 @@ from blurcalib.io.frames import (
 
 VIDEO_EXTENSIONS: tuple[str, ...] = (".mp4", ".avi", ".mkv", ".mov")
 """Extensions (lower case) read as videos; matched case-insensitively."""
+
+MAX_VIDEO_FRAMES = 1_000_000
+"""Most frames listed from one video (after ``every`` and ``max_frames``): nine hours at 30 frames
+per second. A longer list is refused, so that the list of frames stays small in memory."""
 
 
 def is_video(path: str | os.PathLike) -> bool:
@@ -117,27 +129,64 @@ def video_size(path: str | os.PathLike) -> tuple[int, int] | None:
 
 
 def video_frame_count(path: str | os.PathLike) -> int:
-    """Number of frames of a video: the container's count, or, where it gives none, the
-    frames a sequential decode finds.
+    """Number of frames of a video that decode: the container's count when its last frame
+    decodes, else the count found by seeking (:func:`_decodable_count`).
+
+    A header may claim any count (an 8-frame AVI whose header says 2,147,483,647 frames); the
+    count is never taken on trust, and a video with a count is never read whole: a few dozen
+    seeks at most.
 
     Raises:
         FrameError: the file is missing or cannot be opened as a video.
     """
     capture = _open(Path(path))
     try:
-        count = int(capture.get(cv2.CAP_PROP_FRAME_COUNT))
-        if count <= 0:
-            count = 0
-            while capture.grab():
-                count += 1
+        claimed = capture.get(cv2.CAP_PROP_FRAME_COUNT)
+        return _decodable_count(capture, int(claimed) if math.isfinite(claimed) and claimed >= 1 else 0)
     finally:
         capture.release()
-    return count
+
+
+def _at(capture: cv2.VideoCapture, index: int) -> bool:
+    """Whether the frame an open video just decoded is frame ``index`` (its position is the next)."""
+    return round(capture.get(cv2.CAP_PROP_POS_FRAMES)) == index + 1
+
+
+def _decodes(capture: cv2.VideoCapture, index: int) -> bool:
+    """Whether frame ``index`` of an open video can be sought to and decoded."""
+    try:
+        capture.set(cv2.CAP_PROP_POS_FRAMES, float(index))
+        return bool(capture.grab()) and _at(capture, index)
+    except cv2.error:
+        return False
+
+
+def _decodable_count(capture: cv2.VideoCapture, claimed: int) -> int:
+    """Frames ``0 .. n - 1`` that decode, taking the frames up to the last that decodes as there:
+    the ``claimed`` count when its last frame decodes (one seek), else a bisection between the
+    first frame and the claimed end (about ``log2(claimed)`` seeks). Without a claimed count (0)
+    the video cannot seek either, and its frames are counted by decoding them one after another
+    (nothing is kept)."""
+    if not claimed:
+        count = 0
+        while capture.grab():
+            count += 1
+        return count
+    if _decodes(capture, claimed - 1):
+        return claimed
+    if not _decodes(capture, 0):
+        return 0
+    good, bad = 0, claimed - 1
+    while bad - good > 1:
+        middle = (good + bad) // 2
+        good, bad = (middle, bad) if _decodes(capture, middle) else (good, middle)
+    return good + 1
 
 
 def read_video_frame(path: str | os.PathLike, index: int) -> np.ndarray:
     """Frame ``index`` of a video as grey levels ``(H, W)`` float32, 0..255 (BGR converted with
-    ``0.299 R + 0.587 G + 0.114 B``), read by seeking to it.
+    ``0.299 R + 0.587 G + 0.114 B``), read by seeking to it; where the video cannot seek to it (a
+    container without an index), by decoding the frames before it.
 
     Raises:
         FrameError: the video cannot be opened, has no frame ``index``, or its frames are too
@@ -153,6 +202,11 @@ def read_video_frame(path: str | os.PathLike, index: int) -> np.ndarray:
         if index > 0:
             capture.set(cv2.CAP_PROP_POS_FRAMES, float(index))
         ok, frame = capture.read()
+        if ok and index > 0 and not _at(capture, index):  # the seek went elsewhere: decode up to it
+            capture.release()
+            capture = _open(path)
+            ok = all(capture.grab() for _ in range(index))
+            ok, frame = capture.read() if ok else (False, None)
     except cv2.error as exc:
         raise FrameError(f"{path} frame {index}: cannot decode ({' '.join(str(exc).split())})") from None
     finally:
@@ -170,7 +224,7 @@ def read_video_frame(path: str | os.PathLike, index: int) -> np.ndarray:
 
 def _located(path: Path) -> Path:
     """The absolute path a file is named by: the file it resolves to, or, for a broken symbolic
-    link, the link itself (as :func:`blurcalib.runs.folder.frame_names` names plain paths)."""
+    link, the link itself (as :func:`blurcalib.runs.output.frame_names` names plain paths)."""
     return path.resolve() if path.exists() else path.parent.resolve() / path.name
 
 
@@ -202,7 +256,8 @@ def frame_inputs(inputs: Sequence[str | os.PathLike], every: int = 1,
         The frames, named as the module docstring says; names are unique.
     Raises:
         FrameError: no inputs, a missing input, a file that is neither an image nor a video, a
-            video that cannot be opened or has no frames, or a folder without image files.
+            video that cannot be opened, has no frames or more than :data:`MAX_VIDEO_FRAMES` to
+            list, a folder without image files, or two files whose frames would get one name.
         ValueError: ``every`` or ``max_frames`` below 1.
     """
     if every < 1 or (max_frames is not None and max_frames < 1):
@@ -231,20 +286,35 @@ def frame_inputs(inputs: Sequence[str | os.PathLike], every: int = 1,
             path = files[0]
             count = video_frame_count(path)
             if count == 0:
-                raise FrameError(f"{path}: the video has no frames")
+                raise FrameError(f"{path}: the video has no frames that can be decoded")
+            kept = _keep(count, every, max_frames)
+            if len(kept) > MAX_VIDEO_FRAMES:
+                raise FrameError(f"{path}: {count} frames, more than the {MAX_VIDEO_FRAMES} of one video "
+                                 f"processed: keep fewer with --every N or --max-frames N")
             stem = _text(_located(path).relative_to(common).with_suffix("").as_posix())
-            out += [FrameInput(f"{stem}#{i:06d}", path, i, str(_located(path)), i)
-                    for i in _keep(count, every, max_frames)]
+            out += [FrameInput(f"{stem}#{i:06d}", path, i, str(_located(path)), i) for i in kept]
         else:
             kept = _keep(len(files), every, max_frames) if kind == "folder" else range(len(files))
             out += [FrameInput(_text(_located(files[i]).relative_to(common).as_posix()), files[i])
                     for i in kept]
+    _check_unique(out)
     return in_sequences(out)
 
 
+def _check_unique(frames: list[FrameInput]) -> None:
+    """Refuse two files whose frames get one name (``clip.mp4`` and ``clip.mkv`` both name their
+    frames ``clip#000000``...), naming both."""
+    first: dict[str, Path] = {}
+    for f in frames:
+        other = first.setdefault(f.name, f.path)
+        if other != f.path:
+            raise FrameError(f"{other} and {f.path}: both give frames the name {f.name}: rename one of them "
+                             f"(a video's frames are named by its path without the extension)")
+
+
 def in_sequences(frames: list[FrameInput]) -> list[FrameInput]:
-    """Image frames placed in the sequence of their folder, ranked in list order (video frames
-    keep theirs)."""
+    """Image frames placed in the sequence of their folder, ranked in list order; video frames
+    keep theirs, or, without one, are placed in their video's at their index."""
     rank: dict[str, int] = {}
     out = []
     for f in frames:
@@ -252,5 +322,7 @@ def in_sequences(frames: list[FrameInput]) -> list[FrameInput]:
             folder = str(_located(f.path).parent)
             f = FrameInput(f.name, f.path, None, folder, rank.get(folder, 0))
             rank[folder] = f.order + 1
+        elif not f.sequence:
+            f = FrameInput(f.name, f.path, f.index, str(_located(f.path)), f.index)
         out.append(f)
     return out

@@ -104,8 +104,8 @@ class AlignmentSettings:
             with the target filling much of the image as in a calibration recording, is set by the
             one noise-independent figure of the paper's table: the Random Shifted row (the part of
             a ±5 px shift the pose cannot absorb, i.e. how well the views separate a translation
-            from a pose). The paper's D435I frames give 0.257 px; 24-42 px squares give 0.088 px,
-            40-60 px squares 0.14 px (see docs/experiments.md).
+            from a pose), which comes near the paper's with these views
+            (docs/decisions/alignment-experiment-views.md).
         huber_px: Huber threshold of the alignment (px): 1.345 times the features' rms noise per
             axis (0.0265 px with the defaults), the standard 95%-efficiency tuning.
     """

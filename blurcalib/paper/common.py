@@ -19,10 +19,11 @@ from typing import TypeVar
 import numpy as np
 
 from blurcalib.deconv.settings import DeconvSettings
-from blurcalib.extract.frame import ExtractSettings, FrameResult, FrameStatus, extract_frame
+from blurcalib.extract.frame import ExtractSettings, FrameResult, extract_frame
 from blurcalib.growth.settings import GrowSettings
 from blurcalib.growth.window import WindowPolicy
 from blurcalib.io.atomic import OutputError
+from blurcalib.io.record import FrameStatus
 from blurcalib.runs.runtime import check_device
 from blurcalib.sim.synth import Simulator, SynthConfig
 from blurcalib.sim.truth import FrameTruth, TrueCamera, d435i_like_camera
@@ -198,12 +199,12 @@ def experiment_parser(name: str, description: str, outputs: str, settings: type 
     with the default of its field of the ``settings`` dataclass."""
     parser = argparse.ArgumentParser(prog=f"blurcalib experiment {name}", description=description)
     parser.add_argument("--out", default=str(DEFAULT_OUT),
-                        help=f"output folder for {outputs} (%(default)s)")
-    parser.add_argument("--seed", type=int, default=0, help="random seed (%(default)s)")
+                        help=f"output folder for {outputs} (default %(default)s)")
+    parser.add_argument("--seed", type=int, default=0, help="random seed (default %(default)s)")
     for o in options:
         default = getattr(settings, o.field)
         parser.add_argument(o.flag, dest=o.field, metavar=o.flag[2:].replace("-", "_").upper(),
-                            type=type(default), default=default, help=f"{o.help} (%(default)s)")
+                            type=type(default), default=default, help=f"{o.help} (default %(default)s)")
     return parser
 
 

@@ -14,7 +14,7 @@ Design (features are simulated, not rendered, to keep the experiment fast):
    (rotation-dominated twist, half of them curved) scaled to a median blur length uniform in
    ``[blur_min_px, blur_max_px]``. Features: the true *time-averaged* positions
    (:func:`blurcalib.sim.synth.frame_truth`, the PSF centroids a deconvolution recovers) plus the
-   extractor's measured error (README: median 0.014 px; Gaussian of ``blurry_noise_px`` per axis
+   extractor's error (Gaussian of ``blurry_noise_px`` per axis
    with ``blurry_tail`` of the features at 4x that), plus one unknown translation per frame,
    uniform in a disc of ``shift_px`` (the deconvolution's translational ambiguity).
 4. Four calibrations, all with the target points fixed to the nominal ones:

@@ -26,7 +26,7 @@ generic camera to sharp and blurry frames together.
    ``OUT/frames.csv`` (one row per input frame, :mod:`blurcalib.pipeline.frames`),
    ``OUT/report.json`` and figures (the reprojection-error direction images, per-frame errors).
 
-Frame statuses (:class:`blurcalib.pipeline.frames.RowStatus`): ``used`` marks every frame whose
+Frame statuses (:class:`blurcalib.io.record.FrameStatus`): ``used`` marks every frame whose
 features enter the final calibration (a sharp frame: the sharp-set and generic calibrations; a
 blurry frame: the generic fit, or with ``model="parametric"`` the global alignment and
 ``features.bin``). Every other status comes with its reason: the extraction's own
@@ -73,7 +73,9 @@ from blurcalib.io.atomic import (
     claim_output_dir,
     ensure_writable_dir,
 )
+from blurcalib.io.feature_input import FeatureInputError, read_feature_input
 from blurcalib.io.frames import frame_size, frame_size_problem
+from blurcalib.io.record import FrameRecord, FrameStatus
 from blurcalib.io.refformat import to_ref_dataset, write_ref_dataset
 from blurcalib.io.results import (
     FEATURES_FILE,
@@ -85,8 +87,10 @@ from blurcalib.io.results import (
     write_features,
 )
 from blurcalib.io.sources import FrameInput
-from blurcalib.pipeline.frames import FrameRow, blurry_row, sharp_row, status_counts, write_frames
-from blurcalib.runs.folder import FramePool, extract_to_folder
+from blurcalib.pipeline.frames import blurry_row, sharp_row, status_counts, write_frames
+from blurcalib.runs.events import RunEvent
+from blurcalib.runs.executors import ProcessPool
+from blurcalib.runs.folder import extract_to_folder
 from blurcalib.runs.runtime import compute_threads
 from blurcalib.target.pattern import StarPattern
 
@@ -156,7 +160,7 @@ class PipelineReport:
     standard error, each moving frame's blur velocity)."""
 
     calibration: dict
-    frames: list[FrameRow]
+    frames: list[FrameRecord]
     outputs: dict[str, str]
     counts: dict[str, dict[str, int]]
     settings: dict
@@ -170,7 +174,7 @@ class PipelineReport:
         """The ``report.json`` document: the fields, with ``trust``'s sections (``validation``,
         ``uncertainty``, ``cross_validation``, ``guidance``, ``blurry_frames_gain``) at the top."""
         out = {**{k: v for k, v in vars(self).items() if k != "frames"},
-               "frames": [r.to_dict() for r in self.frames]}
+               "frames": [r.to_row() for r in self.frames]}
         trust = dict(out.pop("trust") or {})
         out["seconds"] = {**out["seconds"], **trust.pop("seconds", {})}
         out.update(trust)
@@ -179,10 +183,10 @@ class PipelineReport:
 
 @dataclass(frozen=True)
 class _Extracted:
-    """The extraction stage's outcome: each kind's frame summaries (names as in the run's
+    """The extraction stage's outcome: each kind's frame records (names as in the run's
     outputs), the features, and the sharp and blurry frames' blocks."""
 
-    rows: dict[str, list[dict]]
+    rows: dict[str, list[FrameRecord]]
     features: FeatureTable
     sharp_blocks: BlockTable
     blocks: BlockTable
@@ -217,7 +221,7 @@ def _check_sizes(sharp: Sequence[Path | FrameInput], blurry: Sequence[Path | Fra
 
 def run_pipeline(sharp: Sequence[Path], blurry: Sequence[Path], pattern: StarPattern,
                  out_dir: str | os.PathLike, settings: PipelineSettings | None = None,
-                 progress: Callable[[str, int, int, dict], None] | None = None,
+                 progress: Callable[[str, RunEvent], None] | None = None,
                  overwrite: bool = False, mixed: Sequence[FrameInput] = ()) -> PipelineReport:
     """Run the whole pipeline (see the module docstring); partial results are kept on error.
 
@@ -234,7 +238,8 @@ def run_pipeline(sharp: Sequence[Path], blurry: Sequence[Path], pattern: StarPat
             ``OUT/frames/``; given instead of ``sharp`` and ``blurry``.
         out_dir: output folder (re-running resumes the extraction).
         settings: pipeline settings.
-        progress: ``progress(stage, done, total, row)`` during extraction.
+        progress: ``progress(stage, event)`` during extraction (``sharp``, ``blurry`` or ``frames``
+            and a :mod:`blurcalib.runs.events` event).
         overwrite: write into a non-empty folder that is not a ``calibrate`` output
             (:func:`blurcalib.io.atomic.claim_output_dir`).
     Raises:
@@ -252,32 +257,33 @@ def run_pipeline(sharp: Sequence[Path], blurry: Sequence[Path], pattern: StarPat
     shutil.rmtree(out / STAGING_DIR, ignore_errors=True)  # left by a run killed while writing
     ex = _extract(sharp, blurry, mixed, pattern, out, size, s, progress, overwrite)
     t_extracted = time.perf_counter()
-    seeded = [r for r in ex.rows["sharp"] + ex.rows["blurry"] if r["status"] != "not_seeded"]
-    if not any(r["status"] == "ok" for r in seeded):
+    if not any(r.status is FrameStatus.OK for r in ex.rows["sharp"] + ex.rows["blurry"]):
         raise PipelineError("no AprilTag of the pattern was found in any frame: does the pattern "
                             "YAML match the target in the frames?")
-    duplicates = mark_duplicates(ex.rows["sharp"] + ex.rows["blurry"], ex.features)
+    marked = mark_duplicates(ex.rows["sharp"] + ex.rows["blurry"], ex.features)
+    sharp_rows, blurry_rows = marked[:len(ex.rows["sharp"])], marked[len(ex.rows["sharp"]):]
+    duplicates = [r.frame for r in marked if r.status is FrameStatus.DUPLICATE]
     sharp_features = ex.features.select(((ex.features.flags & int(FeatureFlags.SHARP_FRAME)) != 0)
                                         & ~np.isin(ex.features.frame, sorted(duplicates)))
     flags = int(FeatureFlags.STAR_CENTRE | FeatureFlags.BLURRY_FRAME)
     if s.extraction.local_alignment:
         flags |= FeatureFlags.LOCALLY_ALIGNED
-    frames = [BlurryFrame(r["frame"], blocks=ex.blocks.select(ex.blocks.frame == r["frame"]), flags=flags)
-              for r in ex.rows["blurry"] if r["status"] == "ok"]
+    frames = [BlurryFrame(r.frame, blocks=ex.blocks.select(ex.blocks.frame == r.frame), flags=flags)
+              for r in blurry_rows if r.status is FrameStatus.OK]
     try:
         with compute_threads(_calibration_threads(s)):
             run = calibrate_features(sharp_features, ex.sharp_blocks, frames, pattern, size, s.calibration)
     except CalibrationError as exc:
-        bad = [f"{r['frame']} ({r['status']})" for r in ex.rows["sharp"] if r["status"] != "ok"]
+        bad = [f"{r.frame} ({r.status.value})" for r in sharp_rows if r.status is not FrameStatus.OK]
         hint = f"; sharp frames without features: {', '.join(bad[:10])}" if bad else ""
         raise PipelineError(f"sharp-set calibration: {exc}{hint}") from None
     except ValueError as exc:
         raise PipelineError(f"generic calibration: {exc}") from None
     outcomes = {o.frame.name: o for o in run.blurry}
-    rows = _rows(ex.rows["sharp"], ex.rows["blurry"], outcomes, run, s.calibration)
+    rows = _rows(sharp_rows, blurry_rows, outcomes, run, s.calibration)
     seconds = {"extraction": t_extracted - t_start, **_calibration_seconds(run)}
     report = _publish_run(out, pattern, size, s, rows, run, seconds)
-    if ex.rows["blurry"] and not any(r.used for r in rows if r.kind == "blurry"):
+    if blurry_rows and not any(r.used for r in rows if r.kind == "blurry"):
         raise PipelineError(f"no blurry frame survived the filters ({report.counts['blurry']}); the "
                             f"sharp-set calibration and all features are kept in {out}")
     return report
@@ -285,21 +291,21 @@ def run_pipeline(sharp: Sequence[Path], blurry: Sequence[Path], pattern: StarPat
 
 def _extract(sharp: Sequence[Path], blurry: Sequence[Path], mixed: Sequence[FrameInput], pattern: StarPattern,
              out: Path, size: tuple[int, int], s: PipelineSettings,
-             progress: Callable[[str, int, int, dict], None] | None, overwrite: bool) -> _Extracted:
+             progress: Callable[[str, RunEvent], None] | None, overwrite: bool) -> _Extracted:
     """Step 1: extract the frames (resumable) into ``OUT/sharp/`` and ``OUT/blurry/``, or the
     mixed frames into ``OUT/frames/``, and read the results back."""
-    def stage(name: str) -> Callable[[int, int, dict], None] | None:
+    def stage(name: str) -> Callable[[RunEvent], None] | None:
         if progress is None:
             return None
-        return lambda done, total, row: progress(name, done, total, row)
+        return lambda event: progress(name, event)
 
-    pool = FramePool(s.workers)  # the sharp and blurry folders share the worker processes
+    pool = ProcessPool(s.workers)  # the sharp and blurry folders share the worker processes
 
-    def extract(frames: Sequence, folder: str, settings: ExtractSettings) -> list[dict]:
+    def extract(frames: Sequence, folder: str, settings: ExtractSettings) -> list[FrameRecord]:
         done = extract_to_folder(frames, pattern, out / folder, settings, workers=s.workers,
                                  progress=stage(folder), expected_size=size, overwrite=overwrite,
                                  cluster=s.cluster, pool=pool)
-        return [{**r, "frame": f"{folder}/{r['frame']}"} for r in done.frames]
+        return [replace(r, frame=f"{folder}/{r.frame}") for r in done.records]
 
     with pool:
         if mixed:
@@ -310,10 +316,10 @@ def _extract(sharp: Sequence[Path], blurry: Sequence[Path], mixed: Sequence[Fram
     if mixed:
         features = _with_kind(read_feature_table(out / MIXED / FEATURES_FILE), MIXED)
         blocks = _with_kind(read_block_table(out / MIXED), MIXED)
-        sharp_names = [r["frame"] for r in rows if r.get("kind") == "sharp"]
+        sharp_names = [r.frame for r in rows if r.kind == "sharp"]
         is_sharp = np.isin(blocks.frame, sharp_names)
-        return _Extracted({"sharp": [r for r in rows if r.get("kind") == "sharp"],
-                           "blurry": [r for r in rows if r.get("kind") != "sharp"]},
+        return _Extracted({"sharp": [r for r in rows if r.kind == "sharp"],
+                           "blurry": [r for r in rows if r.kind != "sharp"]},
                           features, blocks.select(is_sharp), blocks.select(~is_sharp))
     features = FeatureTable.concat([_with_kind(read_feature_table(out / kind / FEATURES_FILE), kind)
                                     for kind in KINDS])
@@ -321,12 +327,12 @@ def _extract(sharp: Sequence[Path], blurry: Sequence[Path], mixed: Sequence[Fram
                       _with_kind(read_block_table(out / "blurry"), "blurry"))
 
 
-def _rows(sharp: list[dict], blurry: list[dict], outcomes: dict[str, BlurryOutcome | None],
-          run: CalibrationRun, s: SequenceSettings) -> list[FrameRow]:
+def _rows(sharp: list[FrameRecord], blurry: list[FrameRecord], outcomes: dict[str, BlurryOutcome | None],
+          run: CalibrationRun, s: SequenceSettings) -> list[FrameRecord]:
     """Every frame's row, sharp frames first, each decided once from what the run made of it."""
     velocity = None if run.rolling_shutter is None else run.rolling_shutter.velocity_px
     return ([sharp_row(r, run.calibration, run.generic) for r in sharp]
-            + [blurry_row(r, outcomes.get(r["frame"]), s, velocity) for r in blurry])
+            + [blurry_row(r, outcomes.get(r.frame), s, velocity) for r in blurry])
 
 
 def _calibration_threads(s: PipelineSettings) -> int:
@@ -346,76 +352,29 @@ def _calibration_seconds(run: CalibrationRun) -> dict[str, float]:
     return seconds
 
 
-def read_feature_input(path: str | os.PathLike, pattern: StarPattern,
-                       image_size: tuple[int, int] | None = None) -> tuple[FeatureTable, tuple[int, int]]:
-    """Features to calibrate from, and the image size: the reference tool's dataset ``.bin``
-    (pixel-corner convention on disk; every frame sharp) or blurcalib's ``features.csv`` (rows
-    flagged ``BLURRY_FRAME`` are blurry frames, those flagged ``FILTERED_OUT`` are left out; the
-    size must be given, the file does not hold it).
-
-    Raises:
-        PipelineError: an unknown suffix, an unreadable or malformed file, or a ``features.csv``
-            without ``image_size``.
-    """
-    from blurcalib.io.refformat import RefFormatError, read_ref_dataset, ref_feature_table
-    from blurcalib.io.results import ResultsFileError
-
-    p = Path(path)
-    try:
-        if p.suffix.lower() == ".bin":
-            dataset = read_ref_dataset(p)
-            table, size = ref_feature_table(dataset, pattern), image_size or dataset.image_size
-        elif p.suffix.lower() == ".csv":
-            if image_size is None:
-                raise PipelineError(f"{p}: a features.csv does not hold the image size: give "
-                                    f"--image-size WxH")
-            table, size = read_feature_table(p), image_size
-            table = table.select((table.flags & int(FeatureFlags.FILTERED_OUT)) == 0)
-            if len(table) and int(table.feature_id.max()) >= pattern.num_features:
-                raise PipelineError(f"{p}: feature id {int(table.feature_id.max())} is not one of the "
-                                    f"pattern's {pattern.num_features} features")
-        else:
-            raise PipelineError(f"{p}: features must be a reference dataset (.bin) or a blurcalib "
-                                f"features.csv")
-    except (OSError, RefFormatError, ResultsFileError, ValueError) as exc:
-        raise PipelineError(f"{p}: {exc}") from None
-    _check_inside(p, table, size)
-    return table, size
-
-
-def _check_inside(path: Path, table: FeatureTable, size: tuple[int, int]) -> None:
-    """Raise :class:`PipelineError` when a feature lies outside the image ``size`` (px, OpenCV
-    convention: the image spans ``[-0.5, W - 0.5] x [-0.5, H - 0.5]``): a wrong ``--image-size``."""
-    if not len(table):
-        return
-    width, height = size
-    x_max, y_max = float(table.x.max()), float(table.y.max())
-    x_min, y_min = float(table.x.min()), float(table.y.min())
-    if x_min < -0.5 or y_min < -0.5 or x_max > width - 0.5 or y_max > height - 0.5:
-        raise PipelineError(f"{path}: features span x {x_min:.1f} to {x_max:.1f} px, y {y_min:.1f} to "
-                            f"{y_max:.1f} px, outside the {width} x {height} image: is the image size right "
-                            f"(--image-size WxH)?")
-
-
 def run_from_features(path: str | os.PathLike, pattern: StarPattern, out_dir: str | os.PathLike,
                       settings: PipelineSettings | None = None, image_size: tuple[int, int] | None = None,
                       overwrite: bool = False) -> PipelineReport:
-    """Calibrate from an existing feature file instead of images (:func:`read_feature_input`):
-    the parametric camera on the sharp frames, then the generic cameras, their assessment and
-    the same outputs as :func:`run_pipeline`. Blurry frames enter the generic fit on the joint
-    route (a free shift each); without blocks there is no lens-bias correction (a blurcalib
-    ``features.csv`` is already corrected) and no parametric alignment.
+    """Calibrate from an existing feature file instead of images
+    (:func:`blurcalib.io.feature_input.read_feature_input`): the parametric camera on the sharp
+    frames, then the generic cameras, their assessment and the same outputs as
+    :func:`run_pipeline`. Blurry frames enter the generic fit on the joint route (a free shift
+    each); without blocks there is no lens-bias correction (a blurcalib ``features.csv`` is
+    already corrected) and no parametric alignment.
 
     Raises:
-        PipelineError: unusable input (see :func:`read_feature_input`, too few sharp frames, or
-            ``route="aligned"``, which needs the blocks).
+        PipelineError: unusable input (see :func:`blurcalib.io.feature_input.read_feature_input`,
+            too few sharp frames, or ``route="aligned"``, which needs the blocks).
         OutputError: as :func:`run_pipeline`.
     """
     s = settings or PipelineSettings()
     if s.calibration.generic.route != "joint":
         raise PipelineError("calibrating from features needs the joint route (the aligned route aligns "
                             "blocks to the parametric camera): use --route joint")
-    table, size = read_feature_input(path, pattern, image_size)
+    try:
+        table, size = read_feature_input(path, pattern, image_size)
+    except FeatureInputError as exc:
+        raise PipelineError(str(exc)) from None
     out = claim_output_dir(out_dir, "calibrate", {**asdict(s), "features": str(Path(path).resolve())},
                            overwrite)
     shutil.rmtree(out / STAGING_DIR, ignore_errors=True)
@@ -432,10 +391,10 @@ def run_from_features(path: str | os.PathLike, pattern: StarPattern, out_dir: st
     except ValueError as exc:
         raise PipelineError(f"generic calibration: {exc}") from None
 
-    def extracted(t: FeatureTable) -> list[dict]:
+    def extracted(t: FeatureTable) -> list[FrameRecord]:
         names, n = np.unique(t.frame, return_counts=True)
-        return [{"frame": f, "status": "ok", "features": k} for f, k in zip(names.tolist(), n.tolist(),
-                                                                            strict=True)]
+        return [FrameRecord(f, FrameStatus.OK, features=k)
+                for f, k in zip(names.tolist(), n.tolist(), strict=True)]
 
     outcomes: dict[str, BlurryOutcome | None] = {o.frame.name: o for o in run.blurry}
     rows = _rows(extracted(sharp), extracted(blurry), outcomes, run, s.calibration)
@@ -443,7 +402,7 @@ def run_from_features(path: str | os.PathLike, pattern: StarPattern, out_dir: st
 
 
 def _publish_run(out: Path, pattern: StarPattern, size: tuple[int, int], s: PipelineSettings,
-                 rows: list[FrameRow], run: CalibrationRun, seconds: dict[str, float]) -> PipelineReport:
+                 rows: list[FrameRecord], run: CalibrationRun, seconds: dict[str, float]) -> PipelineReport:
     """Write the run's output set into ``OUT/.staging`` and publish it (:func:`_publish`); a
     failed write (a full disk) removes the staging folder and leaves the earlier outputs as they
     were.
@@ -464,7 +423,7 @@ def _publish_run(out: Path, pattern: StarPattern, size: tuple[int, int], s: Pipe
 
 
 def _stage_run(out: Path, staging: Path, pattern: StarPattern, size: tuple[int, int], s: PipelineSettings,
-               rows: list[FrameRow], run: CalibrationRun, seconds: dict[str, float]) -> PipelineReport:
+               rows: list[FrameRecord], run: CalibrationRun, seconds: dict[str, float]) -> PipelineReport:
     """Write the run's output set into ``staging``; ``report.json`` last."""
     calibration, generic = run.calibration, run.generic
     ensure_writable_dir(staging)
@@ -529,7 +488,7 @@ def _publish(staging: Path, out: Path) -> None:
     shutil.rmtree(staging)
 
 
-def _write_outputs(out: Path, pattern: StarPattern, size: tuple[int, int], rows: list[FrameRow],
+def _write_outputs(out: Path, pattern: StarPattern, size: tuple[int, int], rows: list[FrameRecord],
                    run: CalibrationRun) -> dict[str, Path]:
     """The features (``features.csv``, ``features.bin``), ``frames.csv`` and the figures."""
     calibration, generic = run.calibration, run.generic
@@ -562,6 +521,6 @@ def _write_outputs(out: Path, pattern: StarPattern, size: tuple[int, int], rows:
         direction_image("error_directions_generic", generic.observed[generic.inlier],
                         generic.residuals[generic.inlier])
     outputs["frame_errors"] = save_frame_error_plot(out / "frame_errors.png",
-                                                    [r.to_dict() for r in rows if r.kind == "blurry"],
+                                                    [r.to_row() for r in rows if r.kind == "blurry"],
                                                     calibration.frame_errors())
     return outputs

@@ -201,8 +201,8 @@ def monomials(xy: np.ndarray, image_size: tuple[int, int], degree: int) -> np.nd
 def constant_field(psfs: np.ndarray, image_size: tuple[int, int], degree: int) -> PathField:
     """A field of straight paths, the same everywhere, from fitted (re-centred) PSFs
     ``(B, K, K)``: the median blur extent ``sqrt(12) sigma_major`` along their mean orientation
-    (averaged as doubled angles), the median ``sigma_minor`` as the spread (within 0.5-1 px: free
-    PSFs under long blur spread into noise, measured up to 4 px where the truth is 0.8 px); the
+    (averaged as doubled angles), the median ``sigma_minor`` as the spread, clamped to 0.5-1 px
+    (free PSFs under long blur spread into noise, far wider than the optics' spread); the
     higher-degree coefficients 0 (:func:`fit_path_field`'s start)."""
     ok = np.all(np.isfinite(psfs), axis=(1, 2)) & (np.nan_to_num(psfs).sum(axis=(1, 2)) > 0)
     if not ok.any():

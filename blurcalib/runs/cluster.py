@@ -10,7 +10,7 @@ thread (:func:`blurcalib.runs.runtime.configure_threads`) and keeps large alloca
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Generator, Sequence
 from typing import Any, TypeVar
 from urllib.parse import urlsplit
 
@@ -68,7 +68,7 @@ def _single_threaded(fn: Callable[..., R], *args: Any) -> R:
 
 
 def run_on_cluster(address: str, fn: Callable[..., R], tasks: Sequence[tuple],
-                   shared: tuple = (), timeout_s: float = 30.0) -> Iterator[tuple[int, R]]:
+                   shared: tuple = (), timeout_s: float = 30.0) -> Generator[tuple[int, R], None, None]:
     """Run ``fn(*task, *shared)`` for every task on the Dask scheduler at ``address``.
 
     Args:

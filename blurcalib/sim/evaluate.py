@@ -114,9 +114,7 @@ def projection_error_vectors(truth: TrueCamera, estimate: BrownConrady | Central
     """``(N, 2)`` px: the estimate's projection of each pixel ``px (N, 2)``'s true ray, after the
     best-fit rotation, minus the pixel. NaN where the estimate is undefined (outside a generic
     model's calibrated area)."""
-    xn = truth.unproject(px)
-    rays = np.column_stack([xn, np.ones(len(xn))])
-    rays /= np.linalg.norm(rays, axis=1, keepdims=True)
+    rays = truth.pixel_to_ray(px)
     est = estimate.pixel_to_ray(px)
     ok = np.all(np.isfinite(est), axis=1)
     turned = rays @ best_fit_rotation(rays[ok], est[ok]).T

@@ -5,7 +5,9 @@ A frame is rendered as a real camera records it (``docs/synthetic-data.md``):
 
 1. the target's reflectance ``S`` (exact, anti-aliased texture of the page, mip-mapped);
 2. camera motion during the exposure (:class:`blurcalib.sim.truth.Motion`), integrated by time
-   samples: each warps the texture onto an undistorted canvas finer than the sensor;
+   samples: each warps the texture onto a pinhole canvas finer than the sensor
+   (:mod:`blurcalib.sim.canvas`: the undistorted image of a forward-looking lens, or, for any
+   field of view up to 200 degrees, a canvas rotated to face the target);
 3. the true lens, applied to the time integral (exact: the lens maps every time sample through
    the same coordinate change); with a rolling shutter (:mod:`blurcalib.camera.shutter`) each
    sample is lens-mapped onto the band of sensor rows whose windows contain it and weighted per
@@ -24,10 +26,10 @@ from typing import TYPE_CHECKING
 
 import cv2
 import numpy as np
-from scipy.interpolate import RectBivariateSpline
 
 from blurcalib.camera.shutter import exposure_grid, row_time, window_weights
 from blurcalib.geometry.pose import Pose
+from blurcalib.sim.canvas import LensMap, WideLens, perspective_lens_map
 from blurcalib.sim.truth import FrameTruth, Motion, TrueCamera, gauss_ksize
 from blurcalib.target.pattern import StarPattern, star_sector_white
 
@@ -142,100 +144,99 @@ class RenderSettings:
 
 
 class Renderer:
-    """Renders frames of one :class:`TrueCamera`; caches the lens remap tables."""
+    """Renders frames of one :class:`TrueCamera`; caches the lens's remap tables (a forward-looking
+    lens's one canvas) or its viewing directions (a wide lens's per-frame canvases)."""
 
     def __init__(self, camera: TrueCamera, settings: RenderSettings | None = None) -> None:
         self.camera = camera
         self.settings = settings or RenderSettings()
         ss = self.settings.supersample
-        w, h = camera.model.width, camera.model.height
-        # The lens map is smooth: solve it exactly on a coarse lattice of sensor sub-samples
-        # and interpolate with bicubic splines (error far below 1e-3 px).
-        step = 4
-        fine_x = np.arange(w * ss)
-        fine_y = np.arange(h * ss)
-        coarse_x = np.append(fine_x[::step], fine_x[-1])
-        coarse_y = np.append(fine_y[::step], fine_y[-1])
-        gx, gy = np.meshgrid((coarse_x + 0.5) / ss - 0.5, (coarse_y + 0.5) / ss - 0.5)
-        xn = camera.unproject(np.stack([gx.ravel(), gy.ravel()], axis=1))
-        lo = xn.min(axis=0)
-        hi = xn.max(axis=0)
-        f = np.array([camera.model.fx, camera.model.fy]) * ss
-        margin = 4.0
-        self.canvas_K = np.array([[f[0], 0.0, -lo[0] * f[0] + margin],
-                                  [0.0, f[1], -lo[1] * f[1] + margin],
-                                  [0.0, 0.0, 1.0]])
-        self.canvas_size = (math.ceil((hi[0] - lo[0]) * f[0] + 2 * margin),
-                            math.ceil((hi[1] - lo[1]) * f[1] + 2 * margin))
-        maps = []
-        for axis in range(2):
-            coarse = (xn[:, axis] * f[axis] + self.canvas_K[axis, 2]).reshape(len(coarse_y), -1)
-            spline = RectBivariateSpline(coarse_y, coarse_x, coarse, kx=3, ky=3)
-            maps.append(spline(fine_y, fine_x).astype(np.float32))
-        self._map_x, self._map_y = maps
-        self._row_min_x, self._row_max_x = self._map_x.min(axis=1), self._map_x.max(axis=1)
-        self._row_min_y, self._row_max_y = self._map_y.min(axis=1), self._map_y.max(axis=1)
+        self._fixed = perspective_lens_map(camera, ss) if camera.forward_only else None
+        self._wide = None if camera.forward_only else WideLens(camera, ss)
+
+    def lens_map(self, texture: Texture, pose: Pose, poses: Sequence[Pose]) -> LensMap:
+        """The canvas of a frame at ``pose`` whose time samples are ``poses`` (the target's
+        ``texture`` extent sizes a wide lens's canvas)."""
+        if self._wide is None:
+            assert self._fixed is not None
+            return self._fixed
+        h, w = texture.image.shape
+        corners = np.array([[-0.5, -0.5, 1.0], [w - 0.5, -0.5, 1.0], [w - 0.5, h - 0.5, 1.0],
+                            [-0.5, h - 0.5, 1.0]])
+        plane = corners @ texture.to_plane.T
+        return self._wide.frame_map(pose, list(poses), plane[:, :2] / plane[:, 2:])
 
     def irradiance(self, levels: Sequence[Texture], pose: Pose, motion: Motion,
                    rolling_shutter: float = 0.0) -> np.ndarray:
         """Time-integrated, lens-mapped, pixel-integrated target image: ``(H, W)`` in [0, 1].
 
-        Each time sample warps the texture onto an undistorted, supersampled canvas with the
-        homography ``K_canvas [r1 r2 t](tau) to_plane`` (``eq:T``). Global shutter
+        Each time sample warps the texture onto the frame's canvas (:meth:`lens_map`) with the
+        homography ``K_canvas (R_canvas) [r1 r2 t](tau) to_plane`` (``eq:T``). Global shutter
         (``rolling_shutter = 0``, or no motion): the mean over the samples is mapped through the
         true lens and box-averaged over each pixel. Rolling shutter (readout ratio ``r``): the
         samples of the frame's exposure grid (:func:`blurcalib.camera.shutter.exposure_grid`) are
         each lens-mapped onto the rows whose windows contain them, weighted by
         :func:`blurcalib.camera.shutter.window_weights` per sensor row (every sub-sample row of a
-        pixel row shares its window), and summed.
+        pixel row shares its window), and summed. Sub-samples beyond a wide lens's field stop are
+        dark (0).
 
         ``levels`` is a mip pyramid of the same target (finest first, each level half the
         resolution of the previous). Every canvas sample blends the two levels whose texel
-        size is closest to its own footprint (trilinear mip-mapping, weights from the
-        ``tau = 0`` pose), so the texture is neither aliased where the target is far nor
-        blurred where it is near.
+        size is closest to its footprint (trilinear mip-mapping, weights from the ``tau = 0``
+        pose): a canvas sample's own on a forward-looking lens's canvas, the sensor
+        sub-sample's on the target through a wide lens. So the texture is neither aliased where
+        the target is far nor blurred where it is near.
         """
-        weights = self._level_weights(levels, pose)
+        rolling = not (rolling_shutter == 0 or motion.samples == 1)
+        height = self.camera.model.height
+        poses = motion.grid_poses(pose, height, rolling_shutter) if rolling else motion.poses(pose)
+        lens = self.lens_map(levels[0], pose, poses)
+        weights = self._level_weights(levels, pose, lens)
         background = float(levels[0].background)
-        w, h = self.camera.model.width, self.camera.model.height
-        if rolling_shutter == 0 or motion.samples == 1:
-            cw, ch = self.canvas_size
-            acc = self._canvas(levels, weights, motion.poses(pose), (0, 0, cw, ch))
+        w, h = self.camera.model.width, height
+        if not rolling:
+            cw, ch = lens.size
+            acc = self._canvas(levels, weights, lens, poses, (0, 0, cw, ch))
             acc /= motion.samples
-            sensor = cv2.remap(acc, self._map_x, self._map_y, cv2.INTER_LINEAR,
+            sensor = cv2.remap(acc, lens.map_x, lens.map_y, cv2.INTER_LINEAR,
                                borderMode=cv2.BORDER_CONSTANT, borderValue=background)
         else:
-            sensor = self._rolling_sensor(levels, weights, pose, motion, rolling_shutter)
+            sensor = self._rolling_sensor(levels, weights, lens, poses, motion, rolling_shutter)
+        if lens.dark is not None:
+            sensor[lens.dark] = 0.0
         return cv2.resize(sensor, (w, h), interpolation=cv2.INTER_AREA)
 
     def _rolling_sensor(self, levels: Sequence[Texture], weights: list[tuple[np.ndarray | None, _Box]],
-                        pose: Pose, motion: Motion, ratio: float) -> np.ndarray:
+                        lens: LensMap, poses: Sequence[Pose], motion: Motion, ratio: float) -> np.ndarray:
         """The supersampled sensor image ``(H ss, W ss)`` of a rolling shutter of readout ratio
-        ``ratio``: per grid sample, the canvas over the bounding box of its rows' lens map."""
+        ``ratio``, the samples of the motion's exposure grid at ``poses``: per grid sample, the
+        canvas over the bounding box of its rows' lens map."""
         ss = self.settings.supersample
         height = self.camera.model.height
         grid = exposure_grid(height, ratio, motion.samples)
         row_w = window_weights(grid, row_time(np.arange(height), height, ratio)).astype(np.float32)
-        cw, ch = self.canvas_size
-        sensor = np.zeros(self._map_x.shape, dtype=np.float32)
+        sensor = np.zeros(lens.map_x.shape, dtype=np.float32)
         background = float(levels[0].background)
-        for j, p in enumerate(motion.poses_at(pose, grid.times)):
+        for j, p in enumerate(poses):
             rows = np.flatnonzero(row_w[j] > 0)
             if not len(rows):
                 continue
             s0, s1 = int(rows[0]) * ss, (int(rows[-1]) + 1) * ss
-            x0 = max(0, math.floor(float(self._row_min_x[s0:s1].min())) - 1)
-            y0 = max(0, math.floor(float(self._row_min_y[s0:s1].min())) - 1)
-            x1 = min(cw, math.ceil(float(self._row_max_x[s0:s1].max())) + 2)
-            y1 = min(ch, math.ceil(float(self._row_max_y[s0:s1].max())) + 2)
-            canvas = self._canvas(levels, weights, [p], (x0, y0, x1, y1))
-            band = cv2.remap(canvas, self._map_x[s0:s1] - np.float32(x0), self._map_y[s0:s1] - np.float32(y0),
-                             cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=background)
+            box = lens.box(s0, s1)
+            band: np.ndarray
+            if box is None:
+                band = np.full_like(lens.map_x[s0:s1], background)
+            else:
+                x0, y0 = box[0], box[1]
+                canvas = self._canvas(levels, weights, lens, [p], box)
+                band = cv2.remap(canvas, lens.map_x[s0:s1] - np.float32(x0),
+                                 lens.map_y[s0:s1] - np.float32(y0), cv2.INTER_LINEAR,
+                                 borderMode=cv2.BORDER_CONSTANT, borderValue=background)
             sensor[s0:s1] += band * np.repeat(row_w[j, rows[0]:rows[-1] + 1], ss)[:, None]
         return sensor
 
     def _canvas(self, levels: Sequence[Texture], weights: list[tuple[np.ndarray | None, _Box]],
-                poses: Sequence[Pose], box: _Box) -> np.ndarray:
+                lens: LensMap, poses: Sequence[Pose], box: _Box) -> np.ndarray:
         """The sum over ``poses`` of the mip-blended texture warped onto the canvas box
         ``(x0, y0, x1, y1)`` (canvas px)."""
         bx0, by0, bx1, by1 = box
@@ -247,8 +248,7 @@ class Renderer:
             shift = np.array([[1.0, 0.0, -x0], [0.0, 1.0, -y0], [0.0, 0.0, 1.0]])
             level_acc = np.zeros((y1 - y0, x1 - x0), dtype=np.float32)
             for p in poses:
-                H = shift @ self.canvas_K @ np.column_stack([p.R[:, 0], p.R[:, 1], p.t]) \
-                    @ level.to_plane
+                H = lens.homography(p, shift) @ level.to_plane
                 warped = cv2.warpPerspective(level.image, H, (x1 - x0, y1 - y0),
                                              flags=cv2.INTER_LINEAR,
                                              borderMode=cv2.BORDER_CONSTANT,
@@ -258,26 +258,30 @@ class Renderer:
                                   acc[y0 - by0:y1 - by0, x0 - bx0:x1 - bx0])
         return acc
 
-    def _level_weights(self, levels: Sequence[Texture], pose: Pose
+    def _level_weights(self, levels: Sequence[Texture], pose: Pose, lens: LensMap
                        ) -> list[tuple[np.ndarray | None, tuple[int, int, int, int]]]:
         """Per-level blend weights over the canvas and their bounding boxes.
 
-        The finest level's texels per canvas sample at canvas point ``x`` is
-        ``rho(x) = sqrt(|det G| / |w(x)|^3)`` for the canvas-to-texture homography ``G`` with
-        ``w(x) = G[2] . (x, y, 1)``; level ``lambda = log2 rho`` (clipped to the pyramid) is
-        blended linearly between its two neighbouring integer levels.
+        Forward-looking lens: the finest level's texels per canvas sample at canvas point ``x``
+        is ``rho(x) = sqrt(|det G| / |w(x)|^3)`` for the canvas-to-texture homography ``G`` with
+        ``w(x) = G[2] . (x, y, 1)``. Wide lens: texels per sensor sub-sample
+        (:meth:`blurcalib.sim.canvas.WideLens.level_lambda`). Level ``lambda = log2 rho``
+        (clipped to the pyramid) is blended linearly between its two neighbouring integer levels.
         """
-        cw, ch = self.canvas_size
-        H = self.canvas_K @ np.column_stack([pose.R[:, 0], pose.R[:, 1], pose.t]) \
-            @ levels[0].to_plane
-        G = np.linalg.inv(H)
-        step = 16
-        ys, xs = np.mgrid[0:ch + step:step, 0:cw + step:step].astype(np.float64)
-        w = G[2, 0] * xs + G[2, 1] * ys + G[2, 2]
-        rho = np.sqrt(abs(np.linalg.det(G)) / np.maximum(np.abs(w), 1e-12) ** 3)
-        lam = np.clip(np.log2(np.maximum(rho, 1e-12)), 0, len(levels) - 1)
-        lam = cv2.resize(lam.astype(np.float32), (xs.shape[1] * step, xs.shape[0] * step),
-                         interpolation=cv2.INTER_LINEAR)[:ch, :cw]
+        cw, ch = lens.size
+        if self._wide is not None:
+            texel_m = float(levels[0].to_plane[0, 0])
+            lam = self._wide.level_lambda(lens, pose, texel_m, len(levels))
+        else:
+            H = lens.homography(pose) @ levels[0].to_plane
+            G = np.linalg.inv(H)
+            step = 16
+            ys, xs = np.mgrid[0:ch + step:step, 0:cw + step:step].astype(np.float64)
+            w = G[2, 0] * xs + G[2, 1] * ys + G[2, 2]
+            rho = np.sqrt(abs(np.linalg.det(G)) / np.maximum(np.abs(w), 1e-12) ** 3)
+            lam = np.clip(np.log2(np.maximum(rho, 1e-12)), 0, len(levels) - 1)
+            lam = cv2.resize(lam.astype(np.float32), (xs.shape[1] * step, xs.shape[0] * step),
+                             interpolation=cv2.INTER_LINEAR)[:ch, :cw]
         out: list[tuple[np.ndarray | None, tuple[int, int, int, int]]] = []
         for k in range(len(levels)):
             weight = np.maximum(0.0, 1.0 - np.abs(lam - k)).astype(np.float32)
@@ -351,11 +355,18 @@ def sensor_image(irradiance: np.ndarray, truth: FrameTruth, rng: np.random.Gener
 
 def mip_levels_for(camera: TrueCamera, pose: Pose, pattern: StarPattern, supersample: int) -> range:
     """Which pyramid levels a frame needs: from the one whose texels are no larger than a
-    canvas sample at the nearest feature, down to the coarsest."""
+    canvas sample (a sensor sub-sample, through a wide lens) at the nearest feature, down to
+    the coarsest."""
     cam = pattern.points_3d()
-    z = pose.transform(cam)[:, 2]
-    z = z[z > 0]
-    px_per_square = camera.model.fx * pattern.square_length_m / float(z.min()) if len(z) else 40.0
+    if camera.forward_only:
+        z = pose.transform(cam)[:, 2]
+        z = z[z > 0]
+        px_per_square = camera.model.fx * pattern.square_length_m / float(z.min()) if len(z) else 40.0
+    else:
+        pts = pose.transform(cam)
+        J = camera.point_jacobian(pts[camera.in_view(pts)]) @ pose.R[:, :2]
+        px_per_metre = np.linalg.svd(J, compute_uv=False)[:, 0].max(initial=0.0)
+        px_per_square = float(px_per_metre) * pattern.square_length_m if len(J) else 40.0
     need = px_per_square * supersample
     finest = 0
     while finest + 1 < len(MIP_TEXELS_PER_SQUARE) and MIP_TEXELS_PER_SQUARE[finest + 1] >= need:

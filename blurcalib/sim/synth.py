@@ -56,7 +56,9 @@ class SynthConfig:
         sharp, blurry: number of frames of each set.
         blur_min_px, blur_max_px: range of the median feature blur length of blurry frames.
         curved_fraction: share of blurry frames with curved hand-shake paths.
-        max_tilt_deg: largest angle between optical axis and target normal.
+        max_tilt_deg: largest angle between optical axis and target normal (through a lens of
+            the parametric family, between the ray the target is seen along and its normal:
+            :func:`sample_wide_pose`).
         square_px: range of the star square's size in the image (px).
         defocus_px: range of the Gaussian defocus sigma (px).
         noise_sigma: approximate noise standard deviation at mid grey (grey levels).
@@ -104,21 +106,45 @@ def _rotation(axis: np.ndarray, angle: float) -> np.ndarray:
     return R
 
 
+def _anchored_pose(pattern: StarPattern, camera: TrueCamera, R: np.ndarray, anchor: np.ndarray,
+                   place: np.ndarray, margin: float = 30.0) -> Pose | None:
+    """The pose putting target point ``anchor`` at camera point ``place`` with rotation ``R``, if
+    the tag is in view at least ``margin`` px inside the image and 40 features are in view."""
+    L = pattern.square_length_m
+    tag_pts = np.concatenate([
+        np.column_stack([pattern.tag_corners(t) * L, np.zeros(4)]) for t in pattern.apriltags])
+    pose = Pose(R, place - R @ anchor)
+    cam_pts = pose.transform(tag_pts)
+    if np.any(cam_pts[:, 2] <= 0.05) if camera.forward_only else not np.all(camera.in_view(cam_pts)):
+        return None
+    tag_px = camera.project(cam_pts)
+    if not (np.all(tag_px >= margin) and np.all(tag_px[:, 0] <= camera.width - 1 - margin)
+            and np.all(tag_px[:, 1] <= camera.height - 1 - margin)):
+        return None
+    cam = pose.transform(pattern.points_3d())
+    feat_px = camera.project(cam)
+    inside = ((feat_px[:, 0] >= 0) & (feat_px[:, 0] <= camera.width - 1)
+              & (feat_px[:, 1] >= 0) & (feat_px[:, 1] <= camera.height - 1))
+    if not camera.forward_only:
+        inside &= camera.in_view(cam)
+    return pose if inside.sum() >= 40 else None
+
+
 def sample_pose(pattern: StarPattern, camera: TrueCamera, rng: np.random.Generator,
                 max_tilt_deg: float, square_px: tuple[float, float],
                 tries: int = 200) -> Pose:
     """A pose with the tag fully in view, tilt up to ``max_tilt_deg``, anywhere in the image.
 
     A random target point is placed at a random image point (so that over many frames every
-    image region, corners included, is covered) at the depth giving a random square size.
+    image region, corners included, is covered) at the depth giving a random square size. A lens
+    that sees beyond the front half-space gets :func:`sample_wide_pose`.
     """
+    if not camera.forward_only:
+        return sample_wide_pose(pattern, camera, rng, max_tilt_deg, square_px, 2 * tries)
     model = camera.model
     L = pattern.square_length_m
-    tag_pts = np.concatenate([
-        np.column_stack([pattern.tag_corners(t) * L, np.zeros(4)]) for t in pattern.apriltags])
     lo = np.array([-1.0, -1.0]) * L
     hi = np.array([pattern.squares_x - 1, pattern.squares_y - 1]) * L
-    all_pts = pattern.points_3d()
     for _ in range(tries):
         tilt = math.radians(max_tilt_deg) * rng.uniform(0.0, 1.0)
         tilt_axis_angle = rng.uniform(0, 2 * np.pi)
@@ -129,20 +155,52 @@ def sample_pose(pattern: StarPattern, camera: TrueCamera, rng: np.random.Generat
         pixel = rng.uniform([0, 0], [model.width - 1, model.height - 1])
         depth = model.fx * L / rng.uniform(*square_px)
         xn = camera.unproject(pixel[None])[0]
-        t = depth * np.array([xn[0], xn[1], 1.0]) - R @ anchor
-        pose = Pose(R, t)
-        cam_pts = pose.transform(tag_pts)
-        if np.any(cam_pts[:, 2] <= 0.05):
+        pose = _anchored_pose(pattern, camera, R, anchor, depth * np.array([xn[0], xn[1], 1.0]))
+        if pose is not None:
+            return pose
+    raise RuntimeError("could not sample a pose with the tag in view; check the camera/pattern")
+
+
+def _tag_square_px(pattern: StarPattern, camera: TrueCamera, pose: Pose) -> float:
+    """The smallest short side (px) of a square at the tags' corners seen at ``pose``."""
+    L = pattern.square_length_m
+    corners = np.concatenate([pattern.tag_corners(t) for t in pattern.apriltags]) * L
+    cam = pose.transform(np.column_stack([corners, np.zeros(len(corners))]))
+    J = camera.point_jacobian(cam) @ pose.R[:, :2]
+    return float(np.linalg.svd(J, compute_uv=False)[:, 1].min()) * L
+
+
+def sample_wide_pose(pattern: StarPattern, camera: TrueCamera, rng: np.random.Generator,
+                     max_tilt_deg: float, square_px: tuple[float, float], tries: int = 400) -> Pose:
+    """A pose for a lens of any field of view: a random target point at a random pixel of the
+    lens's image circle (its corners and rays far off the axis as often as the centre), the
+    target facing that pixel's ray up to ``max_tilt_deg`` off it, at the distance where a square
+    is a random size of ``square_px`` (the lens's px per radian there, geometric mean of the two
+    directions). The tag is fully in view, its squares at least half the smallest ``square_px`` on
+    their short side (a close target spans tens of degrees, and its far part is seen obliquely),
+    and 40 features are seen."""
+    L = pattern.square_length_m
+    lo = np.array([-1.0, -1.0]) * L
+    hi = np.array([pattern.squares_x - 1, pattern.squares_y - 1]) * L
+    cos_stop = math.cos(camera.field_stop)
+    for _ in range(tries):
+        tilt = math.radians(max_tilt_deg) * rng.uniform(0.0, 1.0)
+        tilt_axis_angle = rng.uniform(0, 2 * np.pi)
+        tilt_axis = np.array([math.cos(tilt_axis_angle), math.sin(tilt_axis_angle), 0.0])
+        roll = rng.uniform(-np.pi, np.pi)
+        anchor = np.append(rng.uniform(lo, hi), 0.0)
+        pixel = rng.uniform([0, 0], [camera.width - 1, camera.height - 1])
+        ray = camera.pixel_to_ray(pixel[None])[0]
+        if not (np.all(np.isfinite(ray)) and ray[2] >= cos_stop):
             continue
-        tag_px = camera.project(cam_pts)
-        margin = 30.0
-        if not (np.all(tag_px >= margin) and np.all(tag_px[:, 0] <= model.width - 1 - margin)
-                and np.all(tag_px[:, 1] <= model.height - 1 - margin)):
-            continue
-        feat_px = camera.project(pose.transform(all_pts))
-        inside = ((feat_px[:, 0] >= 0) & (feat_px[:, 0] <= model.width - 1)
-                  & (feat_px[:, 1] >= 0) & (feat_px[:, 1] <= model.height - 1))
-        if inside.sum() >= 40:
+        to_ray = np.cross([0.0, 0.0, 1.0], ray)
+        angle = math.atan2(float(np.linalg.norm(to_ray)), float(ray[2]))
+        axis = to_ray / max(float(np.linalg.norm(to_ray)), 1e-300)
+        R = _rotation(axis, angle) @ _rotation(np.array([0.0, 0.0, 1.0]), roll) @ _rotation(tilt_axis, tilt)
+        sv = np.linalg.svd(camera.point_jacobian(ray[None])[0], compute_uv=False)
+        distance = math.sqrt(float(sv[0] * sv[1])) * L / rng.uniform(*square_px)
+        pose = _anchored_pose(pattern, camera, R, anchor, distance * ray)
+        if pose is not None and _tag_square_px(pattern, camera, pose) >= 0.5 * square_px[0]:
             return pose
     raise RuntimeError("could not sample a pose with the tag in view; check the camera/pattern")
 
@@ -157,7 +215,7 @@ def sample_motion(renderer: Renderer, pose: Pose, pattern: StarPattern, rng: np.
     time samples the readout needs.
     """
     omega = rng.normal(size=3) * np.array([1.0, 1.0, 0.45])
-    depth = float(pose.t[2])
+    depth = float(pose.t[2]) if renderer.camera.forward_only else float(np.linalg.norm(pose.t))
     v = rng.normal(size=3) * np.array([0.25, 0.25, 0.35]) * depth
     xi = np.concatenate([omega, v])
     xi2 = np.concatenate([rng.normal(size=3), rng.normal(size=3) * 0.3 * depth]) if curved \
@@ -177,9 +235,12 @@ def sample_motion(renderer: Renderer, pose: Pose, pattern: StarPattern, rng: np.
 
 def _visible_points(camera: TrueCamera, pose: Pose, pattern: StarPattern) -> np.ndarray:
     pts = pattern.points_3d()
-    px = camera.project(pose.transform(pts))
+    cam = pose.transform(pts)
+    px = camera.project(cam)
     m = camera.model
     inside = (px[:, 0] >= 0) & (px[:, 0] <= m.width - 1) & (px[:, 1] >= 0) & (px[:, 1] <= m.height - 1)
+    if not camera.forward_only:
+        inside &= camera.in_view(cam)
     return pts[inside]
 
 
@@ -199,16 +260,17 @@ def frame_truth(name: str, kind: str, pattern: StarPattern, camera: TrueCamera, 
     cam = pose.transform(pts)
     mid = camera.project(cam)
     m = camera.model
-    visible = ((cam[:, 2] > 0) & (mid[:, 0] >= 0) & (mid[:, 0] <= m.width - 1)
+    visible = (camera.in_view(cam) & (mid[:, 0] >= 0) & (mid[:, 0] <= m.width - 1)
                & (mid[:, 1] >= 0) & (mid[:, 1] <= m.height - 1))
     corners = np.array([[-0.5, -0.5], [0.5, -0.5], [0.5, 0.5], [-0.5, 0.5]])
     fpts = pattern.features[:, None, :] + corners[None]
-    corner_px = camera.project(pose.transform(np.concatenate(
-        [fpts.reshape(-1, 2) * pattern.square_length_m, np.zeros((fpts.size // 2, 1))], axis=1)))
-    corner_px = corner_px.reshape(-1, 4, 2)
-    block_inside = visible & np.all((corner_px[..., 0] >= 0) & (corner_px[..., 0] <= m.width - 1)
-                                    & (corner_px[..., 1] >= 0) & (corner_px[..., 1] <= m.height - 1),
-                                    axis=1)
+    corner_cam = pose.transform(np.concatenate(
+        [fpts.reshape(-1, 2) * pattern.square_length_m, np.zeros((fpts.size // 2, 1))], axis=1))
+    corner_px = camera.project(corner_cam).reshape(-1, 4, 2)
+    corner_in = (camera.in_view(corner_cam).reshape(-1, 4) & (corner_px[..., 0] >= 0)
+                 & (corner_px[..., 0] <= m.width - 1) & (corner_px[..., 1] >= 0)
+                 & (corner_px[..., 1] <= m.height - 1))
+    block_inside = visible & np.all(corner_in, axis=1)
     white = rng.uniform(170, 225)
     black = rng.uniform(15, 40)
     gain = noise_sigma**2 / ((white + black) / 2)

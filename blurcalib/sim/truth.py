@@ -1,7 +1,9 @@
 """Ground truth of the simulator: the true camera, the motion during an exposure, and what each
 simulated frame shows (its poses and every feature's true image positions and blur).
 
-* :class:`TrueCamera`: Brown-Conrady plus a smooth non-parametric deviation.
+* :class:`TrueCamera`: a lens model (Brown-Conrady, or any model of the parametric family up to a
+  200 degree field) plus a smooth non-parametric deviation; :func:`d435i_like_camera` and
+  :func:`fisheye_camera` are the presets.
 * :class:`Motion`: ``X_cam(tau) = Exp(tau xi + tau^2 xi2) X_cam(0)`` for time ``tau`` in exposure
   times (``tau = 0`` the frame's reference instant).
 * :class:`FrameTruth`, :class:`DatasetTruth`: ``ground_truth.json``
@@ -23,6 +25,9 @@ import cv2
 import numpy as np
 import torch
 
+from blurcalib.camera.family import as_family, camera_from_dict
+from blurcalib.camera.kannala_brandt import KannalaBrandtCamera
+from blurcalib.camera.lens import ParametricCamera
 from blurcalib.camera.parametric import BrownConrady
 from blurcalib.camera.shutter import exposure_grid, row_time, window_weights
 from blurcalib.geometry.lie import exp_so3, skew
@@ -33,22 +38,55 @@ GROUND_TRUTH_VERSION = 1
 
 
 # ------------------------------------------------------------------------------ the true camera
+FISHEYE_FIELD_STOP_DEG = 100.0
+"""Half angle (deg) of a fisheye preset's image circle: rays further off the axis are dark."""
+
+
 @dataclass(frozen=True)
 class TrueCamera:
-    """The simulated lens: Brown-Conrady followed by a smooth deviation field.
+    """The simulated lens: a lens model followed by a smooth deviation field.
 
-    ``x = pi_BC(X) + delta(pi_BC(X))`` px, with
+    ``x = pi(X) + delta(pi(X))`` px, with
     ``delta(p) = sum_m a_m sin(2 pi (k_m . p / (W, H)) + phi_m)`` (``a_m (2,)`` px,
     ``k_m (2,)`` cycles per image). A generic (B-spline) model can represent ``delta``; a
     parametric one cannot, which is what makes the simulated data worth a generic model.
 
+    A :class:`BrownConrady` model is a forward-looking lens (it sees ``Z > 0``; the renderer
+    draws it through one perspective canvas); a model of the parametric family
+    (:class:`blurcalib.camera.lens.ParametricCamera`) sees every direction of its valid field
+    up to ``field_stop_deg`` off the axis (rays beyond are dark), beyond 90 degrees too.
+
     Attributes:
-        model: the Brown-Conrady part.
+        model: the lens model.
         waves: ``(M, 5)`` rows ``(a_x, a_y, k_x, k_y, phi)`` of the deviation.
+        field_stop_deg: the image circle's half angle (deg) of a family model; None: its whole
+            valid field.
     """
 
-    model: BrownConrady
+    model: BrownConrady | ParametricCamera
     waves: np.ndarray = field(default_factory=lambda: np.zeros((0, 5)))
+    field_stop_deg: float | None = None
+
+    @property
+    def forward_only(self) -> bool:
+        """Whether the lens is the forward-looking Brown-Conrady lens (:class:`BrownConrady`)."""
+        return isinstance(self.model, BrownConrady)
+
+    @property
+    def width(self) -> int:
+        return self.model.width
+
+    @property
+    def height(self) -> int:
+        return self.model.height
+
+    @property
+    def field_stop(self) -> float:
+        """The largest angle off the optical axis (rad) the lens sees."""
+        if isinstance(self.model, BrownConrady):
+            return math.pi / 2
+        limit = self.model.max_angle
+        return limit if self.field_stop_deg is None else min(limit, math.radians(self.field_stop_deg))
 
     def deviation(self, px: np.ndarray) -> np.ndarray:
         """``delta(px)``: ``(N, 2)`` px -> ``(N, 2)`` px."""
@@ -66,25 +104,74 @@ class TrueCamera:
         p = self.model.project(points_cam)
         return p + self.deviation(p)
 
-    def unproject(self, px: np.ndarray) -> np.ndarray:
-        """Pixels ``(N, 2)`` px -> undistorted normalised coordinates ``(N, 2)``.
+    def in_view(self, points_cam: np.ndarray) -> np.ndarray:
+        """``(N,) bool``: camera-frame points ``(N, 3)`` the lens sees (``Z > 0`` for the
+        forward-looking lens; in the valid field and within the field stop otherwise)."""
+        pts = np.asarray(points_cam, dtype=np.float64).reshape(-1, 3)
+        if isinstance(self.model, BrownConrady):
+            return pts[:, 2] > 0
+        cos = pts[:, 2] / np.maximum(np.linalg.norm(pts, axis=1), 1e-300)
+        return self.model.valid_directions(pts) & (cos >= math.cos(self.field_stop))
 
-        Inverts the deviation by fixed-point iteration ``y <- px - delta(y)`` (a contraction:
-        ``delta`` varies by far less than a pixel per pixel), then the Brown-Conrady part.
-        """
+    def _undeviate(self, px: np.ndarray) -> np.ndarray:
+        """The model's pixel ``y`` with ``y + delta(y) = px``: fixed-point iteration
+        ``y <- px - delta(y)`` (a contraction: ``delta`` varies by far less than a pixel per pixel)."""
         px = np.asarray(px, dtype=np.float64)
         y = px.copy()
         for _ in range(8):
             y = px - self.deviation(y)
-        return self.model.unproject(y)
+        return y
+
+    def unproject(self, px: np.ndarray) -> np.ndarray:
+        """Pixels ``(N, 2)`` px -> undistorted normalised coordinates ``(N, 2)`` (forward rays;
+        NaN for a ray with ``Z <= 0``)."""
+        y = self._undeviate(px)
+        if self.forward_only:
+            return self.model.unproject(y)
+        rays = self.model.unproject(y)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            return np.where(rays[..., 2:] > 0, rays[..., :2] / rays[..., 2:], np.nan)
+
+    def pixel_to_ray(self, px: np.ndarray) -> np.ndarray:
+        """Pixels ``(N, 2)`` px -> unit viewing directions ``(N, 3)`` (NaN where none)."""
+        y = self._undeviate(px)
+        if not self.forward_only:
+            return self.model.unproject(y)
+        xn = self.model.unproject(y)
+        rays = np.concatenate([xn, np.ones((*xn.shape[:-1], 1))], axis=-1)
+        return rays / np.linalg.norm(rays, axis=-1, keepdims=True)
+
+    def point_jacobian(self, points_cam: np.ndarray) -> np.ndarray:
+        """``(N, 2, 3)`` px/m: the lens model's ``d pi / d X`` (the deviation's own slope, below
+        1e-2, is left out: this sizes sampling densities)."""
+        d_point = as_family(self.model).project_with_jacobian(points_cam).d_point
+        assert d_point is not None
+        return d_point
 
     def to_dict(self) -> dict:
-        return {"brown_conrady": self.model.to_dict(), "deviation_waves": self.waves.tolist()}
+        if self.forward_only:
+            return {"brown_conrady": self.model.to_dict(), "deviation_waves": self.waves.tolist()}
+        return {"lens": self.model.to_dict(), "deviation_waves": self.waves.tolist(),
+                "field_stop_deg": self.field_stop_deg}
 
     @classmethod
     def from_dict(cls, data: dict) -> TrueCamera:
-        return cls(BrownConrady.from_dict(data["brown_conrady"]),
-                   np.asarray(data["deviation_waves"], dtype=np.float64).reshape(-1, 5))
+        waves = np.asarray(data["deviation_waves"], dtype=np.float64).reshape(-1, 5)
+        if "lens" in data:
+            stop = data.get("field_stop_deg")
+            return cls(camera_from_dict(data["lens"]), waves, None if stop is None else float(stop))
+        return cls(BrownConrady.from_dict(data["brown_conrady"]), waves)
+
+
+def deviation_waves(rng: np.random.Generator, deviation_px: float, count: int = 6) -> np.ndarray:
+    """``(count, 5)`` deviation waves of about ``deviation_px`` px peak, 0.5 to 2.5 cycles per image
+    in random directions (:class:`TrueCamera`)."""
+    directions = rng.uniform(0, 2 * np.pi, count)
+    freq = rng.uniform(0.5, 2.5, count)
+    amps = rng.normal(size=(count, 2))
+    amps *= deviation_px / max(np.abs(amps).sum(axis=0).max(), 1e-9)
+    return np.column_stack([amps, freq * np.cos(directions), freq * np.sin(directions),
+                            rng.uniform(0, 2 * np.pi, count)])
 
 
 def d435i_like_camera(seed: int = 0, deviation_px: float = 0.3) -> TrueCamera:
@@ -97,14 +184,35 @@ def d435i_like_camera(seed: int = 0, deviation_px: float = 0.3) -> TrueCamera:
     rng = np.random.default_rng(seed)
     model = BrownConrady(fx=645.2, fy=644.6, cx=637.8, cy=361.4, k1=0.041, k2=-0.058,
                          p1=0.0007, p2=-0.0004, k3=0.019, width=1280, height=720)
-    m = 6
-    directions = rng.uniform(0, 2 * np.pi, m)
-    freq = rng.uniform(0.5, 2.5, m)
-    amps = rng.normal(size=(m, 2))
-    amps *= deviation_px / max(np.abs(amps).sum(axis=0).max(), 1e-9)
-    waves = np.column_stack([amps, freq * np.cos(directions), freq * np.sin(directions),
-                             rng.uniform(0, 2 * np.pi, m)])
-    return TrueCamera(model, waves)
+    return TrueCamera(model, deviation_waves(rng, deviation_px))
+
+
+FISHEYE_COEFFICIENTS = (-0.021, 0.0013, -0.00021, 0.0)
+"""``k1..k4`` of the fisheye presets: between the equidistant (``r = f theta``) and the
+equisolid-angle (``r = 2 f sin(theta / 2)``) lens, increasing beyond 160 degrees off the axis."""
+
+
+def fisheye_camera(fov_deg: float = 130.0, seed: int = 0, deviation_px: float = 0.3,
+                   width: int = 1280, height: int = 720) -> TrueCamera:
+    """A fisheye of ``fov_deg`` horizontal field (up to 200 degrees) on a ``width x height`` sensor.
+
+    Kannala-Brandt with :data:`FISHEYE_COEFFICIENTS`, its focal length such that the image's left
+    and right edges are ``fov_deg / 2`` off the axis, the principal point a few pixels off the
+    centre, an image circle of :data:`FISHEYE_FIELD_STOP_DEG` (a 190 degree lens's corners are
+    dark), and a deviation of about ``deviation_px`` px peak (:func:`deviation_waves`).
+    """
+    if not 0 < fov_deg <= 2 * FISHEYE_FIELD_STOP_DEG:
+        raise ValueError(f"fisheye field of view must be in (0, {2 * FISHEYE_FIELD_STOP_DEG:g}] degrees, "
+                         f"got {fov_deg}")
+    rng = np.random.default_rng(seed)
+    half = math.radians(fov_deg) / 2.0
+    k1, k2, k3, k4 = FISHEYE_COEFFICIENTS
+    t2 = half * half
+    theta_d = half * (1.0 + t2 * (k1 + t2 * (k2 + t2 * (k3 + t2 * k4))))
+    f = width / 2.0 / theta_d
+    model = KannalaBrandtCamera.from_values(width, height, fx=f, fy=f * 1.0004, cx=(width - 1) / 2.0 + 2.3,
+                                            cy=(height - 1) / 2.0 - 1.6, k1=k1, k2=k2, k3=k3, k4=k4)
+    return TrueCamera(model, deviation_waves(rng, deviation_px), FISHEYE_FIELD_STOP_DEG)
 
 
 # ------------------------------------------------------------------------------------ motion
@@ -349,8 +457,7 @@ def time_averaged_positions(camera: TrueCamera, pose: Pose, motion: Motion, poin
 
 def _backproject_to_plane(camera: TrueCamera, pose: Pose, px: np.ndarray) -> np.ndarray:
     """Pixels ``(N, 2)`` -> target-plane points ``(N, 3)`` (Z = 0) seen there in ``pose``."""
-    xn = camera.unproject(px)
-    rays = np.concatenate([xn, np.ones((len(xn), 1))], axis=1) @ pose.R  # world directions
+    rays = camera.pixel_to_ray(px) @ pose.R  # world directions
     origin = pose.camera_center
     s = -origin[2] / rays[:, 2]
     return origin + s[:, None] * rays

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import math
 import os
+import re
 from dataclasses import dataclass, field
 from functools import cached_property
 from pathlib import Path
@@ -33,6 +34,7 @@ import torch
 import yaml
 
 from blurcalib.io.atomic import atomic_write_text
+from blurcalib.io.input_file import InputFileError, open_input
 
 TAG_CELLS = 10
 """A tag36h11 marker drawn by the reference tool is 10 x 10 cells: a white ring, a black ring
@@ -63,7 +65,16 @@ PAGE_TOLERANCE_MM = 0.01
 
 
 class PatternFileError(ValueError):
-    """A pattern YAML is missing, unreadable or malformed; the message names file and field."""
+    """A pattern YAML is missing, unreadable or malformed; the message names file and field.
+
+    Attributes:
+        summary: the message without anything quoted from the file (no field's value, no line
+            of it): what a server shows a client that named a file it cannot read itself.
+    """
+
+    def __init__(self, message: str, summary: str | None = None) -> None:
+        super().__init__(message)
+        self.summary = message if summary is None else summary
 
 
 @dataclass(frozen=True)
@@ -380,8 +391,8 @@ def _field(node: dict, key: str, kind: type, path: str, where: str = ""):
             return int(value)
         return kind(value)
     except (TypeError, ValueError, OverflowError):
-        raise PatternFileError(
-            f"{path}: field '{name}' must be {kind.__name__}, got {_shown(value)}") from None
+        problem = f"{path}: field '{name}' must be {kind.__name__}"
+        raise PatternFileError(f"{problem}, got {_shown(value)}", problem) from None
 
 
 def load_pattern(path: str | os.PathLike) -> StarPattern:
@@ -393,24 +404,31 @@ def load_pattern(path: str | os.PathLike) -> StarPattern:
     """
     path_s = str(path)
     try:
-        with open(path, "rb") as handle:
+        with open_input(path, what="pattern file") as handle:  # a regular file: a FIFO would block
             data = handle.read(MAX_PATTERN_BYTES + 1)
     except FileNotFoundError:
         raise PatternFileError(f"{path_s}: pattern file not found") from None
+    except InputFileError as exc:
+        raise PatternFileError(str(exc)) from None
     except OSError as exc:
-        raise PatternFileError(f"{path_s}: cannot read pattern file ({exc})") from None
+        raise PatternFileError(f"{path_s}: cannot read pattern file ({exc})",
+                               f"{path_s}: cannot read pattern file ({exc.strerror or exc})") from None
     if len(data) > MAX_PATTERN_BYTES:
         raise PatternFileError(f"{path_s}: more than {MAX_PATTERN_BYTES} bytes, the largest pattern file "
                                f"read (a pattern YAML is under 1 kB)")
     try:
         text = data.decode("utf-8")
     except UnicodeDecodeError as exc:
-        raise PatternFileError(f"{path_s}: cannot read pattern file ({exc})") from None
+        raise PatternFileError(f"{path_s}: cannot read pattern file ({exc})",
+                               f"{path_s}: not a pattern file (not UTF-8 text)") from None
     try:
         _check_depth(text, path_s)
         doc = yaml.safe_load(text)
     except yaml.YAMLError as exc:
-        raise PatternFileError(f"{path_s}: not valid YAML ({exc})".replace("\n", " ")) from None
+        mark = getattr(exc, "problem_mark", None)
+        raise PatternFileError(f"{path_s}: not valid YAML ({exc})".replace("\n", " "),
+                               f"{path_s}: not valid YAML" + (f" (line {mark.line + 1})" if mark else "")
+                               ) from None
     except PatternFileError:
         raise
     except ValueError as exc:  # a value the YAML constructors refuse (an integer of 5,000 digits)
@@ -419,8 +437,8 @@ def load_pattern(path: str | os.PathLike) -> StarPattern:
         raise PatternFileError(f"{path_s}: not a pattern YAML (expected a mapping at top level)")
     segments = _field(doc, "num_star_segments", int, path_s)
     if segments < 4 or segments % 4 or segments > MAX_STAR_SEGMENTS:
-        raise PatternFileError(f"{path_s}: field 'num_star_segments' must be a multiple of 4 from 4 to "
-                               f"{MAX_STAR_SEGMENTS}, got {segments}")
+        problem = f"{path_s}: field 'num_star_segments' must be a multiple of 4 from 4 to {MAX_STAR_SEGMENTS}"
+        raise PatternFileError(f"{problem}, got {segments}", problem)
     squares_x = _field(doc, "squares_x", int, path_s)
     squares_y = _field(doc, "squares_y", int, path_s)
     square_length = _field(doc, "square_length_in_meters", float, path_s)
@@ -440,15 +458,15 @@ def load_pattern(path: str | os.PathLike) -> StarPattern:
         for i, t in enumerate(tags_node))
     for i, tag in enumerate(tags):
         if not 0 <= tag.index < 587:
-            raise PatternFileError(
-                f"{path_s}: field 'apriltags[{i}].index' must be a tag36h11 id in [0, 586], "
-                f"got {tag.index}")
+            problem = f"{path_s}: field 'apriltags[{i}].index' must be a tag36h11 id in [0, 586]"
+            raise PatternFileError(f"{problem}, got {tag.index}", problem)
     try:
         return StarPattern(
             num_star_segments=segments, squares_x=squares_x, squares_y=squares_y,
             square_length_m=square_length, page=layout, apriltags=tags)
     except ValueError as exc:
-        raise PatternFileError(f"{path_s}: {exc}") from None
+        fields = ", ".join(dict.fromkeys(re.findall(r"'([\w.\[\]]+)'", str(exc)))) or "the fields"
+        raise PatternFileError(f"{path_s}: {exc}", f"{path_s}: {fields}: not a valid star target") from None
 
 
 def tag36h11_cells(index: int) -> np.ndarray:

@@ -1,0 +1,188 @@
+"""Undistorted output images of any central camera: a pinhole map for moderate fields, and a
+latitude-longitude or stereographic map for wide ones (a pinhole image of a 180 degree field is
+infinite).
+
+An :class:`OutputProjection` says which direction (camera frame) each output pixel ``(x, y)``
+(OpenCV convention) looks along, with ``a = (x - cx) / fx``, ``b = (y - cy) / fy``:
+
+* ``pinhole``: ``(a, b, 1)``, normalised;
+* ``latlong``: longitude ``a`` about the camera's y axis and latitude ``b`` (rad):
+  ``(sin a cos b, sin b, cos a cos b)`` for ``|a| <= pi``, ``|b| <= pi / 2``;
+* ``stereographic``: ``theta = 2 atan(r / 2)`` off the axis with ``r = |(a, b)|``:
+  ``(sin(theta) (a, b) / r, cos theta)``.
+
+All three look along the optical axis at the principal point with ``fx, fy`` px per radian there.
+:func:`output_maps` gives ``cv2.remap`` maps from a camera's image to an output image.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Protocol
+
+import cv2
+import numpy as np
+from numpy.typing import ArrayLike
+
+__all__ = ["MAP_TOL_PX", "OUTPUT_KINDS", "OutputProjection", "RayProjector", "output_for", "output_maps"]
+
+OUTPUT_KINDS = ("pinhole", "latlong", "stereographic")
+
+MAP_TOL_PX = 1e-4
+"""Convergence of :func:`output_maps`'s per-pixel projections (px): float32 maps of a 1280 px image
+resolve about 1e-4 px."""
+
+PINHOLE_FIELD_DEG = 120.0
+"""Widest field (deg, full angle across the image) :func:`output_for` gives a pinhole output."""
+
+
+class RayProjector(Protocol):
+    """A camera that projects directions: the generic and the parametric models."""
+
+    @property
+    def width(self) -> int:
+        """Image width (px)."""
+        ...
+
+    @property
+    def height(self) -> int:
+        """Image height (px)."""
+        ...
+
+    def project_valid(self, points: ArrayLike, init: ArrayLike | None = None, tol_px: float = 1e-8
+                      ) -> tuple[np.ndarray, np.ndarray]:
+        """Pixels ``(N, 2)`` of camera-frame points ``(N, 3)`` and ``(N,) bool`` where valid."""
+        ...
+
+    def pixel_to_ray(self, px: ArrayLike) -> np.ndarray:
+        """Unit directions ``(N, 3)`` of pixels ``(N, 2)``; NaN where none."""
+        ...
+
+
+@dataclass(frozen=True)
+class OutputProjection:
+    """An output image: its projection (module docstring), intrinsics (px, px per rad) and size."""
+
+    kind: str
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    width: int
+    height: int
+
+    def __post_init__(self) -> None:
+        if self.kind not in OUTPUT_KINDS:
+            raise ValueError(f"unknown output projection {self.kind!r}; known: {', '.join(OUTPUT_KINDS)}")
+        if not (self.fx > 0 and self.fy > 0 and self.width > 0 and self.height > 0):
+            raise ValueError(f"output focal lengths and size must be positive, got fx={self.fx}, "
+                             f"fy={self.fy}, {self.width} x {self.height}")
+
+    def rays(self, x: ArrayLike, y: ArrayLike) -> np.ndarray:
+        """Unit directions ``(N, 3)`` of output pixels ``x, y (N,)``; NaN where the projection
+        has none (beyond the poles of ``latlong``)."""
+        a = (np.asarray(x, dtype=np.float64) - self.cx) / self.fx
+        b = (np.asarray(y, dtype=np.float64) - self.cy) / self.fy
+        if self.kind == "pinhole":
+            rays = np.stack([a, b, np.ones_like(a)], axis=-1)
+            return rays / np.linalg.norm(rays, axis=-1, keepdims=True)
+        if self.kind == "latlong":
+            rays = np.stack([np.sin(a) * np.cos(b), np.sin(b), np.cos(a) * np.cos(b)], axis=-1)
+            rays[(np.abs(a) > math.pi) | (np.abs(b) > math.pi / 2)] = np.nan
+            return rays
+        r = np.hypot(a, b)
+        theta = 2.0 * np.arctan(r / 2.0)
+        scale = np.where(r > 0, np.sin(theta) / np.where(r > 0, r, 1.0), 1.0)
+        return np.stack([a * scale, b * scale, np.cos(theta)], axis=-1)
+
+
+def _projected_radius(kind: str, theta: float) -> float:
+    """An output projection's radius (per unit focal length) of a ray ``theta`` off the axis."""
+    if kind == "pinhole":
+        return math.tan(theta) if theta < math.pi / 2 else math.inf
+    return 2.0 * math.tan(theta / 2.0) if kind == "stereographic" else theta
+
+
+def output_for(camera: RayProjector, kind: str | None = None) -> OutputProjection:
+    """The output image of a camera: its size, principal point at the image centre, and its
+    px per radian near the centre as focal length, lowered where needed so that the rays of the
+    middle row's and column's ends stay in the output (a pinhole output keeps the centre's scale).
+
+    ``kind`` None picks ``pinhole`` for a field up to :data:`PINHOLE_FIELD_DEG` (the widest
+    angle between the optical axis and a ray of the image's border, doubled) and
+    ``stereographic`` beyond.
+    """
+    w, h = camera.width, camera.height
+    centre = np.array([(w - 1) / 2.0, (h - 1) / 2.0])
+    delta = max(1.0, 0.01 * min(w, h))
+    probe = camera.pixel_to_ray(centre + np.array([[-delta, 0.0], [delta, 0.0], [0.0, -delta], [0.0, delta]]))
+    angle = [math.acos(float(np.clip(probe[i] @ probe[i + 1], -1.0, 1.0))) for i in (0, 2)]
+    fx, fy = 2.0 * delta / angle[0], 2.0 * delta / angle[1]
+    axis = camera.pixel_to_ray(centre[None])[0]
+
+    def off_axis(px: np.ndarray) -> np.ndarray:
+        rays = camera.pixel_to_ray(px)
+        return np.arccos(np.clip(rays[np.all(np.isfinite(rays), axis=1)] @ axis, -1.0, 1.0))
+
+    if kind is None:
+        t = np.linspace(0.0, 1.0, 65)[:, None]
+        corners = np.array([[0, 0], [w - 1, 0], [w - 1, h - 1], [0, h - 1]], dtype=np.float64)
+        border = np.concatenate([(1 - t) * corners[k] + t * corners[(k + 1) % 4] for k in range(4)])
+        field = 2.0 * math.degrees(float(off_axis(border).max(initial=0.0)))
+        kind = "pinhole" if field <= PINHOLE_FIELD_DEG else "stereographic"
+    if kind != "pinhole":
+        ends = np.array([[0.0, centre[1]], [w - 1.0, centre[1]], [centre[0], 0.0], [centre[0], h - 1.0]])
+        theta = off_axis(ends)
+        if len(theta) == 4:
+            reach = min((w - 1) / 2.0 / _projected_radius(kind, float(max(theta[:2]))),
+                        (h - 1) / 2.0 / _projected_radius(kind, float(max(theta[2:]))))
+            scale = min(1.0, reach / max(fx, fy))
+            fx, fy = fx * scale, fy * scale
+    return OutputProjection(kind, fx, fy, float(centre[0]), float(centre[1]), w, h)
+
+
+def output_maps(camera: RayProjector, output: OutputProjection, coarse_px: int = 16,
+                tol_px: float = MAP_TOL_PX) -> tuple[np.ndarray, np.ndarray]:
+    """Maps for ``cv2.remap`` from the camera's image to the output image.
+
+    ``map_x, map_y (output.height, output.width)`` float32 hold each output pixel's position in
+    the camera's image (OpenCV pixels), -1 where its ray has no valid pixel (outside the
+    calibrated area or the image, or beyond the output projection), so ``remap`` fills the
+    border value there. Each pixel's projection is solved to ``tol_px``, warm-started from a
+    bilinear interpolation of a solve every ``coarse_px`` pixels.
+    """
+    width, height = output.width, output.height
+
+    def rays(xs: np.ndarray, ys: np.ndarray) -> np.ndarray:
+        xx, yy = np.meshgrid(xs, ys)
+        return output.rays(xx.reshape(-1), yy.reshape(-1))
+
+    def project(directions: np.ndarray, init: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+        """The camera's pixels (-1 for rays the output projection lacks) and where valid."""
+        px = np.full((len(directions), 2), -1.0)
+        ok = np.all(np.isfinite(directions), axis=1)
+        if ok.any():
+            px[ok], inside = camera.project_valid(directions[ok], None if init is None else init[ok],
+                                                  tol_px=tol_px)
+            ok[ok] = inside
+        return px, ok
+
+    cxs = np.append(np.arange(0, width - 1, coarse_px, dtype=np.float64), width - 1)
+    cys = np.append(np.arange(0, height - 1, coarse_px, dtype=np.float64), height - 1)
+    coarse, _ = project(rays(cxs, cys), None)
+    coarse = coarse.reshape(len(cys), len(cxs), 2)
+    fx_idx = np.interp(np.arange(width), cxs, np.arange(len(cxs))).astype(np.float32)
+    fy_idx = np.interp(np.arange(height), cys, np.arange(len(cys))).astype(np.float32)
+    grid = np.meshgrid(fx_idx, fy_idx)
+    init = np.stack([cv2.remap(coarse[..., k].astype(np.float32), *grid, cv2.INTER_LINEAR,
+                               borderMode=cv2.BORDER_REPLICATE) for k in range(2)], -1).reshape(-1, 2)
+    all_rays = rays(np.arange(width, dtype=np.float64), np.arange(height, dtype=np.float64))
+    out = np.empty((len(all_rays), 2))
+    chunk = 1 << 17
+    for i in range(0, len(all_rays), chunk):
+        u, inside = project(all_rays[i:i + chunk], init[i:i + chunk].astype(np.float64))
+        u[~inside] = -1.0
+        out[i:i + chunk] = u
+    maps = out.reshape(height, width, 2).astype(np.float32)
+    return np.ascontiguousarray(maps[..., 0]), np.ascontiguousarray(maps[..., 1])
