@@ -13,7 +13,9 @@ two images differ by a homography exactly), fits one homography per frame from s
 split into its radial and tangential components about the principal point.
 :func:`radial_profile` bins them by radius with a z-score (the bin's mean over its standard
 error). A feature definition that depends on the pattern shows here as a radial profile that
-differs from zero where random error cannot explain it.
+differs from zero where random error cannot explain it; :func:`check_patterns` names it so
+(systematic error: a bin whose radial mean is both beyond ``z_limit`` standard errors and larger
+than ``limit_px``), with the two patterns' Brown-Conrady focal lengths beside it.
 
 Pixel convention: OpenCV (the centre of the top-left pixel is ``(0, 0)``).
 """
@@ -27,7 +29,8 @@ import numpy as np
 from blurcalib.camera.parametric import BrownConrady
 from blurcalib.io.results import FeatureTable
 
-__all__ = ["CrossResiduals", "RadialProfile", "cross_residuals", "radial_profile"]
+__all__ = ["CrossResiduals", "PatternCheck", "RadialProfile", "check_patterns", "cross_residuals",
+           "radial_profile"]
 
 
 @dataclass(frozen=True)
@@ -211,3 +214,67 @@ def radial_profile(res: CrossResiduals, edges: np.ndarray | None = None) -> Radi
     with np.errstate(invalid="ignore", divide="ignore"):
         z = rad / sem
     return RadialProfile(edges=edges, count=count, radial=rad, tangential=tan, radial_sem=sem, z=z)
+
+
+@dataclass(frozen=True)
+class PatternCheck:
+    """Two patterns' features of one camera compared (:func:`check_patterns`).
+
+    Attributes:
+        profile: the feature-level residual's :class:`RadialProfile` (``b`` against ``a``).
+        matches: inliers of the residual; frames: frames with a homography.
+        median_px: median residual length (px).
+        focal_pct: ``(2,)`` percent, ``b``'s camera's ``(fx, fy)`` over ``a``'s, minus one.
+        worst_radial_px: the largest ``|radial mean|`` of a bin beyond ``z_limit`` (0 if none), px.
+        systematic: a bin's radial mean exceeds ``z_limit`` standard errors and ``limit_px``.
+        z_limit, limit_px: the thresholds used.
+    """
+
+    profile: RadialProfile
+    matches: int
+    frames: int
+    median_px: float
+    focal_pct: np.ndarray
+    worst_radial_px: float
+    systematic: bool
+    z_limit: float
+    limit_px: float
+
+    def lines(self) -> list[str]:
+        """The printable check: the verdict, the cameras' focal lengths, the profile by radius."""
+        verdict = (f"systematic error: the two patterns place the same target points up to "
+                   f"{self.worst_radial_px:.4f} px apart radially, beyond noise (|z| >= {self.z_limit:g})"
+                   if self.systematic else
+                   f"no systematic error found: every radius bin within {self.limit_px:g} px or "
+                   f"{self.z_limit:g} standard errors")
+        return [verdict,
+                f"{self.matches} matches in {self.frames} frames, median {self.median_px:.4f} px; second "
+                f"camera's focal lengths {self.focal_pct[0]:+.3f} % / {self.focal_pct[1]:+.3f} %",
+                *self.profile.rows()]
+
+
+def check_patterns(a: FeatureTable, b: FeatureTable, camera_a: BrownConrady, camera_b: BrownConrady, *,
+                   edges: np.ndarray | None = None, z_limit: float = 5.0, limit_px: float = 0.01
+                   ) -> PatternCheck:
+    """Compare two patterns' features of one camera at the same poses: :func:`cross_residuals` of
+    ``b`` against ``a`` in ``camera_a``'s undistorted pixels, binned by :func:`radial_profile`, and
+    the verdict (module docstring).
+
+    Args:
+        a, b: feature tables (px, OpenCV convention) of the two patterns, frames named alike.
+        camera_a, camera_b: the Brown-Conrady cameras calibrated from ``a`` and from ``b``.
+        z_limit: a bin's radial mean over its standard error beyond which noise does not explain it.
+        limit_px: radial means up to this are not reported as systematic (px).
+    Raises:
+        ValueError: no frame has enough matches.
+    """
+    res = cross_residuals(a, b, camera_a)
+    if not res.inlier.any():
+        raise ValueError("the two feature sets share no frame with enough matching features")
+    profile = radial_profile(res, edges)
+    beyond = np.abs(np.nan_to_num(profile.z)) >= z_limit
+    worst = float(np.max(np.abs(profile.radial[beyond]))) if beyond.any() else 0.0
+    focal = 100.0 * np.array([camera_b.fx / camera_a.fx - 1.0, camera_b.fy / camera_a.fy - 1.0])
+    return PatternCheck(profile=profile, matches=int(res.inlier.sum()), frames=len(set(res.frame.tolist())),
+                        median_px=res.median_px, focal_pct=focal, worst_radial_px=worst,
+                        systematic=worst > limit_px, z_limit=z_limit, limit_px=limit_px)

@@ -3,10 +3,12 @@ per frame, in undistorted pixels."""
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
-from blurcalib.calib.cross_pattern import cross_residuals, radial_profile
+from blurcalib.calib.cross_pattern import check_patterns, cross_residuals, radial_profile
 from blurcalib.camera.parametric import BrownConrady
 from blurcalib.io.results import FeatureTable
 
@@ -75,6 +77,44 @@ def test_a_radial_bias_shows_in_the_profile() -> None:
     assert np.all(np.abs(prof.tangential[prof.count > 0]) < 0.005)
     assert prof.z[-1] > 5
     assert len(prof.rows()) == 4
+
+
+def _biased_pair(bias_px: float, seed: int) -> tuple[FeatureTable, FeatureTable]:
+    """Two noisy feature sets (0.01 px) of the same views, ``b`` moved radially by ``bias_px``
+    times ``(r / 400)^2``."""
+    rng = np.random.default_rng(seed)
+    views = _views(rng, 4)
+    centre = np.array([CAMERA.cx, CAMERA.cy])
+    a, b = [], []
+    for u in views:
+        x = _distort(u)
+        d = x - centre
+        r = np.linalg.norm(d, axis=1, keepdims=True)
+        a.append(x + rng.normal(0, 0.01, u.shape))
+        b.append(x + bias_px * (r / 400.0) ** 2 * d / r + rng.normal(0, 0.01, u.shape))
+    return _table(a), _table(b)
+
+
+def test_check_names_a_radial_bias_and_not_noise() -> None:
+    edges = np.array([0.0, 100.0, 200.0, 300.0, 450.0])
+    longer = replace(CAMERA, fx=CAMERA.fx * 1.0005, fy=CAMERA.fy * 1.0006)
+    check = check_patterns(*_biased_pair(0.2, 4), CAMERA, longer, edges=edges)
+    assert check.systematic and check.worst_radial_px > 0.01
+    assert check.frames == 4 and check.matches == 4 * 204
+    np.testing.assert_allclose(check.focal_pct, [0.05, 0.06], atol=1e-9)
+    assert check.lines()[0].startswith("systematic error") and len(check.lines()) == 2 + 4
+    # noise alone, and a bias below the limit, are not named systematic
+    for bias in (0.0, 0.005):
+        quiet = check_patterns(*_biased_pair(bias, 5), CAMERA, CAMERA, edges=edges)
+        assert not quiet.systematic and quiet.lines()[0].startswith("no systematic error")
+
+
+def test_check_without_common_frames_says_so() -> None:
+    a = _table(_views(np.random.default_rng(2), 1))
+    b = _table(_views(np.random.default_rng(3), 1))
+    b.frame[:] = "other.png"
+    with pytest.raises(ValueError, match="share no frame"):
+        check_patterns(a, b, CAMERA, CAMERA)
 
 
 def test_tables_without_common_frames() -> None:
