@@ -1,6 +1,6 @@
 """Benchmark of pattern-dependent feature bias: one camera, two patterns, the same poses.
 
-    python scripts/bench_patterns.py [--cache DIR] [--sim-frames 3] [--skip-real] [--skip-sim]
+    python scripts/bench_patterns.py [--cache DIR] [--sim-frames 3] [--skip-real] [--skip-sim] [--record FILE]
 
 1. The real fixture frames (``real_star16`` and ``real_star8_1``: the 16-segment star and the
    four-segment checkerboard shown in turn on one monitor, 8 frames each at the same poses):
@@ -8,9 +8,10 @@
    * the two cameras' difference: focal lengths and principal point, and the checkerboard
      camera's projection of the star camera's rays over the image (median, p95, the focal-length
      scale at the corner, and the shape after the best-fit affine part);
-   * the feature-level cross-pattern residual (:mod:`blurcalib.calib.cross_pattern`): the same
-     target point in the same frame from the two patterns, through one homography per frame in
-     the star camera's undistorted pixels, binned by radius with a z-score;
+   * the feature-level cross-pattern residual (:func:`blurcalib.calib.cross_pattern.check_patterns`,
+     what ``blurcalib compare`` prints): the same target point in the same frame from the two
+     patterns, through one homography per frame in the star camera's undistorted pixels, binned by
+     radius with a z-score, and the verdict (systematic error or not);
    * the same for blurcalib's star centres against the reference detector's
      (``features_10px.bin``, frames 0-3) on the same star frames.
    Target: the radial component within 0.01 px at every radius.
@@ -22,7 +23,7 @@
    residual. Target: both patterns within 0.01 px of the truth.
 
 Extractions and renders are cached in ``--cache`` (default ``out/bench_patterns``), so a second
-run prints at once.
+run prints at once. The figures are recorded as JSON (``scripts/benchrecord.py``).
 """
 
 from __future__ import annotations
@@ -32,10 +33,17 @@ import itertools
 import os
 from pathlib import Path
 
+import benchrecord
 import cv2
 import numpy as np
 
-from blurcalib.calib.cross_pattern import CrossResiduals, cross_residuals, radial_profile
+from blurcalib.calib.cross_pattern import (
+    CrossResiduals,
+    PatternCheck,
+    check_patterns,
+    cross_residuals,
+    radial_profile,
+)
 from blurcalib.calib.lens_bias import correct_features
 from blurcalib.calib.sharp import Calibration, calibrate_sharp
 from blurcalib.extract.frame import ExtractSettings, extract_frame
@@ -60,11 +68,28 @@ SIM_PSF = FieldPsf(sigma=0.8, growth=0.6, astig=0.3, coma=(-0.6, 3.0), lobe_weig
 shift at the corners."""
 
 
-def _profile(res: CrossResiduals, title: str) -> None:
+def _profile(res: CrossResiduals, title: str) -> dict[str, float]:
+    """Print the residual's profile; its figures: median and radial mean per bin (px)."""
     print(f"{title}: {int(res.inlier.sum())} matches in {len(set(res.frame.tolist()))} frames, median "
           f"{res.median_px:.4f} px; radial and tangential components by radius:")
-    for line in radial_profile(res, EDGES).rows():
+    profile = radial_profile(res, EDGES)
+    for line in profile.rows():
         print("   " + line)
+    return {"matches": int(res.inlier.sum()), "median_px": res.median_px, **_bins(profile.radial)}
+
+
+def _bins(radial: np.ndarray) -> dict[str, float]:
+    """Radial means by radius bin as record figures (``radial_<lo>_<hi>_px``)."""
+    return {f"radial_{lo:.0f}_{hi:.0f}_px": float(v) for (lo, hi), v in
+            zip(itertools.pairwise(EDGES), radial, strict=True)}
+
+
+def _check(check: PatternCheck) -> dict[str, float]:
+    print("checkerboard - star features (blurcalib compare):")
+    for line in check.lines():
+        print("   " + line)
+    return {"matches": check.matches, "median_px": check.median_px, "systematic": check.systematic,
+            "worst_radial_px": check.worst_radial_px, **_bins(check.profile.radial)}
 
 
 def _extracted(name: str, cache: Path) -> tuple[StarPattern, FeatureTable]:
@@ -78,7 +103,7 @@ def _extracted(name: str, cache: Path) -> tuple[StarPattern, FeatureTable]:
     return pattern, table
 
 
-def _cameras(star: Calibration, checker: Calibration, pixels: np.ndarray) -> None:
+def _cameras(star: Calibration, checker: Calibration, pixels: np.ndarray) -> dict[str, float]:
     """The two cameras and their difference where the features are (``pixels (N, 2)``)."""
     a, b = star.camera, checker.camera
     print(f"star camera:    fx {a.fx:.2f} fy {a.fy:.2f} cx {a.cx:.2f} cy {a.cy:.2f}, median reprojection "
@@ -96,21 +121,27 @@ def _cameras(star: Calibration, checker: Calibration, pixels: np.ndarray) -> Non
           "camera projects the star camera's rays "
           f"{np.median(np.linalg.norm(vec, axis=1)):.3f} px away (median; scale {scale:+.3f} %, shape "
           f"{np.median(shape):.3f} px)")
+    return {"focal_x_pct": 100 * (b.fx / a.fx - 1), "focal_y_pct": 100 * (b.fy / a.fy - 1),
+            "projection_median_px": float(np.median(np.linalg.norm(vec, axis=1))), "scale_pct": scale,
+            "shape_median_px": float(np.median(shape))}
 
 
-def real(cache: Path) -> None:
+def real(cache: Path, record: benchrecord.BenchRecord) -> None:
     print("== real fixture frames: the 16-segment star and the checkerboard at the same poses ==")
     star_pattern, star = _extracted("real_star16", cache)
     checker_pattern, checker = _extracted("real_star8_1", cache)
     size = (1280, 720)
     cal_star = calibrate_sharp(star, star_pattern, size)
     cal_checker = calibrate_sharp(checker, checker_pattern, size)
-    _cameras(cal_star, cal_checker, np.column_stack([star.x, star.y]))
-    _profile(cross_residuals(star, checker, cal_star.camera), "checkerboard - star features")
+    record.add("real cameras", **_cameras(cal_star, cal_checker, np.column_stack([star.x, star.y])))
+    record.add("real features, checkerboard - star",
+               **_check(check_patterns(star, checker, cal_star.camera, cal_checker.camera, edges=EDGES)))
     ref = read_ref_dataset(FIXTURES / "real_star16" / "features_10px.bin")
     reference = ref_feature_table(ref, star_pattern)
     reference = reference.select(np.isin(reference.frame, np.unique(star.frame)))
-    _profile(cross_residuals(reference, star, cal_star.camera), "blurcalib - reference detector, star frames")
+    record.add("real star frames, blurcalib - reference detector",
+               **_profile(cross_residuals(reference, star, cal_star.camera),
+                          "blurcalib - reference detector, star frames"))
 
 
 def _sim_features(pattern: StarPattern, optics: Optics, frames: int, cache: Path, seed: int
@@ -143,7 +174,7 @@ def _sim_features(pattern: StarPattern, optics: Optics, frames: int, cache: Path
     return FeatureTable.concat(tables), np.concatenate(proj), np.concatenate(cen), sim.camera
 
 
-def simulated(cache: Path, frames: int, seed: int = 7) -> None:
+def simulated(cache: Path, frames: int, record: benchrecord.BenchRecord, seed: int = 7) -> None:
     print(f"== simulation: {frames} sharp frames per pattern at the same poses, asymmetric field-varying "
           "PSF ==")
     optics = Optics(psf=SIM_PSF)
@@ -162,7 +193,14 @@ def simulated(cache: Path, frames: int, seed: int = 7) -> None:
               f"{np.median(np.linalg.norm(xy - cen, axis=1)):.4f} px, against the projection "
               f"{np.median(np.linalg.norm(xy - proj, axis=1)):.4f} px; radial error (px) by radius: {bins}")
         found[segments] = table
-    _profile(cross_residuals(found[16], found[4], camera.model), "checkerboard - star features (simulated)")
+        record.add(f"simulated {segments} segments against the PSF-centroid truth", features=len(table),
+                   median_px=float(np.median(np.linalg.norm(xy - cen, axis=1))),
+                   projection_median_px=float(np.median(np.linalg.norm(xy - proj, axis=1))),
+                   **_bins(np.array([radial[(r >= lo) & (r < hi)].mean() if ((r >= lo) & (r < hi)).sum() > 5
+                                     else np.nan for lo, hi in itertools.pairwise(EDGES)])))
+    record.add("simulated features, checkerboard - star",
+               **_profile(cross_residuals(found[16], found[4], camera.model),
+                          "checkerboard - star features (simulated)"))
 
 
 def main() -> None:
@@ -171,11 +209,14 @@ def main() -> None:
     parser.add_argument("--sim-frames", type=int, default=3)
     parser.add_argument("--skip-real", action="store_true")
     parser.add_argument("--skip-sim", action="store_true")
+    benchrecord.add_option(parser)
     args = parser.parse_args()
+    record = benchrecord.start(__file__, args)
     if not args.skip_real:
-        real(args.cache)
+        real(args.cache, record)
     if not args.skip_sim:
-        simulated(args.cache, args.sim_frames)
+        simulated(args.cache, args.sim_frames, record)
+    record.write()
 
 
 if __name__ == "__main__":
