@@ -137,3 +137,49 @@ def test_version_is_the_installed_package_version(capsys) -> None:
         main(["--version"])
     assert exc.value.code == 0
     assert capsys.readouterr().out.strip() == f"blurcalib {version('blurcalib')}"
+
+
+def _compare_inputs(tmp_path) -> tuple[str, str, str]:
+    """Two features.csv files of one simulated camera at the same 6 poses (noise 0.05 px), the second
+    moved radially by -0.05 px x cos(pi r / 700 px), inwards near the centre and outwards at the
+    border, as a pattern-dependent feature definition would."""
+    from blurcalib.io.results import write_features
+    from blurcalib.sim.truth import d435i_like_camera
+    from tests.calib.test_sharp import simulate
+
+    pattern = layout_pattern()
+    camera = d435i_like_camera().model
+    a, _ = simulate(pattern, camera, 6, seed=3)
+    b, _ = simulate(pattern, camera, 6, seed=3)
+    d = np.column_stack([b.x - camera.cx, b.y - camera.cy])
+    r = np.linalg.norm(d, axis=1)
+    shift = -0.05 * np.cos(np.pi * r / 700.0) / r
+    b.x[:] += shift * d[:, 0]
+    b.y[:] += shift * d[:, 1]
+    paths = [str(write_features(tmp_path / f"{n}.csv", t)) for n, t in (("a", a), ("b", b))]
+    return paths[0], paths[1], str(pattern.save_yaml(tmp_path / "pattern.yaml"))
+
+
+@pytest.mark.slow
+def test_compare_names_a_pattern_dependent_bias(tmp_path, capsys) -> None:
+    a, b, pattern = _compare_inputs(tmp_path)
+    assert main(["compare", a, b, "--pattern", pattern, "--image-size", "1280x720"]) == 0
+    out = capsys.readouterr().out
+    assert "systematic error: the two patterns place the same target points up to" in out
+    # the same file twice: the same features, no residual at all
+    assert main(["compare", a, a, "--pattern", pattern, pattern, "--image-size", "1280x720"]) == 0
+    out = capsys.readouterr().out
+    assert "no systematic error found" in out and "median 0.0000 px" in out
+    assert "focal lengths +0.000 % / +0.000 %" in out
+
+
+@pytest.mark.parametrize(("extra", "needle"), [
+    ([], "--image-size"),
+    (["--image-size", "1280x720", "--pattern", "{p}", "{p}", "{p}"], "one per file"),
+])
+def test_compare_bad_input_exits_2(tmp_path, capsys, extra, needle) -> None:
+    a, b, pattern = _compare_inputs(tmp_path)
+    argv = ["compare", a, b] + (["--pattern", pattern] if "--pattern" not in extra else []) + extra
+    assert main([x.replace("{p}", pattern) for x in argv]) == 2
+    err = capsys.readouterr().err
+    assert "blurcalib: error:" in err and needle in err

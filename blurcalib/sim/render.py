@@ -22,6 +22,7 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import cv2
 import numpy as np
@@ -31,6 +32,9 @@ from blurcalib.geometry.pose import Pose
 from blurcalib.sim.canvas import LensMap, WideLens, perspective_lens_map
 from blurcalib.sim.truth import FrameTruth, Motion, TrueCamera, gauss_ksize
 from blurcalib.target.pattern import StarPattern, star_sector_white
+
+if TYPE_CHECKING:
+    from blurcalib.sim.optics import Optics
 
 MIP_TEXELS_PER_SQUARE = (320, 160, 80, 40, 20, 10)
 """Texture resolutions of the mip pyramid, finest first (multiples of 10, halving)."""
@@ -319,14 +323,18 @@ class Renderer:
         return int(np.clip(t, 1, self.settings.max_time_samples))
 
 
-def sensor_image(irradiance: np.ndarray, truth: FrameTruth, rng: np.random.Generator) -> np.ndarray:
+def sensor_image(irradiance: np.ndarray, truth: FrameTruth, rng: np.random.Generator,
+                 optics: Optics | None = None) -> np.ndarray:
     """Defocus, illumination, vignetting, Poisson-Gaussian noise, 8-bit quantisation.
 
     ``grey = (black + (white - black) (g_d * E)) G(u, v) V(r)``, then
     ``noisy = gain Poisson(grey / gain) + N(0, read_sigma^2)``, rounded and clipped to
-    ``[0, 255]``.
+    ``[0, 255]``. ``optics`` (:mod:`blurcalib.sim.optics`) may add the lens's field-varying PSF
+    (convolved before the defocus) and a tone curve (after the noise, before the rounding).
     """
     img = irradiance.astype(np.float64)
+    if optics is not None and optics.psf is not None:
+        img = optics.psf.apply(img)
     if truth.defocus_sigma > 0:
         k = gauss_ksize(truth.defocus_sigma)
         img = cv2.GaussianBlur(img, (k, k), truth.defocus_sigma, borderType=cv2.BORDER_REFLECT)
@@ -340,6 +348,8 @@ def sensor_image(irradiance: np.ndarray, truth: FrameTruth, rng: np.random.Gener
     grey = (black + (white - black) * img) * gain_field
     gain, read_sigma = truth.noise
     noisy = gain * rng.poisson(np.maximum(grey, 0) / gain) + rng.normal(0, read_sigma, grey.shape)
+    if optics is not None and optics.tone is not None:
+        noisy = optics.tone(noisy)
     return np.clip(np.round(noisy), 0, 255).astype(np.uint8)
 
 

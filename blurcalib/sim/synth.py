@@ -26,6 +26,7 @@ import numpy as np
 from blurcalib.geometry.pose import Pose
 from blurcalib.io.atomic import atomic_path, atomic_write_text, ensure_writable_dir
 from blurcalib.runs.runtime import exit_with_parent
+from blurcalib.sim.optics import OPTICS_FILE, Optics, display_texture
 from blurcalib.sim.render import (
     MIP_TEXELS_PER_SQUARE,
     Renderer,
@@ -294,8 +295,9 @@ class Simulator:
     """Deterministic generator of a dataset: ``SynthConfig`` + pattern + camera -> frames."""
 
     def __init__(self, config: SynthConfig | None = None, pattern: StarPattern | None = None,
-                 camera: TrueCamera | None = None) -> None:
+                 camera: TrueCamera | None = None, optics: Optics | None = None) -> None:
         self.config = config or SynthConfig()
+        self.optics = optics
         self.pattern = pattern or layout_pattern()
         self.camera = camera or d435i_like_camera(self.config.seed)
         self.renderer = Renderer(self.camera, RenderSettings(supersample=self.config.supersample))
@@ -304,7 +306,10 @@ class Simulator:
     def texture(self, texels_per_square: int) -> Texture:
         """The page texture at a resolution (built once, then cached)."""
         if texels_per_square not in self._textures:
-            self._textures[texels_per_square] = pattern_texture(self.pattern, texels_per_square)
+            display = self.optics.display if self.optics is not None else None
+            self._textures[texels_per_square] = (
+                pattern_texture(self.pattern, texels_per_square) if display is None
+                else display_texture(self.pattern, texels_per_square, display))
         return self._textures[texels_per_square]
 
     def frame_names(self) -> list[tuple[str, str]]:
@@ -331,18 +336,19 @@ class Simulator:
         levels = [self.texture(MIP_TEXELS_PER_SQUARE[k])
                   for k in mip_levels_for(self.camera, pose, self.pattern, cfg.supersample)]
         irradiance = self.renderer.irradiance(levels, pose, motion, cfg.rolling_shutter)
-        return SimulatedFrame(sensor_image(irradiance, truth, rng), truth)
+        return SimulatedFrame(sensor_image(irradiance, truth, rng, self.optics), truth)
 
 
 _WORKER_SIM: Simulator | None = None
 """The simulator of a worker process of :func:`write_dataset` (never set in the main process)."""
 
 
-def _init_worker(config: SynthConfig, pattern: StarPattern, camera: TrueCamera) -> None:
+def _init_worker(config: SynthConfig, pattern: StarPattern, camera: TrueCamera,
+                 optics: Optics | None) -> None:
     global _WORKER_SIM  # each worker process builds its simulator (lens maps, textures) once
     exit_with_parent()
     cv2.setNumThreads(1)
-    _WORKER_SIM = Simulator(config, pattern, camera)
+    _WORKER_SIM = Simulator(config, pattern, camera, optics)
 
 
 def _render_in_worker(index: int) -> SimulatedFrame:
@@ -353,17 +359,21 @@ def _render_in_worker(index: int) -> SimulatedFrame:
 def write_dataset(out_dir: str | os.PathLike, config: SynthConfig | None = None,
                   pattern: StarPattern | None = None, camera: TrueCamera | None = None,
                   progress: Callable[[int, int, str], None] | None = None,
-                  workers: int = 1) -> DatasetTruth:
+                  workers: int = 1, optics: Optics | None = None) -> DatasetTruth:
     """Simulate a dataset into ``out_dir``: ``pattern.yaml``, ``sharp/*.png``,
     ``blurry/*.png`` and ``ground_truth.json`` (see ``docs/synthetic-data.md``).
 
     Every file is written atomically; the ground truth is written last, so a folder with a
     ``ground_truth.json`` is complete. ``workers > 1`` renders frames in that many processes
     (the result is identical: each frame's randomness depends only on the seed and its index).
+    ``optics`` (:mod:`blurcalib.sim.optics`) renders through a realistic lens, tone curve or
+    display; its settings are written to ``optics.json``.
     """
     out = ensure_writable_dir(out_dir)
-    sim = Simulator(config, pattern, camera)
+    sim = Simulator(config, pattern, camera, optics)
     sim.pattern.save_yaml(out / "pattern.yaml")
+    if optics is not None:
+        atomic_write_text(out / OPTICS_FILE, json.dumps(asdict(optics)))
     names = sim.frame_names()
     truths: list[FrameTruth | None] = [None] * len(names)
 
@@ -380,7 +390,7 @@ def write_dataset(out_dir: str | os.PathLike, config: SynthConfig | None = None,
     if workers > 1 and len(names) > 1:
         ctx = multiprocessing.get_context("spawn")
         with ProcessPoolExecutor(workers, mp_context=ctx, initializer=_init_worker,
-                                 initargs=(sim.config, sim.pattern, sim.camera)) as pool:
+                                 initargs=(sim.config, sim.pattern, sim.camera, sim.optics)) as pool:
             futures = {pool.submit(_render_in_worker, i): i for i in range(len(names))}
             for future in as_completed(futures):
                 store(futures[future], future.result())
