@@ -37,7 +37,7 @@ from scipy.signal import convolve2d, correlate2d
 
 from blurcalib.io.atomic import atomic_path, atomic_write_text, ensure_writable_dir
 from blurcalib.paper.common import Option, experiment_parser, run_experiment_cli, settings_from
-from blurcalib.target.pattern import star_sector_white
+from blurcalib.target.star import star_sector_white
 
 PATTERNS: tuple[str, ...] = ("star", "checkerboard")
 """The calibration patterns compared: the 16-segment star and a checkerboard."""

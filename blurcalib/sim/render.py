@@ -30,7 +30,8 @@ from blurcalib.camera.shutter import exposure_grid, row_time, window_weights
 from blurcalib.geometry.pose import Pose
 from blurcalib.sim.canvas import LensMap, WideLens, perspective_lens_map
 from blurcalib.sim.truth import FrameTruth, Motion, TrueCamera, gauss_ksize
-from blurcalib.target.pattern import StarPattern, star_sector_white
+from blurcalib.target.pattern import StarPattern
+from blurcalib.target.star import star_sector_white
 
 MIP_TEXELS_PER_SQUARE = (320, 160, 80, 40, 20, 10)
 """Texture resolutions of the mip pyramid, finest first (multiples of 10, halving)."""
