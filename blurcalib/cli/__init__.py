@@ -10,7 +10,7 @@ from __future__ import annotations
 import argparse
 import sys
 from collections.abc import Sequence
-from contextlib import nullcontext
+from contextlib import AbstractContextManager, nullcontext
 
 from blurcalib import __version__
 from blurcalib.cli import calibrate, demo, experiment, extract, pattern, synth, view
@@ -22,6 +22,7 @@ from blurcalib.target.pattern import PatternFileError
 
 
 def build_parser() -> argparse.ArgumentParser:
+    """The parser of ``blurcalib`` and its subcommands, in the order ``--help`` lists them."""
     parser = argparse.ArgumentParser(
         prog="blurcalib",
         description="Sub-pixel star features and spatially varying PSFs from motion-blurred "
@@ -34,7 +35,7 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def _output_lock(args: argparse.Namespace):
+def _output_lock(args: argparse.Namespace) -> AbstractContextManager[object]:
     """The lock on the output folder of a command that writes one (:func:`blurcalib.io.atomic.output_lock`):
     a second run into the same folder is refused while this one runs."""
     if args.func in (calibrate.cmd_calibrate, extract.cmd_extract, synth.cmd_synth, demo.cmd_demo):

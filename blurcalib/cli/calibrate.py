@@ -7,7 +7,7 @@ import sys
 from collections.abc import Iterable, Sequence
 from dataclasses import replace
 from pathlib import Path
-from typing import get_args
+from typing import TYPE_CHECKING, get_args
 
 from tqdm import tqdm
 
@@ -36,8 +36,12 @@ from blurcalib.io.text import count
 from blurcalib.runs.runtime import check_device
 from blurcalib.target.pattern import StarPattern, load_pattern
 
+if TYPE_CHECKING:
+    from blurcalib.io.sources import FrameInput
+    from blurcalib.pipeline.run import PipelineReport, PipelineSettings
 
-def pipeline_settings(args: argparse.Namespace):
+
+def pipeline_settings(args: argparse.Namespace) -> PipelineSettings:
     """The pipeline's settings from the options of ``calibrate`` and ``demo``."""
     from blurcalib.calib.bundle import BundleSettings
     from blurcalib.calib.trust import TrustSettings
@@ -66,7 +70,8 @@ def pipeline_settings(args: argparse.Namespace):
 
 
 def calibrate_and_report(sharp: list[Path], blurry: list[Path], pattern: StarPattern, out: Path,
-                         args: argparse.Namespace, features: Path | None = None, mixed: Sequence = ()):
+                         args: argparse.Namespace, features: Path | None = None,
+                         mixed: Sequence[FrameInput] = ()) -> PipelineReport:
     """Run the pipeline on frames (``sharp`` and ``blurry``, or ``mixed`` frames classified by
     their own blur), or on a feature file (``features``), and print its figures."""
     from blurcalib.calib.trust import summary_lines
@@ -243,7 +248,7 @@ def add_pipeline_options(p: argparse._ActionsContainer) -> None:
                         f"{ValidationSettings.min_frames} frames)")
 
 
-def add_parser(sub: argparse._SubParsersAction) -> None:
+def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     """Register ``calibrate``."""
     p = sub.add_parser("calibrate", help="the whole pipeline on one capture: frames in, cameras out",
                        description=plain(cmd_calibrate.__doc__))

@@ -8,13 +8,16 @@ import inspect
 import sys
 from collections.abc import Callable
 from pathlib import Path
-from typing import get_args
+from typing import TYPE_CHECKING, get_args
 
 from tqdm import tqdm
 
 from blurcalib.argtypes import cluster_address, positive_int, positive_number
 from blurcalib.growth.settings import FinalFitFrames, GrowSettings
 from blurcalib.runs.runtime import available_cores
+
+if TYPE_CHECKING:
+    from blurcalib.io.sources import FrameInput
 
 
 class CliError(Exception):
@@ -44,7 +47,7 @@ def check_empty_output(out: Path, overwrite: bool) -> None:
                        "dataset)")
 
 
-def source_frames(args: argparse.Namespace) -> list:
+def source_frames(args: argparse.Namespace) -> list[FrameInput]:
     """The frames of the positional inputs (folders, images, videos) with ``--every`` and
     ``--max-frames`` (:func:`blurcalib.io.sources.frame_inputs`)."""
     from blurcalib.io.frames import FrameError
@@ -56,7 +59,7 @@ def source_frames(args: argparse.Namespace) -> list:
         raise CliError(str(exc)) from None
 
 
-def default_of(func: Callable, name: str) -> object:
+def default_of(func: Callable[..., object], name: str) -> object:
     """The default of ``func``'s parameter ``name``: the option's default, said once."""
     return inspect.signature(func).parameters[name].default
 

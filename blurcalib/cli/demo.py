@@ -49,7 +49,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
     return 0
 
 
-def add_parser(sub: argparse._SubParsersAction) -> None:
+def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     """Register ``demo``."""
     p = sub.add_parser("demo", help="simulate the default dataset and run the pipeline on it",
                        description=plain(cmd_demo.__doc__))

@@ -18,7 +18,7 @@ def cmd_experiment(args: argparse.Namespace) -> int:
     return runners[args.name](args.rest)
 
 
-def add_parser(sub: argparse._SubParsersAction) -> None:
+def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     """Register ``experiment``."""
     p = sub.add_parser("experiment", help="reproduce one of the paper's experiments",
                        description=plain(cmd_experiment.__doc__))

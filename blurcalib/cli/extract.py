@@ -78,7 +78,7 @@ def cmd_extract(args: argparse.Namespace) -> int:
     return 0 if ok else 1
 
 
-def add_parser(sub: argparse._SubParsersAction) -> None:
+def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     """Register ``extract``."""
     p = sub.add_parser("extract", help="extract star features and PSFs from frames",
                        description=plain(cmd_extract.__doc__))

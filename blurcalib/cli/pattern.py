@@ -39,7 +39,7 @@ def cmd_pattern(args: argparse.Namespace) -> int:
     return 0
 
 
-def add_parser(sub: argparse._SubParsersAction) -> None:
+def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     """Register ``pattern``."""
     p = sub.add_parser("pattern", help="write a printable star target (PDF, PNG, YAML)",
                        description=plain(cmd_pattern.__doc__))

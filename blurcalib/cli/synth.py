@@ -90,7 +90,7 @@ def add_synth_options(p: argparse._ActionsContainer, rolling_shutter: bool = Tru
                    help="write into a non-empty output folder")
 
 
-def add_parser(sub: argparse._SubParsersAction) -> None:
+def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     """Register ``synth``."""
     p = sub.add_parser("synth", help="simulate sharp and blurry frames with ground truth",
                        description=plain(cmd_synth.__doc__))

@@ -21,7 +21,7 @@ def cmd_view(args: argparse.Namespace) -> int:
     return subprocess.call(argv)
 
 
-def add_parser(sub: argparse._SubParsersAction) -> None:
+def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     """Register ``view``."""
     p = sub.add_parser("view", help="start the browser app (viser)", description=plain(cmd_view.__doc__),
                        add_help=False)

@@ -24,6 +24,7 @@ import math
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
+from typing import Any
 
 import matplotlib
 import numpy as np
@@ -484,7 +485,7 @@ def format_table(results: Sequence[PatternResult]) -> str:
 
 
 def results_json(results: Sequence[PatternResult], settings: PatternSettings, seed: int,
-                 gains: dict[tuple[str, int], float]) -> dict:
+                 gains: dict[tuple[str, int], float]) -> dict[str, Any]:
     """The experiment as a JSON-able dict (PSNR ``inf`` is written as ``null``)."""
     def finite(v: float) -> float | None:
         return v if math.isfinite(v) else None

@@ -27,6 +27,7 @@ import re
 from dataclasses import dataclass, field
 from functools import cached_property
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
@@ -346,7 +347,7 @@ class StarPattern:
                       f"    index: {tag.index}"]
         return "\n".join(lines) + "\n"
 
-    def save_yaml(self, path: str | os.PathLike) -> Path:
+    def save_yaml(self, path: str | os.PathLike[str]) -> Path:
         """Write the pattern YAML atomically."""
         return atomic_write_text(path, self.to_yaml_text())
 
@@ -379,7 +380,7 @@ def _check_depth(text: str, path: str) -> None:
             depth -= 1
 
 
-def _field(node: dict, key: str, kind: type, path: str, where: str = ""):
+def _field(node: dict[str, Any], key: str, kind: type, path: str, where: str = ""):
     name = f"{where}{key}"
     if not isinstance(node, dict) or key not in node:
         raise PatternFileError(f"{path}: missing field '{name}'")
@@ -395,7 +396,7 @@ def _field(node: dict, key: str, kind: type, path: str, where: str = ""):
         raise PatternFileError(f"{problem}, got {_shown(value)}", problem) from None
 
 
-def load_pattern(path: str | os.PathLike) -> StarPattern:
+def load_pattern(path: str | os.PathLike[str]) -> StarPattern:
     """Read a pattern YAML in the reference tool's format.
 
     Raises:
