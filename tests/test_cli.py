@@ -12,7 +12,8 @@ import numpy as np
 import pytest
 import torch
 
-from blurcalib.cli import _pipeline_settings, build_parser, main
+from blurcalib.cli import build_parser, main
+from blurcalib.cli.calibrate import pipeline_settings
 from blurcalib.target.pattern import layout_pattern
 from tests.conftest import FIXTURE_YAML
 
@@ -100,7 +101,7 @@ def test_device_reaches_the_block_solver_and_the_bundle_adjustment(tmp_path, mon
         where = [str(tmp_path / "sharp"), "--pattern", str(pattern)] if command == "calibrate" else []
         args = build_parser().parse_args([command, *where, "--out", str(tmp_path / "o"),
                                           "--device", "cuda:0"])
-        s = _pipeline_settings(args)
+        s = pipeline_settings(args)
         assert s.extraction.deconv.device == "cuda:0" and s.calibration.generic.bundle.device == "cuda:0"
     assert not (tmp_path / "o").exists()
 

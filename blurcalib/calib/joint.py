@@ -285,7 +285,7 @@ def _image_figure(values: np.ndarray, extent: tuple[float, float, float, float],
     return fig
 
 
-def save_generic_calibration(out_dir: str | os.PathLike, result: GenericCalibration,
+def save_generic_calibration(out_dir: str | os.PathLike[str], result: GenericCalibration,
                              pinhole: BrownConrady | None = None) -> list[Path]:
     """Write the generic calibration's files into ``out_dir`` (e.g. ``OUT/calibration``).
 

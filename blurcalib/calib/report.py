@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -63,8 +64,8 @@ def error_direction_image(xy: np.ndarray, residuals: np.ndarray, image_size: tup
     return np.repeat(np.repeat(cells, cell_px, axis=0), cell_px, axis=1)[:h, :w]
 
 
-def save_frame_error_plot(path: str | os.PathLike, rows: list[dict],
-                          sharp_errors: dict[str, dict]) -> Path:
+def save_frame_error_plot(path: str | os.PathLike[str], rows: list[dict[str, Any]],
+                          sharp_errors: dict[str, dict[str, Any]]) -> Path:
     """Bar plot of the median alignment error per blurry frame (coloured by status) beside the
     sharp frames' median calibration errors (px)."""
     import matplotlib

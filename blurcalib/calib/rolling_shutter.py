@@ -43,6 +43,7 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
+from typing import Any
 
 import numpy as np
 from scipy.stats import chi2
@@ -208,7 +209,7 @@ class RollingShutterResult:
     corrected: FeatureTable | None = field(default=None, repr=False)
     global_shutter: GenericCalibration | None = field(default=None, repr=False)
 
-    def to_dict(self) -> dict:
+    def to_dict(self) -> dict[str, Any]:
         def num(x: float) -> float | None:
             return float(x) if math.isfinite(x) else None
 

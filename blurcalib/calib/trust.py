@@ -23,6 +23,7 @@ import math
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -115,16 +116,16 @@ class Trust:
     seconds: dict[str, float]
     validation_skipped: str | None = None
 
-    def to_dict(self) -> dict:
+    def to_dict(self) -> dict[str, Any]:
         """The ``report.json`` sections ``validation`` (and ``validation_skipped``),
         ``uncertainty``, ``cross_validation``, ``guidance`` and ``blurry_frames_gain``."""
-        def unc(u: ProjectionUncertainty | None) -> dict | None:
+        def unc(u: ProjectionUncertainty | None) -> dict[str, Any] | None:
             if u is None:
                 return None
             return {"median_px": _round(u.median()), "border_px": _round(u.border_band()),
                     "max_px": _round(float(np.max(u.sigma_px))), "noise_px": _round(u.noise_px)}
 
-        out: dict = {
+        out: dict[str, Any] = {
             "validation": None if self.validation is None else self.validation.to_dict(),
             "validation_skipped": self.validation_skipped,
             "uncertainty": {"generic": unc(self.uncertainty), "generic_sharp": unc(self.uncertainty_sharp),
@@ -141,7 +142,7 @@ class Trust:
             out["blurry_frames_gain"] = gain
         return out
 
-    def gain(self) -> dict:
+    def gain(self) -> dict[str, Any]:
         """What the blurry frames bought: sharp-only -> sharp + blurry figures (empty without a
         sharp-only camera)."""
         if self.uncertainty_sharp is None:
@@ -221,7 +222,7 @@ def save_trust(folder: Path, trust: Trust, size: tuple[int, int]) -> dict[str, P
     return out
 
 
-def summary_lines(doc: dict) -> list[str]:
+def summary_lines(doc: dict[str, Any]) -> list[str]:
     """The lines ``calibrate`` and ``demo`` print, from :meth:`Trust.to_dict`'s sections (as
     ``report.json`` holds them)."""
     both = (doc.get("uncertainty") or {}).get("generic_sharp") is not None
@@ -260,7 +261,7 @@ def summary_lines(doc: dict) -> list[str]:
     return lines
 
 
-def gain_phrases(gain: dict, arrow: str = "->") -> list[str]:
+def gain_phrases(gain: dict[str, Any], arrow: str = "->") -> list[str]:
     """What the blurry frames bought (``report.json``'s ``blurry_frames_gain``), one phrase per
     figure: ``"held-out median 0.0181 px -> 0.0147 px"``."""
     names = (("held_out_median_px", "held-out median"), ("uncertainty_median_px", "median uncertainty"),

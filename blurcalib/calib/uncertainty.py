@@ -466,7 +466,7 @@ def cross_validation_figure(diff: CrossValidationDiff, width: int, height: int) 
     return fig
 
 
-def save_figure_png(path: str | os.PathLike, fig: Figure) -> Path:
+def save_figure_png(path: str | os.PathLike[str], fig: Figure) -> Path:
     """Write ``fig`` as a PNG (100 dpi) atomically; returns the path."""
     out = Path(path)
     with atomic_path(out) as tmp:
@@ -474,13 +474,13 @@ def save_figure_png(path: str | os.PathLike, fig: Figure) -> Path:
     return out
 
 
-def save_uncertainty_png(path: str | os.PathLike, maps: Sequence[tuple[str, ProjectionUncertainty]],
+def save_uncertainty_png(path: str | os.PathLike[str], maps: Sequence[tuple[str, ProjectionUncertainty]],
                          width: int, height: int) -> Path:
     """:func:`uncertainty_figure` written atomically to ``path``."""
     return save_figure_png(path, uncertainty_figure(maps, width, height))
 
 
-def save_uncertainty_npz(path: str | os.PathLike, unc: ProjectionUncertainty,
+def save_uncertainty_npz(path: str | os.PathLike[str], unc: ProjectionUncertainty,
                          sharp: ProjectionUncertainty | None = None) -> Path:
     """Write ``x, y, sigma_px, noise_px`` (and ``sigma_px_sharp, noise_px_sharp``) to ``path``.
 

@@ -38,7 +38,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from typing import Literal, get_args
+from typing import Any, Literal, get_args
 
 import cv2
 import numpy as np
@@ -126,7 +126,7 @@ class CameraScore:
     sharp_median_px: float
     blurry_median_px: float
 
-    def to_dict(self) -> dict:
+    def to_dict(self) -> dict[str, Any]:
         def value(v: float) -> float | None:
             return round(v, 5) if math.isfinite(v) else None
 
@@ -156,7 +156,7 @@ class Validation:
     fold_of: dict[str, int]
     halves: tuple[CentralGeneric, CentralGeneric] | None = None
 
-    def to_dict(self) -> dict:
+    def to_dict(self) -> dict[str, Any]:
         return {"method": self.method, "folds": self.folds,
                 **{k: v.to_dict() for k, v in self.scores.items()}}
 

@@ -79,7 +79,7 @@ def _num(value: float) -> str:
     return f"{float(value):.14g}"
 
 
-def write_generic_yaml(path: str | os.PathLike, model: CentralGeneric) -> Path:
+def write_generic_yaml(path: str | os.PathLike[str], model: CentralGeneric) -> Path:
     """Write ``model`` as the reference tool's ``CentralGenericModel`` file (atomically)."""
     lines = [
         "type : CentralGenericModel",
@@ -97,12 +97,12 @@ def write_generic_yaml(path: str | os.PathLike, model: CentralGeneric) -> Path:
     return atomic_write_text(path, "\n".join(lines) + "\n")
 
 
-def write_opencv_yaml(path: str | os.PathLike, camera: BrownConrady) -> Path:
+def write_opencv_yaml(path: str | os.PathLike[str], camera: BrownConrady) -> Path:
     """Write a Brown-Conrady camera as the reference tool's ``CentralOpenCVModel`` file."""
     return write_parametric_yaml(path, BrownConradyCamera.from_brown_conrady(camera))
 
 
-def write_parametric_yaml(path: str | os.PathLike, camera: ParametricCamera) -> Path:
+def write_parametric_yaml(path: str | os.PathLike[str], camera: ParametricCamera) -> Path:
     """Write a parametric camera as the reference tool's file (atomically): Brown-Conrady and
     the rational model as ``CentralOpenCVModel``, Kannala-Brandt and the thin-prism fisheye as
     ``CentralThinPrismFisheyeModel``."""
@@ -173,7 +173,7 @@ def _type(path: Path, fields: dict[str, str], allowed: tuple[str, ...]) -> str:
     return kind
 
 
-def read_generic_yaml(path: str | os.PathLike) -> CentralGeneric:
+def read_generic_yaml(path: str | os.PathLike[str]) -> CentralGeneric:
     """Read a ``CentralGenericModel`` (or ``CentralGenericBSplineModel``) file.
 
     Raises:
@@ -204,7 +204,7 @@ def read_generic_yaml(path: str | os.PathLike) -> CentralGeneric:
         raise RefCameraError(f"{path}: field 'calibration_*': {exc}") from None
 
 
-def read_opencv_yaml(path: str | os.PathLike) -> BrownConrady:
+def read_opencv_yaml(path: str | os.PathLike[str]) -> BrownConrady:
     """Read a ``CentralOpenCVModel`` file as a Brown-Conrady camera (OpenCV pixels).
 
     Raises:
@@ -218,7 +218,7 @@ def read_opencv_yaml(path: str | os.PathLike) -> BrownConrady:
     return camera.to_brown_conrady()
 
 
-def read_parametric_yaml(path: str | os.PathLike) -> ParametricCamera:
+def read_parametric_yaml(path: str | os.PathLike[str]) -> ParametricCamera:
     """Read a ``CentralOpenCVModel`` or ``CentralThinPrismFisheyeModel`` file as the smallest
     model of the family that holds it: Brown-Conrady when ``k4..k6`` are 0, else the rational
     model; Kannala-Brandt for an equidistant thin-prism fisheye without ``p1, p2, sx1, sy1``.

@@ -2,7 +2,7 @@
 
 ``S(H)(x) = sigmoid(d_px(x) / tau)``, ``d_px`` the signed distance in pixels from the pixel centre
 ``x`` to the nearest pattern edge (sector rays *and* square borders,
-:func:`blurcalib.target.pattern.star_signed_distance` divided by its gradient norm through ``H``),
+:func:`blurcalib.target.star.star_signed_distance` divided by its gradient norm through ``H``),
 positive in white: a pixel-consistent soft edge of width ``tau`` px that the PSF absorbs. The
 pattern is periodic: beyond the block's square it continues into the neighbouring stars.
 """
@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import torch
 
-from blurcalib.target.pattern import star_signed_distance_normal
+from blurcalib.target.star import star_signed_distance_normal
 
 
 def update_homography(H: torch.Tensor, delta: torch.Tensor) -> torch.Tensor:

@@ -140,6 +140,21 @@ def grow(image: np.ndarray, pattern: StarPattern, seed: Seed, window: WindowPoli
     growth = ledger.growth()
     seconds = {"free": time.perf_counter() - t0}
     stopped = should_stop is not None and should_stop()
+    growth = _finish(image, pattern, growth, state, tag, window, deconv, settings, on_event, should_stop,
+                     stopped, noise, seconds)
+    growth.seconds = seconds
+    return growth
+
+
+def _finish(image: np.ndarray, pattern: StarPattern, growth: Growth, state: FrameWindow, tag: np.ndarray,
+            window: WindowPolicy, deconv: DeconvSettings, settings: GrowSettings,
+            on_event: Callable[[GrowthEvent], None] | None, should_stop: Callable[[], bool] | None,
+            stopped: bool, noise: NoiseModel | None, seconds: dict[str, float]) -> Growth:
+    """The stages after the free growth (:func:`grow`'s arguments; ``stopped``: ``should_stop``
+    ended it, which skips the field): the path-PSF field when the window adapted or the blur is
+    long for the squares, else the final fit where ``settings`` asks for it, then the second
+    judgement of a heavily blurred or field-grown frame. Each stage's wall time (s) is added to
+    ``seconds``."""
     if not stopped and settings.psf_field and window.adapts and (
             state.adaptive or median_blur_per_square(growth.fit) >= settings.field_above_blur_per_square):
         t0 = time.perf_counter()
@@ -156,7 +171,6 @@ def grow(image: np.ndarray, pattern: StarPattern, seed: Seed, window: WindowPoli
         t0 = time.perf_counter()
         growth = judge_again(pattern, growth, settings, on_event)
         seconds["judge"] = time.perf_counter() - t0
-    growth.seconds = seconds
     return growth
 
 

@@ -20,7 +20,7 @@ CHUNK_ROWS = 65_536
 """Rows per chunk of :func:`csv_chunks`."""
 
 
-def csv_chunks(path: str | os.PathLike, required: Sequence[str], error: type[Exception], what: str,
+def csv_chunks(path: str | os.PathLike[str], required: Sequence[str], error: type[Exception], what: str,
                optional: Sequence[str] = (), chunk_rows: int = CHUNK_ROWS
                ) -> Iterator[tuple[int, dict[str, list[str]]]]:
     """The ``required`` columns of a CSV with a header, and those of ``optional`` it has, as lists

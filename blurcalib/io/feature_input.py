@@ -66,7 +66,7 @@ class FeatureInputError(ValueError):
     """A feature file cannot be calibrated from; the message names the file and the problem."""
 
 
-def read_feature_input(path: str | os.PathLike, pattern: TargetFeatures,
+def read_feature_input(path: str | os.PathLike[str], pattern: TargetFeatures,
                        image_size: tuple[int, int] | None = None) -> tuple[FeatureTable, tuple[int, int]]:
     """Features to calibrate from, and the image size: the reference tool's dataset ``.bin``
     (pixel-corner convention on disk; every frame sharp) or blurcalib's ``features.csv`` (rows

@@ -96,7 +96,7 @@ def frame_stem(frame_name: str) -> str:
     return f"{safe[:MAX_STEM_CHARS]}~{digest}"
 
 
-def frame_result_paths(folder: str | os.PathLike, frame_name: str) -> FramePaths:
+def frame_result_paths(folder: str | os.PathLike[str], frame_name: str) -> FramePaths:
     """Paths of a frame's per-frame files under ``folder/frames/`` (see :class:`FramePaths`)."""
     base = f"{Path(folder) / FRAMES_DIR / frame_stem(frame_name)}."
     return FramePaths(features=Path(base + FEATURES_FILE), blocks=Path(base + BLOCKS_FILE),
@@ -104,7 +104,7 @@ def frame_result_paths(folder: str | os.PathLike, frame_name: str) -> FramePaths
                       status=Path(base + "status.json"), done=Path(base + "done"))
 
 
-def write_frame_results(folder: str | os.PathLike, frame_name: str,
+def write_frame_results(folder: str | os.PathLike[str], frame_name: str,
                         features: Sequence[FeatureObservation] | FeatureTable,
                         blocks: BlockTable,
                         corners: Sequence[Sequence[object]], record: FrameRecord) -> FramePaths:
@@ -139,7 +139,7 @@ def write_frame_results(folder: str | os.PathLike, frame_name: str,
     return paths
 
 
-def read_frame_status(folder: str | os.PathLike, frame_name: str) -> FrameRecord | None:
+def read_frame_status(folder: str | os.PathLike[str], frame_name: str) -> FrameRecord | None:
     """The record of a finished frame, or None when the frame is not finished: no ``done``
     marker, or a marker or status record that is unreadable, not a record or names another frame
     (such a frame is simply redone)."""
@@ -181,7 +181,7 @@ def read_corner_rows(path: Path) -> list[list]:
         raise ResultsFileError(f"{path}: {exc}") from None
 
 
-def read_frame_results(folder: str | os.PathLike, frame_name: str) -> FrameFiles:
+def read_frame_results(folder: str | os.PathLike[str], frame_name: str) -> FrameFiles:
     """A finished frame's features, blocks and corners from its per-frame files.
 
     Raises:
@@ -194,7 +194,7 @@ def read_frame_results(folder: str | os.PathLike, frame_name: str) -> FrameFiles
                       read_corner_rows(p.corners))
 
 
-def collect_results(folder: str | os.PathLike, frame_names: Sequence[str]) -> dict[str, Path]:
+def collect_results(folder: str | os.PathLike[str], frame_names: Sequence[str]) -> dict[str, Path]:
     """Concatenate the per-frame files of ``frame_names``, in that order, into the top-level
     ``features.csv``, ``blocks.csv``, ``psfs.npz`` and ``corners.csv`` of ``folder``.
 

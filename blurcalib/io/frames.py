@@ -89,7 +89,7 @@ def _is_image_name(path: Path) -> bool:
     return path.suffix.lower() in IMAGE_EXTENSIONS
 
 
-def list_frames(inputs: Sequence[str | os.PathLike]) -> list[Path]:
+def list_frames(inputs: Sequence[str | os.PathLike[str]]) -> list[Path]:
     """Expand files and folders into the list of frame files, in order.
 
     A file input is taken as it is (it must have an image extension). A folder contributes its
@@ -239,7 +239,7 @@ def _header_size(handle: BinaryIO) -> tuple[int, int] | None:
     return readers[kind](handle) if kind in readers else None
 
 
-def frame_size(path: str | os.PathLike) -> tuple[int, int] | None:
+def frame_size(path: str | os.PathLike[str]) -> tuple[int, int] | None:
     """``(width, height)`` of an image file in pixels, from its header (nothing is decoded), or
     None when it cannot be read, is not a regular file or is not a PNG, JPEG, TIFF or BMP file."""
     try:
@@ -313,7 +313,7 @@ def _decode(data: bytes) -> tuple[np.ndarray | None, list[str]]:
     return image, [line for line in damage if not _HARMLESS_JPEG_WARNINGS.fullmatch(line)]
 
 
-def load_frame(path: str | os.PathLike, expected_size: tuple[int, int] | None = None) -> np.ndarray:
+def load_frame(path: str | os.PathLike[str], expected_size: tuple[int, int] | None = None) -> np.ndarray:
     """Read one frame as grey levels.
 
     The file's bytes are decoded with ``cv2.imdecode`` (so paths with any characters work),

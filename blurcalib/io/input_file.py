@@ -38,7 +38,7 @@ def _kind(mode: int) -> str:
 
 
 @contextlib.contextmanager
-def open_input(path: str | os.PathLike, max_bytes: int | None = None,
+def open_input(path: str | os.PathLike[str], max_bytes: int | None = None,
                what: str = "file") -> Iterator[BinaryIO]:
     """Open ``path`` for reading when it is a regular file of at most ``max_bytes`` bytes.
 
@@ -72,7 +72,7 @@ def open_input(path: str | os.PathLike, max_bytes: int | None = None,
         yield handle
 
 
-def read_input(path: str | os.PathLike, max_bytes: int | None = None, what: str = "file") -> bytes:
+def read_input(path: str | os.PathLike[str], max_bytes: int | None = None, what: str = "file") -> bytes:
     """The bytes of a regular file of at most ``max_bytes`` (:func:`open_input`; None: any size);
     a file that grows past the limit while it is read is refused too.
 

@@ -19,6 +19,7 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field, fields
 from enum import Enum
 from pathlib import Path
+from typing import Any
 
 from blurcalib.io.atomic import atomic_write_csv
 
@@ -158,7 +159,7 @@ class FrameRecord:
     message: str = ""
     seeded_by: str = ""
     psf: str = ""
-    psf_field: dict | None = None
+    psf_field: dict[str, Any] | None = None
     kind: str = ""
     blur_px: float | None = None
     noise_dn: float | None = None
@@ -182,7 +183,7 @@ class FrameRecord:
         """Wall time (s) by stage, the growth's split out (:func:`split_fit_seconds`)."""
         return split_fit_seconds(self.stages, self.fit_stages)
 
-    def to_row(self) -> dict:
+    def to_row(self) -> dict[str, Any]:
         """The record as a JSON-serialisable dict: an extracted frame's status record (the columns
         of :data:`EXTRACT_COLUMNS`, ``psf_field`` after ``psf`` where there is one, ``seconds_<stage>``
         and ``seconds_fit_<stage>``, then ``key``, ``source`` and ``neighbours_tried`` where known;
@@ -190,7 +191,7 @@ class FrameRecord:
         (the extraction's fields always, ``""`` where unknown, the verdict's where known)."""
         if self.verdict is not None:
             return self._verdict_row(self.verdict)
-        psf: dict = {"psf": self.psf}
+        psf: dict[str, Any] = {"psf": self.psf}
         if self.psf_field is not None:
             psf["psf_field"] = self.psf_field
         row = {"frame": self.frame, "status": self.status.value, "message": self.message,
@@ -204,7 +205,7 @@ class FrameRecord:
             row["neighbours_tried"] = list(self.neighbours_tried)
         return row
 
-    def _verdict_row(self, v: Verdict) -> dict:
+    def _verdict_row(self, v: Verdict) -> dict[str, Any]:
         row = {"frame": self.frame, "kind": self.kind, "status": self.status.value, "reason": v.reason,
                "extraction": v.extraction.value, "blur_px": _cell(self.blur_px),
                "noise_dn": _cell(self.noise_dn), "seeded_by": self.seeded_by, "psf": self.psf,
@@ -277,7 +278,7 @@ def _int(value: object) -> int | None:
     return None if value is None or value == "" else int(value)  # type: ignore[call-overload]
 
 
-def write_frames_table(path: str | os.PathLike, records: Sequence[FrameRecord],
+def write_frames_table(path: str | os.PathLike[str], records: Sequence[FrameRecord],
                        columns: Sequence[str] = EXTRACT_COLUMNS) -> Path:
     """``frames.csv``: the ``columns`` of every record's row (:meth:`FrameRecord.to_row`), in the
     given order, empty where a row has no value."""

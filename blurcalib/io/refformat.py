@@ -153,7 +153,7 @@ class _Reader:
         return np.frombuffer(self.take(count * dtype.itemsize, what), dtype=dtype)
 
 
-def read_ref_dataset(path: str | os.PathLike, max_bytes: int | None = None) -> RefDataset:
+def read_ref_dataset(path: str | os.PathLike[str], max_bytes: int | None = None) -> RefDataset:
     """Read a reference dataset file, converting positions to the OpenCV convention.
 
     Args:
@@ -218,7 +218,7 @@ def read_ref_dataset(path: str | os.PathLike, max_bytes: int | None = None) -> R
     return RefDataset(image_size=image_size, images=images, geometries=geometries)
 
 
-def ref_dataset_image_size(path: str | os.PathLike) -> tuple[int, int] | None:
+def ref_dataset_image_size(path: str | os.PathLike[str]) -> tuple[int, int] | None:
     """``(width, height)`` of a reference dataset's camera, read from its first 26 bytes (nothing
     else is read); None when the file cannot be read or does not start as a single-camera dataset
     of version 0 (:func:`read_ref_dataset` then says why)."""
@@ -276,7 +276,7 @@ def encode_ref_dataset(dataset: RefDataset) -> bytes:
     return b"".join(parts)
 
 
-def write_ref_dataset(path: str | os.PathLike, dataset: RefDataset) -> Path:
+def write_ref_dataset(path: str | os.PathLike[str], dataset: RefDataset) -> Path:
     """Write ``dataset`` atomically in the reference format (adds 0.5 px to positions).
 
     Reading the file back gives the same dataset to float32 precision; writing a dataset that

@@ -361,7 +361,8 @@ def as_feature_table(features: Sequence[FeatureObservation] | FeatureTable) -> F
     return features if isinstance(features, FeatureTable) else FeatureTable.from_observations(features)
 
 
-def write_features(path: str | os.PathLike, features: Sequence[FeatureObservation] | FeatureTable) -> Path:
+def write_features(path: str | os.PathLike[str],
+                   features: Sequence[FeatureObservation] | FeatureTable) -> Path:
     """Write ``features.csv`` (columns :data:`FEATURE_COLUMNS`) atomically; return its path."""
     t = as_feature_table(features)
     cols = [_str_strings(t.frame), *(_int_strings(getattr(t, n)) for n in ("feature_id", "fx", "fy")),
@@ -370,7 +371,7 @@ def write_features(path: str | os.PathLike, features: Sequence[FeatureObservatio
     return atomic_write_text(path, _csv_text(FEATURE_COLUMNS, cols))
 
 
-def write_blocks(csv_path: str | os.PathLike, npz_path: str | os.PathLike,
+def write_blocks(csv_path: str | os.PathLike[str], npz_path: str | os.PathLike[str],
                  t: BlockTable) -> tuple[Path, Path]:
     """Write ``blocks.csv`` and ``psfs.npz`` atomically (each on its own); return their paths."""
     cols = [_str_strings(t.frame), *(_int_strings(getattr(t, n)) for n in ("feature_id", "fx", "fy")),
@@ -385,7 +386,7 @@ def write_blocks(csv_path: str | os.PathLike, npz_path: str | os.PathLike,
     return Path(csv_path), Path(npz_path)
 
 
-def write_results(folder: str | os.PathLike, features: Sequence[FeatureObservation] | FeatureTable,
+def write_results(folder: str | os.PathLike[str], features: Sequence[FeatureObservation] | FeatureTable,
                   blocks: BlockTable) -> dict[str, Path]:
     """Write ``features.csv``, ``blocks.csv`` and ``psfs.npz`` into ``folder`` (created if needed).
 
@@ -438,7 +439,7 @@ def table_bytes(rows: int, longest_name: int) -> int:
     return rows * (9 * 8 + 4 * longest_name)
 
 
-def read_feature_table(path: str | os.PathLike, max_bytes: int | None = None) -> FeatureTable:
+def read_feature_table(path: str | os.PathLike[str], max_bytes: int | None = None) -> FeatureTable:
     """Read a ``features.csv`` into columns, a chunk of rows at a time.
 
     Args:
@@ -468,7 +469,7 @@ def read_feature_table(path: str | os.PathLike, max_bytes: int | None = None) ->
     return parts[0] if len(parts) == 1 else FeatureTable.concat(parts)
 
 
-def read_features(path: str | os.PathLike) -> list[FeatureObservation]:
+def read_features(path: str | os.PathLike[str]) -> list[FeatureObservation]:
     """Read a ``features.csv`` into observations (see :func:`read_feature_table`)."""
     return read_feature_table(path).to_observations()
 
@@ -503,7 +504,7 @@ def _read_psfs(path: Path, n: int) -> dict[str, np.ndarray]:
     return arrays
 
 
-def read_block_table(folder: str | os.PathLike) -> BlockTable:
+def read_block_table(folder: str | os.PathLike[str]) -> BlockTable:
     """Read ``blocks.csv`` and ``psfs.npz`` of a results folder into columns.
 
     The npz rows must match the CSV rows (same frame, feature id and homography).

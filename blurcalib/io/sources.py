@@ -54,7 +54,7 @@ MAX_VIDEO_FRAMES = 1_000_000
 per second. A longer list is refused, so that the list of frames stays small in memory."""
 
 
-def is_video(path: str | os.PathLike) -> bool:
+def is_video(path: str | os.PathLike[str]) -> bool:
     """Whether ``path`` has a video extension (:data:`VIDEO_EXTENSIONS`)."""
     return Path(path).suffix.lower() in VIDEO_EXTENSIONS
 
@@ -115,7 +115,7 @@ def _open(path: Path) -> cv2.VideoCapture:
     return capture
 
 
-def video_size(path: str | os.PathLike) -> tuple[int, int] | None:
+def video_size(path: str | os.PathLike[str]) -> tuple[int, int] | None:
     """``(width, height)`` of a video's frames in pixels, or None when it cannot be opened."""
     try:
         capture = _open(Path(path))
@@ -128,7 +128,7 @@ def video_size(path: str | os.PathLike) -> tuple[int, int] | None:
     return (w, h) if w > 0 and h > 0 else None
 
 
-def video_frame_count(path: str | os.PathLike) -> int:
+def video_frame_count(path: str | os.PathLike[str]) -> int:
     """Number of frames of a video that decode: the container's count when its last frame
     decodes, else the count found by seeking (:func:`_decodable_count`).
 
@@ -183,7 +183,7 @@ def _decodable_count(capture: cv2.VideoCapture, claimed: int) -> int:
     return good + 1
 
 
-def read_video_frame(path: str | os.PathLike, index: int) -> np.ndarray:
+def read_video_frame(path: str | os.PathLike[str], index: int) -> np.ndarray:
     """Frame ``index`` of a video as grey levels ``(H, W)`` float32, 0..255 (BGR converted with
     ``0.299 R + 0.587 G + 0.114 B``), read by seeking to it; where the video cannot seek to it (a
     container without an index), by decoding the frames before it.
@@ -239,7 +239,7 @@ def _keep(count: int, every: int, max_frames: int | None) -> range:
     return kept if max_frames is None else kept[:max_frames]
 
 
-def frame_inputs(inputs: Sequence[str | os.PathLike], every: int = 1,
+def frame_inputs(inputs: Sequence[str | os.PathLike[str]], every: int = 1,
                  max_frames: int | None = None) -> list[FrameInput]:
     """Expand folders, image files and video files into the frames to process, in order.
 

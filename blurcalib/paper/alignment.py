@@ -48,6 +48,7 @@ import math
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
@@ -399,7 +400,7 @@ def format_table(experiment: AlignmentExperiment) -> str:
     return "\n".join(lines)
 
 
-def results_json(experiment: AlignmentExperiment, settings: AlignmentSettings, seed: int) -> dict:
+def results_json(experiment: AlignmentExperiment, settings: AlignmentSettings, seed: int) -> dict[str, Any]:
     """The experiment as a JSON-able dict: settings, reference, table, paper table, frames."""
     def fnum(v: float) -> float | None:
         return round(v, 6) if math.isfinite(v) else None

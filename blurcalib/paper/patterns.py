@@ -24,6 +24,7 @@ import math
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
+from typing import Any
 
 import matplotlib
 import numpy as np
@@ -37,7 +38,7 @@ from scipy.signal import convolve2d, correlate2d
 
 from blurcalib.io.atomic import atomic_path, atomic_write_text, ensure_writable_dir
 from blurcalib.paper.common import Option, experiment_parser, run_experiment_cli, settings_from
-from blurcalib.target.pattern import star_sector_white
+from blurcalib.target.star import star_sector_white
 
 PATTERNS: tuple[str, ...] = ("star", "checkerboard")
 """The calibration patterns compared: the 16-segment star and a checkerboard."""
@@ -484,7 +485,7 @@ def format_table(results: Sequence[PatternResult]) -> str:
 
 
 def results_json(results: Sequence[PatternResult], settings: PatternSettings, seed: int,
-                 gains: dict[tuple[str, int], float]) -> dict:
+                 gains: dict[tuple[str, int], float]) -> dict[str, Any]:
     """The experiment as a JSON-able dict (PSNR ``inf`` is written as ``null``)."""
     def finite(v: float) -> float | None:
         return v if math.isfinite(v) else None

@@ -46,6 +46,7 @@ import math
 from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
@@ -190,7 +191,7 @@ def _group(loss: np.ndarray) -> dict[str, float | int | None]:
             "q75_loss": finite(q75)}
 
 
-def _split(loss: np.ndarray, key: np.ndarray, threshold: float) -> dict:
+def _split(loss: np.ndarray, key: np.ndarray, threshold: float) -> dict[str, Any]:
     below, above = _group(loss[key <= threshold]), _group(loss[key > threshold])
     ratio = (above["median_loss"] / below["median_loss"]
              if above["median_loss"] is not None and below["median_loss"] else None)
@@ -234,7 +235,7 @@ class PsfQualitySettings(BlurryFrameSettings):
         super().__post_init__()
 
 
-def quality_statistics(blocks: BlockFigures, settings: PsfQualitySettings) -> dict:
+def quality_statistics(blocks: BlockFigures, settings: PsfQualitySettings) -> dict[str, Any]:
     """The numbers behind ``fig:exp_real2`` and the centroid correction of ``fig:exp_real1``.
 
     * ``be_split`` / ``be_tau``: loss of the blocks with BE at most / above 0.15 and ``tau_BE``
@@ -309,13 +310,13 @@ def quality_statistics(blocks: BlockFigures, settings: PsfQualitySettings) -> di
 
 
 def frame_rows(frames: Sequence[ExtractedFrame], blocks: BlockFigures, settings: PsfQualitySettings
-               ) -> list[dict]:
+               ) -> list[dict[str, Any]]:
     """Per-frame figures: status, block counts, true and estimated blur, loss, BE, the share
     kept by the BE / loss thresholds, and the re-centring's effect (px)."""
     rows = []
     for i, f in enumerate(frames):
         sel = (blocks.frame == i) & blocks.accepted
-        row: dict = {"frame": f.name, "status": f.result.status.value, "message": f.result.message,
+        row: dict[str, Any] = {"frame": f.name, "status": f.result.status.value, "message": f.result.message,
                      "seconds": round(f.seconds, 2),
                      "true_median_blur_px": finite(np.median(f.truth.blur_length[f.truth.visible])),
                      "defocus_sigma_px": finite(f.truth.defocus_sigma),
@@ -413,8 +414,8 @@ class PsfQualityExperiment:
     camera: TrueCamera = field(repr=False)
     frames: list[ExtractedFrame] = field(repr=False)
     blocks: BlockFigures = field(repr=False)
-    rows: list[dict] = field(repr=False)
-    statistics: dict = field(repr=False)
+    rows: list[dict[str, Any]] = field(repr=False)
+    statistics: dict[str, Any] = field(repr=False)
     field: FieldChoice | None = None
 
 
@@ -489,7 +490,7 @@ def format_table(experiment: PsfQualityExperiment) -> str:
     return "\n".join(lines)
 
 
-def results_json(experiment: PsfQualityExperiment, seed: int) -> dict:
+def results_json(experiment: PsfQualityExperiment, seed: int) -> dict[str, Any]:
     """The experiment as a JSON-able dict: settings, camera, per-frame rows, statistics, the
     ``fig:exp_real1`` choice and every block's figures (columns)."""
     b = experiment.blocks

@@ -52,6 +52,7 @@ import math
 from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
@@ -313,11 +314,11 @@ class SweepExperiment:
         """Blocks kept over all frames in a configuration at ``tau_L``."""
         return sum(a.kept for a in self.cells[(config, tau, BIASES[0])])
 
-    def summary(self, config: str, tau: float, bias: str) -> dict:
+    def summary(self, config: str, tau: float, bias: str) -> dict[str, Any]:
         """Frames aligned, kept blocks, and the median and quartiles over frames of the per-frame
         alignment and true errors (px)."""
         cells = [a for a in self.cells[(config, tau, bias)] if a.status == "aligned"]
-        row: dict = {"config": config, "tau_loss": _tau_json(tau), "bias": bias,
+        row: dict[str, Any] = {"config": config, "tau_loss": _tau_json(tau), "bias": bias,
                      "frames_aligned": len(cells), "kept_blocks": self.kept_blocks(config, tau)}
         for name in ("alignment_px", "true_px"):
             values = np.array([getattr(a, name) for a in cells])
@@ -405,7 +406,7 @@ def format_table(experiment: SweepExperiment) -> str:
     return "\n".join(lines)
 
 
-def results_json(experiment: SweepExperiment, seed: int) -> dict:
+def results_json(experiment: SweepExperiment, seed: int) -> dict[str, Any]:
     """The experiment as a JSON-able dict: settings, cameras, calibration, per-frame figures,
     the summary table and every per-frame alignment."""
     settings = asdict(experiment.settings)
@@ -413,9 +414,10 @@ def results_json(experiment: SweepExperiment, seed: int) -> dict:
     cal = experiment.calibration
     frames = []
     for i, f in enumerate(experiment.frames):
-        row: dict = {"frame": f.name, "status": f.result.status.value, "seconds": round(f.seconds, 2),
-                     "true_median_blur_px": finite(np.median(f.truth.blur_length[f.truth.visible])),
-                     "true_floor_px": finite(experiment.floors[i])}
+        row: dict[str, Any] = {
+            "frame": f.name, "status": f.result.status.value, "seconds": round(f.seconds, 2),
+            "true_median_blur_px": finite(np.median(f.truth.blur_length[f.truth.visible])),
+            "true_floor_px": finite(experiment.floors[i])}
         if f.ok:
             row["accepted"] = int(f.result.growth.accepted.sum())
             if f.result.local is not None:

@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Any
 
 import cv2
 import numpy as np
@@ -176,12 +177,12 @@ class PathField:
         core = np.pad(core, margin_px)
         return cv2.dilate(core, np.ones((2 * margin_px + 1,) * 2, dtype=np.uint8))
 
-    def to_dict(self) -> dict:
+    def to_dict(self) -> dict[str, Any]:
         return {"degree": self.degree, "coeffs": np.round(self.coeffs, 6).tolist(),
                 "sigma_px": round(math.exp(self.log_sigma), 6), "image_size": list(self.image_size)}
 
     @classmethod
-    def from_dict(cls, d: dict) -> PathField:
+    def from_dict(cls, d: dict[str, Any]) -> PathField:
         coeffs = np.asarray(d["coeffs"], dtype=np.float64).reshape(-1, 4)
         if len(coeffs) not in TERMS or not float(d["sigma_px"]) > 0:
             raise ValueError(f"not a path field: {len(coeffs)} coefficient rows, sigma {d['sigma_px']}")

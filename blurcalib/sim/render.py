@@ -31,7 +31,8 @@ from blurcalib.camera.shutter import exposure_grid, row_time, window_weights
 from blurcalib.geometry.pose import Pose
 from blurcalib.sim.canvas import LensMap, WideLens, perspective_lens_map
 from blurcalib.sim.truth import FrameTruth, Motion, TrueCamera, gauss_ksize
-from blurcalib.target.pattern import StarPattern, star_sector_white
+from blurcalib.target.pattern import StarPattern
+from blurcalib.target.star import star_sector_white
 
 if TYPE_CHECKING:
     from blurcalib.sim.optics import Optics

@@ -356,7 +356,7 @@ def _render_in_worker(index: int) -> SimulatedFrame:
     return _WORKER_SIM.frame(index)
 
 
-def write_dataset(out_dir: str | os.PathLike, config: SynthConfig | None = None,
+def write_dataset(out_dir: str | os.PathLike[str], config: SynthConfig | None = None,
                   pattern: StarPattern | None = None, camera: TrueCamera | None = None,
                   progress: Callable[[int, int, str], None] | None = None,
                   workers: int = 1, optics: Optics | None = None) -> DatasetTruth:

@@ -20,6 +20,7 @@ import math
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
@@ -148,14 +149,14 @@ class TrueCamera:
         assert d_point is not None
         return d_point
 
-    def to_dict(self) -> dict:
+    def to_dict(self) -> dict[str, Any]:
         if self.forward_only:
             return {"brown_conrady": self.model.to_dict(), "deviation_waves": self.waves.tolist()}
         return {"lens": self.model.to_dict(), "deviation_waves": self.waves.tolist(),
                 "field_stop_deg": self.field_stop_deg}
 
     @classmethod
-    def from_dict(cls, data: dict) -> TrueCamera:
+    def from_dict(cls, data: dict[str, Any]) -> TrueCamera:
         waves = np.asarray(data["deviation_waves"], dtype=np.float64).reshape(-1, 5)
         if "lens" in data:
             stop = data.get("field_stop_deg")
@@ -341,7 +342,7 @@ class FrameTruth:
             kernel = cv2.filter2D(kernel, -1, g @ g.T, borderType=cv2.BORDER_CONSTANT)
         return kernel
 
-    def to_dict(self) -> dict:
+    def to_dict(self) -> dict[str, Any]:
         return {
             "name": self.name, "kind": self.kind, "pose": self.pose.to_dict(),
             "motion": {"xi": self.motion.xi.tolist(), "xi2": self.motion.xi2.tolist(),
@@ -361,7 +362,7 @@ class FrameTruth:
         }
 
     @classmethod
-    def from_dict(cls, d: dict) -> FrameTruth:
+    def from_dict(cls, d: dict[str, Any]) -> FrameTruth:
         f = d["features"]
         m = d["motion"]
         return cls(
@@ -386,7 +387,7 @@ class DatasetTruth:
     camera: TrueCamera
     pattern_file: str
     frames: list[FrameTruth]
-    settings: dict
+    settings: dict[str, Any]
 
     def frame(self, name: str) -> FrameTruth:
         for f in self.frames:
@@ -394,14 +395,14 @@ class DatasetTruth:
                 return f
         raise KeyError(f"no frame {name!r} in the ground truth")
 
-    def to_dict(self) -> dict:
+    def to_dict(self) -> dict[str, Any]:
         return {"format": "blurcalib-synth", "version": GROUND_TRUTH_VERSION,
                 "pixel_convention": "opencv (top-left pixel centre at (0, 0))",
                 "camera": self.camera.to_dict(), "pattern_file": self.pattern_file,
                 "settings": self.settings, "frames": [f.to_dict() for f in self.frames]}
 
 
-def load_ground_truth(path: str | os.PathLike) -> DatasetTruth:
+def load_ground_truth(path: str | os.PathLike[str]) -> DatasetTruth:
     """Read ``ground_truth.json`` (a file, or the dataset folder containing it).
 
     Raises:

@@ -27,14 +27,15 @@ import re
 from dataclasses import dataclass, field
 from functools import cached_property
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
-import torch
 import yaml
 
 from blurcalib.io.atomic import atomic_write_text
 from blurcalib.io.input_file import InputFileError, open_input
+from blurcalib.target.star import star_sector_white
 
 TAG_CELLS = 10
 """A tag36h11 marker drawn by the reference tool is 10 x 10 cells: a white ring, a black ring
@@ -346,7 +347,7 @@ class StarPattern:
                       f"    index: {tag.index}"]
         return "\n".join(lines) + "\n"
 
-    def save_yaml(self, path: str | os.PathLike) -> Path:
+    def save_yaml(self, path: str | os.PathLike[str]) -> Path:
         """Write the pattern YAML atomically."""
         return atomic_write_text(path, self.to_yaml_text())
 
@@ -379,7 +380,7 @@ def _check_depth(text: str, path: str) -> None:
             depth -= 1
 
 
-def _field(node: dict, key: str, kind: type, path: str, where: str = ""):
+def _field(node: dict[str, Any], key: str, kind: type, path: str, where: str = ""):
     name = f"{where}{key}"
     if not isinstance(node, dict) or key not in node:
         raise PatternFileError(f"{path}: missing field '{name}'")
@@ -395,7 +396,7 @@ def _field(node: dict, key: str, kind: type, path: str, where: str = ""):
         raise PatternFileError(f"{problem}, got {_shown(value)}", problem) from None
 
 
-def load_pattern(path: str | os.PathLike) -> StarPattern:
+def load_pattern(path: str | os.PathLike[str]) -> StarPattern:
     """Read a pattern YAML in the reference tool's format.
 
     Raises:
@@ -481,94 +482,6 @@ def tag36h11_cells(index: int) -> np.ndarray:
     cells = np.ones((TAG_CELLS, TAG_CELLS), dtype=np.uint8)
     cells[1:9, 1:9] = np.rot90(marker > 127, 2).astype(np.uint8)
     return cells
-
-
-def star_sector_white(u: np.ndarray, v: np.ndarray, num_segments: int) -> np.ndarray:
-    """Hard star pattern (``eq:hard``): True where the star around the origin is white.
-
-    Args:
-        u, v: offsets from the star centre (any unit, x right, y down), same shape.
-        num_segments: N, a multiple of 4.
-    Returns:
-        Boolean array: sector ``floor(N theta / 2 pi)`` odd, ``theta = atan2(u, v) mod 2 pi``.
-    """
-    theta = np.mod(np.arctan2(u, v), 2.0 * np.pi)
-    sector = np.floor(theta * (num_segments / (2.0 * np.pi))).astype(np.int64) % num_segments
-    return (sector % 2) == 1
-
-
-def star_signed_distance(q: torch.Tensor, num_segments: int) -> torch.Tensor:
-    """Signed distance (block units) from block point ``q`` to the nearest edge of the pattern.
-
-    Edges are the star's sector rays and the square's border (neighbouring stars have the
-    opposite colour there). Positive in white, negative in black. Differentiable in ``q``
-    almost everywhere. The cell centre is found by rounding ``q / 2``, so ``q`` may lie in a
-    neighbouring block.
-
-    Args:
-        q: ``(..., 2)`` block coordinates.
-        num_segments: N.
-    Returns:
-        ``(...)`` signed distance, in block units (half a square is 1).
-    """
-    centre = (2.0 * torch.round(q / 2.0)).detach()
-    d = q - centre
-    u, v = d[..., 0], d[..., 1]
-    sector_width = 2.0 * math.pi / num_segments
-    theta = torch.remainder(torch.atan2(u, v), 2.0 * math.pi)
-    sector = torch.floor(theta / sector_width).detach()
-    white = torch.remainder(sector, 2.0) == 1.0
-    dist = torch.full_like(u, float("inf"))
-    for k in (sector, sector + 1.0):
-        alpha = k * sector_width
-        ex, ey = torch.sin(alpha), torch.cos(alpha)  # ray direction in (u, v)
-        along = u * ex + v * ey
-        perp = torch.abs(u * ey - v * ex)
-        ray = torch.where(along > 0, perp, torch.sqrt(u * u + v * v + 1e-30))
-        dist = torch.minimum(dist, ray)
-    border = 1.0 - torch.maximum(torch.abs(u), torch.abs(v))
-    dist = torch.minimum(dist, border)
-    return torch.where(white, dist, -dist)
-
-
-def star_signed_distance_normal(qx: torch.Tensor, qy: torch.Tensor, num_segments: int
-                                ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """:func:`star_signed_distance` and its gradient in ``q``, in closed form (no autograd).
-
-    The nearest sector ray is the one at the nearest multiple of the sector angle (with
-    ``N >= 4`` it lies ahead of the point, so the distance is to its line). The gradient of the
-    distance to the nearest edge is that edge's unit normal: across a ray
-    ``sign(u e_y - v e_x) (e_y, -e_x)``, across the square's border ``-sign`` of the larger
-    coordinate; it points into white.
-
-    Args:
-        qx, qy: block coordinates, any common shape ``(...)`` (separate contiguous tensors: the
-            latent pattern's hot path).
-        num_segments: N (a multiple of 4).
-    Returns:
-        ``(dist, normal_x, normal_y)``, each ``(...)``, block units.
-    """
-    u = qx - 2.0 * torch.round(qx / 2.0)
-    v = qy - 2.0 * torch.round(qy / 2.0)
-    t = torch.atan2(u, v) * (num_segments / (2.0 * math.pi))  # angle in sectors
-    sector = torch.floor(t)
-    sign = 4.0 * (sector * 0.5 - torch.floor(sector * 0.5)) - 1.0  # +1 in white (odd) sectors
-    alpha = torch.round(t) * (2.0 * math.pi / num_segments)
-    ex, ey = torch.sin(alpha), torch.cos(alpha)
-    cross = u * ey - v * ex
-    ray = torch.abs(cross)
-    side = torch.sign(cross)
-    au, av = torch.abs(u), torch.abs(v)
-    border = 1.0 - torch.maximum(au, av)
-    # 0/1 selectors by arithmetic (faster than comparisons on the CPU): the border is nearer,
-    # and |u| >= |v|
-    closer = torch.clamp_min(torch.sign(ray - border), 0.0)
-    wider = 1.0 - torch.clamp_min(torch.sign(av - au), 0.0)
-    ray_x, ray_y = side * ey, -side * ex
-    nu = ray_x + closer * (-torch.sign(u) * wider - ray_x)
-    nv = ray_y + closer * (torch.sign(v) * (wider - 1.0) - ray_y)
-    dist = torch.minimum(ray, border)
-    return dist * sign, nu * sign, nv * sign
 
 
 PAGE_SIZES_MM: dict[str, tuple[float, float]] = {

@@ -137,7 +137,7 @@ def png_size(pattern: StarPattern, dpi: float) -> tuple[int, int]:
     return round(pattern.page.width_mm / mm_per_px), round(pattern.page.height_mm / mm_per_px)
 
 
-def write_printable(pattern: StarPattern, out_base: str | os.PathLike, dpi: float = 300,
+def write_printable(pattern: StarPattern, out_base: str | os.PathLike[str], dpi: float = 300,
                     formats: Sequence[str] = PRINTABLE_FORMATS, overwrite: bool = False
                     ) -> dict[str, Path]:
     """Write the printable target: ``<out_base>.pdf``, ``<out_base>.png``, ``<out_base>.yaml``.

@@ -29,7 +29,8 @@ from blurcalib.psf.kernel import (
     shift_pair,
 )
 from blurcalib.sim.blocks import SimulatedBlocks, simulate_blocks
-from blurcalib.target.pattern import layout_pattern, star_signed_distance, star_signed_distance_normal
+from blurcalib.target.pattern import layout_pattern
+from blurcalib.target.star import star_signed_distance, star_signed_distance_normal
 
 SEGMENTS = 16
 K = 13

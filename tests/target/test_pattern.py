@@ -15,8 +15,8 @@ from blurcalib.target.pattern import (
     StarPattern,
     layout_pattern,
     load_pattern,
-    star_signed_distance,
 )
+from blurcalib.target.star import star_signed_distance
 from tests.conftest import FIXTURE_PNG, FIXTURE_YAML
 
 
