@@ -79,3 +79,16 @@ def test_extrinsic_error_is_zero_for_the_truth_in_any_gauge() -> None:
     second = rig.camera_tr_rig[1]
     moved = Rig(rig.cameras, (rig.camera_tr_rig[0], Pose(second.R, second.t + np.array([0.001, 0.0, 0.0]))))
     assert abs(extrinsic_error(truth, moved).translation_mm - 1.0) < 1e-3
+
+
+@pytest.mark.slow
+def test_rendered_set_has_each_cameras_frame(tmp_path: Path) -> None:
+    import cv2
+
+    write_rig_dataset(tmp_path, SynthConfig(sharp=1, blurry=0, seed=2, supersample=1))
+    for c in range(2):
+        image = cv2.imread(str(tmp_path / f"cam{c}" / "sharp" / "0000.png"), cv2.IMREAD_UNCHANGED)
+        assert image.shape == (720, 1280) and image.std() > 10.0
+    left = cv2.imread(str(tmp_path / "cam0" / "sharp" / "0000.png"), cv2.IMREAD_UNCHANGED)
+    right = cv2.imread(str(tmp_path / "cam1" / "sharp" / "0000.png"), cv2.IMREAD_UNCHANGED)
+    assert np.abs(left.astype(int) - right.astype(int)).mean() > 1.0  # seen from 50 mm apart
