@@ -17,7 +17,7 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 PAGE = ROOT / "docs" / "cli.md"
-COMMANDS = ("calibrate", "extract", "compare", "demo", "pattern", "synth", "experiment")
+COMMANDS = ("calibrate", "calibrate-rig", "extract", "compare", "demo", "pattern", "synth", "experiment")
 """The subcommands in the page's order (``view`` is the app's section)."""
 EXPERIMENTS = ("patterns", "alignment", "psf-quality", "threshold-sweep", "generic")
 

@@ -60,8 +60,9 @@ from __future__ import annotations
 import logging
 import math
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
+from typing import Any, TypeVar
 
 import numpy as np
 import torch
@@ -76,8 +77,8 @@ from blurcalib.geometry.lie import exp_so3, orthonormal
 from blurcalib.geometry.pose import Pose
 from blurcalib.optim.lm import Damping, LmRule, SingleProblem, Stopping, run_single
 
-__all__ = ["BUNDLE_DAMPING", "BundleData", "BundleResult", "BundleSettings", "bundle_adjust",
-           "gauge_rotation", "reduce_frames"]
+__all__ = ["BUNDLE_DAMPING", "BundleData", "BundleResult", "BundleSettings", "adjust_with_outliers",
+           "bundle_adjust", "gauge_rotation", "reduce_frames", "remove_outliers", "schur_step"]
 
 log = logging.getLogger(__name__)
 
@@ -218,9 +219,13 @@ def reduce_frames(Hgg: torch.Tensor, Hgp: torch.Tensor, Hpp_inv: torch.Tensor, b
     return S, c
 
 
-def _solve(Hgg: torch.Tensor, Hgp: torch.Tensor, Hpp: torch.Tensor, bg: torch.Tensor,
-           bp: torch.Tensor, lam: float) -> tuple[torch.Tensor, torch.Tensor] | None:
-    """Damped step ``(dg (G,), dp (F, K))`` by the Schur complement; None if not positive definite."""
+def schur_step(Hgg: torch.Tensor, Hgp: torch.Tensor, Hpp: torch.Tensor, bg: torch.Tensor,
+               bp: torch.Tensor, lam: float) -> tuple[torch.Tensor, torch.Tensor] | None:
+    """The damped step ``(dg (G,), dp (F, K))`` of the normal equations with global unknowns
+    ``Hgg (G, G)``, per-item blocks ``Hpp (F, K, K)`` and their coupling ``Hgp (G, F, K)``
+    (right-hand sides ``bg (G,)``, ``bp (F, K)``): Marquardt's ``lambda diag`` added, the items
+    eliminated (:func:`reduce_frames`) and the reduced system solved
+    (:func:`blurcalib.calib.spd_solve.solve_lower`). None if not positive definite."""
     eye = torch.eye(Hpp.shape[1], dtype=Hpp.dtype, device=Hpp.device)
     Hpp_d = Hpp + lam * torch.diag_embed(torch.diagonal(Hpp, dim1=1, dim2=2)) + 1e-12 * eye
     try:
@@ -277,8 +282,8 @@ def _checked_inputs(F: int, frame: ArrayLike, points: ArrayLike, observed: Array
     return fr_np, P, p, w_np, free_np
 
 
-def _remove_outliers(pb: BundleProblem, st: BundleState, r: torch.Tensor, use: torch.Tensor
-                     ) -> tuple[torch.Tensor, float]:
+def remove_outliers(pb: BundleProblem, st: BundleState, r: torch.Tensor, use: torch.Tensor
+                    ) -> tuple[torch.Tensor, float]:
     """Give the observations with an error above ``Q3 + k (Q3 - Q1)`` (over those in use) weight 0
     in ``pb``; the new use weights ``(N,)`` and cost."""
     e = r.norm(dim=-1)[use > 0]
@@ -316,7 +321,7 @@ class _Iterate:
 
 class _Steps(SingleProblem[_Iterate, tuple[torch.Tensor, ...], tuple[torch.Tensor, torch.Tensor]]):
     """The Levenberg-Marquardt steps of :func:`bundle_adjust`: Huber-weighted normal equations,
-    the per-frame blocks eliminated (:func:`_solve`), the grid re-gauged after each accepted step."""
+    the per-frame blocks eliminated (:func:`schur_step`), the grid re-gauged after each accepted step."""
 
     def __init__(self, pb: BundleProblem, spline: GridSpline) -> None:
         self.pb, self.spline = pb, spline
@@ -326,7 +331,7 @@ class _Steps(SingleProblem[_Iterate, tuple[torch.Tensor, ...], tuple[torch.Tenso
         return normal_equations(self.pb, x.st, w, x.r)[:5]
 
     def solve(self, system: tuple[torch.Tensor, ...], lam: float) -> tuple[torch.Tensor, torch.Tensor] | None:
-        return _solve(*system, lam)
+        return schur_step(*system, lam)
 
     def trial(self, x: _Iterate, step: tuple[torch.Tensor, torch.Tensor]) -> tuple[_Iterate, float]:
         pb, st = self.pb, x.st
@@ -346,14 +351,18 @@ class _Steps(SingleProblem[_Iterate, tuple[torch.Tensor, ...], tuple[torch.Tenso
         return _Iterate(_regauged(self.spline, moved.st), moved.r, moved.use), cost, False
 
 
-def _adjust(pb: BundleProblem, spline: GridSpline, x: _Iterate, cost: float) -> tuple[_Iterate, float, int]:
+X = TypeVar("X")
+
+
+def adjust_with_outliers(steps: SingleProblem[X, Any, Any], x: X, cost: float, settings: BundleSettings,
+                         remove: Callable[[X], tuple[X, float]]) -> tuple[X, float, int]:
     """Levenberg-Marquardt from ``x`` of cost ``cost`` (:data:`BUNDLE_DAMPING`), the outliers
-    removed once (:func:`_remove_outliers`) after :attr:`BundleSettings.outlier_iteration`
-    iterations or at convergence if that comes first, and the fit continued (the damping carried
-    on). Converged when a step changes the cost by at most ``tol`` of it, up or down, or no damping
-    up to the ceiling lowers it. Returns the iterate, its cost and the iterations (linearisations)."""
-    s = pb.settings
-    steps = _Steps(pb, spline)
+    removed once (``remove``: the iterate with them weighted 0 and its cost) after
+    :attr:`BundleSettings.outlier_iteration` iterations or at convergence if that comes first, and
+    the fit continued (the damping carried on). Converged when a step changes the cost by at most
+    ``tol`` of it, up or down, or no damping up to the ceiling lowers it. Returns the iterate, its
+    cost and the iterations (linearisations)."""
+    s = settings
 
     def rule(iterations: int) -> LmRule:
         return LmRule(BUNDLE_DAMPING, Stopping(max_iterations=iterations, rtol=s.tol, rtol_rejected=True))
@@ -362,11 +371,21 @@ def _adjust(pb: BundleProblem, spline: GridSpline, x: _Iterate, cost: float) -> 
                                             else s.max_iterations))
     x, cost, iterations = first.x, first.cost, first.iterations
     if s.outlier_iteration and iterations < s.max_iterations:
-        use, cost = _remove_outliers(pb, x.st, x.r, x.use)
-        second = run_single(steps, replace(x, use=use), cost, rule(s.max_iterations - iterations), first.lam)
+        x, cost = remove(x)
+        second = run_single(steps, x, cost, rule(s.max_iterations - iterations), first.lam)
         x, cost = second.x, second.cost
         iterations += max(second.iterations, 1)  # the iteration that removed them counts
     return x, cost, iterations
+
+
+def _adjust(pb: BundleProblem, spline: GridSpline, x: _Iterate, cost: float) -> tuple[_Iterate, float, int]:
+    """:func:`adjust_with_outliers` of :func:`bundle_adjust`'s steps (:class:`_Steps`)."""
+
+    def remove(it: _Iterate) -> tuple[_Iterate, float]:
+        use, removed_cost = remove_outliers(pb, it.st, it.r, it.use)
+        return replace(it, use=use), removed_cost
+
+    return adjust_with_outliers(_Steps(pb, spline), x, cost, pb.settings, remove)
 
 
 def bundle_adjust(model: CentralGeneric, poses: Sequence[Pose], frame: ArrayLike, points: ArrayLike,

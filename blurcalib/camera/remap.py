@@ -9,10 +9,15 @@ An :class:`OutputProjection` says which direction (camera frame) each output pix
 * ``latlong``: longitude ``a`` about the camera's y axis and latitude ``b`` (rad):
   ``(sin a cos b, sin b, cos a cos b)`` for ``|a| <= pi``, ``|b| <= pi / 2``;
 * ``stereographic``: ``theta = 2 atan(r / 2)`` off the axis with ``r = |(a, b)|``:
-  ``(sin(theta) (a, b) / r, cos theta)``.
+  ``(sin(theta) (a, b) / r, cos theta)``;
+* ``epipolar``: latitude ``b`` about the camera's x axis and ``a`` (rad) within that plane:
+  ``(sin a, cos a sin b, cos a cos b)`` for ``|a| <= pi / 2``, ``|b| <= pi``. Each row is one
+  plane through the x axis: the epipolar planes of a rectified pair whose baseline is that axis
+  (:mod:`blurcalib.camera.stereo`), whatever the field of view.
 
-All three look along the optical axis at the principal point with ``fx, fy`` px per radian there.
-:func:`output_maps` gives ``cv2.remap`` maps from a camera's image to an output image.
+All four look along the optical axis at the principal point with ``fx, fy`` px per radian there.
+:func:`output_maps` gives ``cv2.remap`` maps from a camera's image to an output image;
+:class:`RotatedCamera` is a camera seen from a turned frame (a rectified pair's).
 """
 
 from __future__ import annotations
@@ -25,9 +30,10 @@ import cv2
 import numpy as np
 from numpy.typing import ArrayLike
 
-__all__ = ["MAP_TOL_PX", "OUTPUT_KINDS", "OutputProjection", "RayProjector", "output_for", "output_maps"]
+__all__ = ["MAP_TOL_PX", "OUTPUT_KINDS", "OutputProjection", "RayProjector", "RotatedCamera", "output_for",
+           "output_maps"]
 
-OUTPUT_KINDS = ("pinhole", "latlong", "stereographic")
+OUTPUT_KINDS = ("pinhole", "latlong", "stereographic", "epipolar")
 
 MAP_TOL_PX = 1e-4
 """Convergence of :func:`output_maps`'s per-pixel projections (px): float32 maps of a 1280 px image
@@ -91,10 +97,64 @@ class OutputProjection:
             rays = np.stack([np.sin(a) * np.cos(b), np.sin(b), np.cos(a) * np.cos(b)], axis=-1)
             rays[(np.abs(a) > math.pi) | (np.abs(b) > math.pi / 2)] = np.nan
             return rays
+        if self.kind == "epipolar":
+            rays = np.stack([np.sin(a), np.cos(a) * np.sin(b), np.cos(a) * np.cos(b)], axis=-1)
+            rays[(np.abs(a) > math.pi / 2) | (np.abs(b) > math.pi)] = np.nan
+            return rays
         r = np.hypot(a, b)
         theta = 2.0 * np.arctan(r / 2.0)
         scale = np.where(r > 0, np.sin(theta) / np.where(r > 0, r, 1.0), 1.0)
         return np.stack([a * scale, b * scale, np.cos(theta)], axis=-1)
+
+    def project(self, directions: ArrayLike) -> np.ndarray:
+        """Output pixels ``(N, 2)`` of directions ``(N, 3)`` (any length; the inverse of
+        :meth:`rays`); NaN where the projection has none (a pinhole's ``Z <= 0``, a stereographic
+        output's backward axis)."""
+        d = np.asarray(directions, dtype=np.float64).reshape(-1, 3)
+        d = d / np.linalg.norm(d, axis=1, keepdims=True)
+        x, y, z = d[:, 0], d[:, 1], d[:, 2]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            if self.kind == "pinhole":
+                a, b = np.where(z > 0, x / z, np.nan), np.where(z > 0, y / z, np.nan)
+            elif self.kind == "latlong":
+                a, b = np.arctan2(x, z), np.arcsin(np.clip(y, -1.0, 1.0))
+            elif self.kind == "epipolar":
+                a, b = np.arcsin(np.clip(x, -1.0, 1.0)), np.arctan2(y, z)
+            else:
+                rho = np.hypot(x, y)
+                r = np.where(z > -1.0, 2.0 * np.tan(np.arctan2(rho, z) / 2.0), np.nan)
+                scale = np.where(rho > 0, r / np.where(rho > 0, rho, 1.0), 2.0)
+                a, b = x * scale, y * scale
+        return np.column_stack([a * self.fx + self.cx, b * self.fy + self.cy])
+
+
+@dataclass(frozen=True, eq=False)
+class RotatedCamera:
+    """A camera seen from a turned frame: ``X_new = R X_cam`` (``R (3, 3)``, e.g. a rectifying
+    rotation), itself a :class:`RayProjector` (rays and projections in the new frame)."""
+
+    camera: RayProjector
+    R: np.ndarray
+
+    @property
+    def width(self) -> int:
+        """Image width (px)."""
+        return self.camera.width
+
+    @property
+    def height(self) -> int:
+        """Image height (px)."""
+        return self.camera.height
+
+    def project_valid(self, points: ArrayLike, init: ArrayLike | None = None, tol_px: float = 1e-8
+                      ) -> tuple[np.ndarray, np.ndarray]:
+        """The camera's pixels of new-frame points ``(N, 3)`` (``X_cam = R^T X_new``)."""
+        return self.camera.project_valid(np.asarray(points, dtype=np.float64).reshape(-1, 3) @ self.R, init,
+                                         tol_px=tol_px)
+
+    def pixel_to_ray(self, px: ArrayLike) -> np.ndarray:
+        """Unit new-frame directions ``(N, 3)`` of pixels ``(N, 2)``; NaN where none."""
+        return self.camera.pixel_to_ray(px) @ np.asarray(self.R, dtype=np.float64).T
 
 
 def _projected_radius(kind: str, theta: float) -> float:

@@ -13,7 +13,7 @@ from collections.abc import Sequence
 from contextlib import AbstractContextManager, nullcontext
 
 from blurcalib import __version__
-from blurcalib.cli import calibrate, compare, demo, experiment, extract, pattern, synth, view
+from blurcalib.cli import calibrate, calibrate_rig, compare, demo, experiment, extract, pattern, synth, view
 from blurcalib.cli.common import CliError
 from blurcalib.io.atomic import OutputError, output_lock, storage_error
 from blurcalib.runs.cluster import ClusterError
@@ -30,7 +30,7 @@ def build_parser() -> argparse.ArgumentParser:
                     "frames together.")
     parser.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
-    for command in (demo, calibrate, pattern, extract, experiment, view, compare, synth):
+    for command in (demo, calibrate, calibrate_rig, pattern, extract, experiment, view, compare, synth):
         command.add_parser(sub)
     return parser
 
@@ -38,7 +38,9 @@ def build_parser() -> argparse.ArgumentParser:
 def _output_lock(args: argparse.Namespace) -> AbstractContextManager[object]:
     """The lock on the output folder of a command that writes one (:func:`blurcalib.io.atomic.output_lock`):
     a second run into the same folder is refused while this one runs."""
-    if args.func in (calibrate.cmd_calibrate, extract.cmd_extract, synth.cmd_synth, demo.cmd_demo):
+    writers = (calibrate.cmd_calibrate, calibrate_rig.cmd_calibrate_rig, extract.cmd_extract, synth.cmd_synth,
+               demo.cmd_demo)
+    if args.func in writers:
         return output_lock(args.out)
     return nullcontext()
 

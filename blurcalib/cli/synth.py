@@ -6,11 +6,15 @@ import argparse
 import os
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from blurcalib.argtypes import readout_ratio
 from blurcalib.cli.common import CliError, check_empty_output, plain, progress
 from blurcalib.io.text import count
 from blurcalib.target.pattern import StarPattern, load_pattern
+
+if TYPE_CHECKING:
+    from blurcalib.sim.synth import SynthConfig
 
 FISHEYE_FOV = 130.0
 """``synth --lens fisheye``'s default horizontal field of view (deg)."""
@@ -32,6 +36,9 @@ def simulate(out: Path, args: argparse.Namespace, pattern: StarPattern | None) -
         camera = fisheye_camera(FISHEYE_FOV if fov is None else fov, args.seed) if lens == "fisheye" else None
     except ValueError as exc:
         raise CliError(str(exc)) from None
+    if getattr(args, "rig", False):
+        _simulate_rig(out, config, pattern, lens)
+        return
     start = time.perf_counter()
     bar, update = progress("simulating")
     with bar:
@@ -47,6 +54,22 @@ def simulate(out: Path, args: argparse.Namespace, pattern: StarPattern | None) -
         med = [float(np.median(f.blur_length[f.visible])) for f in blurry]
         print(f"  blurry frames: median feature blur {min(med):.1f} to {max(med):.1f} px")
     print(f"  ground truth: {out / 'ground_truth.json'}")
+
+
+def _simulate_rig(out: Path, config: SynthConfig, pattern: StarPattern | None, lens: str) -> None:
+    """``synth --rig``: the D435I-like infrared pair's synchronised image sets (docs/rig.md)."""
+    from blurcalib.sim.rig import RIG_TRUTH_FILE, d435i_stereo_rig, write_rig_dataset
+
+    if lens != "standard":
+        raise CliError("--rig simulates a pair of the standard lens; leave out --lens")
+    bar, update = progress("simulating sets")
+    with bar:
+        rig, sets = write_rig_dataset(out, config, d435i_stereo_rig(config.seed), pattern, progress=update)
+    frames = [sum(s.frames[c] is not None for s in sets) for c in range(len(rig.cameras))]
+    print(f"simulated {count(len(sets), 'image set')} ({config.sharp} sharp, {config.blurry} blurry) of a "
+          f"{len(rig.cameras)}-camera rig into {out}: " + ", ".join(
+              f"cam{c}/ {count(n, 'frame')}" for c, n in enumerate(frames)))
+    print(f"  ground truth: {out / RIG_TRUTH_FILE} and cam*/ground_truth.json")
 
 
 def cmd_synth(args: argparse.Namespace) -> int:
@@ -103,5 +126,9 @@ def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None
     p.add_argument("--fov", type=float, metavar="DEG",
                    help=f"horizontal field of view of --lens fisheye, deg, up to 200 "
                         f"(default {FISHEYE_FOV:g})")
+    p.add_argument("--rig", action="store_true",
+                   help="a D435I-like infrared pair instead of one camera: two cameras 50 mm apart seeing "
+                        "each set at once, one folder per camera (cam0/, cam1/) and rig_truth.json "
+                        "(docs/rig.md; rendered in one process)")
     add_synth_options(p)
     p.set_defaults(func=cmd_synth)

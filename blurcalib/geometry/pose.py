@@ -13,6 +13,7 @@ from typing import Any
 import cv2
 import numpy as np
 from numpy.typing import ArrayLike
+from scipy.spatial.transform import Rotation
 
 _ROTATION_TOL = 1e-6
 
@@ -104,6 +105,26 @@ class Pose:
         """
         axis = self.R[2]
         return float(np.arctan2(np.hypot(axis[0], axis[1]), abs(axis[2])))
+
+    @classmethod
+    def from_quaternion(cls, q: ArrayLike, t: ArrayLike) -> Pose:
+        """From a quaternion ``q = (qx, qy, qz, qw)`` (Eigen's component names; normalised here)
+        and ``t (3,)`` m.
+
+        Raises:
+            ValueError: ``q`` not 4 finite numbers of non-zero norm.
+        """
+        q = np.asarray(q, dtype=np.float64).reshape(-1)
+        norm = float(np.linalg.norm(q)) if q.shape == (4,) else 0.0
+        if not (np.isfinite(norm) and norm > 0):
+            raise ValueError(f"quaternion must be 4 finite numbers of non-zero norm, got {q.tolist()}")
+        return cls(Rotation.from_quat(q / norm).as_matrix(), t)
+
+    @property
+    def quaternion(self) -> np.ndarray:
+        """``(4,)`` unit quaternion ``(qx, qy, qz, qw)`` of ``R``, ``qw >= 0``."""
+        q = Rotation.from_matrix(self.R).as_quat()
+        return -q if q[3] < 0 else q
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-serialisable dict ``{"R": 3x3 nested list, "t": [tx, ty, tz]}`` (exact)."""

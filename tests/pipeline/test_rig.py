@@ -1,0 +1,59 @@
+"""``blurcalib calibrate-rig`` (blurcalib.pipeline.rig): a simulated stereo pair's features in, the
+rig's files out, with the extrinsics of the truth; refused inputs."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from blurcalib.camera.rig_files import read_rig_folder, read_stereo_yaml
+from blurcalib.cli import main
+from blurcalib.io.results import write_features
+from blurcalib.sim.rig import RigSimulator, d435i_stereo_rig
+from blurcalib.sim.rig_eval import extrinsic_error, truth_features
+from blurcalib.sim.synth import SynthConfig
+from blurcalib.target.pattern import layout_pattern
+
+
+def test_refused_inputs(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    pattern = tmp_path / "pattern.yaml"
+    layout_pattern().save_yaml(pattern)
+    out = tmp_path / "out"
+    one = ["calibrate-rig", "--pattern", str(pattern), "--out", str(out), "--image-size", "1280x720"]
+    assert main([*one, "--features", str(tmp_path / "a.csv")]) == 2
+    assert "two or more cameras" in capsys.readouterr().err
+    assert main([*one, "--features", str(tmp_path / "a.csv"), str(tmp_path / "b.csv")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "a.csv" in err
+    assert not out.exists()
+
+
+@pytest.mark.slow
+def test_stereo_pair_from_features(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    pattern = layout_pattern()
+    pattern.save_yaml(tmp_path / "pattern.yaml")
+    rig = d435i_stereo_rig(5)
+    sim = RigSimulator(SynthConfig(sharp=8, blurry=4, seed=5), rig, pattern)
+    sets = [sim.image_set(k) for k in range(12)]
+    rng = np.random.default_rng(5)
+    files = []
+    for c in range(2):
+        frames = [s.frames[c] for s in sets if s.frames[c] is not None]
+        table = truth_features(frames, pattern, 0.05, 3.0, rng)
+        files.append(str(write_features(tmp_path / f"cam{c}.csv", table)))
+    out = tmp_path / "rig"
+    assert main(["calibrate-rig", "--features", *files, "--image-size", "1280x720", "--cell-px", "50",
+                 "--pattern", str(tmp_path / "pattern.yaml"), "--out", str(out), "--no-maps"]) == 0
+    printed = capsys.readouterr().out
+    assert "camera 1 <- camera 0: T = (" in printed and "image sets used: 12" in printed
+    folder = read_rig_folder(out / "calibration")
+    assert folder.rig.size == 2 and sum(p is not None for p in folder.rig_tr_global) == 12
+    err = extrinsic_error(rig, folder.rig)
+    assert err.rotation_deg < 0.01 and err.translation_mm < 0.1
+    report = json.loads((out / "report.json").read_text())
+    assert abs(report["pairs"][0]["baseline_mm"] - 50.0) < 0.1
+    stereo = read_stereo_yaml(out / "stereo_0_1.yaml")
+    assert np.allclose(stereo.relative.t, folder.rig.relative(0, 1).t, atol=1e-12)
