@@ -192,8 +192,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="listen on a --host other machines can reach: any client there can browse and read "
                         "files, export into any folder and run jobs as this user (a warning is printed)")
     p.add_argument("--threads", type=positive_int, default=1, metavar="N",
-                   help="compute threads of the extraction and calibration (default %(default)s: more "
-                        "only helps on an otherwise idle machine)")
+                   help="compute threads of the extraction and calibration (default %(default)s)")
     return p
 
 
