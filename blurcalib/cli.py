@@ -194,11 +194,12 @@ def _pipeline_settings(args: argparse.Namespace):
 
 
 def _run_pipeline(sharp: list[Path], blurry: list[Path], pattern: StarPattern, out: Path,
-                  args: argparse.Namespace, features: Path | None = None, mixed: Sequence = ()):
+                  args: argparse.Namespace, features: Path | None = None, mixed: Sequence = (), log=None):
     """Run the pipeline on frames (``sharp`` and ``blurry``, or ``mixed`` frames classified by
-    their own blur), or on a feature file (``features``), and print its figures."""
-    from blurcalib.calib.trust import summary_lines
+    their own blur), or on a feature file (``features``), and print its figures; with ``log`` (the
+    demo's :class:`blurcalib.sim.demo.DemoLog`) tell it the stages instead and print nothing."""
     from blurcalib.pipeline.run import PipelineError, run_from_features, run_pipeline
+    from blurcalib.pipeline.text import report_lines
     from blurcalib.runs.events import FrameDone, RunEvent
 
     bars: dict[str, tqdm] = {}
@@ -207,10 +208,19 @@ def _run_pipeline(sharp: list[Path], blurry: list[Path], pattern: StarPattern, o
         if not isinstance(event, FrameDone):
             return
         if stage not in bars:
+            if log is not None:
+                log.stage(f"2/4 extracting the {count(event.total, f'{stage} frame')}")
             bars[stage] = tqdm(total=event.total, desc=f"extracting {stage}", unit="frame",
                                file=sys.stderr, dynamic_ncols=True, disable=None)
         bars[stage].n = event.done
         bars[stage].set_postfix_str(f"{event.record.frame}: {event.record.status.value}", refresh=True)
+        if log is not None:
+            r = event.record
+            log.detail(f"{stage} {event.done}/{event.total}: {r.frame} {r.status.value}, "
+                       f"{count(r.features, 'feature')}")
+
+    def on_stage(name: str) -> None:
+        log.stage(f"3/4 {name}")
 
     try:
         if features is not None:
@@ -218,35 +228,15 @@ def _run_pipeline(sharp: list[Path], blurry: list[Path], pattern: StarPattern, o
                                        overwrite=args.overwrite)
         else:
             report = run_pipeline(sharp, blurry, pattern, out, _pipeline_settings(args), update,
-                                  overwrite=args.overwrite, mixed=mixed)
+                                  overwrite=args.overwrite, mixed=mixed,
+                                  on_stage=None if log is None else on_stage)
     except PipelineError as exc:
         raise CliError(str(exc)) from None
     finally:
         for bar in bars.values():
             bar.close()
-    cal = report.calibration
-    print(f"sharp-set calibration: {count(cal['num_frames'], 'frame')}, "
-          f"median {cal['median_error_px']:.4f} px, RMS {cal['rms_error_px']:.4f} px")
-    if report.generic is not None:
-        g = report.generic
-        print(f"generic calibration ({g['route']} route): {g['grid_width']}x{g['grid_height']} grid, "
-              f"{count(g['frames'], 'frame')} ({g['blurry_frames']} blurry), "
-              f"median {g['median_error_px']:.4f} px, RMS {g['rms_error_px']:.4f} px")
-        fit = "generic, sharp + blurry frames" if g["blurry_frames"] else "generic, sharp frames"
-        for warning in g["warnings"]:
-            print(f"warning: {fit}: {warning}")
-    if report.generic_sharp is not None:
-        for warning in report.generic_sharp["warnings"]:
-            print(f"warning: generic, sharp frames: {warning}")
-    if report.rolling_shutter is not None and report.rolling_shutter["message"]:
-        print(report.rolling_shutter["message"])
-    for line in summary_lines(report.to_dict()):
-        print(line)
-    for kind in ("sharp", "blurry"):
-        print(f"{kind} frames: " + (", ".join(f"{v} {k}" for k, v in sorted(report.counts[kind].items()))
-                                    or "none"))
-    for kind, path in report.outputs.items():
-        print(f"  {kind}: {path}")
+    if log is None:
+        print("\n".join(report_lines(report)))
     return report
 
 
@@ -320,36 +310,49 @@ def _check_grid(sizes: Iterable[tuple[int, int] | None], cell_px: float) -> None
 
 def cmd_demo(args: argparse.Namespace) -> int:
     """Simulate the default dataset (20 sharp and 60 blurry 1280x720 frames) into OUT/data, run
-    calibrate on it into OUT/calibration and print each camera against the true one. A complete
-    dataset is reused, and the calibration resumes where it stopped."""
-    from blurcalib.io.frames import list_frames
+    calibrate on it into OUT/calibration and compare each camera with the true one. Prints a
+    line per stage (also into OUT/demo.log when the output is not a terminal), then the result in
+    words, the details, the figures written and what the terms mean. A complete dataset is
+    reused, and the calibration resumes where it stopped."""
+    from blurcalib.io.frames import frame_size, list_frames
     from blurcalib.io.results import read_feature_table
+    from blurcalib.pipeline.text import report_lines
+    from blurcalib.sim.accuracy import camera_accuracy_lines, true_accuracies
+    from blurcalib.sim.demo import DemoLog, figure_lines, result_lines, term_lines
     from blurcalib.sim.evaluate import evaluate_features
     from blurcalib.sim.truth import GROUND_TRUTH_FILE, load_ground_truth
 
     out = Path(args.out)
     data = out / "data"
     if (data / GROUND_TRUTH_FILE).is_file() and not args.overwrite:
-        print(f"reusing the simulated dataset in {data}")
+        log = DemoLog(out)
+        log.stage(f"1/4 reusing the simulated dataset in {data}")
     else:
         _check_empty_output(data, args.overwrite)
+        log = DemoLog(out)
+        log.stage(f"1/4 simulating {args.sharp} sharp and {args.blurry} blurry frames into {data}")
         _simulate(data, args, None)
     pattern = load_pattern(data / "pattern.yaml")
-    _run_pipeline(list_frames([data / "sharp"]), list_frames([data / "blurry"]), pattern,
-                  out / "calibration", args)
+    sharp = list_frames([data / "sharp"])
+    report = _run_pipeline(sharp, list_frames([data / "blurry"]), pattern, out / "calibration", args, log=log)
+    log.stage("4/4 comparing every camera with the true camera")
     truth = load_ground_truth(data)
-    table = read_feature_table(out / "calibration" / "features.csv")
-    acc = evaluate_features(table, truth, pattern)
+    found = true_accuracies(out / "calibration", truth.camera)
+    acc = evaluate_features(read_feature_table(out / "calibration" / "features.csv"), truth, pattern)
+    details = report_lines(report)
     if acc:
         import numpy as np
 
         med = float(np.median([a.median for a in acc]))
-        print(f"accuracy of the aligned blurry features against the true camera (pose refitted): "
-              f"median over {count(len(acc), 'frame')} {med:.4f} px "
-              f"(per frame {min(a.median for a in acc):.4f} to {max(a.median for a in acc):.4f} px)")
-    from blurcalib.sim.accuracy import camera_accuracy_lines
-
-    print("\n".join(camera_accuracy_lines(out / "calibration", truth.camera)))
+        details.append(f"accuracy of the aligned blurry features against the true camera (pose refitted): "
+                       f"median over {count(len(acc), 'frame')} {med:.4f} px (per frame "
+                       f"{min(a.median for a in acc):.4f} to {max(a.median for a in acc):.4f} px)")
+    details += camera_accuracy_lines(found)
+    print("\n".join(["", *result_lines(report.to_dict(), found, frame_size(sharp[0])), "", "Details",
+                     *(f"  {line}" for line in details), "", *figure_lines(report.outputs), "",
+                     *term_lines()]))
+    if log.path is not None:
+        print(f"progress log: {log.path}")
     return 0
 
 
@@ -438,8 +441,9 @@ def cmd_view(args: argparse.Namespace) -> int:
     if not app.is_file():
         raise CliError("the browser app (app.py, views/, state/) ships with the source checkout; "
                        "run blurcalib from a checkout set up with `bash scripts/setup.sh`")
-    argv = [sys.executable, str(app), *args.rest]
-    return subprocess.call(argv)
+    start = (f"import sys; sys.path.insert(0, {str(app.parent)!r}); import app; "
+             "sys.exit(app.main(sys.argv[1:], prog='blurcalib view'))")
+    return subprocess.call([sys.executable, "-c", start, *args.rest])
 
 
 # --------------------------------------------------------------------------------- parser

@@ -22,7 +22,7 @@ from blurcalib.calib.uncertainty import CrossValidationDiff, cross_validation_fi
 from blurcalib.io.text import count
 from state import AppState, Topic
 from state.calibration import AppCalibration, CalibrationRunner, Coverage, input_coverage
-from views.common import Coalescer, legend_strip, md, placeholder
+from views.common import Coalescer, legend_strip, md, placeholder, set_image
 from views.errors import draw_cells, draw_quiver
 from views.frame_view import DISPLAY_WIDTH
 
@@ -301,8 +301,19 @@ class CalibrationPanel:
     def _draw(self) -> None:
         progress = self.runner.progress()
         result = self.runner.result
-        inputs = self.runner.inputs()
         statuses = self.runner.statuses()
+        busy = progress.running
+        fresh = self._assessed is None or self._assessed[0] is not result
+        with self.server.atomic():  # the words first: the figures below take seconds on a busy machine
+            self.run.disabled = busy
+            self.cancel.disabled = not busy or progress.cancelling
+            self.export.disabled = busy or result is None
+            self.progress.value = 100.0 * progress.fraction
+            self.progress.animated = busy
+            self.status.content = (f"**calibrating**: {progress.label}" if busy
+                                   else "drawing the figures…" if fresh and result is not None else "")
+            self.summary.content = summary(result, statuses)
+        inputs = self.runner.inputs()
         cov = input_coverage(inputs, self.runner.settings.cell_px) if inputs.image_size[0] else None
         coverage = draw_coverage(cov) if cov is not None and cov.total else placeholder("no observations yet")
         residuals = difference = None
@@ -323,26 +334,19 @@ class CalibrationPanel:
             mag = np.linalg.norm(result.difference[2], axis=2)
             diff_text = (f"generic minus parametric: median {np.nanmedian(mag):.3f} px, max "
                          f"{np.nanmax(mag):.3f} px over the calibrated area")
-        fresh = self._assessed is None or self._assessed[0] is not result
         trust_text, uncertainty, cross_validation = self._assessment(result)
-        busy = progress.running
+        none = placeholder("run the calibration")
         with self.server.atomic():
-            self.run.disabled = busy
-            self.cancel.disabled = not busy or progress.cancelling
-            self.export.disabled = busy or result is None
-            self.progress.value = 100.0 * progress.fraction
-            self.progress.animated = busy
-            self.status.content = f"**calibrating**: {progress.label}" if busy else ""
-            self.summary.content = summary(result, statuses)
+            if not busy:
+                self.status.content = ""
             self.trust.content = trust_text
             if fresh:  # the maps change only with the calibration; hidden when not measured
                 for handle, image in ((self.uncertainty, uncertainty),
                                       (self.cross_validation, cross_validation)):
                     if image is not None:
-                        handle.image = image
+                        set_image(handle, image)
                     handle.visible = image is not None
-            self.coverage.image = coverage
-            none = placeholder("run the calibration")
-            self.residuals.image = residuals if residuals is not None else none
-            self.difference.image = difference if difference is not None else none
+            set_image(self.coverage, coverage)
+            set_image(self.residuals, residuals if residuals is not None else none)
+            set_image(self.difference, difference if difference is not None else none)
             self.difference_text.content = diff_text
