@@ -8,7 +8,7 @@
 3. Teaching the translational ambiguity: the δ slider moves the star while the blurred image
    stays the same (residual at rounding), and the alignment figure ends on the truth.
 
-Same requirements and skips as ``tests/test_app_browser.py``; slow (the dataset is rendered and
+Same requirements and skips as ``tests/app/test_browser.py``; slow (the dataset is rendered and
 two frames extracted).
 """
 
@@ -22,7 +22,7 @@ import pytest
 
 from blurcalib.io.results import BlockStatus
 from state.folder import default_dataset
-from tests.test_app_browser import _row, app_page, sync_api
+from tests.app.test_browser import _row, app_page, sync_api
 from views.frame_view import FRAME_LABEL, FrameViewPanel
 
 pytestmark = [pytest.mark.browser, pytest.mark.slow]
