@@ -19,6 +19,7 @@ from matplotlib.figure import Figure
 from blurcalib.calib.joint import GenericCalibration
 from blurcalib.calib.trust import gain_phrases
 from blurcalib.calib.uncertainty import CrossValidationDiff, cross_validation_figure, uncertainty_figure
+from blurcalib.calib.validation import HALF_MIN_SHARP_FRAMES
 from blurcalib.io.text import count
 from state import AppState, Topic
 from state.calibration import AppCalibration, CalibrationRunner, Coverage, input_coverage
@@ -118,6 +119,17 @@ def _px(value: float | None) -> str:
     return "n/a" if value is None else f"{value:.4f}"
 
 
+def _halves_too_small(generic: GenericCalibration) -> str:
+    """Why the cross-validation diff was not measured, with the sharp frames each half has."""
+    sharp = len(set(generic.frames) - set(generic.blurry_frames))
+    small, large = sharp // 2, sharp - sharp // 2
+    if small >= HALF_MIN_SHARP_FRAMES:
+        return "a half's own parametric camera could not be fitted"
+    return (f"each half's prior is its own parametric camera, from at least {HALF_MIN_SHARP_FRAMES} "
+            f"sharp frames; the {count(sharp, 'sharp frame')} used here make halves of {large} and "
+            f"{small}: {2 * HALF_MIN_SHARP_FRAMES} or more measure it")
+
+
 def trust_summary(result: AppCalibration, guidance_px: float) -> str:
     """The markdown of the assessment: held-out error per camera (or why it was not measured),
     projection uncertainty, cross-validation diff, what the blurry frames bought and the guidance.
@@ -156,7 +168,7 @@ def trust_summary(result: AppCalibration, guidance_px: float) -> str:
     parts.append("**Cross-validation diff** of the generic cameras of two halves of the frames: "
                  + (f"median {_px(cv['median_px'])} px, 95th percentile {_px(cv['p95_px'])} px; the "
                     "camera is not known better than the halves agree." if cv else
-                    "not measured (a half has too few sharp frames for its own parametric camera)."))
+                    f"not measured ({_halves_too_small(result.generic)})."))
     gain = doc.get("blurry_frames_gain")
     if gain:
         parts.append("**What the blurry frames bought** (sharp only → sharp + blurry): "

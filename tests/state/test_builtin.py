@@ -25,7 +25,7 @@ GLARE, HIDDEN = "blurry/01-glare.png", "blurry/04-tag-hidden.png"
 
 @pytest.fixture(scope="module")
 def builtin(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """The built-in dataset, rendered once (about 30 s of CPU)."""
+    """The built-in dataset, rendered once (about 40 s of CPU)."""
     return default_dataset(tmp_path_factory.mktemp("builtin") / "data", workers=2)
 
 
