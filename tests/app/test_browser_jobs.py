@@ -91,7 +91,10 @@ def test_the_three_jobs_on_the_built_in_dataset(tmp_path: Path) -> None:
             _run(page, app, HIDDEN)  # alone: no neighbour is extracted yet
             expect(page.get_by_text(re.compile(r"Not seeded\. The tag search looked over the whole frame"))
                    ).to_be_visible()
-            expect(page.get_by_text(re.compile(r"no blocks: the frame was not seeded"))).to_be_visible()
+            expect(page.get_by_text(re.compile(r"^no blocks: the frame was not seeded \(its tag was not"))
+                   ).to_be_visible()  # the counts
+            expect(page.get_by_text(re.compile(r"^alignment error: .*the frame was not seeded"))
+                   ).to_be_visible()  # not '0 blocks kept by the filter, alignment needs 12'
 
             # 3. The ambiguity: the blurred image does not change with δ, the star does.
             page.get_by_role("tab", name="Ambiguity").click()
