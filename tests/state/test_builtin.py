@@ -14,7 +14,7 @@ import pytest
 from blurcalib.io.record import FrameStatus
 from blurcalib.io.results import BlockStatus
 from state import AppState
-from state.blocks import filter_counts, filter_ranges
+from state.blocks import effective_loss, filter_counts, filter_ranges
 from state.folder import default_dataset
 from state.seeding import TagSearchCache
 
@@ -57,8 +57,8 @@ def test_the_loss_filter_removes_the_glare_edge(builtin: Path, tmp_path: Path) -
     counts = filter_counts(state.view().filter, blocks.status)
     assert counts.removed_loss == int(removed.sum()) and counts.not_fitted > 0
     ranges = filter_ranges([(blocks, flt)], state.quality)
-    assert ranges.tau_loss.log and ranges.tau_loss.lo < 5.0 and ranges.tau_loss.hi >= float(
-        np.max(blocks.loss[removed]))
+    assert ranges.tau_loss.log and ranges.tau_loss.lo < 5.0  # the slider moves τ_L on the filter's scale:
+    assert ranges.tau_loss.hi >= float(np.max(effective_loss(blocks, state.quality)[removed]))
 
 
 def test_the_hidden_tag_frame_is_seeded_from_its_neighbours(builtin: Path, tmp_path: Path) -> None:
