@@ -4,7 +4,7 @@ inspect blocks, see the error field and the frames' poses, and learn the transla
     python app.py [FOLDER] [--pattern P.yaml] [--out DIR] [--port N]
 
 With no folder it opens a small simulated dataset, rendered on first use into the user's cache
-folder (``~/.cache/blurcalib/app_default``, or under ``$XDG_CACHE_HOME``). Extracted frames are
+folder (``~/.cache/blurcalib/app_dataset``, or under ``$XDG_CACHE_HOME``). Extracted frames are
 written into ``--out`` (by default a folder of the dataset's own under
 ``~/.cache/blurcalib/results/``, so that a read-only dataset works): opening the dataset again
 shows them as done, and a run resumes where the last one stopped. The app serves on
@@ -28,12 +28,14 @@ from typing import Protocol
 import viser
 
 from blurcalib.argtypes import positive_int
-from blurcalib.runs.runtime import capped_count, configure_threads, keep_large_allocations
+from blurcalib.runs.runtime import available_cores, capped_count, configure_threads, keep_large_allocations
 from state import AppState, RunSettings, default_dataset
 from state.alignment import AlignmentCache
 from state.calibration import CalibrationRunner, CalibrationSettings
 from state.folder import builtin_dataset_folder
+from state.seeding import TagSearchCache
 from views.ambiguity import AmbiguityPanel
+from views.browser import add_page_script
 from views.calibration import CalibrationPanel
 from views.errors import ErrorsPanel
 from views.frame_view import FrameViewPanel
@@ -110,7 +112,7 @@ def serve(folder: str | os.PathLike | None = None, pattern: str | os.PathLike | 
         print(f"{'rendering' if first else 'opening'} the built-in dataset in {builtin}"
               + (" (first use only)" if first else ""), flush=True)
         try:
-            folder = default_dataset(builtin, progress=_progress)
+            folder = default_dataset(builtin, progress=_progress, workers=min(available_cores(), 4))
         except BaseException:
             server.stop()
             raise
@@ -118,13 +120,14 @@ def serve(folder: str | os.PathLike | None = None, pattern: str | os.PathLike | 
     server.gui.configure_theme(control_width="large", show_share_button=False, dark_mode=False,
                                brand_color=(40, 110, 200))
     server.gui.main_panel.dock_right()
+    add_page_script(server)
     app = App(state, AlignmentCache(state), CalibrationRunner(state, calibration))
     app.panels.append(FramesPanel(state, server, app.calibration))
     with server.gui.add_folder("Quality filter"):
         app.panels.append(TuningPanel(state, server, app.alignments))
     views = server.gui.add_panel()
     with views.add_tab("Frame", viser.Icon.PHOTO):
-        app.panels.append(FrameViewPanel(state, server))
+        app.panels.append(FrameViewPanel(state, server, TagSearchCache(state)))
     with views.add_tab("PSF field", viser.Icon.GRID_DOTS):
         app.panels.append(PsfFieldPanel(state, server))
     with views.add_tab("Block", viser.Icon.ZOOM_IN):
@@ -173,9 +176,10 @@ def _ignore(signum: int, frame: object) -> None:
     """A signal that comes while the app stops: nothing to do (:func:`_stop`)."""
 
 
-def build_parser() -> argparse.ArgumentParser:
-    """The command line of ``python app.py``."""
-    p = argparse.ArgumentParser(prog="app.py", description=__doc__.split("\n\n")[0])
+def build_parser(prog: str = "app.py") -> argparse.ArgumentParser:
+    """The command line of ``python app.py`` (``prog``: its name in usage lines, ``blurcalib view``
+    when the command line starts it)."""
+    p = argparse.ArgumentParser(prog=prog, description=__doc__.split("\n\n")[0])
     p.add_argument("folder", nargs="?", metavar="FOLDER",
                    help="dataset folder (default: a built-in simulated dataset)")
     p.add_argument("--pattern", metavar="FILE",
@@ -192,28 +196,27 @@ def build_parser() -> argparse.ArgumentParser:
                    help="listen on a --host other machines can reach: any client there can browse and read "
                         "files, export into any folder and run jobs as this user (a warning is printed)")
     p.add_argument("--threads", type=positive_int, default=1, metavar="N",
-                   help="compute threads of the extraction and calibration (default %(default)s: more "
-                        "only helps on an otherwise idle machine)")
+                   help="compute threads of the extraction and calibration (default %(default)s)")
     return p
 
 
-def main(argv: Sequence[str] | None = None) -> int:
-    """Run the app until interrupted."""
-    args = build_parser().parse_args(argv)
+def main(argv: Sequence[str] | None = None, prog: str = "app.py") -> int:
+    """Run the app until interrupted (``prog``: its name in messages)."""
+    args = build_parser(prog).parse_args(argv)
     threads, note = capped_count(args.threads, "--threads")
     if note is not None:
-        print(f"app.py: note: {note}", file=sys.stderr)
+        print(f"{prog}: note: {note}", file=sys.stderr)
     configure_threads(threads)
     keep_large_allocations()
     try:
         check_listen(args.host, args.port)
         warning = check_host(args.host, args.allow_remote)
         if warning is not None:
-            print(f"app.py: warning: {warning}", file=sys.stderr, flush=True)
+            print(f"{prog}: warning: {warning}", file=sys.stderr, flush=True)
         server, app = serve(args.folder, args.pattern, args.port, host=args.host,
                             allow_remote=args.allow_remote, out=args.out)
     except ServeError as exc:
-        print(f"app.py: error: {exc}", file=sys.stderr)
+        print(f"{prog}: error: {exc}", file=sys.stderr)
         return 2
     signal.signal(signal.SIGTERM, _stop)
     signal.signal(signal.SIGINT, _stop)

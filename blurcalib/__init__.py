@@ -2,6 +2,10 @@
 
 from importlib.metadata import PackageNotFoundError, version
 
+from blurcalib.runs.runtime import passive_openmp_wait
+
+passive_openmp_wait()  # before any module imports torch (blurcalib.runs.runtime)
+
 try:
     __version__ = version("blurcalib")  # pyproject.toml's version, from the installed package
 except PackageNotFoundError:  # a source tree that was never installed

@@ -295,10 +295,13 @@ def align_frame(reference: Reference, pattern: StarPattern, result: FrameResult,
         settings: loss, bias and fewest blocks (the engine's defaults).
 
     Raises:
-        AlignmentError: too few kept blocks, a frame of another size than the reference
-            camera's, or a failed pose estimate; the message says which.
+        AlignmentError: no blocks (a frame not seeded), too few kept blocks, a frame of another
+            size than the reference camera's, or a failed pose estimate; the message says which.
     """
     camera = reference.camera
+    if not len(result.blocks):
+        raise AlignmentError("no blocks: the frame was not seeded" if result.seed is None
+                             else "no blocks were grown")
     if tuple(image_size) != (camera.width, camera.height):
         raise AlignmentError(f"the frame is {image_size[0]} x {image_size[1]} px, the reference camera "
                              f"{camera.width} x {camera.height} px")

@@ -30,6 +30,7 @@ from blurcalib.io.record import EXTRACTION_OUTCOMES, FrameRecord, FrameStatus
 from blurcalib.io.sources import FrameInput, in_sequences
 from blurcalib.runs.events import FrameDone, FrameGrew, FrameStarted, RunEvent
 from blurcalib.runs.folder import RunSummary, finished_frames
+from blurcalib.runs.neighbours import neighbours_to_try
 from blurcalib.runs.output import frame_sizes
 from blurcalib.sim.truth import FrameTruth
 from blurcalib.target.pattern import PatternFileError, StarPattern, load_pattern
@@ -429,10 +430,15 @@ class AppState:
         return self._start([name], redo=True)
 
     def run_all(self) -> bool:
-        """Extract every frame not extracted yet (failed frames again), in list order."""
+        """Extract every frame not extracted yet (failed frames again), in list order, and seed
+        a frame whose tag was not found from a neighbour extracted since
+        (:func:`blurcalib.runs.neighbours.neighbours_to_try`)."""
         with self._lock:
             names = [f.name for f in self.frames
                      if f.name not in self._results and f.record.status not in DONE_STATUSES]
+            records, coming = {f.name: f.record for f in self.frames}, set(names)
+            retry = set().union(*(neighbours_to_try(self._inputs(k), records, coming) for k in FRAME_KINDS))
+            names = [f.name for f in self.frames if f.name in retry or f.name in coming]
         if not names:
             self.notify("info", "Nothing to run", "every frame has been extracted")
             return False

@@ -16,7 +16,6 @@ from blurcalib.calib.joint import GenericCalibration
 from blurcalib.calib.sharp import CalibrationError, calibrate_pinhole
 from blurcalib.camera.parametric import BrownConrady
 from blurcalib.extract.frame import FrameResult
-from blurcalib.geometry.homography import apply_homography
 from blurcalib.geometry.pose import Pose
 from blurcalib.growth.quality import FrameFilter
 from blurcalib.io.record import FrameStatus
@@ -24,18 +23,10 @@ from blurcalib.sim.truth import DatasetTruth, FrameTruth
 from blurcalib.target.pattern import StarPattern
 from state.alignment import AlignmentCache, FrameAlignment
 from state.app_state import AppState
+from state.blocks import block_quads
 
 ERROR_SOURCES = ("global alignment", "ground truth", "local alignment")
 """Where an error field comes from, in the order ``auto`` tries them."""
-
-SQUARE_CORNERS = np.array([[-1.0, -1.0], [1.0, -1.0], [1.0, 1.0], [-1.0, 1.0]])
-"""A block's square corners in block coordinates, in drawing order."""
-
-
-def block_quads(H: np.ndarray) -> np.ndarray:
-    """``(B, 4, 2)`` px: the squares ``H([-1, 1]^2)`` of block homographies ``(B, 3, 3)``."""
-    return apply_homography(H, np.broadcast_to(SQUARE_CORNERS, (len(H), 4, 2)))
-
 
 @dataclass(frozen=True)
 class ErrorField:

@@ -13,30 +13,26 @@ import hashlib
 import os
 import re
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 from blurcalib.io.frames import FrameError, list_frames
 from blurcalib.io.sources import frame_inputs, is_video
+from blurcalib.sim.showcase import FAULTS_FILE, FrameFaults, load_faults, showcase_camera, write_showcase
 from blurcalib.sim.synth import SynthConfig, write_dataset
 from blurcalib.sim.truth import (
     GROUND_TRUTH_FILE,
     DatasetTruth,
     TrueCamera,
-    d435i_like_camera,
     load_ground_truth,
 )
 from blurcalib.target.pattern import PatternFileError, StarPattern, load_pattern
 
 PATTERN_FILE = "pattern.yaml"
 
-DEFAULT_CONFIG = SynthConfig(sharp=2, blurry=4, blur_min_px=3.0, blur_max_px=8.0, square_px=(26.0, 34.0),
-                             max_tilt_deg=35.0, seed=0)
-"""The built-in dataset: 2 sharp and 4 blurry 640 x 360 frames (a D435I-like camera at half size)."""
-
-
-BUILTIN_DIR = Path("blurcalib") / "app_default"
-"""The built-in dataset's folder inside the user's cache folder (:func:`builtin_dataset_folder`)."""
+BUILTIN_DIR = Path("blurcalib") / "app_dataset"
+"""The built-in dataset's folder inside the user's cache folder (:func:`builtin_dataset_folder`):
+the 13 frames of :mod:`blurcalib.sim.showcase`."""
 
 RESULTS_DIR = Path("blurcalib") / "results"
 """The folder, inside the user's cache folder, of the app's results of each dataset
@@ -88,6 +84,8 @@ class Dataset:
         truth: the ground truth of a simulated dataset (None for real data).
         warnings: problems that did not stop the load (an unreadable ground truth).
         source: the video file opened (its folder is ``folder``); None when a folder was opened.
+        faults: what each frame of the built-in dataset shows, and its faults
+            (:func:`blurcalib.sim.showcase.load_faults`; empty for other datasets).
     """
 
     folder: Path
@@ -97,6 +95,7 @@ class Dataset:
     truth: DatasetTruth | None
     warnings: tuple[str, ...] = ()
     source: Path | None = None
+    faults: dict[str, FrameFaults] = field(default_factory=dict)
 
 
 def find_pattern(folder: Path, pattern: str | os.PathLike | None) -> Path:
@@ -194,15 +193,18 @@ def _discover(root: Path, pattern: str | os.PathLike | None) -> Dataset:
         ranked = sorted(range(len(names)), key=lambda i: (order.get(names[i], len(order)), i))
         names, paths = [names[i] for i in ranked], [paths[i] for i in ranked]
     frames = tuple(FrameFile(n, p, _kind(n, truth)) for n, p in zip(names, paths, strict=True))
-    return Dataset(root, pattern_path, star, frames, truth, tuple(warnings))
+    faults = {}
+    if (root / FAULTS_FILE).is_file():
+        try:
+            faults = load_faults(root)
+        except ValueError as exc:
+            warnings.append(str(exc))
+    return Dataset(root, pattern_path, star, frames, truth, tuple(warnings), faults=faults)
 
 
 def default_camera() -> TrueCamera:
     """The built-in dataset's camera: the D435I-like camera at half resolution (640 x 360)."""
-    full = d435i_like_camera(DEFAULT_CONFIG.seed)
-    waves = full.waves.copy()
-    waves[:, :2] *= 0.5
-    return TrueCamera(full.model.scaled(0.5), waves)
+    return showcase_camera()
 
 
 def user_cache() -> Path:
@@ -212,7 +214,7 @@ def user_cache() -> Path:
 
 
 def builtin_dataset_folder() -> Path:
-    """Where the app keeps its built-in dataset: ``blurcalib/app_default`` in the user's cache
+    """Where the app keeps its built-in dataset: ``blurcalib/app_dataset`` in the user's cache
     folder (:func:`user_cache`; never inside the installed package)."""
     return user_cache() / BUILTIN_DIR
 
@@ -228,18 +230,22 @@ def default_output_folder(dataset: str | os.PathLike) -> Path:
     return user_cache() / RESULTS_DIR / f"{name}-{digest}"
 
 
-def default_dataset(root: str | os.PathLike, config: SynthConfig = DEFAULT_CONFIG,
+def default_dataset(root: str | os.PathLike, config: SynthConfig | None = None,
                     camera: TrueCamera | None = None,
-                    progress: Callable[[int, int, str], None] | None = None) -> Path:
+                    progress: Callable[[int, int, str], None] | None = None, workers: int = 1) -> Path:
     """The simulated dataset in ``root``, rendered on first use (a complete one is reused).
 
     Args:
         root: its folder (:func:`builtin_dataset_folder` for the app).
-        config: what to simulate.
-        camera: the camera (default :func:`default_camera`).
+        config: what to simulate; None: the built-in dataset (:mod:`blurcalib.sim.showcase`).
+        camera: the camera of a ``config`` (default :func:`default_camera`).
         progress: called after each rendered frame with ``(done, total, name)``.
+        workers: render in this many processes.
     """
     out = Path(root)
     if not (out / GROUND_TRUTH_FILE).is_file():
-        write_dataset(out, config, camera=camera or default_camera(), progress=progress)
+        if config is None:
+            write_showcase(out, progress=progress, workers=workers)
+        else:
+            write_dataset(out, config, camera=camera or default_camera(), progress=progress, workers=workers)
     return out

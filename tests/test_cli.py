@@ -66,7 +66,7 @@ def test_synth_command_writes_dataset(tmp_path) -> None:
 @pytest.mark.slow
 def test_view_passes_options_to_the_app(capfd) -> None:
     assert main(["view", "--help"]) == 0
-    assert "usage: app.py" in capfd.readouterr().out
+    assert "usage: blurcalib view" in capfd.readouterr().out
 
 
 def _inputs(tmp_path):

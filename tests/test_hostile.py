@@ -911,16 +911,17 @@ def test_builtin_dataset_goes_to_the_user_cache(tmp_path: Path, monkeypatch: pyt
     from state.folder import builtin_dataset_folder
 
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
-    assert builtin_dataset_folder() == tmp_path / "cache" / "blurcalib" / "app_default"
+    assert builtin_dataset_folder() == tmp_path / "cache" / "blurcalib" / "app_dataset"
     monkeypatch.delenv("XDG_CACHE_HOME")
     monkeypatch.setenv("HOME", str(tmp_path / "home"))
-    assert builtin_dataset_folder() == tmp_path / "home" / ".cache" / "blurcalib" / "app_default"
+    assert builtin_dataset_folder() == tmp_path / "home" / ".cache" / "blurcalib" / "app_dataset"
     asked: list[Path] = []
-    monkeypatch.setattr(app, "default_dataset", lambda root, progress: asked.append(Path(root)) or tmp_path)
+    monkeypatch.setattr(app, "default_dataset",
+                        lambda root, progress, workers: asked.append(Path(root)) or tmp_path)
     server, running = app.serve(None, port=0)
     running.close()
     server.stop()
-    assert asked == [tmp_path / "home" / ".cache" / "blurcalib" / "app_default"]
+    assert asked == [tmp_path / "home" / ".cache" / "blurcalib" / "app_dataset"]
     assert ROOT not in asked[0].parents
 
 

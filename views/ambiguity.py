@@ -15,7 +15,7 @@ import numpy as np
 import viser
 
 from state.demo import MAX_SHIFT, TILE_PX, AlignmentDemo, AmbiguityDemo, alignment_demo, ambiguity_demo
-from views.common import Coalescer, grey_rgb, heat, hstack, label, upscale
+from views.common import Coalescer, grey_rgb, heat, hstack, titled, upscale
 
 PANEL_PX = 192
 ERROR_GAIN = 5.0
@@ -25,19 +25,24 @@ STEP_SCALE = 0.55
 
 EXPLANATION = """\
 **Why the star centre is ambiguous.** A blurred star is `k * L`: the latent star `L` convolved with
-the PSF `k`. Moving the star by δ and the PSF by −δ gives exactly the same image,
-`k(d + δ) * L(x − δ) = k * L` (the residual panel stays flat). A block's fit alone therefore
-cannot say where the star is: any δ explains the pixels equally well.
+the PSF `k` (in words: every point of the star smeared along the path the camera shook). Moving
+the star by δ and the PSF by −δ gives exactly the same image,
+`k(d + δ) * L(x − δ) = k * L` (in words: a star drawn δ to the right, smeared by a path that starts
+δ further left, lands on the same pixels; the residual panel stays flat). A block's fit alone
+therefore cannot say where the star is: any δ explains the pixels equally well.
 
 **How blurcalib pins it down.**
-1. **PSF re-centring**: after each fit the PSF is shifted so that its centroid sits on the kernel
-   centre, and the block's homography moves by the same amount (`H ← T(c) H`). The star centre
-   becomes the centre of the star's *time-averaged* image, a well-defined point.
+1. **PSF re-centring**: after each fit the PSF is shifted so that its centroid `c` sits on the
+   kernel centre, and the block's homography moves by the same amount, `H ← T(c) H` (in words:
+   slide the PSF back to the middle and move the star by the same distance the other way, which
+   leaves the image unchanged). The star centre becomes the centre of the star's
+   *time-averaged* image, a well-defined point.
 2. **Local alignment**: neighbouring blocks share square corners. One translation per block makes
    the shared corners agree, removing the blocks' independent δ up to one shift of the whole
    frame.
 3. **Global alignment**: one camera model (calibrated from the sharp frames) and a pose must
-   explain every block of the frame, which fixes the remaining shift `x_G`.
+   explain every block of the frame, which fixes the remaining shift `x_G` (in words: the one
+   shift left over is found by asking where the calibrated camera says the target must be).
 
 The figure below runs both alignments of the engine on a tilted target whose blocks carry the δ
 above plus a shift of their own.
@@ -63,12 +68,10 @@ def demo_image(demo: AmbiguityDemo) -> np.ndarray:
     blurred = upscale(grey_rgb(demo.blurred * 255.0), PANEL_PX)
     worst = float(np.abs(demo.residual).max())
     residual = upscale(grey_rgb(128.0 + demo.residual * 255.0 * 50.0), PANEL_PX)
-    label(latent, "star L'", (6, 18), 0.5)
-    label(kernel, "PSF k'", (6, 18), 0.5)
-    label(blurred, "k' * L'", (6, 18), 0.5)
-    label(residual, "k'*L' - k*L (x50)", (6, 18), 0.5)
-    label(residual, f"max {worst:.0e}", (6, PANEL_PX - 10), 0.5)
-    return hstack([latent, kernel, blurred, residual])
+    return hstack([titled(latent, "star L' (moved +delta)", "red: its centre"),
+                   titled(kernel, "PSF k' (moved -delta)", "white: its centroid"),
+                   titled(blurred, "blurred image k' * L'", "the same for every delta"),
+                   titled(residual, "k'*L' - k*L  (x50)", f"largest {worst:.0e}")])
 
 
 def alignment_image(demo: AlignmentDemo, gain: float = ERROR_GAIN) -> np.ndarray:
@@ -89,9 +92,8 @@ def alignment_image(demo: AlignmentDemo, gain: float = ERROR_GAIN) -> np.ndarray
             cv2.polylines(canvas, [_pts(quad)], True, (255, 140, 0), 1, cv2.LINE_AA)
         for c in centres:
             cv2.circle(canvas, tuple(int(v) for v in _pts(c[None])[0]), 2, (220, 30, 30), -1, cv2.LINE_AA)
-        for text, y in ((step.name, 20), (f"RMS error {step.rms:.3f} px", canvas.shape[0] - 10)):
-            cv2.putText(canvas, text, (8, y), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (40, 40, 40), 1, cv2.LINE_AA)
-        panels.append(canvas)
+        cv2.rectangle(canvas, (0, 0), (canvas.shape[1] - 1, canvas.shape[0] - 1), (200, 200, 200), 1)
+        panels.append(titled(canvas, step.name, f"RMS error {step.rms:.3f} px"))
     return hstack(panels, background=255)
 
 

@@ -19,10 +19,11 @@ from matplotlib.figure import Figure
 from blurcalib.calib.joint import GenericCalibration
 from blurcalib.calib.trust import gain_phrases
 from blurcalib.calib.uncertainty import CrossValidationDiff, cross_validation_figure, uncertainty_figure
+from blurcalib.calib.validation import HALF_MIN_SHARP_FRAMES
 from blurcalib.io.text import count
 from state import AppState, Topic
 from state.calibration import AppCalibration, CalibrationRunner, Coverage, input_coverage
-from views.common import Coalescer, legend_strip, md, placeholder
+from views.common import Coalescer, legend_strip, md, placeholder, set_image
 from views.errors import draw_cells, draw_quiver
 from views.frame_view import DISPLAY_WIDTH
 
@@ -118,6 +119,17 @@ def _px(value: float | None) -> str:
     return "n/a" if value is None else f"{value:.4f}"
 
 
+def _halves_too_small(generic: GenericCalibration) -> str:
+    """Why the cross-validation diff was not measured, with the sharp frames each half has."""
+    sharp = len(set(generic.frames) - set(generic.blurry_frames))
+    small, large = sharp // 2, sharp - sharp // 2
+    if small >= HALF_MIN_SHARP_FRAMES:
+        return "a half's own parametric camera could not be fitted"
+    return (f"each half's prior is its own parametric camera, from at least {HALF_MIN_SHARP_FRAMES} "
+            f"sharp frames; the {count(sharp, 'sharp frame')} used here make halves of {large} and "
+            f"{small}: {2 * HALF_MIN_SHARP_FRAMES} or more measure it")
+
+
 def trust_summary(result: AppCalibration, guidance_px: float) -> str:
     """The markdown of the assessment: held-out error per camera (or why it was not measured),
     projection uncertainty, cross-validation diff, what the blurry frames bought and the guidance.
@@ -156,7 +168,7 @@ def trust_summary(result: AppCalibration, guidance_px: float) -> str:
     parts.append("**Cross-validation diff** of the generic cameras of two halves of the frames: "
                  + (f"median {_px(cv['median_px'])} px, 95th percentile {_px(cv['p95_px'])} px; the "
                     "camera is not known better than the halves agree." if cv else
-                    "not measured (a half has too few sharp frames for its own parametric camera)."))
+                    f"not measured ({_halves_too_small(result.generic)})."))
     gain = doc.get("blurry_frames_gain")
     if gain:
         parts.append("**What the blurry frames bought** (sharp only → sharp + blurry): "
@@ -301,8 +313,19 @@ class CalibrationPanel:
     def _draw(self) -> None:
         progress = self.runner.progress()
         result = self.runner.result
-        inputs = self.runner.inputs()
         statuses = self.runner.statuses()
+        busy = progress.running
+        fresh = self._assessed is None or self._assessed[0] is not result
+        with self.server.atomic():  # the words first: the figures below take seconds on a busy machine
+            self.run.disabled = busy
+            self.cancel.disabled = not busy or progress.cancelling
+            self.export.disabled = busy or result is None
+            self.progress.value = 100.0 * progress.fraction
+            self.progress.animated = busy
+            self.status.content = (f"**calibrating**: {progress.label}" if busy
+                                   else "drawing the figures…" if fresh and result is not None else "")
+            self.summary.content = summary(result, statuses)
+        inputs = self.runner.inputs()
         cov = input_coverage(inputs, self.runner.settings.cell_px) if inputs.image_size[0] else None
         coverage = draw_coverage(cov) if cov is not None and cov.total else placeholder("no observations yet")
         residuals = difference = None
@@ -323,26 +346,19 @@ class CalibrationPanel:
             mag = np.linalg.norm(result.difference[2], axis=2)
             diff_text = (f"generic minus parametric: median {np.nanmedian(mag):.3f} px, max "
                          f"{np.nanmax(mag):.3f} px over the calibrated area")
-        fresh = self._assessed is None or self._assessed[0] is not result
         trust_text, uncertainty, cross_validation = self._assessment(result)
-        busy = progress.running
+        none = placeholder("run the calibration")
         with self.server.atomic():
-            self.run.disabled = busy
-            self.cancel.disabled = not busy or progress.cancelling
-            self.export.disabled = busy or result is None
-            self.progress.value = 100.0 * progress.fraction
-            self.progress.animated = busy
-            self.status.content = f"**calibrating**: {progress.label}" if busy else ""
-            self.summary.content = summary(result, statuses)
+            if not busy:
+                self.status.content = ""
             self.trust.content = trust_text
             if fresh:  # the maps change only with the calibration; hidden when not measured
                 for handle, image in ((self.uncertainty, uncertainty),
                                       (self.cross_validation, cross_validation)):
                     if image is not None:
-                        handle.image = image
+                        set_image(handle, image)
                     handle.visible = image is not None
-            self.coverage.image = coverage
-            none = placeholder("run the calibration")
-            self.residuals.image = residuals if residuals is not None else none
-            self.difference.image = difference if difference is not None else none
+            set_image(self.coverage, coverage)
+            set_image(self.residuals, residuals if residuals is not None else none)
+            set_image(self.difference, difference if difference is not None else none)
             self.difference_text.content = diff_text

@@ -13,6 +13,7 @@ from collections.abc import Callable
 
 import cv2
 import numpy as np
+import viser
 from matplotlib import colormaps
 
 from blurcalib.io.results import BlockStatus
@@ -84,6 +85,20 @@ class Coalescer:
                 log.exception("redraw failed")
             if self._stopped.wait(max(0.0, self._interval - (time.monotonic() - t0))):
                 return
+
+
+def set_image(handle: viser.GuiImageHandle, image: np.ndarray) -> bool:
+    """Show ``image`` in ``handle`` unless it shows that image already; True when sent.
+
+    Every assignment sends the image again and the browser swaps the image's blob URL; an image
+    sent again unchanged on each redraw (a coverage map redrawn with every progress step) made the
+    browser revoke a blob it was still loading on a busy machine (``ERR_FILE_NOT_FOUND`` in its
+    console)."""
+    shown = handle.image
+    if shown is not None and shown.shape == image.shape and np.array_equal(shown, image):
+        return False
+    handle.image = image
+    return True
 
 
 def md(text: str) -> str:
@@ -215,6 +230,22 @@ def colourbar_strip(width: int, lo: float, hi: float, title: str, name: str = "v
         cv2.putText(strip, text, (x - vw if x < x0 else x, height // 2 + 5), cv2.FONT_HERSHEY_SIMPLEX, 0.5,
                     (30, 30, 30), 1, cv2.LINE_AA)
     return strip
+
+
+def titled(panel: np.ndarray, title: str, note: str = "", scale: float = 0.5) -> np.ndarray:
+    """``panel`` with ``title`` in a white strip above it and ``note`` (if any) in one below, dark
+    text on white (readable whatever the panel shows)."""
+    width = panel.shape[1]
+
+    def strip(text: str) -> np.ndarray:
+        out = np.full((24, width, 3), 255, np.uint8)
+        (tw, _), _ = cv2.getTextSize(text, cv2.FONT_HERSHEY_SIMPLEX, scale, 1)
+        cv2.putText(out, text, (max(2, (width - tw) // 2), 17), cv2.FONT_HERSHEY_SIMPLEX, scale,
+                    (30, 30, 30), 1, cv2.LINE_AA)
+        return out
+
+    parts = [strip(title), panel] + ([strip(note)] if note else [])
+    return np.concatenate(parts)
 
 
 def hstack(panels: list[np.ndarray], gap: int = 6, background: int = 255) -> np.ndarray:

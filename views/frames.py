@@ -44,13 +44,15 @@ class FramesPanel:
         self.calibration = calibration
         self._uploads = tempfile.TemporaryDirectory(prefix="blurcalib-uploads-")
         self._last_notice: Notice | None = None
+        self._shown_pattern = ""  # the pattern in use, as the Pattern field shows it
         gui = server.gui
         folder = (state.dataset.source or state.dataset.folder) if state.dataset is not None else ""
         with gui.add_folder("Data"):
             self.path = gui.add_text("Folder", initial_value=str(folder),
                                      hint="a folder of frames, or a video file (mp4, avi, mkv, mov)")
             self.pattern = gui.add_text("Pattern", initial_value="",
-                                        hint="pattern YAML; empty: pattern.yaml in the folder or its parent")
+                                        hint="pattern YAML; shows the one in use; empty: pattern.yaml in the "
+                                             "folder or its parent")
             self.open = gui.add_button("Open folder", icon=viser.Icon.FOLDER_OPEN)
             self.upload = gui.add_upload_button("Upload frame", icon=viser.Icon.UPLOAD, mime_type="image/*",
                                                 hint="add an image file to the open dataset")
@@ -68,8 +70,7 @@ class FramesPanel:
             self.status = gui.add_markdown("")
         with gui.add_folder("All frames", expand_by_default=False):
             self.table = gui.add_markdown("")
-        self.open.on_click(lambda _: self.state.load_folder(self.path.value.strip(),
-                                                            self.pattern.value.strip() or None))
+        self.open.on_click(self._on_open)
         self.upload.on_upload(self._on_upload)
         self.upload_pattern.on_upload(self._on_upload_pattern)
         self.frame.on_update(self._on_frame)
@@ -91,6 +92,13 @@ class FramesPanel:
         if topic in (Topic.FOLDER, Topic.FRAMES, Topic.CURRENT, Topic.RUN, Topic.RESULT, Topic.FILTER,
                      Topic.CALIBRATION):
             self._redraw.request()
+
+    def _on_open(self, _: viser.GuiEvent) -> None:
+        """Open the folder; the Pattern field counts only when the user changed it from the pattern
+        in use (which it shows), so that another folder finds its own pattern.yaml."""
+        typed = self.pattern.value.strip()
+        given = typed if typed and typed != self._shown_pattern else None
+        self.state.load_folder(self.path.value.strip(), given)
 
     def _on_frame(self, event: viser.GuiEvent) -> None:
         if event.client is None:
@@ -154,6 +162,9 @@ class FramesPanel:
         with self.server.atomic():
             if folder is not None and self.path.value != str(folder):
                 self.path.value = str(folder)
+            in_use = str(dataset.pattern_path) if dataset is not None else ""
+            if in_use != self._shown_pattern:
+                self.pattern.value = self._shown_pattern = in_use
             if self.frame.options != names:
                 self.frame.options = names
             if view is not None:

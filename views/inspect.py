@@ -5,9 +5,10 @@ outlined, the fitted model (:func:`blurcalib.deconv.blocks.render_model`, no re-
 the PSF, with its figures; a frame read back from its output folder keeps no fit, and shows its
 observed window with the block's square outlined, and its PSF. The plots are loss vs blur size
 (sigma_major) coloured by eccentricity and loss vs boundary energy coloured by sigma_major, with
-the thresholds; kept blocks are dots, removed ones crosses, the selected one ringed. viser cannot
-report clicks inside an image, so a block is chosen by its number or by a "jump to" choice (the
-extreme points); a finished frame with no block selected opens on its first block, block 0.
+the thresholds; kept blocks are dots, removed ones crosses, the selected one ringed; below them,
+why blocks with a lower loss than kept ones were dropped (another rule did it). A block is chosen
+by a click on it in the frame view, by its number or by a "jump to" choice (the extreme points); a
+finished frame with no block selected opens on its first block, block 0.
 """
 
 from __future__ import annotations
@@ -22,7 +23,7 @@ from matplotlib.figure import Figure
 from blurcalib.deconv.blocks import render_model
 from blurcalib.io.results import BLUR_PER_SQUARE_LIMIT, BlockTable
 from state import AppState, FrameView, Topic
-from state.figures import block_quads
+from state.blocks import block_quads, lower_loss_removed
 from views.common import Coalescer, grey_rgb, heat, hstack, label, placeholder, upscale
 
 JUMPS = ("choose…", "highest loss", "lowest loss", "highest boundary energy", "largest blur (σ_major)",
@@ -157,6 +158,7 @@ class InspectPanel:
         self.figures = gui.add_markdown("")
         self.plots = gui.add_image(placeholder("no result", (880, 330)),
                                    label="Loss against blur size and boundary energy", format="png")
+        self.plots_note = gui.add_markdown("")
         self.block.on_update(self._on_block)
         self.jump.on_update(self._on_jump)
         self._redraw_block = Coalescer(self._draw_block, 0.1, "inspect-block")
@@ -226,5 +228,10 @@ class InspectPanel:
         view = self.state.view()
         if view is None or view.result is None or not len(view.result.blocks):
             self.plots.image = placeholder("no result", (880, 330))
+            self.plots_note.content = ""
             return
         self.plots.image = scatter_plots(view)
+        low = lower_loss_removed(view.result.blocks, view.filter) if view.filter is not None else {}
+        self.plots_note.content = "" if not low else (
+            f"**{sum(low.values())} crosses lie below kept dots**: their loss is low, but another rule "
+            "dropped them: " + ", ".join(f"{reason} ({n})" for reason, n in low.items()) + ".")

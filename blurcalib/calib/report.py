@@ -3,8 +3,11 @@
 The direction image follows the reference calibration tool's drawing: the error direction ``a``
 (angle of the residual vector, image x right and y down) is the colour
 ``(R, G, B) = (127 + 127 sin a, 127 + 127 cos a, 127)``; here that colour is scaled by the error
-magnitude (brightness), saturating at ``saturate_px``. A systematic (directional) bias shows as
-large areas of one hue; unbiased noise as a random speckle of hues.
+magnitude (brightness), saturating at ``saturate_px`` (by default the 95th percentile of the
+cells' mean errors, so that the image is not black where the errors are hundredths of a pixel).
+A systematic (directional) bias shows as large areas of one hue; unbiased noise as a random
+speckle of hues. A strip below the image is its legend: the colour wheel of the directions, the
+brightness scale in px and what the image shows.
 """
 
 from __future__ import annotations
@@ -13,6 +16,7 @@ import os
 from pathlib import Path
 from typing import Any
 
+import cv2
 import numpy as np
 
 from blurcalib.io.atomic import atomic_path
@@ -34,18 +38,25 @@ def direction_colours(error: np.ndarray, full_px: float | None = None) -> np.nda
     return rgb * bright[..., None]
 
 
+LEGEND_PX = 96
+"""Height of the legend strip below a direction image (px)."""
+
+
 def error_direction_image(xy: np.ndarray, residuals: np.ndarray, image_size: tuple[int, int],
-                          cell_px: int = 8, saturate_px: float = 0.5) -> np.ndarray:
-    """Render residual directions and magnitudes as a BGR ``uint8`` image of ``image_size``.
+                          cell_px: int = 8, saturate_px: float | None = None, title: str = "") -> np.ndarray:
+    """Render residual directions and magnitudes as a BGR ``uint8`` image of ``image_size``, with
+    a legend strip :data:`LEGEND_PX` px high below it (:func:`direction_legend`).
 
     Args:
         xy: ``(N, 2)`` feature positions (px, OpenCV convention).
         residuals: ``(N, 2)`` residual vectors (px), observed minus model.
         image_size: ``(width, height)`` px.
         cell_px: residuals are averaged over square cells of this side (px).
-        saturate_px: magnitude shown at full brightness (px).
+        saturate_px: magnitude shown at full brightness (px); None: the 95th percentile of the
+            cells' mean magnitudes.
+        title: what the residuals are, written in the legend.
     Returns:
-        ``(height, width, 3)`` BGR image; cells without features are black.
+        ``(height + LEGEND_PX, width, 3)`` BGR image; cells without features are black.
     """
     w, h = image_size
     gw, gh = -(-w // cell_px), -(-h // cell_px)
@@ -59,9 +70,42 @@ def error_direction_image(xy: np.ndarray, residuals: np.ndarray, image_size: tup
     np.add.at(sums, (cy, cx), res[ok])
     np.add.at(count, (cy, cx), 1.0)
     mean = sums / np.maximum(count, 1)[..., None]
+    if saturate_px is None:
+        mags = np.hypot(mean[..., 0], mean[..., 1])[count > 0]
+        saturate_px = float(np.percentile(mags, 95)) if mags.size and np.percentile(mags, 95) > 0 else 1.0
     rgb = direction_colours(mean, saturate_px) * (count > 0)[..., None]
     cells = np.round(rgb[..., ::-1]).astype(np.uint8)
-    return np.repeat(np.repeat(cells, cell_px, axis=0), cell_px, axis=1)[:h, :w]
+    image = np.repeat(np.repeat(cells, cell_px, axis=0), cell_px, axis=1)[:h, :w]
+    legend = direction_legend(w, saturate_px, title or f"mean residual per {cell_px} px cell",
+                              int(ok.sum()))
+    return np.concatenate([image, legend])
+
+
+def direction_legend(width: int, full_px: float, title: str, observations: int) -> np.ndarray:
+    """A white BGR strip ``(LEGEND_PX, width, 3)``: the colour wheel (direction as hue, length as
+    brightness), the brightness scale from 0 to ``full_px`` px, and ``title``."""
+    strip = np.full((LEGEND_PX, width, 3), 255, np.uint8)
+    size = LEGEND_PX - 16
+    c = (size - 1) / 2.0
+    yy, xx = np.mgrid[0:size, 0:size]
+    e = np.stack([(xx - c) / c, (yy - c) / c], axis=-1)
+    wheel = direction_colours(e, 1.0)[..., ::-1]
+    inside = np.hypot(e[..., 0], e[..., 1]) <= 1.0
+    region = strip[8:8 + size, 8:8 + size]
+    region[inside] = np.round(wheel[inside]).astype(np.uint8)
+    font, ink = cv2.FONT_HERSHEY_SIMPLEX, (40, 40, 40)
+    cv2.putText(strip, "+x", (8 + size + 2, 8 + size // 2 + 4), font, 0.4, ink, 1, cv2.LINE_AA)
+    cv2.putText(strip, "+y", (8 + size // 2 - 8, LEGEND_PX - 1), font, 0.35, ink, 1, cv2.LINE_AA)
+    x0 = 8 + size + 30
+    bar_w = max(min(width - x0 - 16, 240), 20)
+    ramp = direction_colours(np.stack([np.linspace(0, full_px, bar_w), np.zeros(bar_w)], axis=-1), full_px)
+    strip[50:64, x0:x0 + bar_w] = np.round(ramp[None, :, ::-1]).astype(np.uint8)
+    cv2.putText(strip, "0", (x0, 80), font, 0.42, ink, 1, cv2.LINE_AA)
+    cv2.putText(strip, f"{full_px:.3g} px and more", (x0 + bar_w - 100, 80), font, 0.42, ink, 1, cv2.LINE_AA)
+    cv2.putText(strip, f"{title} ({observations} observations)", (x0, 18), font, 0.42, ink, 1, cv2.LINE_AA)
+    cv2.putText(strip, "hue: direction (observed minus model); brightness: length", (x0, 38), font, 0.42, ink,
+                1, cv2.LINE_AA)
+    return strip
 
 
 def save_frame_error_plot(path: str | os.PathLike[str], rows: list[dict[str, Any]],

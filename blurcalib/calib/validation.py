@@ -73,6 +73,9 @@ __all__ = [
     "parametric_projector",
 ]
 
+HALF_MIN_SHARP_FRAMES = 5
+"""Fewest usable sharp frames of each half of :func:`half_split`: a half's prior is its own
+parametric camera (:func:`blurcalib.calib.sharp.calibrate_sharp`)."""
 PRIOR_ITERATIONS = 0
 """Gauss-Newton steps of :func:`parametric_prior`'s ray fit after its linear start: a prior's
 shape needs none (on the demo the held-out medians agree to 1e-5 px with 4)."""
@@ -350,7 +353,8 @@ def half_split(generic: GenericCalibration, sharp_features: FeatureTable, patter
     for h in (1, 0):
         train = sharp_features.select(np.isin(sharp_features.frame, frames[half == h]))
         try:
-            camera = calibrate_sharp(train, pattern, size, start=start).camera
+            camera = calibrate_sharp(train, pattern, size, min_frames=HALF_MIN_SHARP_FRAMES,
+                                     start=start).camera
         except CalibrationError:
             return None
         priors.append(parametric_prior(camera, generic.model))

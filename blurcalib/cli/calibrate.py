@@ -39,6 +39,7 @@ from blurcalib.target.pattern import StarPattern, load_pattern
 if TYPE_CHECKING:
     from blurcalib.io.sources import FrameInput
     from blurcalib.pipeline.run import PipelineReport, PipelineSettings
+    from blurcalib.sim.demo import DemoLog
 
 
 def pipeline_settings(args: argparse.Namespace) -> PipelineSettings:
@@ -71,11 +72,12 @@ def pipeline_settings(args: argparse.Namespace) -> PipelineSettings:
 
 def calibrate_and_report(sharp: list[Path], blurry: list[Path], pattern: StarPattern, out: Path,
                          args: argparse.Namespace, features: Path | None = None,
-                         mixed: Sequence[FrameInput] = ()) -> PipelineReport:
+                         mixed: Sequence[FrameInput] = (), log: DemoLog | None = None) -> PipelineReport:
     """Run the pipeline on frames (``sharp`` and ``blurry``, or ``mixed`` frames classified by
-    their own blur), or on a feature file (``features``), and print its figures."""
-    from blurcalib.calib.trust import summary_lines
+    their own blur), or on a feature file (``features``), and print its figures; with ``log`` (the
+    demo's :class:`blurcalib.sim.demo.DemoLog`) tell it the stages instead and print nothing."""
     from blurcalib.pipeline.run import PipelineError, run_from_features, run_pipeline
+    from blurcalib.pipeline.text import report_lines
     from blurcalib.runs.events import FrameDone, RunEvent
 
     bars: dict[str, tqdm] = {}
@@ -84,10 +86,20 @@ def calibrate_and_report(sharp: list[Path], blurry: list[Path], pattern: StarPat
         if not isinstance(event, FrameDone):
             return
         if stage not in bars:
+            if log is not None:
+                log.stage(f"2/4 extracting the {count(event.total, f'{stage} frame')}")
             bars[stage] = tqdm(total=event.total, desc=f"extracting {stage}", unit="frame",
                                file=sys.stderr, dynamic_ncols=True, disable=None)
         bars[stage].n = event.done
         bars[stage].set_postfix_str(f"{event.record.frame}: {event.record.status.value}", refresh=True)
+        if log is not None:
+            r = event.record
+            log.detail(f"{stage} {event.done}/{event.total}: {r.frame} {r.status.value}, "
+                       f"{count(r.features, 'feature')}")
+
+    def on_stage(name: str) -> None:
+        if log is not None:
+            log.stage(f"3/4 {name}")
 
     try:
         if features is not None:
@@ -95,35 +107,15 @@ def calibrate_and_report(sharp: list[Path], blurry: list[Path], pattern: StarPat
                                        overwrite=args.overwrite)
         else:
             report = run_pipeline(sharp, blurry, pattern, out, pipeline_settings(args), update,
-                                  overwrite=args.overwrite, mixed=mixed)
+                                  overwrite=args.overwrite, mixed=mixed,
+                                  on_stage=None if log is None else on_stage)
     except PipelineError as exc:
         raise CliError(str(exc)) from None
     finally:
         for bar in bars.values():
             bar.close()
-    cal = report.calibration
-    print(f"sharp-set calibration: {count(cal['num_frames'], 'frame')}, "
-          f"median {cal['median_error_px']:.4f} px, RMS {cal['rms_error_px']:.4f} px")
-    if report.generic is not None:
-        g = report.generic
-        print(f"generic calibration ({g['route']} route): {g['grid_width']}x{g['grid_height']} grid, "
-              f"{count(g['frames'], 'frame')} ({g['blurry_frames']} blurry), "
-              f"median {g['median_error_px']:.4f} px, RMS {g['rms_error_px']:.4f} px")
-        fit = "generic, sharp + blurry frames" if g["blurry_frames"] else "generic, sharp frames"
-        for warning in g["warnings"]:
-            print(f"warning: {fit}: {warning}")
-    if report.generic_sharp is not None:
-        for warning in report.generic_sharp["warnings"]:
-            print(f"warning: generic, sharp frames: {warning}")
-    if report.rolling_shutter is not None and report.rolling_shutter["message"]:
-        print(report.rolling_shutter["message"])
-    for line in summary_lines(report.to_dict()):
-        print(line)
-    for kind in ("sharp", "blurry"):
-        print(f"{kind} frames: " + (", ".join(f"{v} {k}" for k, v in sorted(report.counts[kind].items()))
-                                    or "none"))
-    for kind, path in report.outputs.items():
-        print(f"  {kind}: {path}")
+    if log is None:
+        print("\n".join(report_lines(report)))
     return report
 
 

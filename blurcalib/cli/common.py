@@ -77,7 +77,7 @@ def add_run_options(p: argparse._ActionsContainer, workers: bool = True) -> None
                             "the calibration then computes with as many threads")
     g.add_argument("--threads", type=positive_int, default=1, metavar="N",
                    help="compute threads of this process, for frames it runs itself (--workers 1); "
-                        "worker processes use one (default %(default)s; more only helps on an idle machine)")
+                        "worker processes use one (default %(default)s)")
     g.add_argument("--cluster", metavar="ADDRESS", type=cluster_address,
                    help="run frames as tasks on this Dask scheduler, e.g. tcp://host:8786 (docs/cluster.md)")
     g.add_argument("--device", default="cpu",

@@ -16,36 +16,50 @@ DEFAULT_DEMO_DIR = Path("out") / "demo"
 
 def cmd_demo(args: argparse.Namespace) -> int:
     """Simulate the default dataset (20 sharp and 60 blurry 1280x720 frames) into OUT/data, run
-    calibrate on it into OUT/calibration and print each camera against the true one. A complete
-    dataset is reused, and the calibration resumes where it stopped."""
-    from blurcalib.io.frames import list_frames
+    calibrate on it into OUT/calibration and compare each camera with the true one. Prints a
+    line per stage (also into OUT/demo.log when the output is not a terminal), then the result in
+    words, the details, the figures written and what the terms mean. A complete dataset is
+    reused, and the calibration resumes where it stopped."""
+    from blurcalib.io.frames import frame_size, list_frames
     from blurcalib.io.results import read_feature_table
+    from blurcalib.pipeline.text import report_lines
+    from blurcalib.sim.accuracy import camera_accuracy_lines, true_accuracies
+    from blurcalib.sim.demo import DemoLog, figure_lines, result_lines, term_lines
     from blurcalib.sim.evaluate import evaluate_features
     from blurcalib.sim.truth import GROUND_TRUTH_FILE, load_ground_truth
 
     out = Path(args.out)
     data = out / "data"
     if (data / GROUND_TRUTH_FILE).is_file() and not args.overwrite:
-        print(f"reusing the simulated dataset in {data}")
+        log = DemoLog(out)
+        log.stage(f"1/4 reusing the simulated dataset in {data}")
     else:
         check_empty_output(data, args.overwrite)
+        log = DemoLog(out)
+        log.stage(f"1/4 simulating {args.sharp} sharp and {args.blurry} blurry frames into {data}")
         simulate(data, args, None)
     pattern = load_pattern(data / "pattern.yaml")
-    calibrate_and_report(list_frames([data / "sharp"]), list_frames([data / "blurry"]), pattern,
-                         out / "calibration", args)
+    sharp = list_frames([data / "sharp"])
+    report = calibrate_and_report(sharp, list_frames([data / "blurry"]), pattern, out / "calibration", args,
+                                  log=log)
+    log.stage("4/4 comparing every camera with the true camera")
     truth = load_ground_truth(data)
-    table = read_feature_table(out / "calibration" / "features.csv")
-    acc = evaluate_features(table, truth, pattern)
+    found = true_accuracies(out / "calibration", truth.camera)
+    acc = evaluate_features(read_feature_table(out / "calibration" / "features.csv"), truth, pattern)
+    details = report_lines(report)
     if acc:
         import numpy as np
 
         med = float(np.median([a.median for a in acc]))
-        print(f"accuracy of the aligned blurry features against the true camera (pose refitted): "
-              f"median over {count(len(acc), 'frame')} {med:.4f} px "
-              f"(per frame {min(a.median for a in acc):.4f} to {max(a.median for a in acc):.4f} px)")
-    from blurcalib.sim.accuracy import camera_accuracy_lines
-
-    print("\n".join(camera_accuracy_lines(out / "calibration", truth.camera)))
+        details.append(f"accuracy of the aligned blurry features against the true camera (pose refitted): "
+                       f"median over {count(len(acc), 'frame')} {med:.4f} px (per frame "
+                       f"{min(a.median for a in acc):.4f} to {max(a.median for a in acc):.4f} px)")
+    details += camera_accuracy_lines(found)
+    print("\n".join(["", *result_lines(report.to_dict(), found, frame_size(sharp[0])), "", "Details",
+                     *(f"  {line}" for line in details), "", *figure_lines(report.outputs), "",
+                     *term_lines()]))
+    if log.path is not None:
+        print(f"progress log: {log.path}")
     return 0
 
 

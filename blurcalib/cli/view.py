@@ -17,8 +17,9 @@ def cmd_view(args: argparse.Namespace) -> int:
     if not app.is_file():
         raise CliError("the browser app (app.py, views/, state/) ships with the source checkout; "
                        "run blurcalib from a checkout set up with `bash scripts/setup.sh`")
-    argv = [sys.executable, str(app), *args.rest]
-    return subprocess.call(argv)
+    start = (f"import sys; sys.path.insert(0, {str(app.parent)!r}); import app; "
+             "sys.exit(app.main(sys.argv[1:], prog='blurcalib view'))")
+    return subprocess.call([sys.executable, "-c", start, *args.rest])
 
 
 def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:

@@ -217,6 +217,43 @@ def detect_tags(image: np.ndarray, scales: tuple[float, ...] = DEFAULT_SCALES
     return {}, 0.0
 
 
+@dataclass(frozen=True)
+class TagSearch:
+    """Where :func:`seed_frame`'s tag detection looked and what it found, to show a user why a
+    frame was not seeded.
+
+    Attributes:
+        scales: the image scales searched (:data:`DEFAULT_SCALES`).
+        found: ``{tag id: (4, 2) corners}`` px of every tag decoded at any scale (the pattern's or
+            not).
+        rejected: ``(Q, 4, 2)`` px, the candidate quads the detector rejected (its
+            ``rejectedImgPoints``: a quad whose cells did not decode) at any scale, full-resolution
+            px (OpenCV convention).
+    """
+
+    scales: tuple[float, ...]
+    found: dict[int, np.ndarray]
+    rejected: np.ndarray
+
+
+def search_tags(image: np.ndarray, scales: tuple[float, ...] = DEFAULT_SCALES) -> TagSearch:
+    """Run :func:`detect_tags`'s detector at every scale of ``scales`` on ``image (H, W)`` (grey
+    levels) and collect the tags it decodes and the candidate quads it rejects."""
+    grey = np.clip(np.asarray(image), 0, 255).astype(np.uint8)
+    detector = _detector(APRILTAG_QUAD_SIGMA_PX)
+    found: dict[int, np.ndarray] = {}
+    rejected: list[np.ndarray] = []
+    for s in scales:
+        img = grey if s == 1.0 else cv2.resize(grey, None, fx=s, fy=s, interpolation=cv2.INTER_AREA)
+        corners, ids, bad = detector.detectMarkers(img)
+        for c, i in zip(corners, ids.ravel() if ids is not None else (), strict=True):
+            corner = c.reshape(4, 2).astype(np.float64) - APRILTAG_REFINEMENT_OFFSET_PX + 0.5
+            found.setdefault(int(i), corner / s - 0.5)
+        rejected.extend((q.reshape(4, 2).astype(np.float64) + 0.5) / s - 0.5 for q in bad)
+    quads = np.stack(rejected) if rejected else np.zeros((0, 4, 2))
+    return TagSearch(tuple(scales), found, quads)
+
+
 def seed_frame(image: np.ndarray, pattern: StarPattern, H_feature: np.ndarray | None = None,
                scales: tuple[float, ...] = DEFAULT_SCALES, deblur: bool = True) -> Seed:
     """Find the homography from feature coordinates to the image.

@@ -222,7 +222,8 @@ def _check_sizes(sharp: Sequence[Path | FrameInput], blurry: Sequence[Path | Fra
 def run_pipeline(sharp: Sequence[Path], blurry: Sequence[Path], pattern: StarPattern,
                  out_dir: str | os.PathLike, settings: PipelineSettings | None = None,
                  progress: Callable[[str, RunEvent], None] | None = None,
-                 overwrite: bool = False, mixed: Sequence[FrameInput] = ()) -> PipelineReport:
+                 overwrite: bool = False, mixed: Sequence[FrameInput] = (),
+                 on_stage: Callable[[str], None] | None = None) -> PipelineReport:
     """Run the whole pipeline (see the module docstring); partial results are kept on error.
 
     The top-level outputs (:data:`PUBLISHED`) are written into a staging folder and moved into
@@ -242,6 +243,8 @@ def run_pipeline(sharp: Sequence[Path], blurry: Sequence[Path], pattern: StarPat
             and a :mod:`blurcalib.runs.events` event).
         overwrite: write into a non-empty folder that is not a ``calibrate`` output
             (:func:`blurcalib.io.atomic.claim_output_dir`).
+        on_stage: called with each calibration stage's name as it starts
+            (:class:`blurcalib.calib.sequence.Stage`).
     Raises:
         PipelineError: unusable input (no readable sharp frame, mixed resolutions, too few
             usable sharp frames, no tag found in any frame, no blurry frame surviving).
@@ -272,7 +275,9 @@ def run_pipeline(sharp: Sequence[Path], blurry: Sequence[Path], pattern: StarPat
               for r in blurry_rows if r.status is FrameStatus.OK]
     try:
         with compute_threads(_calibration_threads(s)):
-            run = calibrate_features(sharp_features, ex.sharp_blocks, frames, pattern, size, s.calibration)
+            announce = None if on_stage is None else lambda st: on_stage(st.value) or True
+            run = calibrate_features(sharp_features, ex.sharp_blocks, frames, pattern, size, s.calibration,
+                                     on_stage=announce)
     except CalibrationError as exc:
         bad = [f"{r.frame} ({r.status.value})" for r in sharp_rows if r.status is not FrameStatus.OK]
         hint = f"; sharp frames without features: {', '.join(bad[:10])}" if bad else ""
@@ -503,10 +508,10 @@ def _write_outputs(out: Path, pattern: StarPattern, size: tuple[int, int], rows:
     outputs["reference_features"] = write_ref_dataset(out / "features.bin", ref)
     outputs["frames"] = write_frames(out / "frames.csv", rows)
 
-    def direction_image(key: str, xy: np.ndarray, residuals: np.ndarray) -> None:
+    def direction_image(key: str, xy: np.ndarray, residuals: np.ndarray, title: str) -> None:
         path = out / f"{key}.png"
         with atomic_path(path) as tmp:
-            cv2.imwrite(str(tmp), error_direction_image(xy, residuals, size))
+            cv2.imwrite(str(tmp), error_direction_image(xy, residuals, size, title=title))
         outputs[key] = path
 
     # Reprojection-error directions: the parametric alignment of the blurry frames, the sharp-set
@@ -515,11 +520,13 @@ def _write_outputs(out: Path, pattern: StarPattern, size: tuple[int, int], rows:
     if aligned:
         direction_image("error_directions_blurry",
                         np.concatenate([np.stack([o.raw.x, o.raw.y], axis=1) for o in aligned]),
-                        np.concatenate([o.alignment.residuals for o in aligned]))
-    direction_image("error_directions_sharp", calibration.observed, calibration.residuals)
+                        np.concatenate([o.alignment.residuals for o in aligned]),
+                        "blurry frames after alignment to the parametric camera")
+    direction_image("error_directions_sharp", calibration.observed, calibration.residuals,
+                    "sharp frames under the parametric camera")
     if generic is not None:
         direction_image("error_directions_generic", generic.observed[generic.inlier],
-                        generic.residuals[generic.inlier])
+                        generic.residuals[generic.inlier], "all frames under the generic camera")
     outputs["frame_errors"] = save_frame_error_plot(out / "frame_errors.png",
                                                     [r.to_row() for r in rows if r.kind == "blurry"],
                                                     calibration.frame_errors())

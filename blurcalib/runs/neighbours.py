@@ -264,6 +264,33 @@ def _candidates(frames: Sequence[FrameInput], records: Mapping[str, FrameRecord]
     return candidates, moving
 
 
+def neighbours_to_try(frames: Sequence[FrameInput], records: Mapping[str, FrameRecord],
+                      coming: Set[str] = frozenset()) -> set[str]:
+    """The frames whose tag was not found that have an extracted neighbour (status ``ok``, or in
+    ``coming``; at most :data:`NEIGHBOUR_REACH` places away in their sequence) they have not
+    tried, with tries left (:data:`NEIGHBOUR_TRIES`): a neighbour round after the frames of
+    ``coming`` would try to seed them.
+
+    Args:
+        frames: the frames, placed in their sequences (:func:`blurcalib.io.sources.in_sequences`).
+        records: each extracted frame's record, by name.
+        coming: frames the same run extracts first.
+    """
+    out = set()
+    for members in _sequences(frames):
+        for rank, f in enumerate(members):
+            record = records.get(f.name)
+            if record is None or record.status is not FrameStatus.NOT_SEEDED:
+                continue
+            tried = record.neighbours_tried or ()
+            near = members[max(0, rank - NEIGHBOUR_REACH):rank + NEIGHBOUR_REACH + 1]
+            extracted = [g.name for g in near if g.name in coming
+                         or ((r := records.get(g.name)) is not None and r.status is FrameStatus.OK)]
+            if len(tried) < NEIGHBOUR_TRIES and set(extracted) - set(tried):
+                out.add(f.name)
+    return out
+
+
 def _next_seed(candidate: Candidate, queue: list[FrameInput], poses: Poses) -> NeighbourSeed | None:
     """The seed of the nearest neighbour left in ``queue`` (taken from it) whose features give a
     homography; None when none is left."""

@@ -1,10 +1,14 @@
 """Thread policy: how many threads each process computes with, and how many worker processes.
 
 The block solver runs many small tensor operations; torch's intra-op (OpenMP) threads speed
-these up little on an idle machine and collapse when the cores are shared (threads spinning at
-barriers while another process holds the core: 10 to 47x slower per frame measured with one
-competing process on 2 cores, ``docs/deconvolution.md``). So every process computes with one
-thread by default and parallelism comes from worker processes, one per core. The calibration
+these up little on an idle machine. By OpenMP's default a thread that waits at a barrier spins
+on its core before it sleeps, and on shared cores the spinning threads take the core from the
+threads they wait for: one real sharp frame on a busy 2-core machine took 4 to 8 times the CPU
+and 5 to 7 times the wall time with 2 threads than with 1. So the package makes OpenMP threads
+sleep while they wait (:func:`passive_openmp_wait`, set when ``blurcalib`` is imported, before
+torch starts its threads): the same frame with 2 threads then takes the CPU time of 1 thread.
+Every process still computes with one thread by default and parallelism comes from worker
+processes, one per core. The calibration
 runs in one process once the frames are done, on large tensors: its torch computes with one
 thread per worker, the cores the workers had (:func:`compute_threads`; the demo's features on 2
 cores: calibration 15.8 -> 12.4 s, assessment 9.5 -> 8.3 s).
@@ -20,8 +24,26 @@ import time
 from collections.abc import Iterator
 from contextlib import contextmanager
 
+OMP_WAIT_POLICY = "OMP_WAIT_POLICY"
+"""The OpenMP environment variable of the wait policy (``PASSIVE``: waiting threads sleep)."""
+
 PARENT_POLL_S = 1.0
 """How often a worker process checks that the process that started it is still alive (s)."""
+
+
+def passive_openmp_wait() -> bool:
+    """Make OpenMP threads sleep, not spin, while they wait (``OMP_WAIT_POLICY=PASSIVE``) unless
+    the environment already sets a policy; True when this call set it.
+
+    OpenMP (torch's intra-op threads, libgomp) reads the variable once, when torch is imported,
+    so this must run before that: ``blurcalib`` calls it when imported, and its worker processes
+    inherit the environment. A process that imported torch before ``blurcalib`` keeps OpenMP's
+    default (spinning) policy.
+    """
+    if os.environ.get(OMP_WAIT_POLICY):
+        return False
+    os.environ[OMP_WAIT_POLICY] = "PASSIVE"
+    return True
 
 
 def available_cores() -> int:

@@ -28,7 +28,7 @@ from blurcalib.io.record import FrameStatus
 from blurcalib.io.results import FeatureFlags, read_feature_table
 from blurcalib.pipeline.run import PUBLISHED, PipelineError, PipelineSettings, run_pipeline
 from blurcalib.runs.events import FrameDone, RunEvent
-from blurcalib.sim.accuracy import camera_accuracy_lines
+from blurcalib.sim.accuracy import camera_accuracy_lines, true_accuracies
 from blurcalib.sim.evaluate import camera_accuracy, evaluate_features
 from blurcalib.sim.synth import SynthConfig, write_dataset
 from blurcalib.sim.truth import TrueCamera, load_ground_truth
@@ -113,13 +113,16 @@ def test_demo_accuracy_lines_name_each_camera(finished, dataset) -> None:
     and the generic cameras' true error over their predicted uncertainty."""
     out, _ = finished
     truth = load_ground_truth(dataset)
-    lines = camera_accuracy_lines(out, truth.camera)
+    found = true_accuracies(out, truth.camera)
+    lines = camera_accuracy_lines(found)
     assert [line.split(" median ")[0].strip() for line in lines[1:]] == [
         "parametric, sharp frames", "generic, sharp frames", "generic, sharp + blurry frames"]
     assert f"median {camera_accuracy(truth.camera, report_camera(out)).median:.4f}," in lines[1]
     joint = read_generic_yaml(out / "calibration" / "intrinsics0.yaml")
     assert f"median {camera_accuracy(truth.camera, joint).median:.4f}," in lines[3]
-    assert all(0.25 < float(line.rsplit("(RMS) ", 1)[1]) < 4.0 for line in lines[2:])
+    assert all(0.25 < t.honesty < 4.0 for t in found[1:])
+    assert all(f"true error {t.honesty:.2f} x the predicted uncertainty" in line
+               for t, line in zip(found[1:], lines[2:], strict=True))
 
 
 @pytest.mark.slow
@@ -350,3 +353,42 @@ def test_final_fit_option_reaches_every_blurry_frame(tmp_path, dataset) -> None:
     assert np.all(every.accepted[wide])
     moved = np.linalg.norm(every.centre[wide] - default.centre[wide], axis=1)
     assert 0.0 < np.median(moved) < 0.1
+
+
+@pytest.mark.slow
+def test_demo_reads_as_a_result(finished, dataset) -> None:
+    """The demo's account: the result first (what, how good against the truth, what the blurry
+    frames bought), the coverage warnings as one line, the figures written (each with a legend
+    strip below the image) and the terms explained."""
+    import io
+
+    from blurcalib.pipeline.text import report_lines
+    from blurcalib.sim.demo import DemoLog, figure_lines, result_lines, term_lines
+
+    out, report = finished
+    truth = load_ground_truth(dataset)
+    found = true_accuracies(out, truth.camera)
+    doc = report.to_dict()
+    lines = result_lines(doc, found, (truth.camera.model.width, truth.camera.model.height))
+    assert lines[0] == "Result" and lines[1].startswith("  Calibrated: a simulated")
+    both = next(t for t in found if t.label == "generic, sharp + blurry frames")
+    assert f"within {both.accuracy.median:.4f} px of the true camera" in lines[2]
+    assert lines[3].startswith("  What the blurry frames bought: against the truth")
+    printed = report_lines(report)
+    warned = [line for line in printed if line.startswith("warning:")]
+    assert len(warned) <= 2 and all("report.json" in line for line in warned)  # one per generic fit
+    figures = figure_lines(report.outputs)
+    assert any("error_directions_generic" in line for line in figures)
+    for line in figures[1:]:
+        path = Path(line.split(": ", 1)[1])
+        image = cv2.imread(str(path))
+        assert image is not None
+        if path.name.startswith("error_directions"):  # the image of the sensor, then its legend
+            assert image.shape[0] > truth.camera.model.height and image[-30:].mean() > 200
+    assert any("cross-validation diff" in line and "upper bound" in line for line in term_lines())
+    stream = io.StringIO()
+    log = DemoLog(out / "log-test", stream)
+    log.stage("2/4 extracting")
+    log.detail("sharp 1/6: sharp/0000.png ok, 200 features")
+    assert stream.getvalue().endswith("2/4 extracting\n")
+    assert log.path is not None and log.path.read_text().count("\n") == 2

@@ -94,3 +94,23 @@ def test_cuda_without_cuda_is_a_one_line_error(tmp_path, capsys) -> None:
     err = capsys.readouterr().err.strip().splitlines()
     assert code == 2 and len(err) == 1 and "CUDA is not available" in err[0]
     assert not (tmp_path / "o").exists()
+
+
+@pytest.mark.parametrize(("given", "expected"), [(None, "PASSIVE"), ("ACTIVE", "ACTIVE")])
+def test_openmp_threads_sleep_while_they_wait(given: str | None, expected: str) -> None:
+    """Importing blurcalib makes torch's OpenMP threads sleep at barriers (spinning threads took
+    4 to 8 times the CPU of a frame on a busy machine), before torch reads the policy; a policy
+    the user set is kept."""
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    env = {k: v for k, v in os.environ.items() if k != "OMP_WAIT_POLICY"}
+    if given is not None:
+        env["OMP_WAIT_POLICY"] = given
+    env["PYTHONPATH"] = str(Path(__file__).resolve().parents[2])
+    code = ("import os, blurcalib, sys; assert 'torch' not in sys.modules; "
+            "print(os.environ['OMP_WAIT_POLICY'])")
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == expected
