@@ -413,6 +413,58 @@ def test_second_run_into_a_locked_folder_is_refused(tmp_path: Path, capsys: pyte
     assert not (tmp_path / "never").exists()  # a folder made for the lock and left empty is removed
 
 
+def test_a_run_inside_or_around_a_locked_folder_is_refused(
+    tmp_path: Path, capsys: pytest.CaptureFixture
+) -> None:
+    """An ``extract`` into ``OUT/frames`` during a ``calibrate`` into ``OUT`` was accepted and mixed
+    the two runs' frames; a run into the folder around a locked one would replace its files."""
+    _png(tmp_path / "f" / "a.png")
+    out = tmp_path / "o"
+    inside = ["extract", tmp_path / "f", "--pattern", FIXTURE_YAML, "--out", out / "frames", "--workers", "1"]
+    with output_lock(out):
+        code, err = _run(capsys, inside)
+        assert code == 2 and f"it is inside {out.resolve()}, the output folder of another" in err
+        assert len(err.strip().splitlines()) == 1 and list(out.iterdir()) == []  # OUT/frames not made
+    with output_lock(out / "frames"):
+        with pytest.raises(OutputError, match="into this folder or into one inside it"):
+            with output_lock(out):
+                pass
+        with output_lock(tmp_path / "beside"):  # a folder beside it is free
+            pass
+    assert _run(capsys, inside)[0] == 1 and (out / "frames" / "frames.csv").is_file()
+
+
+def test_a_failed_rerun_leaves_the_manifest_of_the_kept_outputs(
+    tmp_path: Path, capsys: pytest.CaptureFixture, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """After a re-run with other settings failed on a full disk, the run manifest named the new
+    settings while the kept outputs were made with the old ones."""
+    _png(tmp_path / "f" / "a.png")
+    out = tmp_path / "o"
+    argv = ["extract", tmp_path / "f", "--pattern", FIXTURE_YAML, "--out", out, "--workers", "1"]
+    assert _run(capsys, argv)[0] == 1
+    before = json.loads((out / atomic.RUN_MANIFEST).read_text())
+    tables = {p.name: p.read_bytes() for p in out.iterdir() if p.is_file()}
+
+    real, calls = os.fsync, []
+
+    def fills_up(fd: int) -> None:  # the disk fills after the run's first file
+        calls.append(fd)
+        if len(calls) > 1:
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+        real(fd)
+
+    with monkeypatch.context() as m:
+        m.setattr(atomic.os, "fsync", fills_up)
+        code, err = _run(capsys, [*argv, "--psf-size", "21"])
+    assert code == 2 and "No space left on device" in err
+    assert {p.name: p.read_bytes() for p in out.iterdir() if p.is_file()} == tables
+    assert _run(capsys, [*argv, "--psf-size", "21"])[0] == 1
+    after = json.loads((out / atomic.RUN_MANIFEST).read_text())
+    # the new settings are named once the outputs made with them are published
+    assert before["settings"]["window"]["start"] == 17 and after["settings"]["window"]["start"] == 21
+
+
 def test_unwritable_subfolder_refused_before_the_manifest_changes(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:

@@ -72,6 +72,7 @@ from blurcalib.io.atomic import (
     atomic_write_json,
     claim_output_dir,
     ensure_writable_dir,
+    write_run_manifest,
 )
 from blurcalib.io.feature_input import FeatureInputError, read_feature_input
 from blurcalib.io.frames import frame_size, frame_size_problem
@@ -253,7 +254,8 @@ def run_pipeline(sharp: Sequence[Path], blurry: Sequence[Path], pattern: StarPat
     if mixed and (sharp or blurry):
         raise ValueError("give either mixed frames or sharp and blurry frames")
     size = _check_sizes(mixed, [], "frames") if mixed else _check_sizes(sharp, blurry)
-    out = claim_output_dir(out_dir, "calibrate", asdict(s), overwrite, extractions=(*KINDS, MIXED))
+    manifest = asdict(s)
+    out = claim_output_dir(out_dir, "calibrate", manifest, overwrite, extractions=(*KINDS, MIXED))
     shutil.rmtree(out / STAGING_DIR, ignore_errors=True)  # left by a run killed while writing
     ex = _extract(sharp, blurry, mixed, pattern, out, size, s, progress, overwrite)
     t_extracted = time.perf_counter()
@@ -282,7 +284,7 @@ def run_pipeline(sharp: Sequence[Path], blurry: Sequence[Path], pattern: StarPat
     outcomes = {o.frame.name: o for o in run.blurry}
     rows = _rows(sharp_rows, blurry_rows, outcomes, run, s.calibration)
     seconds = {"extraction": t_extracted - t_start, **_calibration_seconds(run)}
-    report = _publish_run(out, pattern, size, s, rows, run, seconds)
+    report = _publish_run(out, pattern, size, s, rows, run, seconds, manifest)
     if blurry_rows and not any(r.used for r in rows if r.kind == "blurry"):
         raise PipelineError(f"no blurry frame survived the filters ({report.counts['blurry']}); the "
                             f"sharp-set calibration and all features are kept in {out}")
@@ -375,8 +377,8 @@ def run_from_features(path: str | os.PathLike, pattern: StarPattern, out_dir: st
         table, size = read_feature_input(path, pattern, image_size)
     except FeatureInputError as exc:
         raise PipelineError(str(exc)) from None
-    out = claim_output_dir(out_dir, "calibrate", {**asdict(s), "features": str(Path(path).resolve())},
-                           overwrite)
+    manifest = {**asdict(s), "features": str(Path(path).resolve())}
+    out = claim_output_dir(out_dir, "calibrate", manifest, overwrite)
     shutil.rmtree(out / STAGING_DIR, ignore_errors=True)
     is_blurry = (table.flags & int(FeatureFlags.BLURRY_FRAME)) != 0
     sharp, blurry = table.select(~is_blurry), table.select(is_blurry)
@@ -398,13 +400,15 @@ def run_from_features(path: str | os.PathLike, pattern: StarPattern, out_dir: st
 
     outcomes: dict[str, BlurryOutcome | None] = {o.frame.name: o for o in run.blurry}
     rows = _rows(extracted(sharp), extracted(blurry), outcomes, run, s.calibration)
-    return _publish_run(out, pattern, size, s, rows, run, _calibration_seconds(run))
+    return _publish_run(out, pattern, size, s, rows, run, _calibration_seconds(run), manifest)
 
 
 def _publish_run(out: Path, pattern: StarPattern, size: tuple[int, int], s: PipelineSettings,
-                 rows: list[FrameRecord], run: CalibrationRun, seconds: dict[str, float]) -> PipelineReport:
-    """Write the run's output set into ``OUT/.staging`` and publish it (:func:`_publish`); a
-    failed write (a full disk) removes the staging folder and leaves the earlier outputs as they
+                 rows: list[FrameRecord], run: CalibrationRun, seconds: dict[str, float],
+                 manifest: dict) -> PipelineReport:
+    """Write the run's output set into ``OUT/.staging`` and publish it (:func:`_publish`) with the
+    run manifest naming ``manifest`` (the run's settings); a failed write (a full disk) removes the
+    staging folder and leaves the earlier outputs, and the manifest naming their settings, as they
     were.
 
     Raises:
@@ -418,7 +422,7 @@ def _publish_run(out: Path, pattern: StarPattern, size: tuple[int, int], s: Pipe
     except OSError:  # OutputError too
         shutil.rmtree(staging, ignore_errors=True)
         raise
-    _publish(staging, out)
+    _publish(staging, out, manifest)
     return report
 
 
@@ -464,15 +468,17 @@ def _with_kind(table: Table, folder: str) -> Table:
     return replace(table, frame=np.char.add(f"{folder}/", table.frame))
 
 
-def _publish(staging: Path, out: Path) -> None:
+def _publish(staging: Path, out: Path, manifest: dict) -> None:
     """Move the output set staged in ``staging`` into ``out``.
 
-    ``report.json`` (the completion marker) is removed first and moved in last; outputs of an
+    ``report.json`` (the completion marker) is removed first, the run manifest is then rewritten
+    with the run's settings ``manifest``, and ``report.json`` is moved in last; outputs of an
     earlier run that this run does not produce are removed, and the ``calibration`` folder is
     swapped whole. A run killed in between leaves no ``report.json``; the next run removes the
     staging folder and publishes again.
     """
     (out / REPORT_FILE).unlink(missing_ok=True)
+    write_run_manifest(out, "calibrate", manifest)
     staged = {p.name: p for p in staging.iterdir()}
     for name in PUBLISHED:
         if name == REPORT_FILE:
