@@ -8,7 +8,7 @@ Every ``scripts/bench_*.py`` records the figures it prints in ``docs/benchmarks/
 its load when the run started, then the figures) and the headline figures of ``README.md`` (the
 region between :data:`START` and :data:`END`, replaced). A script without a record shows "not run
 yet"; no figure is typed by hand. ``--check`` writes nothing and exits with 1 when either file
-differs from what the records make (``tests/test_benchmarks_page.py`` runs the same comparison).
+differs from what the records make (``tests/scripts/test_benchmarks_page.py`` runs the same comparison).
 """
 
 from __future__ import annotations

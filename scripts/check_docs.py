@@ -10,7 +10,7 @@ a ``#anchor`` into a markdown file (GitHub's anchors: lower case, punctuation dr
 hyphens, ``-1``, ``-2`` for repeats). Links with a scheme (``https:``, ``mailto:``) are not
 followed; code blocks and code spans are ignored. Prints one line per problem, ``FILE:LINE:
 problem``, and exits with 1 if there is any (0 otherwise). CI runs it before the tests, and
-``tests/test_check_docs.py`` runs it on the repository.
+``tests/scripts/test_check_docs.py`` runs it on the repository.
 """
 
 from __future__ import annotations

@@ -6,7 +6,7 @@ The page is made from :func:`blurcalib.cli.build_parser`, the parsers of ``blurc
 NAME`` (``blurcalib.paper.*.build_parser``) and ``app.py``'s parser: one section per command, its
 description, a usage line and one line per option with its help text (defaults expanded). So the
 page says what ``--help`` says. ``--check`` writes nothing and exits with 1 when ``docs/cli.md``
-differs from what the parsers make (``tests/test_cli_doc.py`` runs the same comparison).
+differs from what the parsers make (``tests/scripts/test_cli_doc.py`` runs the same comparison).
 """
 
 from __future__ import annotations

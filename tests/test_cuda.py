@@ -15,7 +15,7 @@ from blurcalib.deconv.settings import DeconvSettings
 from blurcalib.extract.frame import ExtractSettings, extract_frame
 from blurcalib.sim.evaluate import pose_consistent_errors
 from blurcalib.sim.synth import Simulator, SynthConfig
-from tests.test_generic_joint import joint_inputs
+from tests.calib.test_joint import joint_inputs
 
 pytestmark = pytest.mark.skipif(not torch.cuda.is_available(), reason="torch sees no CUDA device here")
 

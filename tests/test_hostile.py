@@ -766,7 +766,7 @@ def test_five_copies_of_one_frame_do_not_calibrate(tmp_path: Path) -> None:
     from blurcalib.pipeline.run import PipelineError, run_pipeline
     from blurcalib.sim.synth import SynthConfig, write_dataset
     from blurcalib.sim.truth import TrueCamera
-    from tests.test_app_state import SMALL_CAMERA
+    from tests.state.test_app_state import SMALL_CAMERA
 
     data = write_dataset(
         tmp_path / "ds",

@@ -13,7 +13,7 @@ from pathlib import Path
 ENGINE = Path(__file__).resolve().parents[1] / "blurcalib"
 
 LAYERS: tuple[str, ...] = (
-    "geometry", "psf", "io", "target", "camera", "deconv", "growth", "extract", "runs", "calib",
+    "geometry", "optim", "psf", "io", "target", "camera", "deconv", "growth", "extract", "runs", "calib",
     "pipeline", "sim", "paper", "data", "argtypes", "cli", "__main__",
 )
 """Sub-packages (and top-level modules) of ``blurcalib``, lowest first."""

@@ -20,6 +20,8 @@ This module solves it, and its spatially varying generalisations, for one frame:
 * ``bias="quadrants"``: the discrete variant, one translation per quadrant of the grid;
 * ``bias="none"``: the pose alone (the frame's own parametric fit, a plain robust PnP).
 
+The models and their grid coordinates are :mod:`blurcalib.calib.bias`'s.
+
 Losses ``rho`` (of the distance ``d`` in px, each point weighted by ``w``):
 
 * ``"mean"``: least squares, ``d^2 / 2`` (for a fixed pose ``x_G`` is the weighted mean of the
@@ -65,9 +67,11 @@ import cv2
 import numpy as np
 from numpy.typing import ArrayLike
 
+from blurcalib.calib.bias import BIASES, bias_basis, coeffs_from_beta, grid_coordinates
 from blurcalib.camera.parametric import BrownConrady, project_poses
 from blurcalib.geometry.pose import Pose
 from blurcalib.io.results import BlockTable
+from blurcalib.optim.lm import Acceptance, Damping, LmRule, SingleProblem, Stopping, run_single
 from blurcalib.target.pattern import StarPattern
 
 __all__ = [
@@ -83,18 +87,12 @@ __all__ = [
     "align_global",
     "align_kept_blocks",
     "alignment_covariance",
-    "bias_basis",
-    "bias_field",
-    "grid_coordinates",
     "loss_weights",
     "orientation_ok",
 ]
 
 LOSSES: tuple[str, ...] = ("huber", "mean", "median")
 """Robust kernels ``rho`` of ``eq:global_align``."""
-
-BIASES: tuple[str, ...] = ("none", "translation", "bilinear", "quadrants")
-"""Bias models: pose only, one translation, the bilinear field, one translation per quadrant."""
 
 METHODS: tuple[str, ...] = ("joint", "alternating")
 """Solvers: joint Levenberg-Marquardt, or supplement B's alternation."""
@@ -116,31 +114,14 @@ MIN_BLOCKS = 12
 _L1_FLOOR_PX = 1e-4
 """Smallest distance (px) used in the IRLS weight ``1 / d`` of the L1 ("median") loss."""
 
-_LM_INITIAL_LAMBDA = 1e-6
-_LM_MAX_LAMBDA = 1e12
+ALIGNMENT_DAMPING = Damping(start=1e-6, shrink=10.0, grow=10.0, floor=1e-12, ceiling=1e12)
+"""Marquardt's ``lambda`` of the alignment's Levenberg-Marquardt steps: 1e-6, /10 (not below
+1e-12) after an accepted step, x10 after a rejected one; no step above 1e12."""
+
 _POSE_STEPS_PER_ALTERNATION = 3
 
 
-# ------------------------------------------------------------------------------- grid and bias
-def grid_coordinates(pattern: StarPattern, features: ArrayLike) -> np.ndarray:
-    """Normalised grid coordinates ``(i, j) in [-1, 1]^2`` of features (supplement B).
-
-    Args:
-        pattern: the target; its valid features span ``0 <= fx <= squares_x - 2`` and
-            ``0 <= fy <= squares_y - 2``.
-        features: ``(N, 2)`` feature coordinates ``(fx, fy)`` (squares, ``pattern.features``).
-
-    Returns:
-        ``(N, 2)``: column 0 is ``i = 2 fx / (squares_x - 2) - 1`` (along the target's x),
-        column 1 is ``j = 2 fy / (squares_y - 2) - 1`` (along its y).
-    """
-    f = np.asarray(features, dtype=np.float64)
-    if f.ndim != 2 or f.shape[1] != 2:
-        raise ValueError(f"features must have shape (N, 2), got {f.shape}")
-    extent = np.array([pattern.squares_x - 2, pattern.squares_y - 2], dtype=np.float64)
-    return 2.0 * f / extent - 1.0
-
-
+# ---------------------------------------------------------------------------------- weights
 def loss_weights(loss: ArrayLike, eps: float = 1e-3) -> np.ndarray:
     """Supplement B's feature weights ``w_k = 1 / (loss_k + eps)`` from per-block losses.
 
@@ -152,82 +133,6 @@ def loss_weights(loss: ArrayLike, eps: float = 1e-3) -> np.ndarray:
     if eps <= 0 or np.any(loss < 0) or not np.all(np.isfinite(loss)):
         raise ValueError("losses must be finite and >= 0, and eps > 0")
     return 1.0 / (loss + eps)
-
-
-def bias_basis(grid: ArrayLike | None, bias: str, n: int) -> np.ndarray:
-    """Basis ``phi`` of a bias model at ``n`` features, shape ``(n, B)``.
-
-    * ``"none"``: ``B = 0``; ``"translation"``: ``phi = 1``;
-    * ``"bilinear"``: ``phi(i, j) = (1, i, j, i j)`` (supplement B);
-    * ``"quadrants"``: indicators of the quadrants, in the order top-left ``(i < 0, j < 0)``,
-      top-right ``(i >= 0, j < 0)``, bottom-left ``(i < 0, j >= 0)``, bottom-right.
-
-    Args:
-        grid: ``(n, 2)`` normalised grid coordinates (:func:`grid_coordinates`); needed for
-            ``"bilinear"`` and ``"quadrants"`` only.
-        bias: one of :data:`BIASES`.
-        n: number of features.
-    """
-    if bias not in BIASES:
-        raise ValueError(f"bias must be one of {BIASES}, got {bias!r}")
-    if bias == "none":
-        return np.zeros((n, 0))
-    if bias == "translation":
-        return np.ones((n, 1))
-    if grid is None:
-        raise ValueError(f"bias {bias!r} needs the features' grid coordinates")
-    g = np.asarray(grid, dtype=np.float64)
-    if g.shape != (n, 2):
-        raise ValueError(f"grid must have shape ({n}, 2), got {g.shape}")
-    i, j = g[:, 0], g[:, 1]
-    if bias == "bilinear":
-        return np.stack([np.ones(n), i, j, i * j], axis=1)
-    right = i >= 0
-    down = j >= 0
-    return np.stack([~right & ~down, right & ~down, ~right & down, right & down], axis=1).astype(float)
-
-
-def _coeffs_from_beta(beta: np.ndarray, bias: str) -> np.ndarray:
-    """Internal parameters ``(b_x (B,), b_y (B,))`` -> the public ``bias_coeffs`` layout."""
-    per_axis = beta.reshape(2, -1)
-    if bias == "none":
-        return np.zeros(0)
-    if bias == "translation":
-        return per_axis[:, 0].copy()
-    if bias == "bilinear":
-        return per_axis.copy()
-    return per_axis.T.copy()
-
-
-def _beta_from_coeffs(coeffs: ArrayLike, bias: str) -> np.ndarray:
-    """Inverse of :func:`_coeffs_from_beta`."""
-    c = np.asarray(coeffs, dtype=np.float64)
-    expected = {"none": (0,), "translation": (2,), "bilinear": (2, 4), "quadrants": (4, 2)}[bias]
-    if c.shape != expected:
-        raise ValueError(f"{bias} coefficients must have shape {expected}, got {c.shape}")
-    if bias == "quadrants":
-        return c.T.reshape(-1).copy()
-    return c.reshape(-1).copy()
-
-
-def bias_field(grid: ArrayLike | None, bias: str, coeffs: ArrayLike, n: int | None = None) -> np.ndarray:
-    """Evaluate a bias model: ``b = phi(i, j) coeffs`` per axis, ``(n, 2)`` px.
-
-    Args:
-        grid: ``(n, 2)`` normalised grid coordinates (may be None for ``"none"`` and
-            ``"translation"``, then ``n`` is required).
-        bias: one of :data:`BIASES`.
-        coeffs: ``bias_coeffs`` as in :class:`GlobalAlignment` (px): ``(0,)``, ``(2,)``,
-            ``(2, 4)`` (rows x, y over ``(1, i, j, ij)``) or ``(4, 2)`` (quadrant rows, x y).
-        n: number of features, when ``grid`` is None.
-    """
-    if n is None:
-        if grid is None:
-            raise ValueError("give grid or n")
-        n = int(np.asarray(grid).shape[0])
-    phi = bias_basis(grid, bias, n)
-    beta = _beta_from_coeffs(coeffs, bias).reshape(2, -1)
-    return phi @ beta.T
 
 
 # ------------------------------------------------------------------------------ orientation
@@ -355,29 +260,33 @@ def _normal_equations(problem: _Problem, pose6: np.ndarray, beta: np.ndarray, wi
     return A, g, e
 
 
-def _lm_step(problem: _Problem, pose6: np.ndarray, beta: np.ndarray, lam: float, with_pose: bool,
-             with_bias: bool) -> tuple[np.ndarray, np.ndarray, float, float, bool]:
-    """One accepted Levenberg-Marquardt step (or none if no damping decreases the cost).
+_Point = tuple[np.ndarray, np.ndarray]
+"""An iterate of the alignment: the pose ``(rvec, tvec) (6,)`` and the bias coefficients ``beta``."""
 
-    Returns ``(pose6, beta, lam, relative cost decrease, accepted)``.
-    """
-    A, g, e = _normal_equations(problem, pose6, beta, with_pose, with_bias)
-    cost = problem.cost(e)
-    diag = np.maximum(np.diag(A), 1e-12 * max(float(np.max(np.diag(A))), 1e-300))
-    while lam <= _LM_MAX_LAMBDA:
+
+class _Steps(SingleProblem[_Point, tuple[np.ndarray, np.ndarray, np.ndarray], np.ndarray]):
+    """Levenberg-Marquardt steps of the pose and (``with_bias``) the bias coefficients at a point
+    ``(pose6, beta)``, from the IRLS normal equations (:func:`_normal_equations`) damped by
+    ``lambda diag(A)`` (the diagonal floored at 1e-12 of its largest entry)."""
+
+    def __init__(self, problem: _Problem, with_bias: bool) -> None:
+        self.problem, self.with_bias = problem, with_bias
+
+    def linearise(self, x: _Point) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        A, g, _ = _normal_equations(self.problem, *x, True, self.with_bias)
+        return A, g, np.maximum(np.diag(A), 1e-12 * max(float(np.max(np.diag(A))), 1e-300))
+
+    def solve(self, system: tuple[np.ndarray, np.ndarray, np.ndarray], lam: float) -> np.ndarray | None:
+        A, g, diag = system
         try:
-            delta = np.linalg.solve(A + lam * np.diag(diag), g)
+            return np.linalg.solve(A + lam * np.diag(diag), g)
         except np.linalg.LinAlgError:
-            lam *= 10.0
-            continue
-        new_pose = pose6 + delta[:6] if with_pose else pose6
-        new_beta = beta + delta[6 if with_pose else 0:] if with_bias else beta
-        new_cost = problem.cost(problem.residuals(new_pose, new_beta))
-        if new_cost <= cost:
-            decrease = (cost - new_cost) / max(cost, 1e-300)
-            return new_pose, new_beta, max(lam * 0.1, 1e-12), decrease, True
-        lam *= 10.0
-    return pose6, beta, lam, 0.0, False
+            return None
+
+    def trial(self, x: _Point, step: np.ndarray) -> tuple[_Point, float]:
+        pose6, beta = x
+        moved = (pose6 + step[:6], beta + step[6:] if self.with_bias else beta)
+        return moved, self.problem.cost(self.problem.residuals(*moved))
 
 
 def _initial_pose(problem: _Problem) -> np.ndarray:
@@ -409,8 +318,8 @@ def align_global(camera: BrownConrady, points_3d: ArrayLike, observed: ArrayLike
         observed: ``(N, 2)`` observed feature positions (px, OpenCV convention).
         weights: ``(N,)`` confidences ``w_k >= 0`` (e.g. :func:`loss_weights` of the per-block
             deconvolution losses), or None for equal weights. These are weights, not losses.
-        grid: ``(N, 2)`` normalised grid coordinates (:func:`grid_coordinates`); required for
-            ``"bilinear"`` and ``"quadrants"``.
+        grid: ``(N, 2)`` normalised grid coordinates (:func:`blurcalib.calib.bias.grid_coordinates`);
+            required for ``"bilinear"`` and ``"quadrants"``.
         loss: ``"huber"``, ``"mean"`` or ``"median"`` (see the module docstring).
         huber_px: Huber threshold ``delta`` (px).
         bias: ``"none"``, ``"translation"``, ``"bilinear"`` or ``"quadrants"``.
@@ -461,7 +370,7 @@ def align_global(camera: BrownConrady, points_3d: ArrayLike, observed: ArrayLike
     angle = pose.optical_axis_angle_to_target_normal()
     return GlobalAlignment(
         pose=pose, translation=b.mean(axis=0) if with_bias else np.zeros(2),
-        bias_coeffs=_coeffs_from_beta(beta, bias), corrected=corrected, residuals=residuals,
+        bias_coeffs=coeffs_from_beta(beta, bias), corrected=corrected, residuals=residuals,
         robust_weights=problem.robust_weight(dist), median_error=float(np.median(dist)),
         mean_error=float(np.mean(dist)), angle_to_normal=angle,
         ill_conditioned=bool(angle < angle_threshold), iterations=done, converged=converged,
@@ -470,25 +379,28 @@ def align_global(camera: BrownConrady, points_3d: ArrayLike, observed: ArrayLike
 
 def _solve_joint(problem: _Problem, pose6: np.ndarray, beta: np.ndarray, with_bias: bool,
                  iterations: int, tol: float) -> tuple[np.ndarray, np.ndarray, int, bool]:
-    """Levenberg-Marquardt with IRLS weights over the pose and the bias together."""
-    lam = _LM_INITIAL_LAMBDA
-    for it in range(1, iterations + 1):
-        pose6, beta, lam, decrease, accepted = _lm_step(problem, pose6, beta, lam, True, with_bias)
-        if not accepted or decrease < tol:
-            return pose6, beta, it, True
-    return pose6, beta, iterations, False
+    """Levenberg-Marquardt with IRLS weights over the pose and the bias together
+    (:data:`ALIGNMENT_DAMPING`); converged when a step lowers the cost by at most ``tol`` of it or
+    no damping lowers it."""
+    cost = problem.cost(problem.residuals(pose6, beta))
+    rule = LmRule(ALIGNMENT_DAMPING, Stopping(max_iterations=iterations, rtol=tol), Acceptance(ties=True))
+    run = run_single(_Steps(problem, with_bias), (pose6, beta), cost, rule)
+    return *run.x, run.iterations, run.settled
 
 
 def _solve_alternating(problem: _Problem, pose6: np.ndarray, beta: np.ndarray, iterations: int,
                        tol: float) -> tuple[np.ndarray, np.ndarray, int, bool]:
-    """Supplement B: PnP on ``p_obs - b``, residuals, weighted least squares for the bias."""
-    lam = _LM_INITIAL_LAMBDA
+    """Supplement B: PnP on ``p_obs - b`` (at most :data:`_POSE_STEPS_PER_ALTERNATION`
+    Levenberg-Marquardt steps of the pose, the damping carried from one alternation to the next),
+    residuals, weighted least squares for the bias."""
+    lam = ALIGNMENT_DAMPING.start
     cost = problem.cost(problem.residuals(pose6, beta))
+    pose_steps = LmRule(ALIGNMENT_DAMPING, Stopping(max_iterations=_POSE_STEPS_PER_ALTERNATION),
+                        Acceptance(ties=True))
     for it in range(1, iterations + 1):
-        for _ in range(_POSE_STEPS_PER_ALTERNATION):
-            pose6, beta, lam, _, accepted = _lm_step(problem, pose6, beta, lam, True, False)
-            if not accepted:
-                break
+        here = problem.cost(problem.residuals(pose6, beta))
+        run = run_single(_Steps(problem, False), (pose6, beta), here, pose_steps, lam)
+        (pose6, beta), lam = run.x, run.lam
         proj, _ = problem.project(pose6, jacobian=False)
         r = problem.observed - proj
         e = r - problem.phi @ beta.reshape(2, -1).T
@@ -530,7 +442,7 @@ def alignment_covariance(camera: BrownConrady, pose: Pose, points_3d: ArrayLike,
     pose6 = np.concatenate([pose.rvec, pose.t])
     A, _, _ = _normal_equations(problem, pose6, np.zeros(2 * phi.shape[1]), True, True)
     cov = sigma_px**2 * np.linalg.pinv(A)[6:, 6:]
-    index = _coeffs_from_beta(np.arange(cov.shape[0]), bias).ravel()
+    index = coeffs_from_beta(np.arange(cov.shape[0]), bias).ravel()
     return cov[np.ix_(index, index)]
 
 
@@ -567,7 +479,7 @@ def align_blocks(camera: BrownConrady, pattern: StarPattern, reference_points: n
     Each block's star centre ``H(0, 0)`` is matched to its target point: the reference's refined
     point where it has one, the nominal ``(fx L, fy L, 0)`` otherwise. Blocks are weighted by
     ``1 / (loss + 1e-3)`` of their deconvolution loss (:func:`loss_weights`, supplement B) and
-    placed on the normalised grid for the bias models (:func:`grid_coordinates`).
+    placed on the normalised grid for the bias models (:func:`blurcalib.calib.bias.grid_coordinates`).
 
     Args:
         camera: the calibrated parametric camera.

@@ -18,11 +18,12 @@ translation ``s_f`` (the deconvolution's translational ambiguity, paper ``eq:glo
   initial (parametric) camera's shape instead of drifting. Cells without observations are
   reported in :attr:`BundleResult.warnings` by image region.
 
-Solver: Levenberg-Marquardt (Marquardt's ``lambda diag(H)`` damping, starting at 1e-6, divided by 5 on
-success, x4 on failure; a step that raises the cost by less than ``tol`` of it ends the
+Solver: Levenberg-Marquardt (:func:`blurcalib.optim.lm.run_single`; Marquardt's ``lambda diag(H)``
+damping, :data:`BUNDLE_DAMPING`; a step that raises the cost by less than ``tol`` of it ends the
 iterations as converged: the projections are solved to 1e-8 px, which makes a converged cost
-that uncertain). The per-frame blocks (pose: rotation increment ``omega`` with
-``R <- exp(omega) R`` and ``t <- t + dt``; plus ``s_f``) are eliminated by the Schur complement;
+that uncertain). The normal equations are :mod:`blurcalib.calib.bundle_problem`'s. The per-frame
+blocks (pose: rotation increment ``omega`` with ``R <- exp(omega) R`` and ``t <- t + dt``; plus
+``s_f``) are eliminated by the Schur complement;
 the reduced system on the ``2 GW GH`` grid parameters is dense (formed frame chunk by frame
 chunk, :func:`reduce_frames`) and solved to float64 accuracy (on a CPU by a float32 Cholesky
 factor refined in float64: :func:`blurcalib.calib.spd_solve.solve_lower`). Projections are
@@ -60,55 +61,25 @@ import logging
 import math
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 import torch
 from numpy.typing import ArrayLike
 
+from blurcalib.calib.bundle_problem import BundleProblem, BundleState, normal_equations, robust_weights
 from blurcalib.calib.coverage import cell_coverage, coverage_warnings
-from blurcalib.calib.frame_block import (
-    RollingRows,
-    checked_rolling_rows,
-    frame_jacobian,
-    rolling_frame_jacobian,
-    rolling_points,
-    rolling_prior_weights,
-)
+from blurcalib.calib.frame_block import RollingRows, checked_rolling_rows
 from blurcalib.calib.spd_solve import solve_lower
-from blurcalib.camera.generic import (
-    CentralGeneric,
-    GridSpline,
-    accumulate_blocks,
-    apply_update,
-    param_columns,
-    projection_jacobians,
-    tangent_basis,
-)
+from blurcalib.camera.generic import CentralGeneric, GridSpline, apply_update
 from blurcalib.geometry.lie import exp_so3, orthonormal
 from blurcalib.geometry.pose import Pose
+from blurcalib.optim.lm import Damping, LmRule, SingleProblem, Stopping, run_single
 
-__all__ = [
-    "BundleData",
-    "BundleProblem",
-    "BundleResult",
-    "BundleSettings",
-    "BundleState",
-    "add_priors",
-    "add_shift_prior",
-    "add_smoothness_prior",
-    "bundle_adjust",
-    "data_equations",
-    "gauge_rotation",
-    "reduce_frames",
-    "robust_weights",
-]
+__all__ = ["BUNDLE_DAMPING", "BundleData", "BundleResult", "BundleSettings", "bundle_adjust",
+           "gauge_rotation", "reduce_frames"]
 
 log = logging.getLogger(__name__)
-
-OBSERVATION_CHUNK = 16384
-"""Observations whose Jacobian products are formed at once when the normal equations are
-accumulated (memory per chunk about 16 kB per observation)."""
 
 FRAME_CHUNK = 64
 """Frames whose Schur complement terms are formed by one matrix product (:func:`reduce_frames`)."""
@@ -203,244 +174,6 @@ class BundleResult:
     coverage: np.ndarray = field(repr=False)
     data: BundleData = field(repr=False)
     theta: np.ndarray | None = field(default=None, repr=False)
-
-
-@dataclass
-class BundleState:
-    """The unknowns of one bundle adjustment at an iterate, with the projections that warm-start the next."""
-
-    grid: torch.Tensor  # (GH, GW, 3)
-    grid0: torch.Tensor  # (GH, GW, 3) initial grid, rotated with the gauge
-    R: torch.Tensor  # (F, 3, 3)
-    t: torch.Tensor  # (F, 3)
-    s: torch.Tensor  # (F, 2)
-    u: torch.Tensor  # (N, 2) current projections (warm starts)
-    inside: torch.Tensor  # (N,) bool
-    theta: torch.Tensor | None = None  # (F, 12) rolling parameters
-
-
-class BundleProblem:
-    """Fixed data and the objective of one bundle adjustment."""
-
-    def __init__(self, spline: GridSpline, frame: torch.Tensor, points: torch.Tensor,
-                 observed: torch.Tensor, weights: torch.Tensor, shift_free: torch.Tensor,
-                 settings: BundleSettings, rolling: RollingRows | None = None) -> None:
-        self.spline = spline
-        self.frame = frame
-        self.points = points
-        self.observed = observed
-        self.weights = weights
-        self.shift_free = shift_free
-        self.settings = settings
-        gh, gw = spline.shape
-        self.gh, self.gw = gh, gw
-        self.num_frames = len(shift_free)
-        self.pitch = _angular_pitch(spline)
-        self.smooth_w = 1.0 / (settings.smoothness_px * self.pitch) ** 2
-        self.shift_w = 1.0 / settings.shift_sigma_px ** 2
-        self.triples = _second_difference_triples(gh, gw, spline.grid.device)
-        self.block = 8 if rolling is None else 20
-        self.row: torch.Tensor | None = None
-        self.moving: torch.Tensor | None = None
-        self.theta_w: torch.Tensor | None = None
-        if rolling is not None:
-            self.row = torch.as_tensor(rolling.row, dtype=points.dtype, device=points.device)
-            self.moving = torch.as_tensor(rolling.moving, device=points.device)
-            self.twist_sigma = rolling.twist_sigma
-
-    def set_distance(self, t: torch.Tensor) -> None:
-        """The rolling parameters' prior weights ``(F, 12)`` from the frames' distances ``|t_f|``
-        (:func:`blurcalib.calib.frame_block.rolling_prior_weights`)."""
-        self.theta_w = rolling_prior_weights(t, self.twist_sigma)
-
-    def rolling_camera_points(self, R: torch.Tensor, t: torch.Tensor, theta: torch.Tensor | None,
-                              sel: torch.Tensor | None = None
-                              ) -> tuple[torch.Tensor, torch.Tensor | None, torch.Tensor]:
-        """``X (N, 3)``, the rolling rotations (None without rolling rows) and ``R P`` of the
-        observations ``sel`` (default all)."""
-        fr = self.frame if sel is None else self.frame[sel]
-        P = self.points if sel is None else self.points[sel]
-        if self.row is None or theta is None:
-            RP = torch.einsum("nij,nj->ni", R[fr], P)
-            return RP + t[fr], None, RP
-        y = self.row if sel is None else self.row[sel]
-        return rolling_points(R, t, theta, fr, P, y)
-
-    def project(self, grid: torch.Tensor, R: torch.Tensor, t: torch.Tensor,
-                s: torch.Tensor, init: torch.Tensor, theta: torch.Tensor | None = None
-                ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """Projections ``(N, 2)``, inside ``(N,)`` and residuals ``(N, 2)`` for trial values."""
-        X = self.rolling_camera_points(R, t, theta)[0]
-        u, inside = self.spline.with_grid(grid).project(X, init)
-        inside = inside & (X[:, 2] > 0)
-        r = self.observed - u - s[self.frame]
-        return u, inside, r
-
-    def data_cost(self, r: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
-        """``sum w rho(|r|^2)`` with Huber's ``rho`` (``e^2`` inside, ``2 d e - d^2`` beyond)."""
-        d = self.settings.huber_px
-        e = r.norm(dim=-1)
-        rho = torch.where(e <= d, e * e, 2 * d * e - d * d)
-        return (w * rho).sum()
-
-    def prior_cost(self, grid: torch.Tensor, grid0: torch.Tensor, s: torch.Tensor,
-                   theta: torch.Tensor | None = None) -> torch.Tensor:
-        """Smoothness prior on the grid's second differences plus the free shifts' prior and,
-        with rolling rows, the moving frames' rolling parameters' prior (px^2)."""
-        i, j, k = self.triples
-        g, g0 = grid.reshape(-1, 3), grid0.reshape(-1, 3)
-        d2 = (g[i] - 2 * g[j] + g[k]) - (g0[i] - 2 * g0[j] + g0[k])
-        free = self.shift_free.to(s.dtype)[:, None]
-        cost = self.smooth_w * (d2 * d2).sum() + self.shift_w * (free * s * s).sum()
-        if theta is not None and self.theta_w is not None and self.moving is not None:
-            cost = cost + (self.moving.to(s.dtype)[:, None] * self.theta_w * theta * theta).sum()
-        return cost
-
-    def cost(self, st: BundleState, r: torch.Tensor, w: torch.Tensor) -> float:
-        """The objective: data cost plus priors (px^2)."""
-        return float(self.data_cost(r, w) + self.prior_cost(st.grid, st.grid0, st.s, st.theta))
-
-
-def _angular_pitch(spline: GridSpline) -> float:
-    """Radians per pixel of the grid: the median angle between neighbouring nodes / cell length."""
-    g = spline.grid
-    ang = torch.acos(torch.clamp((g[:, 1:] * g[:, :-1]).sum(-1), -1.0, 1.0))
-    return float(torch.median(ang)) * float(spline.scale[0])
-
-
-def _second_difference_triples(gh: int, gw: int, device: torch.device
-                               ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Flat node indices ``(i, j, k)`` of every three consecutive nodes along rows and columns."""
-    idx = torch.arange(gh * gw, device=device).reshape(gh, gw)
-    rows = (idx[:, :-2].reshape(-1), idx[:, 1:-1].reshape(-1), idx[:, 2:].reshape(-1))
-    cols = (idx[:-2].reshape(-1), idx[1:-1].reshape(-1), idx[2:].reshape(-1))
-    return tuple(torch.cat([a, b]) for a, b in zip(rows, cols, strict=True))
-
-
-def robust_weights(r: torch.Tensor, huber_px: float) -> torch.Tensor:
-    """IRLS weights of Huber's loss on the residual norm: 1 inside, ``delta / e`` beyond."""
-    e = r.norm(dim=-1)
-    return torch.where(e <= huber_px, torch.ones_like(e), huber_px / e.clamp_min(1e-300))
-
-
-def _normal_equations(pb: BundleProblem, st: BundleState, w: torch.Tensor, r: torch.Tensor
-                      ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor,
-                                 torch.Tensor]:
-    """Gauss-Newton blocks: ``Hgg (G, G)``, ``Hgp (G, F, K)``, ``Hpp (F, K, K)``, ``bg``, ``bp``.
-
-    Per-frame block columns: ``omega (3), dt (3), s (2)`` and, with rolling rows, ``theta (12)``
-    (``K = pb.block``). Also returns the grid's node tangents.
-    """
-    Hgg, Hgp, Hpp, bg, bp, tang = data_equations(pb, st, w, r)
-    add_priors(pb, st, tang, Hgg, bg, Hpp, bp)
-    return Hgg, Hgp, Hpp, bg, bp, tang
-
-
-def data_equations(pb: BundleProblem, st: BundleState, w: torch.Tensor, r: torch.Tensor
-                    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor,
-                               torch.Tensor]:
-    """The observations' part of :func:`_normal_equations` (no priors).
-
-    Accumulated :data:`OBSERVATION_CHUNK` observations at a time, so that the per-observation
-    products (``(n, 32, 32)``) stay small whatever the number of observations.
-    """
-    G = 2 * pb.gh * pb.gw
-    F = pb.num_frames
-    K = pb.block
-    dt, dev = pb.points.dtype, pb.points.device
-    n_nodes = pb.gh * pb.gw
-    spline = pb.spline.with_grid(st.grid)
-    Hcell = torch.zeros(n_nodes, 32, 32, dtype=dt, device=dev)
-    Hgp = torch.zeros(G * F * K, dtype=dt, device=dev)
-    Hpp = torch.zeros(F, K, K, dtype=dt, device=dev)
-    bp = torch.zeros(F, K, dtype=dt, device=dev)
-    bg = torch.zeros(G, dtype=dt, device=dev)
-    lanes = torch.arange(K, device=dev)
-    for sel in torch.nonzero(w > 0).squeeze(1).split(OBSERVATION_CHUNK):
-        fr = pb.frame[sel]
-        X, Ri, RP = pb.rolling_camera_points(st.R, st.t, st.theta, sel)
-        J_p, J_g, nodes = projection_jacobians(spline, st.u[sel], X)
-        if Ri is None or pb.row is None:
-            J_pose = frame_jacobian(J_p, X - st.t[fr])
-        else:
-            J_pose = rolling_frame_jacobian(J_p, Ri, RP, X, pb.row[sel])
-        wJg = w[sel][:, None, None] * J_g
-        rs = r[sel][:, :, None]
-        Hcell.index_add_(0, nodes[:, 0], wJg.transpose(1, 2) @ J_g)
-        cols = param_columns(nodes)
-        flat = cols[:, :, None] * (F * K) + fr[:, None, None] * K + lanes
-        Hgp.index_add_(0, flat.reshape(-1), (wJg.transpose(1, 2) @ J_pose).reshape(-1))
-        wJp = w[sel][:, None, None] * J_pose
-        Hpp.index_add_(0, fr, wJp.transpose(1, 2) @ J_pose)
-        bp.index_add_(0, fr, (wJp.transpose(1, 2) @ rs)[..., 0])
-        bg.index_add_(0, cols.reshape(-1), (wJg.transpose(1, 2) @ rs).reshape(-1))
-    used = torch.nonzero(Hcell.abs().sum((1, 2)) > 0).squeeze(1)
-    Hgg = torch.zeros(G, G, dtype=dt, device=dev)
-    accumulate_blocks(Hgg, param_columns(_cell_nodes(used, pb.gw)), Hcell[used])
-    Hgp = Hgp.reshape(G, F, K)
-    Hgp[:, ~pb.shift_free, 6:8] = 0.0
-    if pb.moving is not None:
-        Hgp[:, ~pb.moving, 8:] = 0.0
-    tang = tangent_basis(st.grid.reshape(-1, 3))
-    return Hgg, Hgp, Hpp, bg, bp, tang
-
-
-def _cell_nodes(first: torch.Tensor, gw: int) -> torch.Tensor:
-    """The 16 flat node indices of the cells whose first (top-left) node is ``first (K,)``."""
-    offs = torch.arange(4, device=first.device)
-    return (first[:, None, None] + offs[:, None] * gw + offs[None, :]).reshape(len(first), 16)
-
-
-def add_priors(pb: BundleProblem, st: BundleState, tang: torch.Tensor, Hgg: torch.Tensor, bg: torch.Tensor,
-                Hpp: torch.Tensor, bp: torch.Tensor) -> None:
-    """Add the smoothness prior (grid), the shift prior and, with rolling rows, the rolling
-    parameters' prior (frames) to the normal equations."""
-    add_smoothness_prior(pb, st, tang, Hgg, bg)
-    add_shift_prior(pb, st, Hpp, bp)
-    add_rolling_prior(pb, st, Hpp, bp)
-
-
-def add_smoothness_prior(pb: BundleProblem, st: BundleState, tang: torch.Tensor, Hgg: torch.Tensor | None,
-                          bg: torch.Tensor) -> None:
-    """Add the smoothness prior's Hessian (unless ``Hgg`` is None) and gradient side."""
-    i, j, k = pb.triples
-    g, g0 = st.grid.reshape(-1, 3), st.grid0.reshape(-1, 3)
-    res = (g[i] - 2 * g[j] + g[k]) - (g0[i] - 2 * g0[j] + g0[k])
-    J = torch.stack([tang[i], -2 * tang[j], tang[k]], 1)  # (T, 3 nodes, 2, 3)
-    Jm = J.permute(0, 3, 1, 2).reshape(len(i), 3, 6)
-    nodes = torch.stack([i, j, k], 1)
-    cols = param_columns(nodes)
-    if Hgg is not None:
-        accumulate_blocks(Hgg, cols, pb.smooth_w * Jm.transpose(1, 2) @ Jm)
-    bg.index_add_(0, cols.reshape(-1), -pb.smooth_w * (Jm.transpose(1, 2) @ res[:, :, None]).reshape(-1))
-
-
-def add_shift_prior(pb: BundleProblem, st: BundleState, Hpp: torch.Tensor, bp: torch.Tensor) -> None:
-    """Add the free shifts' prior; decouple the fixed shifts (identity block, zero gradient)."""
-    free = pb.shift_free
-    Hpp[free, 6, 6] += pb.shift_w
-    Hpp[free, 7, 7] += pb.shift_w
-    bp[free, 6:8] -= pb.shift_w * st.s[free]
-    fixed = ~pb.shift_free
-    Hpp[fixed, 6:8, :] = 0.0
-    Hpp[fixed, :, 6:8] = 0.0
-    Hpp[fixed, 6, 6] = 1.0
-    Hpp[fixed, 7, 7] = 1.0
-    bp[fixed, 6:8] = 0.0
-
-
-def add_rolling_prior(pb: BundleProblem, st: BundleState, Hpp: torch.Tensor, bp: torch.Tensor) -> None:
-    """With rolling rows: add the moving frames' rolling parameters' prior and decouple the other
-    frames' (identity block, zero gradient); without, nothing."""
-    if pb.moving is None or pb.theta_w is None or st.theta is None:
-        return
-    m, still = pb.moving, ~pb.moving
-    Hpp[m, 8:, 8:] += torch.diag_embed(pb.theta_w[m])
-    bp[m, 8:] -= pb.theta_w[m] * st.theta[m]
-    Hpp[still, 8:, :] = 0.0
-    Hpp[still, :, 8:] = 0.0
-    Hpp[still, 8:, 8:] = torch.eye(12, dtype=Hpp.dtype, device=Hpp.device)
-    bp[still, 8:] = 0.0
 
 
 def reduce_frames(Hgg: torch.Tensor, Hgp: torch.Tensor, Hpp_inv: torch.Tensor, bg: torch.Tensor | None = None,
@@ -566,10 +299,80 @@ def _regauged(spline: GridSpline, st: BundleState) -> BundleState:
     return BundleState(st.grid @ Q.T, st.grid0 @ Q.T, Q @ st.R, st.t @ Q.T, st.s, st.u, st.inside, theta)
 
 
+BUNDLE_DAMPING = Damping(start=1e-6, shrink=5.0, grow=4.0, floor=1e-12, ceiling=1e8)
+"""Marquardt's ``lambda`` of :func:`bundle_adjust`: 1e-6, /5 (not below 1e-12) after an accepted
+step, x4 after a rejected one; no step above 1e8."""
+
+
+@dataclass
+class _Iterate:
+    """An iterate of :func:`bundle_adjust`: the unknowns, the residuals ``r (N, 2)`` px and the use
+    weights ``(N,)`` (the observations' weights, 0 outside the calibrated area)."""
+
+    st: BundleState
+    r: torch.Tensor
+    use: torch.Tensor
+
+
+class _Steps(SingleProblem[_Iterate, tuple[torch.Tensor, ...], tuple[torch.Tensor, torch.Tensor]]):
+    """The Levenberg-Marquardt steps of :func:`bundle_adjust`: Huber-weighted normal equations,
+    the per-frame blocks eliminated (:func:`_solve`), the grid re-gauged after each accepted step."""
+
+    def __init__(self, pb: BundleProblem, spline: GridSpline) -> None:
+        self.pb, self.spline = pb, spline
+
+    def linearise(self, x: _Iterate) -> tuple[torch.Tensor, ...]:
+        w = x.use * robust_weights(x.r, self.pb.settings.huber_px)
+        return normal_equations(self.pb, x.st, w, x.r)[:5]
+
+    def solve(self, system: tuple[torch.Tensor, ...], lam: float) -> tuple[torch.Tensor, torch.Tensor] | None:
+        return _solve(*system, lam)
+
+    def trial(self, x: _Iterate, step: tuple[torch.Tensor, torch.Tensor]) -> tuple[_Iterate, float]:
+        pb, st = self.pb, x.st
+        dg, dp = step
+        grid_n = apply_update(st.grid, dg.reshape(pb.gh, pb.gw, 2))
+        R_n = exp_so3(dp[:, :3]) @ st.R
+        t_n = st.t + dp[:, 3:6]
+        s_n = st.s + dp[:, 6:8]
+        theta_n = None if st.theta is None else st.theta + dp[:, 8:]
+        u_n, in_n, r_n = pb.project(grid_n, R_n, t_n, s_n, st.u, theta_n)
+        use_n = pb.weights * in_n.to(torch.float64)
+        trial = BundleState(grid_n, st.grid0, R_n, t_n, s_n, u_n, in_n, theta_n)
+        return _Iterate(trial, r_n, use_n), pb.cost(trial, torch.where(in_n[:, None], r_n, 0.0), use_n)
+
+    def accept(self, x: _Iterate, moved: _Iterate, step: tuple[torch.Tensor, torch.Tensor], cost: float
+               ) -> tuple[_Iterate, float, bool]:
+        return _Iterate(_regauged(self.spline, moved.st), moved.r, moved.use), cost, False
+
+
+def _adjust(pb: BundleProblem, spline: GridSpline, x: _Iterate, cost: float) -> tuple[_Iterate, float, int]:
+    """Levenberg-Marquardt from ``x`` of cost ``cost`` (:data:`BUNDLE_DAMPING`), the outliers
+    removed once (:func:`_remove_outliers`) after :attr:`BundleSettings.outlier_iteration`
+    iterations or at convergence if that comes first, and the fit continued (the damping carried
+    on). Converged when a step changes the cost by at most ``tol`` of it, up or down, or no damping
+    up to the ceiling lowers it. Returns the iterate, its cost and the iterations (linearisations)."""
+    s = pb.settings
+    steps = _Steps(pb, spline)
+
+    def rule(iterations: int) -> LmRule:
+        return LmRule(BUNDLE_DAMPING, Stopping(max_iterations=iterations, rtol=s.tol, rtol_rejected=True))
+
+    first = run_single(steps, x, cost, rule(min(s.outlier_iteration, s.max_iterations) if s.outlier_iteration
+                                            else s.max_iterations))
+    x, cost, iterations = first.x, first.cost, first.iterations
+    if s.outlier_iteration and iterations < s.max_iterations:
+        use, cost = _remove_outliers(pb, x.st, x.r, x.use)
+        second = run_single(steps, replace(x, use=use), cost, rule(s.max_iterations - iterations), first.lam)
+        x, cost = second.x, second.cost
+        iterations += max(second.iterations, 1)  # the iteration that removed them counts
+    return x, cost, iterations
+
+
 def bundle_adjust(model: CentralGeneric, poses: Sequence[Pose], frame: ArrayLike, points: ArrayLike,
                   observed: ArrayLike, weights: ArrayLike | None = None,
                   shift_free: ArrayLike | None = None, settings: BundleSettings | None = None,
-                  progress: bool = False, prior: CentralGeneric | None = None,
+                  prior: CentralGeneric | None = None,
                   rolling: RollingRows | None = None) -> BundleResult:
     """Fit the generic camera's grid, every frame's pose and the free per-frame shifts.
 
@@ -583,7 +386,6 @@ def bundle_adjust(model: CentralGeneric, poses: Sequence[Pose], frame: ArrayLike
         weights: ``(N,)`` observation weights ``>= 0`` (default 1).
         shift_free: ``(F,)`` bool, frames with a free image shift ``s_f`` (blurry frames).
         settings: solver options.
-        progress: log one line per iteration.
         prior: the camera whose shape the smoothness prior keeps (its grid's second
             differences; same grid as ``model``, each in its own gauge). Default ``model``: a
             warm start from another fit's camera passes the initial camera of a cold start here,
@@ -599,77 +401,15 @@ def bundle_adjust(model: CentralGeneric, poses: Sequence[Pose], frame: ArrayLike
     dev = torch.device(settings.device)
     kw = {"dtype": torch.float64, "device": dev}
     fr_np, P, p, w_np, free_np = _checked_inputs(len(poses), frame, points, observed, weights, shift_free)
-    F = len(poses)
-
     spline = model.spline(dev)
     pb = BundleProblem(spline, torch.as_tensor(fr_np, device=dev), torch.as_tensor(P, **kw),
                        torch.as_tensor(p, **kw), torch.as_tensor(w_np, **kw),
                        torch.as_tensor(free_np, device=dev), settings,
-                       checked_rolling_rows(rolling, len(P), F))
-    Q = gauge_rotation(spline, spline.grid)
-    grid = spline.grid @ Q.T
-    grid0 = grid.clone()
-    if prior is not None:
-        if (prior.grid_height, prior.grid_width) != spline.shape:
-            raise ValueError(f"prior grid {prior.grid_height}x{prior.grid_width} differs from the model's "
-                             f"{spline.shape[0]}x{spline.shape[1]}")
-        prior_grid = prior.spline(dev).grid
-        grid0 = prior_grid @ gauge_rotation(spline, prior_grid).T
-    R = Q @ torch.as_tensor(np.stack([q.R for q in poses]), **kw)
-    t = torch.as_tensor(np.stack([q.t for q in poses]), **kw) @ Q.T
-    s = torch.zeros(F, 2, **kw)
-    theta = None
-    if rolling is not None:
-        theta = torch.zeros(F, 12, **kw)
-        pb.set_distance(t)
-    u, inside, r = pb.project(grid, R, t, s, None, theta)
-    st = BundleState(grid, grid0, R, t, s, u, inside, theta)
-    use = pb.weights * inside.to(torch.float64)
-    cost = pb.cost(st, torch.where(inside[:, None], r, 0.0), use)
-    lam = 1e-6
-    it = 0
-    removed = not settings.outlier_iteration
-    remove_after = settings.outlier_iteration
-    for it in range(1, settings.max_iterations + 1):
-        if not removed and it > remove_after:
-            removed = True
-            use, cost = _remove_outliers(pb, st, r, use)
-        w = use * robust_weights(r, settings.huber_px)
-        Hgg, Hgp, Hpp, bg, bp, _tang = _normal_equations(pb, st, w, r)
-        accepted = False
-        while lam < 1e8:
-            step = _solve(Hgg, Hgp, Hpp, bg, bp, lam)
-            if step is None:
-                lam *= 4
-                continue
-            dg, dp = step
-            grid_n = apply_update(st.grid, dg.reshape(pb.gh, pb.gw, 2))
-            R_n = exp_so3(dp[:, :3]) @ st.R
-            t_n = st.t + dp[:, 3:6]
-            s_n = st.s + dp[:, 6:8]
-            theta_n = None if st.theta is None else st.theta + dp[:, 8:]
-            u_n, in_n, r_n = pb.project(grid_n, R_n, t_n, s_n, st.u, theta_n)
-            use_n = pb.weights * in_n.to(torch.float64)
-            trial = BundleState(grid_n, st.grid0, R_n, t_n, s_n, u_n, in_n, theta_n)
-            cost_n = pb.cost(trial, torch.where(in_n[:, None], r_n, 0.0), use_n)
-            if cost_n < cost:
-                rel = (cost - cost_n) / max(cost, 1e-300)
-                st, r, use, cost = _regauged(spline, trial), r_n, use_n, cost_n
-                lam = max(lam * 0.2, 1e-12)
-                accepted = True
-                break
-            if cost_n - cost <= settings.tol * cost:  # within the projections' noise: converged
-                break
-            lam *= 4
-        if progress:
-            log.info("iteration %d: cost %.6g, lambda %.2g", it, cost, lam)
-        if not accepted or rel < settings.tol:
-            if removed:
-                break
-            remove_after = 0
+                       checked_rolling_rows(rolling, len(P), len(poses)))
+    x, cost, iterations = _adjust(pb, spline, *_start(pb, spline, poses, prior, rolling is not None))
+    st = x.st
     inlier = (pb.weights > 0) & st.inside
-    res = torch.where(st.inside[:, None], r, torch.nan)
-    e = r.norm(dim=-1)[inlier]
+    e = x.r.norm(dim=-1)[inlier]
     out_model = model.with_grid(st.grid.cpu().numpy())
     coverage = cell_coverage(out_model, st.u[inlier].cpu().numpy())
     warnings = coverage_warnings(out_model, coverage)
@@ -678,11 +418,40 @@ def bundle_adjust(model: CentralGeneric, poses: Sequence[Pose], frame: ArrayLike
     Rn, tn = st.R.cpu().numpy(), st.t.cpu().numpy()
     return BundleResult(
         model=out_model,
-        poses=[Pose(orthonormal(Rn[f]), tn[f]) for f in range(F)],
-        shifts=st.s.cpu().numpy(), residuals=res.cpu().numpy(), inlier=inlier.cpu().numpy(),
+        poses=[Pose(orthonormal(Rn[f]), tn[f]) for f in range(len(poses))],
+        shifts=st.s.cpu().numpy(), residuals=torch.where(st.inside[:, None], x.r, torch.nan).cpu().numpy(),
+        inlier=inlier.cpu().numpy(),
         median_error=float(torch.median(e)) if len(e) else math.nan,
         rms_error=float(torch.sqrt(torch.mean(e * e))) if len(e) else math.nan,
-        iterations=it, cost=cost, seconds=time.perf_counter() - t_wall,
+        iterations=iterations, cost=cost, seconds=time.perf_counter() - t_wall,
         cpu_seconds=time.process_time() - t_cpu, warnings=warnings, coverage=coverage,
         data=BundleData(fr_np, P, p, pb.weights.cpu().numpy(), free_np, settings, pb.pitch),
         theta=None if st.theta is None else st.theta.cpu().numpy())
+
+
+def _start(pb: BundleProblem, spline: GridSpline, poses: Sequence[Pose], prior: CentralGeneric | None,
+           rolling: bool) -> tuple[_Iterate, float]:
+    """The first iterate of :func:`bundle_adjust` in the gauge (module docstring): the model's grid,
+    the initial grid the smoothness prior keeps (``prior``'s, else the model's), the poses, zero
+    shifts and (``rolling``) zero rolling parameters; and its cost."""
+    kw = {"dtype": torch.float64, "device": spline.grid.device}
+    Q = gauge_rotation(spline, spline.grid)
+    grid = spline.grid @ Q.T
+    grid0 = grid.clone()
+    if prior is not None:
+        if (prior.grid_height, prior.grid_width) != spline.shape:
+            raise ValueError(f"prior grid {prior.grid_height}x{prior.grid_width} differs from the model's "
+                             f"{spline.shape[0]}x{spline.shape[1]}")
+        prior_grid = prior.spline(spline.grid.device).grid
+        grid0 = prior_grid @ gauge_rotation(spline, prior_grid).T
+    R = Q @ torch.as_tensor(np.stack([q.R for q in poses]), **kw)
+    t = torch.as_tensor(np.stack([q.t for q in poses]), **kw) @ Q.T
+    s = torch.zeros(len(poses), 2, **kw)
+    theta = None
+    if rolling:
+        theta = torch.zeros(len(poses), 12, **kw)
+        pb.set_distance(t)
+    u, inside, r = pb.project(grid, R, t, s, None, theta)
+    st = BundleState(grid, grid0, R, t, s, u, inside, theta)
+    use = pb.weights * inside.to(torch.float64)
+    return _Iterate(st, r, use), pb.cost(st, torch.where(inside[:, None], r, 0.0), use)

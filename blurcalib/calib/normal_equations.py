@@ -18,16 +18,14 @@ import numpy as np
 import torch
 from numpy.typing import ArrayLike
 
-from blurcalib.calib.bundle import (
+from blurcalib.calib.bundle import BundleResult, gauge_rotation, reduce_frames
+from blurcalib.calib.bundle_problem import (
     BundleProblem,
-    BundleResult,
     BundleState,
     add_priors,
     add_shift_prior,
     add_smoothness_prior,
     data_equations,
-    gauge_rotation,
-    reduce_frames,
     robust_weights,
 )
 from blurcalib.calib.spd_solve import solve_lower

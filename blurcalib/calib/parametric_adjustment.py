@@ -5,7 +5,8 @@
 the observations, then (with free points) the points' prior ``(P_j - P_j^0) / sigma_P``, and their
 sparse analytic Jacobian over the parameters ``(9 intrinsics, 6 F pose parameters, 3 Q points)``.
 :func:`minimise` is Levenberg-Marquardt with Huber weights whose steps eliminate the poses
-(:func:`solve_poses_eliminated`).
+(:func:`solve_poses_eliminated`); :func:`adjust` repeats it without the outliers until the
+inlier set settles, and :func:`gauge_fixed` fixes the gauge of free points.
 """
 
 from __future__ import annotations
@@ -18,9 +19,11 @@ import numpy as np
 import scipy.linalg
 import scipy.sparse
 
-from blurcalib.camera.parametric import project_poses
+from blurcalib.camera.parametric import project_poses, rodrigues_jacobian
+from blurcalib.optim.lm import Acceptance, Damping, LmRule, SingleProblem, Stopping, run_single
 
-__all__ = ["ParametricProblem", "minimise", "solve_poses_eliminated"]
+__all__ = ["ADJUSTMENT_DAMPING", "SETTLED_MARGIN", "SETTLED_SHARE", "ParametricProblem", "adjust",
+           "gauge_fixed", "minimise", "robust_threshold", "settled", "solve_poses_eliminated", "umeyama"]
 
 
 @dataclass
@@ -122,6 +125,70 @@ def solve_poses_eliminated(H: scipy.sparse.spmatrix, g: np.ndarray, frames: int)
     return x
 
 
+MEDIAN_TO_SIGMA = 1.0 / math.sqrt(2.0 * math.log(2.0))
+"""``sigma = median(|e|) / sqrt(2 ln 2)`` for a 2-D isotropic Gaussian error ``e``."""
+MIN_OUTLIER_PX = 0.01
+"""The outlier threshold never drops below this (px), so noise-free data keeps its points."""
+MAX_ROUNDS = 10
+"""Outlier rounds at most (each a :func:`minimise` of at most 100 Jacobians)."""
+SETTLED_SHARE = 1e-4
+"""The outlier rounds also end when at most this share of the observations change side, each
+with an error within :data:`SETTLED_MARGIN` of the threshold: flips at the margin, which move
+the fit far less than its noise does. Below 10,000 observations the inlier set must be stable."""
+SETTLED_MARGIN = 1.5
+"""How near the threshold (a factor either way) an observation that changes side must lie for
+:data:`SETTLED_SHARE` to end the rounds."""
+
+ADJUSTMENT_DAMPING = Damping(start=1e-6, shrink=10.0, grow=10.0, floor=1e-12, ceiling=1e12)
+"""Marquardt's ``lambda`` of :func:`minimise`: 1e-6, /10 (not below 1e-12) after an accepted step,
+x10 after a rejected one; no step above 1e12."""
+
+
+@dataclass
+class _Point:
+    """An iterate of :func:`minimise`: the parameters ``x (n,)`` and their residuals ``f (m,)``."""
+
+    x: np.ndarray
+    f: np.ndarray
+
+
+class _Robust(SingleProblem[_Point, tuple, np.ndarray]):
+    """``sum_i rho(f_i(x))`` with Huber's ``rho`` at ``huber`` (``inf``: squares), its steps solved
+    with the poses eliminated (:func:`solve_poses_eliminated`)."""
+
+    def __init__(self, fun: Callable[[np.ndarray], np.ndarray],
+                 jac: Callable[[np.ndarray], scipy.sparse.spmatrix], huber: float, frames: int,
+                 tol: float) -> None:
+        self.fun, self.jac, self.huber, self.frames, self.tol = fun, jac, huber, frames, tol
+
+    def cost(self, f: np.ndarray) -> float:
+        a = np.abs(f)
+        if not math.isfinite(self.huber):
+            return float(np.sum(a * a))
+        return float(np.sum(np.where(a <= self.huber, a * a, 2.0 * self.huber * a - self.huber * self.huber)))
+
+    def linearise(self, p: _Point) -> tuple:
+        """``(J^T W J, J^T W f, its diagonal)`` with the IRLS weights ``w = min(1, huber / |f|)``."""
+        J = self.jac(p.x).tocsr()
+        w = np.minimum(1.0, self.huber / np.maximum(np.abs(p.f), 1e-300))
+        H = (J.T @ J.multiply(w[:, None])).tocsr()
+        g = J.T @ (w * p.f)
+        return H, g, scipy.sparse.diags(np.maximum(H.diagonal(), 1e-12))
+
+    def solve(self, system: tuple, lam: float) -> np.ndarray:
+        H, g, diag = system
+        return -solve_poses_eliminated(H + lam * diag, g, self.frames)
+
+    def trial(self, p: _Point, step: np.ndarray) -> tuple[_Point, float]:
+        x = p.x + step
+        f = self.fun(x)
+        return _Point(x, f), self.cost(f)
+
+    def accept(self, p: _Point, moved: _Point, step: np.ndarray, cost: float) -> tuple[_Point, float, bool]:
+        """Converged when the step is below ``tol (tol + |x|)``."""
+        return moved, cost, bool(np.linalg.norm(step) <= self.tol * (self.tol + np.linalg.norm(moved.x)))
+
+
 def minimise(fun: Callable[[np.ndarray], np.ndarray], jac: Callable[[np.ndarray], scipy.sparse.spmatrix],
               x: np.ndarray, huber: float, frames: int, max_jacobians: int = 100, tol: float = 1e-10
               ) -> tuple[np.ndarray, int]:
@@ -133,37 +200,88 @@ def minimise(fun: Callable[[np.ndarray], np.ndarray], jac: Callable[[np.ndarray]
     ``w_i = min(1, h / |f_i|)``, the step ``(J^T W J + lambda diag(J^T W J)) dx = -J^T W f``
     (Marquardt's damping, which ``x_scale='jac'`` of ``scipy.optimize.least_squares`` also
     amounts to), solved directly with the ``frames`` poses eliminated
-    (:func:`solve_poses_eliminated`). ``lambda`` starts at 1e-6, /10 after
-    an accepted step, x10 after a rejected one. Stops when an accepted step lowers the cost by
-    less than ``tol`` of it or moves ``x`` by less than ``tol (tol + |x|)``, or after
-    ``max_jacobians``.
+    (:func:`solve_poses_eliminated`); the loop is :func:`blurcalib.optim.lm.run_single` with
+    :data:`ADJUSTMENT_DAMPING`, a step of equal cost accepted. Stops when an accepted step lowers
+    the cost by at most ``tol`` of it or moves ``x`` by at most ``tol (tol + |x|)``, when no damping
+    up to the ceiling lowers it, or after ``max_jacobians``.
     """
-    def cost(f: np.ndarray) -> float:
-        a = np.abs(f)
-        if not math.isfinite(huber):
-            return float(np.sum(a * a))
-        return float(np.sum(np.where(a <= huber, a * a, 2.0 * huber * a - huber * huber)))
-
+    problem = _Robust(fun, jac, huber, frames, tol)
     f = fun(x)
-    c = cost(f)
-    lam = 1e-6
-    for njev in range(1, max_jacobians + 1):
-        J = jac(x).tocsr()
-        w = np.minimum(1.0, huber / np.maximum(np.abs(f), 1e-300))
-        H = (J.T @ J.multiply(w[:, None])).tocsr()
-        g = J.T @ (w * f)
-        diag = scipy.sparse.diags(np.maximum(H.diagonal(), 1e-12))
-        while True:
-            dx = -solve_poses_eliminated(H + lam * diag, g, frames)
-            f_new = fun(x + dx)
-            c_new = cost(f_new)
-            if np.isfinite(c_new) and c_new <= c:
-                break
-            lam *= 10.0
-            if lam > 1e12:
-                return x, njev
-        x, f, c_old, c = x + dx, f_new, c, c_new
-        lam = max(lam / 10.0, 1e-12)
-        if c_old - c <= tol * c_old or np.linalg.norm(dx) <= tol * (tol + np.linalg.norm(x)):
-            return x, njev
-    return x, max_jacobians
+    rule = LmRule(ADJUSTMENT_DAMPING, Stopping(max_iterations=max_jacobians, rtol=tol), Acceptance(ties=True))
+    run = run_single(problem, _Point(x, f), problem.cost(f), rule)
+    return run.x.x, run.iterations
+
+
+def robust_threshold(errors: np.ndarray, sigmas: float, num_params: int) -> float:
+    """Outlier threshold ``max(sigmas * sigma, 0.01 px)`` for inlier error norms ``errors (n,)``.
+
+    ``sigma = median(errors) / sqrt(2 ln 2) * sqrt(2 n / (2 n - p))``: the robust standard
+    deviation per axis, corrected for the ``p`` fitted parameters that absorb part of the noise.
+    """
+    dof = max(2 * errors.size - num_params, 1)
+    sigma = float(np.median(errors)) * MEDIAN_TO_SIGMA * math.sqrt(2 * errors.size / dof)
+    return max(sigmas * sigma, MIN_OUTLIER_PX)
+
+
+def settled(changed: np.ndarray, limit: float, count: int) -> bool:
+    """Whether the outlier rounds end: the error norms ``changed (k,)`` px of the observations that
+    would change side at threshold ``limit`` px are none, or at most :data:`SETTLED_SHARE` of the
+    ``count`` observations, each within :data:`SETTLED_MARGIN` of ``limit``."""
+    if changed.size == 0:
+        return True
+    marginal = np.all((changed >= limit / SETTLED_MARGIN) & (changed <= limit * SETTLED_MARGIN))
+    return bool(changed.size <= SETTLED_SHARE * count and marginal)
+
+
+def adjust(problem: ParametricProblem, params: np.ndarray, inlier: np.ndarray, huber: float,
+           outlier_sigmas: float) -> tuple[np.ndarray, np.ndarray, int, int]:
+    """The robust adjustment of :mod:`blurcalib.calib.sharp`: :func:`minimise` over the inliers
+    ``inlier (N,)``, then every observation whose error ``|pi_d(M, P) - p|`` exceeds
+    :func:`robust_threshold` of the inliers' errors is an outlier and the rest inliers (rejected
+    ones may return), in rounds until the inlier set is :func:`settled` or :data:`MAX_ROUNDS`.
+
+    Returns:
+        The parameters ``(n,)``, the inliers ``(N,)`` they were fitted to, the Jacobians evaluated
+        and the rounds.
+    """
+    iterations = 0
+    every = np.arange(len(problem.observed))
+    for rounds in range(1, MAX_ROUNDS + 1):
+        rows = np.flatnonzero(inlier)
+        params, njev = minimise(problem.residual_fn(rows), problem.jacobian_fn(rows), params, huber,
+                                problem.num_frames)
+        iterations += njev
+        errors = np.linalg.norm(problem.predict(params, every) - problem.observed, axis=1)
+        limit = robust_threshold(errors[inlier], outlier_sigmas, problem.num_params)
+        new_inlier = errors <= limit
+        if settled(errors[new_inlier != inlier], limit, len(errors)) or rounds == MAX_ROUNDS:
+            break
+        inlier = new_inlier
+    return params, inlier, iterations, rounds
+
+
+def umeyama(source: np.ndarray, target: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
+    """Similarity ``(s, Q, b)`` minimising ``sum |s Q source_i + b - target_i|^2`` (Umeyama 1991)."""
+    mu_s, mu_t = source.mean(axis=0), target.mean(axis=0)
+    sc, tc = source - mu_s, target - mu_t
+    U, D, Vt = np.linalg.svd(tc.T @ sc / len(source))
+    E = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))])
+    Q = U @ E @ Vt
+    s = float(np.trace(np.diag(D) @ E) / np.mean(np.sum(sc**2, axis=1)))
+    return s, Q, mu_t - s * Q @ mu_s
+
+
+def gauge_fixed(problem: ParametricProblem, params: np.ndarray
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The intrinsics ``(9,)``, rotations ``(F, 3, 3)``, translations ``(F, 3)`` m and points
+    ``(Q, 3)`` m of ``params``, with free points in the gauge of :mod:`blurcalib.calib.sharp`: the
+    similarity (:func:`umeyama`) that best maps the points onto the nominal ones applied to points
+    and poses (``P -> s Q P + b``, ``R -> R Q^T``, ``t -> s t - R Q^T b``)."""
+    intr, rvecs, tvecs, pts = problem.unpack(params)
+    rotations = rodrigues_jacobian(rvecs)[0]
+    if problem.refine_points:
+        s, Q, b = umeyama(pts, problem.nominal)
+        pts = s * pts @ Q.T + b
+        rotations = rotations @ Q.T
+        tvecs = s * tvecs - rotations @ b
+    return intr, rotations, tvecs, pts

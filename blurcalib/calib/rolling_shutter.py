@@ -12,8 +12,8 @@ is seen from the frame's pose moved by the motion over ``c(v)``::
 
 with the frame's rolling twist ``alpha = (alpha_w rad, alpha_v m)`` (the camera's velocity times
 ``r``, per unit of ``y``) and its curvature ``beta`` (``r^2`` times the acceleration), ``s`` the
-blurry frame's free image shift. :func:`fit_rolling_frames` fits ``M_f, s_f, alpha_f, beta_f``
-per frame with the camera held (batched Gauss-Newton, ``(F, 20, 20)`` normal equations).
+blurry frame's free image shift. :func:`blurcalib.calib.rolling_frames.fit_rolling_frames` fits
+``M_f, s_f, alpha_f, beta_f`` per frame with the camera held.
 
 Readout ratio. A feature's image velocity is ``g_i = dp_i / dy = J_i (alpha + 2 y_i beta)``
 (px per unit ``y``), which is ``r`` times its image velocity per exposure time ``u_i``. The blur
@@ -45,30 +45,18 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
 
 import numpy as np
-import torch
 from scipy.stats import chi2
 
-from blurcalib.calib.bundle import robust_weights
-from blurcalib.calib.frame_block import rolling_frame_jacobian, rolling_points, rolling_prior_weights
 from blurcalib.calib.joint import GenericCalibration, JointSettings, calibrate_generic
+from blurcalib.calib.rolling_frames import RollingFit, fit_rolling_frames, rolling_displacement
 from blurcalib.calib.sharp import Calibration
-from blurcalib.calib.validation import Projector, generic_projector
-from blurcalib.camera.shutter import row_time
-from blurcalib.geometry.lie import exp_so3, orthonormal, skew
-from blurcalib.geometry.pose import Pose
+from blurcalib.calib.validation import generic_projector
 from blurcalib.io.results import BlockTable, FeatureTable
 from blurcalib.target.pattern import StarPattern
 
-__all__ = ["BlurVelocity", "RollingEvidence", "RollingFit", "RollingShutterResult", "RollingShutterSettings",
-           "blur_velocities", "calibrate_rolling_shutter", "estimate_ratio", "fit_rolling_frames",
-           "parse_rolling_shutter", "rolling_displacement", "rolling_evidence", "row_coordinate"]
-
-_PARAMS = 20  # omega (3), dt (3), s (2), alpha (6), beta (6)
-
-
-def row_coordinate(v: np.ndarray, height: int) -> np.ndarray:
-    """``y(v) = (v - (H - 1) / 2) / H``: the row ``v`` (px) as a share of the readout, ``(N,)``."""
-    return row_time(v, height, 1.0)
+__all__ = ["BlurVelocity", "RollingEvidence", "RollingShutterResult", "RollingShutterSettings",
+           "blur_velocities", "calibrate_rolling_shutter", "estimate_ratio", "parse_rolling_shutter",
+           "rolling_evidence"]
 
 
 def parse_rolling_shutter(text: str) -> str | float:
@@ -140,191 +128,6 @@ def blur_velocities(tables: Sequence[BlockTable]) -> BlurVelocity:
                         np.concatenate([t.feature_id for t in tables]) if tables else np.zeros(0, np.int64),
                         np.sqrt(12.0 * np.clip(major**2 - minor**2, 0.0, None)),
                         np.column_stack([np.cos(theta), np.sin(theta)]))
-
-
-@dataclass(eq=False)
-class RollingFit:
-    """Frames fitted with their rolling-shutter geometry, the camera held
-    (:func:`fit_rolling_frames`).
-
-    Attributes:
-        poses: ``(F,)`` poses at ``y = 0`` (target -> camera).
-        shifts: ``(F, 2)`` px.
-        theta: ``(F, 12)`` ``alpha (rad, m), beta (rad, m)`` per unit ``y`` and ``y^2``.
-        z: ``(F,)`` chi-square statistics of ``theta`` (12 degrees of freedom without a rolling
-            shutter); NaN where the frame's rolling parameters are held at 0.
-        sigma_px: the residuals' robust scale per coordinate.
-        residuals: ``(N, 2)`` px; NaN where the ray left the calibrated area.
-        correction: ``(N, 2)`` px, ``pi(rolling pose) - pi(rigid pose)``: what the rolling shutter
-            adds to each observation.
-        velocity: ``(N, 2)`` px per unit ``y``, ``g_i``.
-        velocity_jacobian: ``(N, 2, 12)`` ``d g_i / d theta``.
-        theta_cov: ``(F, 12, 12)`` covariance of ``theta`` (``sigma^2 H^-1``; NaN where held).
-    """
-
-    poses: list[Pose]
-    shifts: np.ndarray
-    theta: np.ndarray
-    z: np.ndarray
-    sigma_px: float
-    residuals: np.ndarray
-    correction: np.ndarray
-    velocity: np.ndarray
-    velocity_jacobian: np.ndarray
-    theta_cov: np.ndarray
-
-
-def fit_rolling_frames(projector: Projector, poses: Sequence[Pose], frame: np.ndarray, points: np.ndarray,
-                       observed: np.ndarray, shift_free: np.ndarray, rolling: np.ndarray, height: int, *,
-                       iterations: int = 30, huber_px: float = 1.0, shift_sigma_px: float = 20.0,
-                       twist_sigma: float = 0.3) -> RollingFit:
-    """Fit every frame's pose, free shift and (where ``rolling``) rolling twist and curvature
-    with the camera held (module docstring), Huber ``rho`` by iteratively reweighted
-    Levenberg-Marquardt (``lambda diag(H)`` per frame, /10 on success, x10 on failure). A frame
-    stops when its step falls below 1e-10 or no damping lowers its cost; the next iterations
-    project the other frames' observations only.
-
-    Args:
-        projector: the camera held (:func:`blurcalib.calib.validation.generic_projector`).
-        poses: ``(F,)`` initial poses; frame ``(N,)`` index; points ``(N, 3)`` m; observed
-            ``(N, 2)`` px (OpenCV).
-        shift_free, rolling: ``(F,)`` bool: frames with a free shift, and with rolling parameters.
-        height: sensor rows ``H`` (px).
-        huber_px, shift_sigma_px: as :class:`blurcalib.calib.bundle.BundleSettings`.
-        twist_sigma: a weak prior ``|theta / sigma_theta|^2`` on the rolling parameters,
-            ``sigma_theta`` this in rad and this times the frame's distance in m: it holds the
-            combinations of pose and rolling geometry that the frame cannot tell apart near 0
-            (the covariance and the test use the data alone).
-    """
-    kw = {"dtype": torch.float64}
-    F = len(poses)
-    fr = torch.as_tensor(np.asarray(frame, dtype=np.int64))
-    P = torch.as_tensor(np.asarray(points, dtype=np.float64))
-    p = torch.as_tensor(np.asarray(observed, dtype=np.float64))
-    y = torch.as_tensor(row_coordinate(np.asarray(observed)[:, 1], height))
-    free = np.zeros((F, _PARAMS), dtype=bool)
-    free[:, :6] = True
-    free[:, 6:8] = np.asarray(shift_free, dtype=bool)[:, None]
-    free[:, 8:] = np.asarray(rolling, dtype=bool)[:, None]
-    free_t = torch.as_tensor(free)
-    R = torch.as_tensor(np.stack([q.R for q in poses]), **kw)
-    t = torch.as_tensor(np.stack([q.t for q in poses]), **kw)
-    s = torch.zeros(F, 2, **kw)
-    theta = torch.zeros(F, 12, **kw)
-    shift_w = 1.0 / shift_sigma_px**2
-    theta_w = rolling_prior_weights(t, twist_sigma)
-
-    every = torch.arange(len(fr))
-
-    def evaluate(R, t, s, theta, rows, init):
-        """The state of the observations ``rows`` and the cost ``(F,)`` of their frames."""
-        f = fr[rows]
-        X, Ri, RP = rolling_points(R, t, theta, f, P[rows], y[rows])
-        u, J_p, inside = projector(X, init)
-        r = p[rows] - u - s[f]
-        e = torch.where(inside, r.norm(dim=-1), 0.0)
-        rho = torch.where(e <= huber_px, e * e, 2 * huber_px * e - huber_px**2)
-        cost = torch.zeros(F, **kw).index_add_(0, f, rho) + shift_w * (s * s).sum(-1) \
-            + (theta_w * theta * theta).sum(-1)
-        return [X, Ri, RP, u, J_p, inside, r], cost
-
-    state, cost = evaluate(R, t, s, theta, every, p.clone())  # projections start where observed
-    lam = torch.full((F,), 1e-4, **kw)
-    H_data = torch.zeros(F, _PARAMS, _PARAMS, **kw)
-    active = torch.ones(F, dtype=torch.bool)
-    for _ in range(iterations):
-        rows = every[active[fr]]
-        J, sel, w = _jacobian([v[rows] for v in state], y[rows], huber_px)
-        f = fr[rows][sel]
-        r = state[6][rows][sel]
-        H = torch.zeros(F, _PARAMS, _PARAMS, **kw).index_add_(0, f, J.transpose(1, 2) @ (w * J))
-        b = torch.zeros(F, _PARAMS, **kw).index_add_(0, f, (J.transpose(1, 2) @ (w * r[:, :, None]))[..., 0])
-        H[:, 6, 6] += shift_w
-        H[:, 7, 7] += shift_w
-        b[:, 6:8] -= shift_w * s
-        H = torch.where(free_t[:, :, None] & free_t[:, None, :], H, 0.0)
-        H = H + torch.diag_embed((~free_t).to(H.dtype))
-        H_data = torch.where(active[:, None, None], H, H_data)
-        H[:, 8:, 8:] += torch.diag_embed(theta_w)
-        b[:, 8:] -= theta_w * theta
-        b = torch.where(free_t & active[:, None], b, 0.0)
-        diag = torch.diag_embed(torch.diagonal(H, dim1=1, dim2=2).clamp_min(1e-12))
-        for _try in range(8):
-            dp = torch.linalg.solve(H + lam[:, None, None] * diag, b)
-            trial = (exp_so3(dp[:, :3]) @ R, t + dp[:, 3:6], s + dp[:, 6:8], theta + dp[:, 8:])
-            trial_state, trial_cost = evaluate(*trial, rows, state[3][rows])
-            worse = active & (trial_cost > cost * (1 + 1e-12))
-            lam = torch.where(worse, lam * 10.0, (lam / 10.0).clamp_min(1e-9))
-            if not bool(worse.any()):
-                break
-        better = active & ~worse
-        R = torch.where(better[:, None, None], trial[0], R)
-        t = torch.where(better[:, None], trial[1], t)
-        s = torch.where(better[:, None], trial[2], s)
-        theta = torch.where(better[:, None], trial[3], theta)
-        keep = better[fr[rows]]
-        for k, v in enumerate(trial_state):
-            state[k][rows[keep]] = v[keep]
-        cost = torch.where(better, trial_cost, cost)
-        active &= better & ((dp * better[:, None]).abs().amax(dim=1) >= 1e-10)
-        if not bool(active.any()):
-            break
-    return _finish(projector, state, R, t, s, theta, free, fr, y, p, huber_px, H_data)
-
-
-def _jacobian(state, y: torch.Tensor, huber_px: float
-              ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """``(N', 2, 20)`` Jacobian of the projected observations inside the area, their indices and
-    Huber weights ``(N', 1, 1)``."""
-    X, Ri, RP, _, J_p, inside, r = state
-    sel = torch.nonzero(inside).squeeze(1)
-    J = rolling_frame_jacobian(J_p[sel], Ri[sel], RP[sel], X[sel], y[sel])
-    return J, sel, robust_weights(r[sel], huber_px)[:, None, None]
-
-
-def _finish(projector: Projector, state, R, t, s, theta, free: np.ndarray, fr: torch.Tensor,
-            y: torch.Tensor, p: torch.Tensor, huber_px: float, H: torch.Tensor) -> RollingFit:
-    X, _, RP, u, J_p, inside, r = state
-    res = torch.where(inside[:, None], r, torch.nan).numpy()
-    ok = np.all(np.isfinite(res), axis=1)
-    sigma = float(1.4826 * np.median(np.abs(res[ok]))) if ok.any() else math.nan
-    rigid_X = RP + t[fr]
-    u_rigid, _, _ = projector(rigid_X, u)
-    correction = (u - u_rigid).numpy()
-    twist = torch.cat([-J_p @ skew(X), J_p], dim=2)
-    th = theta[fr]
-    G = torch.cat([twist, 2 * y[:, None, None] * twist], dim=2)
-    velocity = (G @ th[:, :, None])[..., 0].numpy()
-    z = np.full(len(free), math.nan)
-    Hn = H.numpy()
-    covs = np.full((len(free), 12, 12), math.nan)
-    for f in np.flatnonzero(free[:, 8:].all(axis=1)):
-        covs[f] = np.linalg.pinv(Hn[f])[8:, 8:] * sigma**2
-        th_f = theta[f].numpy()
-        z[f] = float(th_f @ np.linalg.pinv(covs[f]) @ th_f)
-    Rn, tn = R.numpy(), t.numpy()
-    return RollingFit([Pose(orthonormal(Rn[i]), tn[i]) for i in range(len(Rn))], s.numpy(), theta.numpy(),
-                      z, sigma, res, np.where(ok[:, None], correction, 0.0),
-                      np.where(ok[:, None], velocity, 0.0), np.where(ok[:, None, None], G.numpy(), 0.0),
-                      covs)
-
-
-def rolling_displacement(projector: Projector, poses: Sequence[Pose], theta: np.ndarray, frame: np.ndarray,
-                         points: np.ndarray, observed: np.ndarray, height: int) -> np.ndarray:
-    """``(N, 2)`` px: ``pi(rolling pose) - pi(rigid pose)`` of each observation under ``projector``
-    with the frames' poses ``(F,)`` and rolling parameters ``theta (F, 12)`` (NaN where either
-    projection leaves the area)."""
-    kw = {"dtype": torch.float64}
-    fr = torch.as_tensor(np.asarray(frame, dtype=np.int64))
-    P = torch.as_tensor(np.asarray(points, dtype=np.float64))
-    y = torch.as_tensor(row_coordinate(np.asarray(observed)[:, 1], height))
-    R = torch.as_tensor(np.stack([q.R for q in poses]), **kw)
-    t = torch.as_tensor(np.stack([q.t for q in poses]), **kw)
-    X, _, RP = rolling_points(R, t, torch.as_tensor(theta, **kw), fr, P, y)
-    u, _, inside = projector(X, None)
-    u_rigid, _, inside_rigid = projector(RP + t[fr], u)
-    ok = (inside & inside_rigid)[:, None]
-    return torch.where(ok, u - u_rigid, torch.nan).numpy()
 
 
 def estimate_ratio(fit: RollingFit, frame: np.ndarray, blur: np.ndarray, direction: np.ndarray

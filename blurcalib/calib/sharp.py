@@ -45,7 +45,8 @@ Method (:func:`calibrate_sharp`):
    ``p`` parameters' absorption of the noise of ``n`` inliers). Observations above it (and
    above 0.01 px) are outliers, the rest inliers (rejected ones may return), and the fit is
    repeated until the inlier set is stable: no observation changes side, or at most 1e-4 of
-   them do, each within 1.5 x of the threshold (:data:`SETTLED_SHARE`).
+   them do, each within 1.5 x of the threshold
+   (:func:`blurcalib.calib.parametric_adjustment.adjust`).
 
 Residuals are reported as ``observed - predicted`` (the paper's ``p - pi_d(M, P)``) in pixels
 (OpenCV pixel-centre convention).
@@ -66,13 +67,12 @@ import cv2
 import numpy as np
 from numpy.typing import ArrayLike
 
-from blurcalib.calib.parametric_adjustment import ParametricProblem, minimise
+from blurcalib.calib.parametric_adjustment import ParametricProblem, adjust, gauge_fixed, robust_threshold
 from blurcalib.camera.parametric import (
     BrownConrady,
     CameraFileError,
     load_camera_json,
     project_poses,
-    rodrigues_jacobian,
     save_camera_json,
     save_camera_yaml,
 )
@@ -103,22 +103,6 @@ POINTS_FILE = "points.csv"
 RESIDUALS_FILE = "residuals.csv"
 CALIBRATION_FILE = "calibration.json"
 
-_MEDIAN_TO_SIGMA = 1.0 / math.sqrt(2.0 * math.log(2.0))
-"""``sigma = median(|e|) / sqrt(2 ln 2)`` for a 2-D isotropic Gaussian error ``e``."""
-_MIN_OUTLIER_PX = 0.01
-"""The outlier threshold never drops below this (px), so noise-free data keeps its points."""
-_MAX_ROUNDS = 10
-"""Outlier rounds at most (each a :func:`blurcalib.calib.parametric_adjustment.minimise` of at most
-100 Jacobians)."""
-SETTLED_SHARE = 1e-4
-"""The outlier rounds also end when at most this share of the observations change side, each
-with an error within :data:`SETTLED_MARGIN` of the threshold: flips at the margin, which move
-the fit far less than its noise does. Below 10,000 observations the inlier set must be stable.
-Measured on ``scripts/bench_scale.py`` (0.02 px noise): 2,000 frames' 164,177 sharp observations
-changed side by 44, 13, 4, 2 and 1 over 5 rounds, 1,000 frames' by 8 and 1 over 3."""
-SETTLED_MARGIN = 1.5
-"""How near the threshold (a factor either way) an observation that changes side must lie for
-:data:`SETTLED_SHARE` to end the rounds."""
 _POINT_COLUMNS = ("feature_id", "X", "Y", "Z", "refined")
 _RESIDUAL_COLUMNS = ("frame", "feature_id", "x", "y", "dx", "dy", "inlier")
 
@@ -233,38 +217,6 @@ class Calibration:
         }
 
 
-def _robust_threshold(errors: np.ndarray, sigmas: float, num_params: int) -> float:
-    """Outlier threshold ``max(sigmas * sigma, 0.01 px)`` for inlier error norms ``errors (n,)``.
-
-    ``sigma = median(errors) / sqrt(2 ln 2) * sqrt(2 n / (2 n - p))``: the robust standard
-    deviation per axis, corrected for the ``p`` fitted parameters that absorb part of the noise.
-    """
-    dof = max(2 * errors.size - num_params, 1)
-    sigma = float(np.median(errors)) * _MEDIAN_TO_SIGMA * math.sqrt(2 * errors.size / dof)
-    return max(sigmas * sigma, _MIN_OUTLIER_PX)
-
-
-def _settled(changed: np.ndarray, limit: float, count: int) -> bool:
-    """Whether the outlier rounds end: the error norms ``changed (k,)`` px of the observations that
-    would change side at threshold ``limit`` px are none, or at most :data:`SETTLED_SHARE` of the
-    ``count`` observations, each within :data:`SETTLED_MARGIN` of ``limit``."""
-    if changed.size == 0:
-        return True
-    marginal = np.all((changed >= limit / SETTLED_MARGIN) & (changed <= limit * SETTLED_MARGIN))
-    return bool(changed.size <= SETTLED_SHARE * count and marginal)
-
-
-def _umeyama(source: np.ndarray, target: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
-    """Similarity ``(s, Q, b)`` minimising ``sum |s Q source_i + b - target_i|^2`` (Umeyama 1991)."""
-    mu_s, mu_t = source.mean(axis=0), target.mean(axis=0)
-    sc, tc = source - mu_s, target - mu_t
-    U, D, Vt = np.linalg.svd(tc.T @ sc / len(source))
-    E = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))])
-    Q = U @ E @ Vt
-    s = float(np.trace(np.diag(D) @ E) / np.mean(np.sum(sc**2, axis=1)))
-    return s, Q, mu_t - s * Q @ mu_s
-
-
 # ------------------------------------------------------------------------------ initialisation
 def _as_table(observations: FeatureTable | Sequence[FeatureObservation]) -> FeatureTable:
     if isinstance(observations, FeatureTable):
@@ -302,7 +254,7 @@ def _initialise(obj: list[np.ndarray], img: list[np.ndarray], image_size: tuple[
                                ) from exc
     errors = [np.linalg.norm(project_poses(intr, r, t, o).pixels - i, axis=1)
               for o, i, r, t in zip(obj, img, rvecs, tvecs, strict=True)]
-    limit = _robust_threshold(np.concatenate(errors), outlier_sigmas, 9 + 6 * len(obj))
+    limit = robust_threshold(np.concatenate(errors), outlier_sigmas, 9 + 6 * len(obj))
     keep = [e <= limit for e in errors]
     if not all(k.all() for k in keep) and all(k.sum() >= 6 for k in keep):
         intr, rvecs, tvecs = run([o[k] for o, k in zip(obj, keep, strict=True)],
@@ -358,6 +310,39 @@ def calibrate_pinhole(points: Sequence[np.ndarray], pixels: Sequence[np.ndarray]
     return camera, [Pose.from_rvec_tvec(r.ravel(), t.ravel()) for r, t in zip(rvecs, tvecs, strict=True)]
 
 
+def _usable_frames(table: FeatureTable, pattern: StarPattern, min_frames: int, min_features: int
+                  ) -> tuple[FeatureTable, list[str], dict[str, int], np.ndarray]:
+    """:func:`calibrate_sharp`'s observations: the usable rows (:func:`_usable_rows`) of the frames
+    with at least ``min_features`` of them, sorted by frame and feature id. Returns them, the
+    frames' names, the observation count of each frame left out, and each row's frame ``(N,)``.
+
+    Raises:
+        CalibrationError: fewer than ``min_frames`` usable frames.
+        ValueError: a feature id outside the pattern or a repeated ``(frame, feature_id)``.
+    """
+    table = table.select(_usable_rows(table, pattern.num_features))
+    names, counts = np.unique(table.frame, return_counts=True)
+    usable = [str(n) for n, c in zip(names, counts, strict=True) if c >= min_features]
+    skipped = {str(n): int(c) for n, c in zip(names, counts, strict=True) if c < min_features}
+    if len(usable) < min_frames:
+        listed = ", ".join(f"{n} ({c})" for n, c in list(skipped.items())[:10])
+        more = f" and {len(skipped) - 10} more" if len(skipped) > 10 else ""
+        raise CalibrationError(
+            f"calibration needs at least {min_frames} sharp frames with >= {min_features} features each; "
+            f"only {len(usable)} of {len(names)} frame(s) are usable"
+            + (f"; too few features in: {listed}{more}" if skipped else ""))
+    table = table.select(np.isin(table.frame, usable))
+    frame_idx = np.searchsorted(np.array(usable), table.frame)
+    order = np.lexsort((table.feature_id, frame_idx))
+    table, frame_idx = table.select(order), frame_idx[order]
+    key = frame_idx * pattern.num_features + table.feature_id
+    if np.any(np.diff(key) == 0):
+        dup = int(np.flatnonzero(np.diff(key) == 0)[0])
+        raise ValueError(f"feature {int(table.feature_id[dup])} is observed twice in frame "
+                         f"{table.frame[dup]!r}")
+    return table, usable, skipped, frame_idx
+
+
 def calibrate_sharp(observations: FeatureTable | Sequence[FeatureObservation], pattern: StarPattern,
                     image_size: tuple[int, int], refine_points: bool = True, loss: str = "huber",
                     huber_px: float = 1.0, min_frames: int = 5, *, min_features: int = 20,
@@ -404,28 +389,8 @@ def calibrate_sharp(observations: FeatureTable | Sequence[FeatureObservation], p
     width, height = (int(v) for v in image_size)
     if width <= 0 or height <= 0:
         raise ValueError(f"image_size must be (width, height) > 0 px, got {tuple(image_size)}")
-    table = _as_table(observations)
-    table = table.select(_usable_rows(table, pattern.num_features))
-    names, counts = np.unique(table.frame, return_counts=True)
-    usable = [str(n) for n, c in zip(names, counts, strict=True) if c >= min_features]
-    skipped = {str(n): int(c) for n, c in zip(names, counts, strict=True) if c < min_features}
-    if len(usable) < min_frames:
-        listed = ", ".join(f"{n} ({c})" for n, c in list(skipped.items())[:10])
-        more = f" and {len(skipped) - 10} more" if len(skipped) > 10 else ""
-        raise CalibrationError(
-            f"calibration needs at least {min_frames} sharp frames with >= {min_features} features each; "
-            f"only {len(usable)} of {len(names)} frame(s) are usable"
-            + (f"; too few features in: {listed}{more}" if skipped else ""))
-    table = table.select(np.isin(table.frame, usable))
-    frame_idx = np.searchsorted(np.array(usable), table.frame)
-    order = np.lexsort((table.feature_id, frame_idx))
-    table, frame_idx = table.select(order), frame_idx[order]
-    key = frame_idx * pattern.num_features + table.feature_id
-    if np.any(np.diff(key) == 0):
-        dup = int(np.flatnonzero(np.diff(key) == 0)[0])
-        raise ValueError(f"feature {int(table.feature_id[dup])} is observed twice in frame "
-                         f"{table.frame[dup]!r}")
-
+    table, usable, skipped, frame_idx = _usable_frames(_as_table(observations), pattern, min_frames,
+                                                        min_features)
     nominal_all = pattern.points_3d()
     observed = np.column_stack([table.x, table.y])
     obs_points = nominal_all[table.feature_id]
@@ -440,26 +405,9 @@ def calibrate_sharp(observations: FeatureTable | Sequence[FeatureObservation], p
                        refine_points=refine_points, point_sigma=point_sigma_m)
     params = np.concatenate([intr, np.column_stack([rvecs, tvecs]).ravel()]
                             + ([problem.nominal.ravel()] if refine_points else []))
-    iterations = 0
-    for rounds in range(1, _MAX_ROUNDS + 1):
-        rows = np.flatnonzero(inlier)
-        params, njev = minimise(problem.residual_fn(rows), problem.jacobian_fn(rows), params,
-                                 huber_px if loss == "huber" else math.inf, problem.num_frames)
-        iterations += njev
-        errors = np.linalg.norm(problem.predict(params, np.arange(len(table))) - observed, axis=1)
-        limit = _robust_threshold(errors[inlier], outlier_sigmas, problem.num_params)
-        new_inlier = errors <= limit
-        if _settled(errors[new_inlier != inlier], limit, len(errors)) or rounds == _MAX_ROUNDS:
-            break
-        inlier = new_inlier
-
-    intr, rvecs, tvecs, pts = problem.unpack(params)
-    rotations = rodrigues_jacobian(rvecs)[0]
-    if refine_points:
-        s, Q, b = _umeyama(pts, problem.nominal)
-        pts = s * pts @ Q.T + b
-        rotations = rotations @ Q.T
-        tvecs = s * tvecs - rotations @ b
+    huber = huber_px if loss == "huber" else math.inf
+    params, inlier, iterations, rounds = adjust(problem, params, inlier, huber, outlier_sigmas)
+    intr, rotations, tvecs, pts = gauge_fixed(problem, params)
     points = np.full((pattern.num_features, 3), np.nan)
     points[point_ids] = pts
     refined = np.zeros(pattern.num_features, dtype=bool)

@@ -44,7 +44,8 @@ import cv2
 import numpy as np
 import torch
 
-from blurcalib.calib.bundle import BundleSettings, robust_weights
+from blurcalib.calib.bundle import BundleSettings
+from blurcalib.calib.bundle_problem import robust_weights
 from blurcalib.calib.frame_block import frame_jacobian
 from blurcalib.calib.joint import GenericCalibration
 from blurcalib.calib.normal_equations import leave_out_models

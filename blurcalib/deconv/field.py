@@ -24,6 +24,7 @@ from blurcalib.deconv.problem import BlockProblem
 from blurcalib.deconv.settings import DeconvSettings
 from blurcalib.deconv.windows import block_windows
 from blurcalib.io.results import BlockStatus
+from blurcalib.optim.lm import Damping, LmRule, SingleProblem, Stopping, run_single
 from blurcalib.psf.path import NUM_THETA, PathField, path_kernels
 
 __all__ = ["FieldFit", "FieldSettings", "fit_path_field"]
@@ -248,6 +249,122 @@ def _fit_window(start: PathField, centres: np.ndarray, largest: int) -> int:
     return min(K, largest - 1 + largest % 2)
 
 
+FIELD_DAMPING = Damping(start=1e-3, shrink=3.0, grow=4.0, ceiling=4e5)
+"""The damping ``mu`` of :func:`fit_path_field` (``N + mu diag(N)``): 1e-3 at the start of each
+phase, /3 after an accepted step, x4 after a rejected one; a step rejected at ``mu > 1e5`` ends the
+phase (no trial is made above ``4e5``)."""
+
+
+@dataclass
+class _FieldPoint:
+    """A point of :func:`fit_path_field`: the blocks' ``H_loc (b, 3, 3)``, the field's ``coeffs
+    (P, 4)`` and ``log_sigma (1,)``, tied, ``H_F (3, 3)`` (else None), the evaluation ``cur``
+    (:meth:`_FieldProblem.evaluate`) and the block weights ``w (b,)`` of the objective."""
+
+    H_loc: torch.Tensor
+    coeffs: torch.Tensor
+    log_sigma: torch.Tensor
+    H_F: torch.Tensor | None
+    cur: dict[str, torch.Tensor]
+    w: torch.Tensor
+
+
+class _FieldLm(SingleProblem[_FieldPoint, tuple[torch.Tensor, int], tuple[torch.Tensor, torch.Tensor]]):
+    """The least-squares problem of :func:`fit_path_field` (:class:`blurcalib.optim.lm.SingleProblem`):
+    the weighted objective ``sum_i w_i sum_x r_i(x)^2``; steps from the Schur complement on the
+    blocks' own parameters (:func:`_schur_step`). While :attr:`held`, the blocks' homographies
+    stay at their starts."""
+
+    def __init__(self, fp: _FieldProblem, fs: FieldSettings, P: int, tie: tuple[torch.Tensor, ...] | None,
+                 held: bool) -> None:
+        self.fp, self.fs, self.P, self.held = fp, fs, P, held
+        self.tie = tie  # (to_local (b, 3, 3), A (b, 3, 3), the map (b, 8, 8)) of a tied fit
+        self.nh = 8 if tie is not None else 0  # shared homography parameters
+        self.npix = fp.mask.reshape(len(fp.rows), -1).sum(dim=1).double().clamp_min(1)
+
+    def block_loss(self, r: torch.Tensor) -> torch.Tensor:
+        """``(b,)`` mean squared residual of each block (grey levels^2)."""
+        return (r.double() ** 2).sum(dim=1) / self.npix
+
+    def weighted(self, H_loc: torch.Tensor, coeffs: torch.Tensor, log_sigma: torch.Tensor,
+                 H_F: torch.Tensor | None, cur: dict[str, torch.Tensor]) -> tuple[_FieldPoint, float]:
+        """The point of evaluation ``cur``, re-weighted (:attr:`FieldSettings.outlier_loss`), and its
+        objective."""
+        loss = self.block_loss(cur["r"])
+        limit = self.fs.outlier_loss * loss.median()
+        w = torch.where(loss > limit, limit / loss, torch.ones_like(loss))
+        obj = float((w * self.block_loss(cur["r"]) * self.npix).sum())
+        return _FieldPoint(H_loc, coeffs, log_sigma, H_F, cur, w), obj
+
+    def jacobians(self, cur: dict[str, torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]:
+        """``(Jl (b, 14 or 6, n), Js (b, nh + 4 P + 1, n))``: the blocks' own and the shared
+        ones (each block's ``H`` is its own unless tied or held: while held, ``cur`` has no
+        Jacobian of ``H``)."""
+        if self.tie is not None:
+            J_F = torch.einsum("bin,bij->bjn", cur["Jl"][:, :8], self.tie[2].to(cur["Jl"].dtype))
+            return cur["Jl"][:, 8:], torch.cat([J_F, cur["Js"]], dim=1)
+        return cur["Jl"], cur["Js"]
+
+    def released(self, x: _FieldPoint) -> _FieldPoint:
+        """``x`` with the Jacobians of the blocks' homographies, once they are no longer held."""
+        self.held = False
+        cur = self.fp.evaluate(x.H_loc, x.cur["bright"], x.coeffs, x.log_sigma, with_jac=True)
+        return replace(x, cur=cur)
+
+    def linearise(self, x: _FieldPoint) -> tuple[torch.Tensor, int]:
+        return _normal_equations(*self.jacobians(x.cur), x.cur["r"], x.w)
+
+    def solve(self, system: tuple[torch.Tensor, int], lam: float) -> tuple[torch.Tensor, torch.Tensor]:
+        return _schur_step(*system, lam)
+
+    def trial(self, x: _FieldPoint, step: tuple[torch.Tensor, torch.Tensor]) -> tuple[_FieldPoint, float]:
+        ds, dl = step
+        nh, P = self.nh, self.P
+        H_F_try = None
+        if self.tie is not None and x.H_F is not None:
+            to_local, A, _ = self.tie
+            H_F_try = update_homography(x.H_F[None], ds[None, :8])[0]
+            H_try = to_local @ H_F_try[None] @ A
+            H_try = H_try / H_try[:, 2:, 2:]
+        else:
+            H_try = x.H_loc if self.held else update_homography(x.H_loc, dl[:, :8])
+        coeffs_try = x.coeffs + ds[nh:nh + 4 * P].reshape(P, 4)
+        sigma_try = (x.log_sigma + ds[nh + 4 * P:]).clamp_min(math.log(self.fs.min_sigma_px))
+        bright_try = x.cur["bright"] + dl[:, -6:]
+        trial = self.fp.evaluate(H_try, bright_try, coeffs_try, sigma_try, with_jac=False)
+        obj_try = float((x.w * self.block_loss(trial["r"]) * self.npix).sum())
+        return _FieldPoint(H_try, coeffs_try, sigma_try, H_F_try, trial, x.w), obj_try
+
+    def accept(self, x: _FieldPoint, moved: _FieldPoint, step: tuple[torch.Tensor, torch.Tensor], cost: float
+               ) -> tuple[_FieldPoint, float, bool]:
+        """The Jacobians only where a step is taken; then re-weighted (IRLS; the objective follows)."""
+        cur = self.fp.evaluate(moved.H_loc, moved.cur["bright"], moved.coeffs, moved.log_sigma, with_jac=True,
+                               with_h=not self.held)
+        point, obj = self.weighted(moved.H_loc, moved.coeffs, moved.log_sigma, moved.H_F, cur)
+        return point, obj, False
+
+
+def _field_phase(lm: _FieldLm, x: _FieldPoint, obj: float, trials: int, history: list[float]
+                 ) -> tuple[_FieldPoint, float, int]:
+    """One phase of :func:`fit_path_field`: at most ``trials`` steps from ``x`` of objective ``obj``
+    with a fresh damping; appends the objective after each accepted step to ``history``. Returns
+    the point, its objective and the steps taken."""
+    run = run_single(lm, x, obj, LmRule(FIELD_DAMPING, Stopping(max_trials=trials, rtol=lm.fs.tolerance)))
+    history += [float(step.cost[0]) for step in run.log if step.moved[0]]
+    return run.x, run.cost, run.trials
+
+
+def _tied(fp: _FieldProblem, H0: np.ndarray, features: np.ndarray, H_F: np.ndarray
+          ) -> tuple[torch.Tensor, tuple[torch.Tensor, ...]]:
+    """A tied fit's ``H_F (3, 3)`` and the map of its updates to the blocks' (:class:`_FieldLm`'s
+    ``tie``): the blocks in latent-local px are ``T(-origin) H_F A_b``."""
+    dev = fp.H_loc.device
+    H_F_t = torch.as_tensor(H_F / H_F[2, 2], dtype=torch.float64, device=dev)
+    A = torch.as_tensor(_feature_blocks(features[fp.rows]), dtype=torch.float64, device=dev)
+    to_local = fp.H_loc @ torch.linalg.inv(torch.as_tensor(H0[fp.rows], dtype=torch.float64, device=dev))
+    return H_F_t, (to_local, A, torch.as_tensor(_tied_map(_feature_blocks(features[fp.rows])), device=dev))
+
+
 @denormals_flushed
 def fit_path_field(image: np.ndarray, H0: np.ndarray, num_segments: int, start: PathField,
                    deconv: DeconvSettings | None = None, settings: FieldSettings | None = None,
@@ -259,10 +376,14 @@ def fit_path_field(image: np.ndarray, H0: np.ndarray, num_segments: int, start: 
 
     with ``k`` the path PSF ``eq:path_psf`` at the block's star centre ``x_i`` (from the start),
     ``A_i, B_i`` affine brightness and ``w_i`` block weights (:attr:`FieldSettings.outlier_loss`).
-    Levenberg-Marquardt on all parameters; each step solves the shared ``4 P + 1`` after
-    eliminating every block's 14 (Schur complement, ``(b, 14, 14)`` batched solves); a trial
-    point's residuals come first, its Jacobians only once it is accepted (a rejected step
-    re-solves the normal equations it had, more damped).
+    Levenberg-Marquardt on all parameters (:func:`blurcalib.optim.lm.run_single`,
+    :data:`FIELD_DAMPING`); each step solves the shared ``4 P + 1`` after eliminating every
+    block's 14 (Schur complement, ``(b, 14, 14)`` batched solves); a trial point's residuals come
+    first, its Jacobians only once it is accepted (a rejected step re-solves the normal equations
+    it had, more damped). The first phase (at most :attr:`FieldSettings.hold_steps` steps, not
+    when tied) holds the blocks' homographies; the second, with a fresh damping, frees them. A
+    phase ends when a step lowers the objective by less than :attr:`FieldSettings.tolerance` of it
+    or no damping up to the ceiling lowers it.
 
     *Tied* (``features`` given): the blocks are those of one feature homography, ``H_i = H_F
     B(f_i)`` (:func:`blurcalib.growth.seed.block_homography`), and ``H_F``'s 8 parameters are shared
@@ -296,79 +417,23 @@ def fit_path_field(image: np.ndarray, H0: np.ndarray, num_segments: int, start: 
     K = _fit_window(start, centres, fs.largest_kernel)
     s = replace(deconv or DeconvSettings(), loss_extent=fs.loss_extent)
     fp = _FieldProblem(image, H0, num_segments, K, s, pixel_mask, start.basis(centres))
-    b = len(fp.rows)
-    if b == 0 or (features is not None and b < 4):
+    if len(fp.rows) == 0 or (features is not None and len(fp.rows) < 4):
         raise ValueError("too few blocks of the path field's fit lie inside the image")
     dev = fp.H_loc.device
-    P = len(start.coeffs)
     coeffs = torch.as_tensor(start.coeffs, dtype=torch.float64, device=dev)
     log_sigma = torch.tensor([start.log_sigma], dtype=torch.float64, device=dev)
-    H_loc = fp.H_loc
-    if features is not None:  # the blocks in latent-local px: T(-origin) H_F A_b
-        H_F = torch.as_tensor(H_F / H_F[2, 2], dtype=torch.float64, device=dev)
-        A = torch.as_tensor(_feature_blocks(features[fp.rows]), dtype=torch.float64, device=dev)
-        to_local = H_loc @ torch.linalg.inv(torch.as_tensor(H0[fp.rows], dtype=torch.float64, device=dev))
-        tie = torch.as_tensor(_tied_map(_feature_blocks(features[fp.rows])), device=dev)
-    nh = 8 if features is not None else 0  # shared homography parameters
-    hold = 0 if features is not None else fs.hold_steps  # steps left with the blocks' H held
-    cur = fp.evaluate(H_loc, None, coeffs, log_sigma, with_jac=True, with_h=not hold)
-    npix = fp.mask.reshape(b, -1).sum(dim=1).double().clamp_min(1)
-
-    def block_loss(r: torch.Tensor) -> torch.Tensor:
-        return (r.double() ** 2).sum(dim=1) / npix
-
-    def weights(loss: torch.Tensor) -> torch.Tensor:
-        limit = fs.outlier_loss * loss.median()
-        return torch.where(loss > limit, limit / loss, torch.ones_like(loss))
-
-    def jacobians(cur: dict[str, torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]:
-        """``(Jl (b, 14 or 6, n), Js (b, nh + 4 P + 1, n))``: the blocks' own and the shared
-        ones (each block's ``H`` is its own unless tied or held: while held, ``cur`` has no
-        Jacobian of ``H``)."""
-        if nh:
-            J_F = torch.einsum("bin,bij->bjn", cur["Jl"][:, :8], tie.to(cur["Jl"].dtype))
-            return cur["Jl"][:, 8:], torch.cat([J_F, cur["Js"]], dim=1)
-        return cur["Jl"], cur["Js"]
-
-    w = weights(block_loss(cur["r"]))
-    obj = float((w * block_loss(cur["r"]) * npix).sum())
-    history, mu, steps = [obj], 1e-3, 0
-    normal = None  # of the current point, kept through rejected steps
-    while steps < fs.iterations:
-        steps += 1
-        if not hold and cur["Jl"].shape[1] < 14:  # the hold has ended: the Jacobian of H too
-            cur, normal = fp.evaluate(H_loc, cur["bright"], coeffs, log_sigma, with_jac=True), None
-        if normal is None:
-            normal = _normal_equations(*jacobians(cur), cur["r"], w)
-        ds, dl = _schur_step(*normal, mu)
-        if nh:
-            H_F_try = update_homography(H_F[None], ds[None, :8])[0]
-            H_try = to_local @ H_F_try[None] @ A
-            H_try = H_try / H_try[:, 2:, 2:]
-        else:
-            H_try = H_loc if hold else update_homography(H_loc, dl[:, :8])
-        coeffs_try = coeffs + ds[nh:nh + 4 * P].reshape(P, 4)
-        sigma_try = (log_sigma + ds[nh + 4 * P:]).clamp_min(math.log(fs.min_sigma_px))
-        bright_try = cur["bright"] + dl[:, -6:]
-        trial = fp.evaluate(H_try, bright_try, coeffs_try, sigma_try, with_jac=False)
-        obj_try = float((w * block_loss(trial["r"]) * npix).sum())
-        accepted = math.isfinite(obj_try) and obj_try < obj
-        converged = (not accepted and mu > 1e5) or (accepted and (obj - obj_try) < fs.tolerance * obj)
-        if accepted:  # the Jacobians only where a step is taken
-            cur = fp.evaluate(H_try, bright_try, coeffs_try, sigma_try, with_jac=True, with_h=not hold)
-            H_loc, coeffs, log_sigma, normal = H_try, coeffs_try, sigma_try, None
-            if nh:
-                H_F = H_F_try
-            mu /= 3.0
-            w = weights(block_loss(cur["r"]))  # re-weighted (IRLS); the objective follows
-            obj = float((w * block_loss(cur["r"]) * npix).sum())
-            history.append(obj)
-        else:
-            mu *= 4.0
-        if hold:  # the held phase ends when it has converged or after hold_steps
-            hold = 0 if converged else hold - 1
-            mu = 1e-3 if not hold else mu
-        elif converged:
-            break
-    field = PathField(coeffs.cpu().numpy(), float(log_sigma), start.image_size)
-    return _field_fit(fp, H0, H_loc, block_loss(cur["r"]), w, field, K, steps, history)
+    H_F_t, tie = _tied(fp, H0, features, H_F) if features is not None else (None, None)
+    hold = 0 if features is not None else fs.hold_steps  # steps with the blocks' H held
+    lm = _FieldLm(fp, fs, len(start.coeffs), tie, held=hold > 0)
+    cur = fp.evaluate(fp.H_loc, None, coeffs, log_sigma, with_jac=True, with_h=not hold)
+    x, obj = lm.weighted(fp.H_loc, coeffs, log_sigma, H_F_t, cur)
+    history, steps = [obj], 0
+    if hold:
+        x, obj, steps = _field_phase(lm, x, obj, min(hold, fs.iterations), history)
+        if steps < fs.iterations:
+            x = lm.released(x)
+    if steps < fs.iterations:
+        x, obj, more = _field_phase(lm, x, obj, fs.iterations - steps, history)
+        steps += more
+    field = PathField(x.coeffs.cpu().numpy(), float(x.log_sigma), start.image_size)
+    return _field_fit(fp, H0, x.H_loc, lm.block_loss(x.cur["r"]), x.w, field, K, steps, history)

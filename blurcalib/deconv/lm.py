@@ -1,4 +1,4 @@
-"""The Levenberg-Marquardt loop of the block solver on ``(H, alpha)``, the kernel projected out."""
+"""The Levenberg-Marquardt fit of the block solver on ``(H, alpha)``, the kernel projected out."""
 
 from __future__ import annotations
 
@@ -8,6 +8,11 @@ import torch
 
 from blurcalib.deconv.latent import update_homography
 from blurcalib.deconv.problem import BlockProblem, Design, KernelSolve
+from blurcalib.optim.lm import Damping, LmRule, Stopping, run_batch
+
+DAMPING = Damping(start=1e-3, shrink=3.0, grow=4.0)
+"""Each block's damping ``mu`` of ``N + mu diag(N)``: 1e-3, /3 after an accepted step, x4 after a
+rejected one."""
 
 
 @dataclass
@@ -43,58 +48,77 @@ evaluates every Jacobian, at up to 12 % more loss after 6 steps; with it, within
 
 def lm_stage(prob: BlockProblem, H_loc: torch.Tensor, alpha: torch.Tensor, des: Design, steps: int
              ) -> LmStage:
-    """Levenberg-Marquardt on ``(H, alpha)`` with ``(k~, b)`` projected out (variable projection).
+    """Levenberg-Marquardt on ``(H, alpha)`` with ``(k~, b)`` projected out (variable projection),
+    by :func:`blurcalib.optim.lm.run_batch` with a damping per block (:data:`DAMPING`).
 
     Each step costs one kernel solve (:meth:`BlockProblem.evaluate`); a step that does not lower
     the objective is undone and retried from the best point with a larger damping. A block stops
     once its step's predicted decrease ``delta^T (2 g - N delta)`` is below
     :attr:`DeconvSettings.stop_decrease` times its residual variance ``sse / n`` (the step is a
-    small fraction of the fit's own standard deviation); the later steps solve only the blocks
-    still going. With given kernels (``des.fixed``), from step :data:`CHORD_FROM_STEP` on, the
-    steps are chord steps (:func:`_chord`): the Jacobian's 8 convolutions are most of a solve.
+    small fraction of the fit's own standard deviation), or after
+    :attr:`DeconvSettings.stop_rejections` rejected steps in a row; the later steps solve only the
+    blocks still going. With given kernels (``des.fixed``), from step :data:`CHORD_FROM_STEP` on,
+    the steps are chord steps (:func:`_chord`): the Jacobian's 8 convolutions are most of a solve.
     """
-    b = H_loc.shape[0]
-    dev = H_loc.device
-    best = prob.evaluate(H_loc, alpha, des, None, with_jac=steps > 0)
-    H_best, a_best = H_loc.clone(), alpha.clone()  # updated in place, row by row
-    c_best = prob.centre_estimate(H_best, best.x, des)
-    c_jac = c_best.clone()  # where each block's Jacobian was last evaluated
-    move = torch.zeros(b, dtype=torch.float64, device=dev)
-    mu = torch.full((b,), 1e-3, device=dev, dtype=torch.float64)
-    going = torch.ones(b, dtype=torch.bool, device=dev)
-    rejected = torch.zeros(b, dtype=torch.int64, device=dev)  # steps rejected in a row
-    npix = des.pix_w.sum(dim=1).double().clamp_min(1.0)
-    for it in range(steps):
+    fit = _BlockFit(prob, H_loc, alpha, des, steps)
+    run_batch(fit, LmRule(DAMPING, Stopping(max_trials=steps, max_rejections=prob.s.stop_rejections)))
+    return LmStage(fit.H_best, fit.a_best, fit.best, fit.move)
+
+
+class _BlockFit:
+    """The blocks of :func:`lm_stage` as a batched least-squares problem
+    (:class:`blurcalib.optim.lm.BatchProblem`): the best point of each block, its kernel solve
+    (whose ``N``, ``g`` are its linearisation), and the trial of the blocks going."""
+
+    def __init__(self, prob: BlockProblem, H_loc: torch.Tensor, alpha: torch.Tensor, des: Design,
+                 steps: int) -> None:
+        self.prob, self.des = prob, des
+        self.best = prob.evaluate(H_loc, alpha, des, None, with_jac=steps > 0)
+        self.H_best, self.a_best = H_loc.clone(), alpha.clone()  # updated in place, row by row
+        self.c_best = prob.centre_estimate(self.H_best, self.best.x, des)
+        self.c_jac = self.c_best.clone()  # where each block's Jacobian was last evaluated
+        self.move = torch.zeros(H_loc.shape[0], dtype=torch.float64, device=H_loc.device)
+        self.npix = des.pix_w.sum(dim=1).double().clamp_min(1.0)
+
+    @property
+    def cost(self) -> torch.Tensor:
+        return self.best.obj
+
+    def solve(self, lam: torch.Tensor, going: torch.Tensor) -> torch.Tensor:
+        """Every block's damped Gauss-Newton step; those whose predicted decrease is worth a trial."""
+        best = self.best
         diag = best.N.diagonal(dim1=1, dim2=2)
-        A = best.N + torch.diag_embed(mu[:, None] * diag + 1e-12 * diag.mean(1, keepdim=True) + 1e-30)
-        delta = torch.nan_to_num(torch.linalg.solve_ex(A, best.g[..., None])[0][..., 0])
-        decrease = (delta * (2.0 * best.g - (best.N @ delta[..., None])[..., 0])).sum(dim=1)
-        going &= (decrease > prob.s.stop_decrease * best.sse / npix) & (rejected < prob.s.stop_rejections)
-        rows = torch.nonzero(going)[:, 0]
-        if rows.numel() == 0:
-            break
-        sub = des if rows.numel() == b else des.take(rows)
-        H_try = update_homography(H_best[rows], delta[rows, :8])
-        a_try = a_best[rows] + delta[rows, 8:10]
-        jac = it < steps - 1
-        chord = jac and it >= CHORD_FROM_STEP and des.fixed is not None
-        prev = best if rows.numel() == b else best.take(rows)
-        cur = prob.evaluate(H_try, a_try, sub, prev.lam, with_jac=jac and not chord)
-        accept = torch.isfinite(cur.obj) & (cur.obj < prev.obj)
-        c_try = prob.centre_estimate(H_try, cur.x, sub)
+        A = best.N + torch.diag_embed(lam[:, None] * diag + 1e-12 * diag.mean(1, keepdim=True) + 1e-30)
+        self.delta = torch.nan_to_num(torch.linalg.solve_ex(A, best.g[..., None])[0][..., 0])
+        decrease = (self.delta * (2.0 * best.g - (best.N @ self.delta[..., None])[..., 0])).sum(dim=1)
+        return decrease > self.prob.s.stop_decrease * best.sse / self.npix
+
+    def trial(self, rows: torch.Tensor, index: int, last: bool) -> torch.Tensor:
+        b = self.H_best.shape[0]
+        self.rows = rows
+        self.sub = self.des if rows.numel() == b else self.des.take(rows)
+        self.H_try = update_homography(self.H_best[rows], self.delta[rows, :8])
+        self.a_try = self.a_best[rows] + self.delta[rows, 8:10]
+        jac = not last
+        self.chord = jac and index >= CHORD_FROM_STEP and self.des.fixed is not None
+        self.prev = self.best if rows.numel() == b else self.best.take(rows)
+        self.cur = self.prob.evaluate(self.H_try, self.a_try, self.sub, self.prev.lam,
+                                      with_jac=jac and not self.chord)
+        return self.cur.obj
+
+    def accept(self, rows: torch.Tensor, accept: torch.Tensor) -> None:
+        cur, sub = self.cur, self.sub
+        c_try = self.prob.centre_estimate(self.H_try, cur.x, sub)
         fresh = accept  # the accepted blocks whose Jacobian is evaluated at the trial point
-        if chord:
-            fresh = accept & (torch.linalg.norm(c_try - c_jac[rows], dim=1) > CHORD_WITHIN_PX)
-            cur = _chord(prob, cur, prev, accept, fresh, H_try, a_try, sub)
-        c_jac[rows[fresh]] = c_try[fresh]
+        if self.chord:
+            fresh = accept & (torch.linalg.norm(c_try - self.c_jac[rows], dim=1) > CHORD_WITHIN_PX)
+            cur = _chord(self.prob, cur, self.prev, accept, fresh, self.H_try, self.a_try, sub)
+        self.c_jac[rows[fresh]] = c_try[fresh]
         won = rows[accept]
-        H_best[won], a_best[won] = H_try[accept], a_try[accept]
-        move[won] = torch.linalg.norm(c_try[accept] - c_best[won], dim=1)
-        c_best[won] = c_try[accept]
-        best.put(won, cur.take(accept))
-        mu[rows] = torch.where(accept, mu[rows] / 3.0, mu[rows] * 4.0)
-        rejected[rows] = torch.where(accept, 0, rejected[rows] + 1)
-    return LmStage(H_best, a_best, best, move)
+        self.H_best[won], self.a_best[won] = self.H_try[accept], self.a_try[accept]
+        self.move[won] = torch.linalg.norm(c_try[accept] - self.c_best[won], dim=1)
+        self.c_best[won] = c_try[accept]
+        self.best.put(won, cur.take(accept))
 
 
 def _chord(prob: BlockProblem, cur: KernelSolve, best: KernelSolve, accept: torch.Tensor, fresh: torch.Tensor,

@@ -19,7 +19,7 @@ from blurcalib.io import sources
 from blurcalib.io.frames import FrameError
 from blurcalib.io.sources import frame_inputs, read_video_frame, video_frame_count
 from tests.conftest import FIXTURE_YAML
-from tests.test_sources import _decoded
+from tests.io.test_sources import _decoded
 
 ROOT = Path(__file__).resolve().parents[2]
 

@@ -1,7 +1,7 @@
 """The runner of many frames through each executor: resume, neighbour seeding, cancel, progress.
 
 The per-frame engine is a fast stand-in (:mod:`tests.runs.stand_in`), so that the runner's logic,
-not the engine, is under test (the engine's own neighbour seeding: ``tests/test_extract.py``).
+not the engine, is under test (the engine's own neighbour seeding: ``tests/extract/test_frame.py``).
 """
 
 from __future__ import annotations

@@ -12,12 +12,12 @@ import torch
 from scipy.stats import chi2
 
 from blurcalib.calib.joint import JointSettings, calibrate_generic
+from blurcalib.calib.rolling_frames import fit_rolling_frames
 from blurcalib.calib.rolling_shutter import (
     BlurVelocity,
     RollingShutterSettings,
     calibrate_rolling_shutter,
     estimate_ratio,
-    fit_rolling_frames,
     parse_rolling_shutter,
     rolling_evidence,
 )

@@ -17,8 +17,8 @@ from blurcalib.io.feature_input import FeatureInputError, read_feature_input
 from blurcalib.io.results import FeatureFlags, FeatureTable, write_features
 from blurcalib.pipeline.run import PipelineSettings, run_from_features
 from blurcalib.target.pattern import layout_pattern, load_pattern
+from tests.calib.test_joint import simulated_features
 from tests.conftest import FIXTURE_YAML
-from tests.test_generic_joint import simulated_features
 
 SHARP = int(FeatureFlags.STAR_CENTRE | FeatureFlags.SHARP_FRAME)
 BLURRY = int(FeatureFlags.STAR_CENTRE | FeatureFlags.BLURRY_FRAME)

@@ -22,7 +22,7 @@ from blurcalib.geometry.pose import Pose
 from blurcalib.io.results import FeatureFlags
 from blurcalib.sim.truth import d435i_like_camera
 from blurcalib.target.pattern import layout_pattern
-from tests.test_generic_joint import simulated_features
+from tests.calib.test_joint import simulated_features
 
 SIZE = (1280, 720)
 SHARP = int(FeatureFlags.STAR_CENTRE | FeatureFlags.SHARP_FRAME)

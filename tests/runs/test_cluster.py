@@ -27,7 +27,7 @@ pytestmark = pytest.mark.slow
 distributed = pytest.importorskip(
     "distributed", reason="Dask is not installed: pip install 'blurcalib[cluster]'")
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 
 
 @pytest.fixture(scope="module")

@@ -36,7 +36,7 @@ from state.calibration import (
     input_coverage,
 )
 from state.figures import generic_poses
-from tests.test_app_state import FAST, make_dataset
+from tests.state.test_app_state import FAST, make_dataset
 from views.calibration import (
     cross_validation_image,
     difference_image,

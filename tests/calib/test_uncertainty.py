@@ -17,7 +17,7 @@ from blurcalib.calib.uncertainty import (
     save_uncertainty_png,
 )
 from blurcalib.camera.generic import CentralGeneric, apply_update, best_fit_rotation, fit_to_rays
-from tests.test_bundle import TRUE_CAM, _scene
+from tests.calib.test_bundle import TRUE_CAM, _scene
 
 NOISE_PX = 0.1
 SETTINGS = BundleSettings(outlier_iteration=0, max_iterations=20, tol=1e-12)

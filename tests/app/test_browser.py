@@ -30,7 +30,7 @@ import pytest
 from blurcalib.extract.frame import ExtractSettings
 from blurcalib.growth.settings import GrowSettings
 from state import RunSettings
-from tests.test_app_state import SMALL_CONFIG, make_dataset
+from tests.state.test_app_state import SMALL_CONFIG, make_dataset
 
 pytestmark = pytest.mark.browser
 
@@ -47,7 +47,7 @@ sync_api.expect.set_options(timeout=60_000)
 FLAGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
          "--disable-background-networking", "--disable-component-update", "--disable-sync",
          "--enable-unsafe-swiftshader"]
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 SCREENSHOT = (ROOT / "docs" / "app_screenshot.png" if os.environ.get("BLURCALIB_UPDATE_SCREENSHOT")
               else ROOT / "out" / "app_screenshot.png")
 SETTINGS = RunSettings(blurry=ExtractSettings(grow=GrowSettings(max_blocks=25)))

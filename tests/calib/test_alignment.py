@@ -15,12 +15,10 @@ from blurcalib.calib.alignment import (
     LOSSES,
     align_global,
     alignment_covariance,
-    bias_basis,
-    bias_field,
-    grid_coordinates,
     loss_weights,
     orientation_ok,
 )
+from blurcalib.calib.bias import bias_basis, bias_field, grid_coordinates
 from blurcalib.calib.report import direction_colours
 from blurcalib.camera.parametric import BrownConrady, project_points
 from blurcalib.geometry.pose import Pose

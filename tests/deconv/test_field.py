@@ -228,7 +228,7 @@ def test_extract_records_the_field_and_the_option_turns_it_off(tmp_path) -> None
     from blurcalib.io.frame_files import read_frame_status
     from blurcalib.target.pattern import load_pattern
     from tests.conftest import FIXTURE_YAML
-    from tests.test_seed import _homography, _render
+    from tests.growth.test_seed import _homography, _render
 
     pattern = load_pattern(FIXTURE_YAML)
     image = _render(pattern, _homography(pattern), (640, 480), 22.0, 0.6, np.random.default_rng(0))

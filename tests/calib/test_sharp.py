@@ -8,7 +8,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from blurcalib.calib import sharp
+from blurcalib.calib import parametric_adjustment
 from blurcalib.calib.joint import JointSettings
 from blurcalib.calib.sequence import (
     BLURRY_FLAGS,
@@ -140,18 +140,18 @@ def test_outlier_rounds_end_at_flips_at_the_margin(pattern: StarPattern, true_ca
     near the threshold: the camera is the one of rounds run until the inlier set is stable, in
     fewer rounds; a flip far from the threshold (a gross error) never ends them."""
     # the rule itself: threshold 0.2 px over 20,000 observations (at most 2 may change side)
-    assert sharp._settled(np.empty(0), 0.2, 100)
-    assert sharp._settled(np.array([0.25, 0.15]), 0.2, 20_000)
-    assert not sharp._settled(np.array([0.25, 0.15, 0.21]), 0.2, 20_000)
-    assert not sharp._settled(np.array([2.0]), 0.2, 20_000)
-    assert not sharp._settled(np.array([0.25]), 0.2, 9_999)
+    assert parametric_adjustment.settled(np.empty(0), 0.2, 100)
+    assert parametric_adjustment.settled(np.array([0.25, 0.15]), 0.2, 20_000)
+    assert not parametric_adjustment.settled(np.array([0.25, 0.15, 0.21]), 0.2, 20_000)
+    assert not parametric_adjustment.settled(np.array([2.0]), 0.2, 20_000)
+    assert not parametric_adjustment.settled(np.array([0.25]), 0.2, 9_999)
     table, _ = simulate(pattern, true_camera, 40, seed=1)
     assert len(table) > 10_000
     rng = np.random.default_rng(9)
     bad = rng.choice(len(table), 15, replace=False)
     table.x[bad] += 5.0
     settled = calibrate_sharp(table, pattern, IMAGE_SIZE)
-    monkeypatch.setattr(sharp, "SETTLED_SHARE", 0.0)
+    monkeypatch.setattr(parametric_adjustment, "SETTLED_SHARE", 0.0)
     stable = calibrate_sharp(table, pattern, IMAGE_SIZE)
     assert settled.rounds < stable.rounds
     assert (settled.inlier != stable.inlier).sum() <= 1e-4 * len(table)

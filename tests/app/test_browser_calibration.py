@@ -3,7 +3,7 @@ extracted yet (it extracts them first), read the generic error the page shows (i
 state's), the assessment (held-out table, uncertainty maps), see every frame ``used``, the
 σ_major pre-filter's statuses, the generic poses in the 3D view, and export.
 
-Same requirements and skips as ``tests/test_app_browser.py``. It saves a screenshot of the
+Same requirements and skips as ``tests/app/test_browser.py``. It saves a screenshot of the
 Calibration tab to ``out/app_calibration.png`` (ignored by git); with
 ``BLURCALIB_UPDATE_SCREENSHOT=1`` it updates ``docs/app_calibration.png``.
 """
@@ -20,9 +20,9 @@ import pytest
 from blurcalib.calib.trust import TrustSettings
 from blurcalib.calib.validation import ValidationSettings
 from state.calibration import EXPORT_DIR, OPENCV_CAMERA_FILE
-from tests.test_app_browser import ROOT, _row, app_page, sync_api
-from tests.test_app_calibration import CONFIG, SETTINGS
-from tests.test_app_state import FAST, make_dataset
+from tests.app.test_browser import ROOT, _row, app_page, sync_api
+from tests.state.test_app_state import FAST, make_dataset
+from tests.state.test_calibration import CONFIG, SETTINGS
 
 pytestmark = [pytest.mark.browser, pytest.mark.slow]
 

@@ -274,9 +274,9 @@ def test_field_blocks_are_spread_over_those_whose_loss_area_lies_inside_the_imag
 def test_the_path_field_locates_stars_whose_blur_is_as_long_as_their_squares() -> None:
     """Frame 3 of ``scripts/bench_yield.py``'s heavy set: 22 px of blur on 20-24 px squares (three
     quarters of its visible features have blur longer than their square). Free PSFs settle px
-    off around the tag and the growth dies there; the growth seeded from the tag ring tied to one
+    off around the tag and the growth stops early; the growth seeded from the tag ring tied to one
     homography and grown with the frame's path-PSF field returns most stars, each within a few
-    tenths of a px (measured: 10 -> 304-310 of 329 features, pose-consistent median 0.06 px, max
+    tenths of a px (measured: 71 -> 304-310 of 329 features, pose-consistent median 0.06 px, max
     0.65 px)."""
     import torch
 
@@ -296,7 +296,8 @@ def test_the_path_field_locates_stars_whose_blur_is_as_long_as_their_squares() -
     # the stages each growth ran: free PSFs then the second judgement, or the field in between
     assert list(free.growth.seconds) == ["free", "final", "judge"]
     assert list(result.growth.seconds) == ["free", "field", "judge"]
-    assert len(free.features) < 0.1 * visible and len(result.features) > 0.85 * visible
+    assert len(free.features) < 0.35 * visible and len(result.features) > 0.85 * visible, (
+        len(free.features), len(result.features), visible)
     ids = result.features.feature_id
     err = pose_consistent_errors(np.stack([result.features.x, result.features.y], axis=1), truth.mean[ids])
     assert np.median(err) < 0.1 and err.max() < 1.0, (np.median(err), err.max())
@@ -318,7 +319,7 @@ def test_a_tag_ring_fitted_far_above_the_noise_is_fitted_again_from_its_first_fi
     from blurcalib.growth.ledger import Growth
     from blurcalib.growth.seed import block_homography
     from blurcalib.psf.path import PathField
-    from tests.test_psf_field import SEGMENTS, _render_plane
+    from tests.deconv.test_field import SEGMENTS, _render_plane
 
     pattern = layout_pattern()
     H = np.array([[24.0, 2.0, 40.0], [-1.5, 24.0, 30.0], [1e-4, 5e-5, 1.0]])

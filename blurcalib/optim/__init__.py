@@ -1,0 +1,1 @@
+"""Numerical optimisation shared by the engine's fits: the damped least-squares driver."""
