@@ -168,6 +168,7 @@ def cmd_synth(args: argparse.Namespace) -> int:
 def _pipeline_settings(args: argparse.Namespace):
     """The pipeline's settings from the options of ``calibrate`` and ``demo``."""
     from blurcalib.calib.bundle import BundleSettings
+    from blurcalib.calib.capture import CaptureSettings
     from blurcalib.calib.trust import TrustSettings
     from blurcalib.extract.frame import ExtractSettings
     from blurcalib.pipeline.run import PipelineSettings
@@ -188,7 +189,8 @@ def _pipeline_settings(args: argparse.Namespace):
             lens_correction=not args.no_lens_correction,
             trust=TrustSettings(validation=ValidationSettings(method=args.validation, folds=args.folds)),
             rolling_shutter=RollingShutterSettings(args.rolling_shutter))
-        return PipelineSettings(extraction, calibration, workers=args.workers, cluster=args.cluster)
+        capture = CaptureSettings(refuse=not args.allow_degenerate)
+        return PipelineSettings(extraction, calibration, capture, workers=args.workers, cluster=args.cluster)
     except ValueError as exc:
         raise CliError(str(exc)) from None
 
@@ -224,6 +226,8 @@ def _run_pipeline(sharp: list[Path], blurry: list[Path], pattern: StarPattern, o
     finally:
         for bar in bars.values():
             bar.close()
+    for warning in (report.capture or {}).get("warnings", []):
+        print(f"warning: capture: {warning}")
     cal = report.calibration
     print(f"sharp-set calibration: {count(cal['num_frames'], 'frame')}, "
           f"median {cal['median_error_px']:.4f} px, RMS {cal['rms_error_px']:.4f} px")
@@ -554,6 +558,10 @@ def _add_pipeline_options(p: argparse._ActionsContainer) -> None:
                         "it when significant) or a number R: model it whatever the test says (the ratio "
                         "is still estimated); with demo, R also simulates that rolling shutter "
                         "(default %(default)s; docs/rolling-shutter.md)")
+    g.add_argument("--allow-degenerate", action="store_true",
+                   help="calibrate a capture whose sharp frames cannot determine the focal length (all "
+                        "nearly face-on, or at nearly one orientation) instead of refusing it; the problem "
+                        "is printed as a warning and kept in report.json (docs/calibration.md)")
     g = p.add_argument_group("assessment")
     g.add_argument("--validation", choices=list(get_args(ValidationMethod)),
                    default=ValidationSettings.method,

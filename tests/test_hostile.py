@@ -4,6 +4,7 @@ large allocation; never a traceback, a hang or a silently wrong camera."""
 
 from __future__ import annotations
 
+import dataclasses
 import errno
 import json
 import math
@@ -23,7 +24,7 @@ import pytest
 import torch
 
 from blurcalib.camera.generic import MAX_GRID_NODES, check_grid_size
-from blurcalib.cli import main
+from blurcalib.cli import _pipeline_settings, build_parser, main
 from blurcalib.extract.duplicates import find_duplicates, mark_duplicates
 from blurcalib.io import atomic
 from blurcalib.io.atomic import (
@@ -786,6 +787,47 @@ def test_five_copies_of_one_frame_do_not_calibrate(tmp_path: Path) -> None:
     message = str(info.value)
     assert "only 1 of 1 frame(s) are usable" in message
     assert "sharp/1.png (duplicate)" in message and "sharp/4.png (duplicate)" in message
+
+
+def _capture_csv(tmp_path: Path, table: FeatureTable) -> Path:
+    from blurcalib.io.results import FeatureFlags, write_features
+
+    table.flags[:] = int(FeatureFlags.STAR_CENTRE | FeatureFlags.SHARP_FRAME)
+    return write_features(tmp_path / "features.csv", table)
+
+
+def test_a_face_on_features_csv_is_refused_before_any_calibration(
+    tmp_path: Path, capsys: pytest.CaptureFixture
+) -> None:
+    """Fronto-parallel frames calibrated for 15 minutes to fx 17,505 px (true 645) with a held-out
+    error of 0.026 px."""
+    from tests.calib.test_capture import capture_features, sampled
+
+    path = _capture_csv(tmp_path, capture_features(sampled(12, 1.0, 7)))
+    code, err = _run(capsys, ["calibrate", "--features", path, "--image-size", "1280x720", "--pattern",
+                              FIXTURE_YAML, "--out", tmp_path / "out"])
+    assert code == 2 and len(err.strip().splitlines()) == 1, err
+    assert f"{path}: degenerate capture: the 12 sharp frames all see the target nearly face-on" in err
+    assert not (tmp_path / "out").exists()
+    argv = ["calibrate", "--features", str(path), "--pattern", str(FIXTURE_YAML), "--out", "o"]
+    assert _pipeline_settings(build_parser().parse_args(argv)).capture.refuse
+    assert not _pipeline_settings(build_parser().parse_args([*argv, "--allow-degenerate"])).capture.refuse
+
+
+def test_copies_of_one_frame_in_a_features_csv_are_duplicates(
+    tmp_path: Path, capsys: pytest.CaptureFixture
+) -> None:
+    """Six copies of one frame in a feature file were all used (fx 874 against 900)."""
+    from tests.calib.test_capture import capture_features, sampled
+
+    one = capture_features(sampled(1, 40.0, 8))
+    copies = FeatureTable.concat([dataclasses.replace(one, frame=np.full(len(one), f"{k}.png"))
+                                  for k in range(6)])
+    path = _capture_csv(tmp_path, copies)
+    code, err = _run(capsys, ["calibrate", "--features", path, "--image-size", "1280x720", "--pattern",
+                              FIXTURE_YAML, "--out", tmp_path / "out"])
+    assert code == 2 and len(err.strip().splitlines()) == 1, err
+    assert "only 1 of 1 frame(s)" in err and "1.png (duplicate)" in err and "5.png (duplicate)" in err
 
 
 # ----------------------------------------------------------------------------- worker processes
