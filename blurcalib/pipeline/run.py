@@ -284,7 +284,9 @@ def run_pipeline(sharp: Sequence[Path], blurry: Sequence[Path], pattern: StarPat
         flags |= FeatureFlags.LOCALLY_ALIGNED
     frames = [BlurryFrame(r.frame, blocks=ex.blocks.select(ex.blocks.frame == r.frame), flags=flags)
               for r in blurry_rows if r.status is FrameStatus.OK]
-    capture = _check_capture(sharp_features, size, s, "")
+    blurry_features = ex.features.select(((ex.features.flags & int(FeatureFlags.BLURRY_FRAME)) != 0)
+                                         & ~np.isin(ex.features.frame, sorted(duplicates)))
+    capture = _check_capture(sharp_features, blurry_features, size, s, "")
     try:
         with compute_threads(_calibration_threads(s)):
             run = calibrate_features(sharp_features, ex.sharp_blocks, frames, pattern, size, s.calibration)
@@ -356,15 +358,22 @@ def _left_out(sharp: list[FrameRecord]) -> str:
     return f"; sharp frames left out: {', '.join(bad[:10])}{more}" if bad else ""
 
 
-def _check_capture(sharp: FeatureTable, size: tuple[int, int], s: PipelineSettings,
+def _check_capture(sharp: FeatureTable, blurry: FeatureTable, size: tuple[int, int], s: PipelineSettings,
                    where: str) -> CaptureCheck:
-    """The capture check of the sharp frames' distinct views (:func:`blurcalib.calib.capture.check_capture`),
-    before any calibration; ``where`` prefixes its refusal (a feature file's ``"PATH: "``).
+    """The capture check (:func:`blurcalib.calib.capture.check_capture`) of the distinct views the
+    parametric camera will be calibrated from: the sharp frames, with the blurry ones where they
+    join them (``blurry_in_parametric`` and too few sharp frames), before any calibration; ``where``
+    prefixes its refusal (a feature file's ``"PATH: "``).
 
     Raises:
         PipelineError: a degenerate capture, in one line.
     """
-    check = check_capture(sharp, size, "sharp frames", s.calibration.min_sharp_features, s.capture)
+    c = s.calibration
+    table, what, least = sharp, "sharp frames", c.min_sharp_features
+    if c.blurry_in_parametric and len(blurry) and len(np.unique(sharp.frame)) < c.min_sharp_frames:
+        table, what = FeatureTable.concat([sharp, blurry]), "sharp and blurry frames"
+        least = c.alignment.min_blocks
+    check = check_capture(table, size, what, least, s.capture)
     if check.refusal is not None:
         raise PipelineError(f"{where}{check.refusal}")
     return check
@@ -413,7 +422,8 @@ def run_from_features(path: str | os.PathLike, pattern: StarPattern, out_dir: st
     sharp_rows, blurry_rows = feature_file_frames(table)
     views = {r.frame for r in sharp_rows + blurry_rows if r.status is FrameStatus.OK}
     sharp = table.select(np.isin(table.frame, [r.frame for r in sharp_rows if r.frame in views]))
-    capture = _check_capture(sharp, size, s, f"{path}: ")
+    blurry = table.select(np.isin(table.frame, [r.frame for r in blurry_rows if r.frame in views]))
+    capture = _check_capture(sharp, blurry, size, s, f"{path}: ")
     manifest = {**asdict(s), "features": str(Path(path).resolve())}
     out = claim_output_dir(out_dir, "calibrate", manifest, overwrite)
     shutil.rmtree(out / STAGING_DIR, ignore_errors=True)

@@ -26,7 +26,7 @@ from blurcalib.growth.quality import QualitySettings
 from blurcalib.io.atomic import OutputError
 from blurcalib.io.record import FrameStatus
 from blurcalib.io.results import FeatureFlags, read_feature_table
-from blurcalib.pipeline.run import PUBLISHED, PipelineError, PipelineSettings, run_pipeline
+from blurcalib.pipeline.run import PUBLISHED, PipelineError, PipelineSettings, run_from_features, run_pipeline
 from blurcalib.runs.events import FrameDone, RunEvent
 from blurcalib.sim.accuracy import camera_accuracy_lines
 from blurcalib.sim.evaluate import camera_accuracy, evaluate_features
@@ -350,3 +350,30 @@ def test_final_fit_option_reaches_every_blurry_frame(tmp_path, dataset) -> None:
     assert np.all(every.accepted[wide])
     moved = np.linalg.norm(every.centre[wide] - default.centre[wide], axis=1)
     assert 0.0 < np.median(moved) < 0.1
+
+
+def test_the_capture_check_sees_the_frames_the_parametric_camera_uses(tmp_path, monkeypatch) -> None:
+    """Two face-on sharp frames are refused; when the blurry frames join the parametric stage
+    (``blurry_in_parametric``), their tilts count and the calibration starts."""
+    from blurcalib.io.results import FeatureTable, write_features
+    from tests.calib.test_capture import capture_features, sampled
+
+    sharp = capture_features(sampled(2, 1.0, 9))
+    sharp.flags[:] = int(FeatureFlags.STAR_CENTRE | FeatureFlags.SHARP_FRAME)
+    blurry = capture_features(sampled(8, 45.0, 10), seed=1)
+    blurry.frame = np.char.add("b", blurry.frame)
+    blurry.flags[:] = int(FeatureFlags.STAR_CENTRE | FeatureFlags.BLURRY_FRAME)
+    path = write_features(tmp_path / "features.csv", FeatureTable.concat([sharp, blurry]))
+
+    class StartedError(Exception):
+        pass
+
+    def started(*args, **kwargs):
+        raise StartedError
+
+    monkeypatch.setattr(pipeline, "calibrate_features", started)
+    with pytest.raises(PipelineError, match=r"degenerate capture: the 2 sharp frames .* nearly face-on"):
+        run_from_features(path, layout_pattern(), tmp_path / "a", PipelineSettings(), (1280, 720))
+    joined = PipelineSettings(calibration=SequenceSettings(blurry_in_parametric=True))
+    with pytest.raises(StartedError):
+        run_from_features(path, layout_pattern(), tmp_path / "b", joined, (1280, 720))
