@@ -4,6 +4,7 @@ large allocation; never a traceback, a hang or a silently wrong camera."""
 
 from __future__ import annotations
 
+import dataclasses
 import errno
 import json
 import math
@@ -23,7 +24,7 @@ import pytest
 import torch
 
 from blurcalib.camera.generic import MAX_GRID_NODES, check_grid_size
-from blurcalib.cli import main
+from blurcalib.cli import _pipeline_settings, build_parser, main
 from blurcalib.extract.duplicates import find_duplicates, mark_duplicates
 from blurcalib.io import atomic
 from blurcalib.io.atomic import (
@@ -413,6 +414,58 @@ def test_second_run_into_a_locked_folder_is_refused(tmp_path: Path, capsys: pyte
     assert not (tmp_path / "never").exists()  # a folder made for the lock and left empty is removed
 
 
+def test_a_run_inside_or_around_a_locked_folder_is_refused(
+    tmp_path: Path, capsys: pytest.CaptureFixture
+) -> None:
+    """An ``extract`` into ``OUT/frames`` during a ``calibrate`` into ``OUT`` was accepted and mixed
+    the two runs' frames; a run into the folder around a locked one would replace its files."""
+    _png(tmp_path / "f" / "a.png")
+    out = tmp_path / "o"
+    inside = ["extract", tmp_path / "f", "--pattern", FIXTURE_YAML, "--out", out / "frames", "--workers", "1"]
+    with output_lock(out):
+        code, err = _run(capsys, inside)
+        assert code == 2 and f"it is inside {out.resolve()}, the output folder of another" in err
+        assert len(err.strip().splitlines()) == 1 and list(out.iterdir()) == []  # OUT/frames not made
+    with output_lock(out / "frames"):
+        with pytest.raises(OutputError, match="into this folder or into one inside it"):
+            with output_lock(out):
+                pass
+        with output_lock(tmp_path / "beside"):  # a folder beside it is free
+            pass
+    assert _run(capsys, inside)[0] == 1 and (out / "frames" / "frames.csv").is_file()
+
+
+def test_a_failed_rerun_leaves_the_manifest_of_the_kept_outputs(
+    tmp_path: Path, capsys: pytest.CaptureFixture, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """After a re-run with other settings failed on a full disk, the run manifest named the new
+    settings while the kept outputs were made with the old ones."""
+    _png(tmp_path / "f" / "a.png")
+    out = tmp_path / "o"
+    argv = ["extract", tmp_path / "f", "--pattern", FIXTURE_YAML, "--out", out, "--workers", "1"]
+    assert _run(capsys, argv)[0] == 1
+    before = json.loads((out / atomic.RUN_MANIFEST).read_text())
+    tables = {p.name: p.read_bytes() for p in out.iterdir() if p.is_file()}
+
+    real, calls = os.fsync, []
+
+    def fills_up(fd: int) -> None:  # the disk fills after the run's first file
+        calls.append(fd)
+        if len(calls) > 1:
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+        real(fd)
+
+    with monkeypatch.context() as m:
+        m.setattr(atomic.os, "fsync", fills_up)
+        code, err = _run(capsys, [*argv, "--psf-size", "21"])
+    assert code == 2 and "No space left on device" in err
+    assert {p.name: p.read_bytes() for p in out.iterdir() if p.is_file()} == tables
+    assert _run(capsys, [*argv, "--psf-size", "21"])[0] == 1
+    after = json.loads((out / atomic.RUN_MANIFEST).read_text())
+    # the new settings are named once the outputs made with them are published
+    assert before["settings"]["window"]["start"] == 17 and after["settings"]["window"]["start"] == 21
+
+
 def test_unwritable_subfolder_refused_before_the_manifest_changes(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
@@ -735,6 +788,47 @@ def test_five_copies_of_one_frame_do_not_calibrate(tmp_path: Path) -> None:
     message = str(info.value)
     assert "only 1 of 1 frame(s) are usable" in message
     assert "sharp/1.png (duplicate)" in message and "sharp/4.png (duplicate)" in message
+
+
+def _capture_csv(tmp_path: Path, table: FeatureTable) -> Path:
+    from blurcalib.io.results import FeatureFlags, write_features
+
+    table.flags[:] = int(FeatureFlags.STAR_CENTRE | FeatureFlags.SHARP_FRAME)
+    return write_features(tmp_path / "features.csv", table)
+
+
+def test_a_face_on_features_csv_is_refused_before_any_calibration(
+    tmp_path: Path, capsys: pytest.CaptureFixture
+) -> None:
+    """Fronto-parallel frames calibrated for 15 minutes to fx 17,505 px (true 645) with a held-out
+    error of 0.026 px."""
+    from tests.calib.test_capture import capture_features, sampled
+
+    path = _capture_csv(tmp_path, capture_features(sampled(12, 1.0, 7)))
+    code, err = _run(capsys, ["calibrate", "--features", path, "--image-size", "1280x720", "--pattern",
+                              FIXTURE_YAML, "--out", tmp_path / "out"])
+    assert code == 2 and len(err.strip().splitlines()) == 1, err
+    assert f"{path}: degenerate capture: the 12 sharp frames all see the target nearly face-on" in err
+    assert not (tmp_path / "out").exists()
+    argv = ["calibrate", "--features", str(path), "--pattern", str(FIXTURE_YAML), "--out", "o"]
+    assert _pipeline_settings(build_parser().parse_args(argv)).capture.refuse
+    assert not _pipeline_settings(build_parser().parse_args([*argv, "--allow-degenerate"])).capture.refuse
+
+
+def test_copies_of_one_frame_in_a_features_csv_are_duplicates(
+    tmp_path: Path, capsys: pytest.CaptureFixture
+) -> None:
+    """Six copies of one frame in a feature file were all used (fx 874 against 900)."""
+    from tests.calib.test_capture import capture_features, sampled
+
+    one = capture_features(sampled(1, 40.0, 8))
+    copies = FeatureTable.concat([dataclasses.replace(one, frame=np.full(len(one), f"{k}.png"))
+                                  for k in range(6)])
+    path = _capture_csv(tmp_path, copies)
+    code, err = _run(capsys, ["calibrate", "--features", path, "--image-size", "1280x720", "--pattern",
+                              FIXTURE_YAML, "--out", tmp_path / "out"])
+    assert code == 2 and len(err.strip().splitlines()) == 1, err
+    assert "only 1 of 1 frame(s)" in err and "1.png (duplicate)" in err and "5.png (duplicate)" in err
 
 
 # ----------------------------------------------------------------------------- worker processes

@@ -422,6 +422,11 @@ def _message(res: RollingShutterResult, applied: bool) -> str:
                     f"explains ({est}, {res.rms_correction_px:.2f} px RMS beyond a pose change); "
                     f"try --rolling-shutter auto")
         return ""
+    if applied and not res.significant:
+        return (f"warning: rolling shutter modelled as asked (ratio {res.mode:g}), but the blurry frames' "
+                f"features show none (test statistic {res.statistic:.0f}, significant above "
+                f"{res.threshold:.0f}; {est}): modelling a readout the camera does not have costs accuracy "
+                f"and time; --rolling-shutter auto keeps the global-shutter camera")
     if applied:
         return f"rolling shutter: modelled, {est} over {len(res.frames)} moving frames"
     return f"rolling shutter: none found ({est}; not significant): the global-shutter camera is kept"

@@ -45,6 +45,7 @@ if TYPE_CHECKING:
 def pipeline_settings(args: argparse.Namespace) -> PipelineSettings:
     """The pipeline's settings from the options of ``calibrate`` and ``demo``."""
     from blurcalib.calib.bundle import BundleSettings
+    from blurcalib.calib.capture import CaptureSettings
     from blurcalib.calib.trust import TrustSettings
     from blurcalib.extract.frame import ExtractSettings
     from blurcalib.pipeline.run import PipelineSettings
@@ -65,7 +66,8 @@ def pipeline_settings(args: argparse.Namespace) -> PipelineSettings:
             lens_correction=not args.no_lens_correction,
             trust=TrustSettings(validation=ValidationSettings(method=args.validation, folds=args.folds)),
             rolling_shutter=RollingShutterSettings(args.rolling_shutter))
-        return PipelineSettings(extraction, calibration, workers=args.workers, cluster=args.cluster)
+        capture = CaptureSettings(refuse=not args.allow_degenerate)
+        return PipelineSettings(extraction, calibration, capture, workers=args.workers, cluster=args.cluster)
     except ValueError as exc:
         raise CliError(str(exc)) from None
 
@@ -229,6 +231,10 @@ def add_pipeline_options(p: argparse._ActionsContainer) -> None:
                         "it when significant) or a number R: model it whatever the test says (the ratio "
                         "is still estimated); with demo, R also simulates that rolling shutter "
                         "(default %(default)s; docs/rolling-shutter.md)")
+    g.add_argument("--allow-degenerate", action="store_true",
+                   help="calibrate a capture whose sharp frames cannot determine the focal length (all "
+                        "nearly face-on, or at nearly one orientation) instead of refusing it; the problem "
+                        "is printed as a warning and kept in report.json (docs/calibration.md)")
     g = p.add_argument_group("assessment")
     g.add_argument("--validation", choices=list(get_args(ValidationMethod)),
                    default=ValidationSettings.method,

@@ -6,9 +6,11 @@ run therefore never leaves a truncated table, image or YAML behind; a run killed
 leaves at most a hidden temporary file, which :func:`remove_temporaries` clears on the next run.
 
 An output folder belongs to a run: :func:`claim_output_dir` refuses a non-empty folder that
-does not hold a blurcalib output of the same kind (the run manifest ``blurcalib-run.json``,
-written at the start of a run, names the command and its settings) unless asked to overwrite.
-:func:`output_lock` keeps a second run from writing into a folder while a first one does.
+does not hold a blurcalib output of the same kind (the run manifest ``blurcalib-run.json`` names
+the command and the settings of the outputs the folder holds: written when a run takes a new
+folder, and again by :func:`write_run_manifest` when a run publishes its outputs) unless asked to
+overwrite. :func:`output_lock` keeps a second run from writing into a folder, or into a folder
+inside it or around it, while a first one does.
 
 A write that fails for want of space, quota or permission raises :class:`OutputError` naming the
 file (``No space left on device``); the destination keeps its earlier content.
@@ -28,6 +30,7 @@ import stat
 import tempfile
 from collections.abc import Iterable, Iterator, Sequence
 from pathlib import Path
+from types import ModuleType
 
 from blurcalib.io.csv_reader import csv_chunks
 
@@ -60,16 +63,19 @@ def storage_error(exc: OSError) -> OutputError | None:
 
 @contextlib.contextmanager
 def output_lock(path: str | os.PathLike) -> Iterator[Path]:
-    """Hold the output folder ``path`` for one run: a second run that asks for it while this one
-    holds it is refused with :class:`OutputError`.
+    """Hold the output folder ``path`` for one run: a second run that asks for it, for a folder
+    inside it (``calibrate``'s ``OUT/frames``, ``OUT/sharp``, ``OUT/blurry``) or for a folder around
+    it while this one holds it is refused with :class:`OutputError`.
 
-    The lock is an advisory ``flock`` on the folder itself (no file is added to it), released
-    when the block ends or the process dies. The folder is created if missing and removed again
-    when the run leaves it empty (a run refused before it wrote anything). Where ``fcntl`` is
-    missing (Windows) no lock is taken.
+    The lock is an advisory ``flock`` on the folder itself, exclusive, and a shared one on each
+    folder above it that can be opened (no file is added to any of them), released when the block
+    ends or the process dies: an exclusive lock waits for no shared one and the other way round.
+    The folder is created if missing and removed again when the run leaves it empty (a run refused
+    before it wrote anything). Where ``fcntl`` is missing (Windows) no lock is taken.
 
     Raises:
-        OutputError: another run holds the folder, or it cannot be created.
+        OutputError: another run holds the folder, one inside it or one around it, or the folder
+            cannot be created.
     """
     folder = Path(path)
     created = not folder.exists()
@@ -82,23 +88,45 @@ def output_lock(path: str | os.PathLike) -> Iterator[Path]:
     except ImportError:  # no advisory locks: run unlocked
         yield folder
         return
-    fd = os.open(folder, os.O_RDONLY)
+    with contextlib.ExitStack() as held:
+        if created:  # removed last, also when the lock is refused
+            held.callback(_remove_if_empty, folder)
+        busy = "another blurcalib run is writing into this folder or into one inside it"
+        _flock(held, fcntl, folder, fcntl.LOCK_EX, f"{folder}: {busy}")
+        for above in folder.resolve().parents:
+            _flock(held, fcntl, above, fcntl.LOCK_SH, f"{folder}: it is inside {above}, the output folder "
+                                                     f"of another blurcalib run under way", missing_ok=True)
+        yield folder
+
+
+def _remove_if_empty(folder: Path) -> None:
+    """Remove ``folder`` when it is empty (a folder made for a run that wrote nothing into it)."""
+    with contextlib.suppress(OSError):
+        folder.rmdir()
+
+
+def _flock(held: contextlib.ExitStack, fcntl: ModuleType, folder: Path, mode: int, busy: str,
+           missing_ok: bool = False) -> None:
+    """Take the advisory lock ``mode`` on ``folder`` without waiting, released when ``held``
+    closes; a folder that cannot be opened is skipped when ``missing_ok``.
+
+    Raises:
+        OutputError: another process holds a conflicting lock (message ``busy``: wait for that
+            run to end or choose another output folder).
+    """
     try:
-        try:
-            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except OSError as exc:
-            if exc.errno not in (errno.EWOULDBLOCK, errno.EAGAIN, errno.EACCES):
-                raise
-            raise OutputError(f"{folder}: another blurcalib run is writing into this folder; wait for "
-                              f"it to end or choose another output folder") from None
-        try:
-            yield folder
-        finally:
-            if created:
-                with contextlib.suppress(OSError):
-                    folder.rmdir()  # only when empty
-    finally:
-        os.close(fd)
+        fd = os.open(folder, os.O_RDONLY)
+    except OSError:
+        if missing_ok:
+            return
+        raise
+    held.callback(os.close, fd)
+    try:
+        fcntl.flock(fd, mode | fcntl.LOCK_NB)
+    except OSError as exc:
+        if exc.errno not in (errno.EWOULDBLOCK, errno.EAGAIN, errno.EACCES):
+            raise
+        raise OutputError(f"{busy}; wait for it to end or choose another output folder") from None
 
 
 def _strict(value: object) -> object:
@@ -227,7 +255,7 @@ def output_dir_problem(path: str | os.PathLike, command: str, extractions: Seque
 
 def claim_output_dir(path: str | os.PathLike, command: str, settings: dict,
                      overwrite: bool = False, extractions: Sequence[str] = ()) -> Path:
-    """Make ``path`` the output folder of a ``command`` run and write its run manifest.
+    """Make ``path`` the output folder of a ``command`` run.
 
     An empty or missing folder, one whose manifest names the same command (a re-run or
     resume), or one that holds nothing but ``extract`` outputs in the subfolders named by
@@ -235,7 +263,10 @@ def claim_output_dir(path: str | os.PathLike, command: str, settings: dict,
     extract`` runs) is taken; any other non-empty folder is refused unless ``overwrite``, so
     that files that are not ours are never replaced. A folder with a sub-folder that cannot be
     written is refused before the manifest is touched. The folder's stray temporary files are
-    removed.
+    removed. A folder without a manifest of ``command`` gets one naming ``settings``; a folder
+    with one keeps it, naming the settings of the outputs it holds, until the run publishes its
+    own (:func:`write_run_manifest`), so that a run that fails (a full disk) leaves the manifest
+    describing the outputs it leaves.
 
     Args:
         path: the output folder.
@@ -253,10 +284,17 @@ def claim_output_dir(path: str | os.PathLike, command: str, settings: dict,
     ensure_writable_dir(folder)
     _check_writable_tree(folder)
     remove_temporaries(folder)
-    atomic_write_text(folder / RUN_MANIFEST, json.dumps(
-        {"tool": "blurcalib", "command": command, "settings": settings}, indent=2,
-        sort_keys=True) + "\n")
+    if _command(folder) != command:
+        write_run_manifest(folder, command, settings)
     return folder
+
+
+def write_run_manifest(folder: str | os.PathLike, command: str, settings: dict) -> Path:
+    """Write ``folder``'s run manifest (atomically): a ``command`` output made with ``settings``
+    (JSON-serialisable). A run calls it when it publishes its outputs, before the first of them
+    replaces an earlier run's."""
+    return atomic_write_text(Path(folder) / RUN_MANIFEST, json.dumps(
+        {"tool": "blurcalib", "command": command, "settings": settings}, indent=2, sort_keys=True) + "\n")
 
 
 def _check_writable_tree(folder: Path) -> None:

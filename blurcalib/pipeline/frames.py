@@ -18,11 +18,12 @@ import numpy as np
 from blurcalib.calib.joint import GenericCalibration
 from blurcalib.calib.sequence import BlurryOutcome, SequenceSettings
 from blurcalib.calib.sharp import Calibration
+from blurcalib.extract.duplicates import mark_duplicates
 from blurcalib.io.record import CALIBRATE_COLUMNS, FrameRecord, FrameStatus, Verdict, write_frames_table
-from blurcalib.io.results import BLUR_PER_SQUARE_LIMIT, BlockTable
+from blurcalib.io.results import BLUR_PER_SQUARE_LIMIT, BlockTable, FeatureFlags, FeatureTable
 from blurcalib.io.text import count
 
-__all__ = ["blurry_row", "sharp_row", "status_counts", "write_frames"]
+__all__ = ["blurry_row", "feature_file_frames", "sharp_row", "status_counts", "write_frames"]
 
 
 def _calibrated(extracted: FrameRecord, kind: str, status: FrameStatus, reason: str = "",
@@ -129,6 +130,21 @@ def _blur_note(blocks: BlockTable) -> str:
     return (f"; its blur is {np.median(ratio):.2f} x the star squares' side (median of its fitted "
             f"blocks), and from {BLUR_PER_SQUARE_LIMIT} few stars can be located: a closer view "
             f"(larger squares) or a shorter exposure helps")
+
+
+def feature_file_frames(table: FeatureTable) -> tuple[list[FrameRecord], list[FrameRecord]]:
+    """The sharp and the blurry frames of a feature file (rows flagged ``BLURRY_FRAME`` are
+    blurry), each a record with its feature count, in the file's order; a frame that shows the same
+    view as an earlier one (:func:`blurcalib.extract.duplicates.mark_duplicates`, sharp frames
+    preferred) has the status ``duplicate`` and names it."""
+    blurry = (table.flags & int(FeatureFlags.BLURRY_FRAME)) != 0
+    records = []
+    for kind, rows in (("sharp", ~blurry), ("blurry", blurry)):
+        names, first, counts = np.unique(table.frame[rows], return_index=True, return_counts=True)
+        records += [FrameRecord(str(names[i]), FrameStatus.OK, features=int(counts[i]), kind=kind)
+                    for i in np.argsort(first, kind="stable")]
+    marked = mark_duplicates(records, table)
+    return [r for r in marked if r.kind == "sharp"], [r for r in marked if r.kind == "blurry"]
 
 
 def write_frames(path: Path, rows: list[FrameRecord]) -> Path:

@@ -53,6 +53,7 @@ from typing import TypeVar
 import cv2
 import numpy as np
 
+from blurcalib.calib.capture import CaptureCheck, CaptureSettings, check_capture
 from blurcalib.calib.joint import INTRINSICS_FILE, generic_report, save_generic_calibration
 from blurcalib.calib.report import error_direction_image, save_frame_error_plot
 from blurcalib.calib.sequence import (
@@ -72,6 +73,7 @@ from blurcalib.io.atomic import (
     atomic_write_json,
     claim_output_dir,
     ensure_writable_dir,
+    write_run_manifest,
 )
 from blurcalib.io.feature_input import FeatureInputError, read_feature_input
 from blurcalib.io.frames import frame_size, frame_size_problem
@@ -87,7 +89,13 @@ from blurcalib.io.results import (
     write_features,
 )
 from blurcalib.io.sources import FrameInput
-from blurcalib.pipeline.frames import blurry_row, sharp_row, status_counts, write_frames
+from blurcalib.pipeline.frames import (
+    blurry_row,
+    feature_file_frames,
+    sharp_row,
+    status_counts,
+    write_frames,
+)
 from blurcalib.runs.events import RunEvent
 from blurcalib.runs.executors import ProcessPool
 from blurcalib.runs.folder import extract_to_folder
@@ -132,12 +140,15 @@ class PipelineSettings:
             settings (the torch device).
         calibration: the calibration sequence: block filter, global alignment, camera model,
             generic fit, lens-bias correction and assessment.
+        capture: when a degenerate capture (face-on frames, one orientation, few frames, one
+            part of the image) is refused or warned about (:mod:`blurcalib.calib.capture`).
         workers: frames extracted in parallel; the calibration computes with as many threads.
         cluster: a Dask scheduler address; frames are extracted as tasks there (``docs/cluster.md``).
     """
 
     extraction: ExtractSettings = field(default_factory=ExtractSettings)
     calibration: SequenceSettings = field(default_factory=SequenceSettings)
+    capture: CaptureSettings = field(default_factory=CaptureSettings)
     workers: int = 1
     cluster: str | None = None
 
@@ -157,7 +168,8 @@ class PipelineReport:
     ``generic_sharp`` the same for the sharp frames alone, ``trust`` the assessment
     (:meth:`blurcalib.calib.trust.Trust.to_dict`), ``rolling_shutter`` the rolling-shutter step
     (:meth:`blurcalib.calib.rolling_shutter.RollingShutterResult.to_dict`: readout ratio, its
-    standard error, each moving frame's blur velocity)."""
+    standard error, each moving frame's blur velocity), ``capture`` the capture check
+    (:meth:`blurcalib.calib.capture.CaptureCheck.to_dict`: its figures and warnings)."""
 
     calibration: dict
     frames: list[FrameRecord]
@@ -168,6 +180,7 @@ class PipelineReport:
     generic_sharp: dict | None = None
     trust: dict | None = None
     rolling_shutter: dict | None = None
+    capture: dict | None = None
     seconds: dict[str, float] = field(default_factory=dict)
 
     def to_dict(self) -> dict:
@@ -256,7 +269,8 @@ def run_pipeline(sharp: Sequence[Path], blurry: Sequence[Path], pattern: StarPat
     if mixed and (sharp or blurry):
         raise ValueError("give either mixed frames or sharp and blurry frames")
     size = _check_sizes(mixed, [], "frames") if mixed else _check_sizes(sharp, blurry)
-    out = claim_output_dir(out_dir, "calibrate", asdict(s), overwrite, extractions=(*KINDS, MIXED))
+    manifest = asdict(s)
+    out = claim_output_dir(out_dir, "calibrate", manifest, overwrite, extractions=(*KINDS, MIXED))
     shutil.rmtree(out / STAGING_DIR, ignore_errors=True)  # left by a run killed while writing
     ex = _extract(sharp, blurry, mixed, pattern, out, size, s, progress, overwrite)
     t_extracted = time.perf_counter()
@@ -273,21 +287,22 @@ def run_pipeline(sharp: Sequence[Path], blurry: Sequence[Path], pattern: StarPat
         flags |= FeatureFlags.LOCALLY_ALIGNED
     frames = [BlurryFrame(r.frame, blocks=ex.blocks.select(ex.blocks.frame == r.frame), flags=flags)
               for r in blurry_rows if r.status is FrameStatus.OK]
+    blurry_features = ex.features.select(((ex.features.flags & int(FeatureFlags.BLURRY_FRAME)) != 0)
+                                         & ~np.isin(ex.features.frame, sorted(duplicates)))
+    capture = _check_capture(sharp_features, blurry_features, size, s, "")
     try:
         with compute_threads(_calibration_threads(s)):
             announce = None if on_stage is None else lambda st: on_stage(st.value) or True
             run = calibrate_features(sharp_features, ex.sharp_blocks, frames, pattern, size, s.calibration,
                                      on_stage=announce)
     except CalibrationError as exc:
-        bad = [f"{r.frame} ({r.status.value})" for r in sharp_rows if r.status is not FrameStatus.OK]
-        hint = f"; sharp frames without features: {', '.join(bad[:10])}" if bad else ""
-        raise PipelineError(f"sharp-set calibration: {exc}{hint}") from None
+        raise PipelineError(f"sharp-set calibration: {exc}{_left_out(sharp_rows)}") from None
     except ValueError as exc:
         raise PipelineError(f"generic calibration: {exc}") from None
     outcomes = {o.frame.name: o for o in run.blurry}
     rows = _rows(sharp_rows, blurry_rows, outcomes, run, s.calibration)
     seconds = {"extraction": t_extracted - t_start, **_calibration_seconds(run)}
-    report = _publish_run(out, pattern, size, s, rows, run, seconds)
+    report = _publish_run(out, pattern, size, s, rows, run, seconds, capture, manifest)
     if blurry_rows and not any(r.used for r in rows if r.kind == "blurry"):
         raise PipelineError(f"no blurry frame survived the filters ({report.counts['blurry']}); the "
                             f"sharp-set calibration and all features are kept in {out}")
@@ -340,6 +355,35 @@ def _rows(sharp: list[FrameRecord], blurry: list[FrameRecord], outcomes: dict[st
             + [blurry_row(r, outcomes.get(r.frame), s, velocity) for r in blurry])
 
 
+def _left_out(sharp: list[FrameRecord]) -> str:
+    """The clause of a sharp-set calibration's error naming the sharp frames that did not enter it
+    (their status: ``duplicate``, an extraction's), or ``""``."""
+    bad = [f"{r.frame} ({r.status.value})" for r in sharp if r.status is not FrameStatus.OK]
+    more = f" and {len(bad) - 10} more" if len(bad) > 10 else ""
+    return f"; sharp frames left out: {', '.join(bad[:10])}{more}" if bad else ""
+
+
+def _check_capture(sharp: FeatureTable, blurry: FeatureTable, size: tuple[int, int], s: PipelineSettings,
+                   where: str) -> CaptureCheck:
+    """The capture check (:func:`blurcalib.calib.capture.check_capture`) of the distinct views the
+    parametric camera will be calibrated from: the sharp frames, with the blurry ones where they
+    join them (``blurry_in_parametric`` and too few sharp frames), before any calibration; ``where``
+    prefixes its refusal (a feature file's ``"PATH: "``).
+
+    Raises:
+        PipelineError: a degenerate capture, in one line.
+    """
+    c = s.calibration
+    table, what, least = sharp, "sharp frames", c.min_sharp_features
+    if c.blurry_in_parametric and len(blurry) and len(np.unique(sharp.frame)) < c.min_sharp_frames:
+        table, what = FeatureTable.concat([sharp, blurry]), "sharp and blurry frames"
+        least = c.alignment.min_blocks
+    check = check_capture(table, size, what, least, s.capture)
+    if check.refusal is not None:
+        raise PipelineError(f"{where}{check.refusal}")
+    return check
+
+
 def _calibration_threads(s: PipelineSettings) -> int:
     """Compute threads of the calibration: one per worker (it runs once the workers are done,
     :mod:`blurcalib.runs.runtime`), or this process's own when it has more."""
@@ -380,36 +424,35 @@ def run_from_features(path: str | os.PathLike, pattern: StarPattern, out_dir: st
         table, size = read_feature_input(path, pattern, image_size)
     except FeatureInputError as exc:
         raise PipelineError(str(exc)) from None
-    out = claim_output_dir(out_dir, "calibrate", {**asdict(s), "features": str(Path(path).resolve())},
-                           overwrite)
+    sharp_rows, blurry_rows = feature_file_frames(table)
+    views = {r.frame for r in sharp_rows + blurry_rows if r.status is FrameStatus.OK}
+    sharp = table.select(np.isin(table.frame, [r.frame for r in sharp_rows if r.frame in views]))
+    blurry = table.select(np.isin(table.frame, [r.frame for r in blurry_rows if r.frame in views]))
+    capture = _check_capture(sharp, blurry, size, s, f"{path}: ")
+    manifest = {**asdict(s), "features": str(Path(path).resolve())}
+    out = claim_output_dir(out_dir, "calibrate", manifest, overwrite)
     shutil.rmtree(out / STAGING_DIR, ignore_errors=True)
-    is_blurry = (table.flags & int(FeatureFlags.BLURRY_FRAME)) != 0
-    sharp, blurry = table.select(~is_blurry), table.select(is_blurry)
-    blurry_names = list(dict.fromkeys(np.unique(blurry.frame).tolist()))
-    frames = ([] if s.calibration.model == "parametric"
-              else [BlurryFrame(f, features=blurry.select(blurry.frame == f)) for f in blurry_names])
+    frames = ([] if s.calibration.model == "parametric" else
+              [BlurryFrame(r.frame, features=table.select(table.frame == r.frame)) for r in blurry_rows
+               if r.frame in views])
     try:
         with compute_threads(_calibration_threads(s)):
             run = calibrate_features(sharp, None, frames, pattern, size, s.calibration)
     except CalibrationError as exc:
-        raise PipelineError(f"sharp-set calibration from {path}: {exc}") from None
+        raise PipelineError(f"sharp-set calibration from {path}: {exc}{_left_out(sharp_rows)}") from None
     except ValueError as exc:
         raise PipelineError(f"generic calibration: {exc}") from None
-
-    def extracted(t: FeatureTable) -> list[FrameRecord]:
-        names, n = np.unique(t.frame, return_counts=True)
-        return [FrameRecord(f, FrameStatus.OK, features=k)
-                for f, k in zip(names.tolist(), n.tolist(), strict=True)]
-
     outcomes: dict[str, BlurryOutcome | None] = {o.frame.name: o for o in run.blurry}
-    rows = _rows(extracted(sharp), extracted(blurry), outcomes, run, s.calibration)
-    return _publish_run(out, pattern, size, s, rows, run, _calibration_seconds(run))
+    rows = _rows(sharp_rows, blurry_rows, outcomes, run, s.calibration)
+    return _publish_run(out, pattern, size, s, rows, run, _calibration_seconds(run), capture, manifest)
 
 
 def _publish_run(out: Path, pattern: StarPattern, size: tuple[int, int], s: PipelineSettings,
-                 rows: list[FrameRecord], run: CalibrationRun, seconds: dict[str, float]) -> PipelineReport:
-    """Write the run's output set into ``OUT/.staging`` and publish it (:func:`_publish`); a
-    failed write (a full disk) removes the staging folder and leaves the earlier outputs as they
+                 rows: list[FrameRecord], run: CalibrationRun, seconds: dict[str, float],
+                 capture: CaptureCheck, manifest: dict) -> PipelineReport:
+    """Write the run's output set into ``OUT/.staging`` and publish it (:func:`_publish`) with the
+    run manifest naming ``manifest`` (the run's settings); a failed write (a full disk) removes the
+    staging folder and leaves the earlier outputs, and the manifest naming their settings, as they
     were.
 
     Raises:
@@ -419,16 +462,17 @@ def _publish_run(out: Path, pattern: StarPattern, size: tuple[int, int], s: Pipe
         raise PipelineError(f"assessment: {run.trust_failure or run.sharp_failure}")
     staging = out / STAGING_DIR
     try:
-        report = _stage_run(out, staging, pattern, size, s, rows, run, seconds)
+        report = _stage_run(out, staging, pattern, size, s, rows, run, seconds, capture)
     except OSError:  # OutputError too
         shutil.rmtree(staging, ignore_errors=True)
         raise
-    _publish(staging, out)
+    _publish(staging, out, manifest)
     return report
 
 
 def _stage_run(out: Path, staging: Path, pattern: StarPattern, size: tuple[int, int], s: PipelineSettings,
-               rows: list[FrameRecord], run: CalibrationRun, seconds: dict[str, float]) -> PipelineReport:
+               rows: list[FrameRecord], run: CalibrationRun, seconds: dict[str, float],
+               capture: CaptureCheck) -> PipelineReport:
     """Write the run's output set into ``staging``; ``report.json`` last."""
     calibration, generic = run.calibration, run.generic
     ensure_writable_dir(staging)
@@ -457,7 +501,7 @@ def _stage_run(out: Path, staging: Path, pattern: StarPattern, size: tuple[int, 
                             else generic_report(run.generic_sharp),
                             trust=None if run.trust is None else run.trust.to_dict(),
                             rolling_shutter=None if run.rolling_shutter is None
-                            else run.rolling_shutter.to_dict(),
+                            else run.rolling_shutter.to_dict(), capture=capture.to_dict(),
                             seconds={k: round(v, 2) for k, v in seconds.items()})
     atomic_write_json(staging / REPORT_FILE, report.to_dict(), indent=2, default=str)
     return report
@@ -469,15 +513,17 @@ def _with_kind(table: Table, folder: str) -> Table:
     return replace(table, frame=np.char.add(f"{folder}/", table.frame))
 
 
-def _publish(staging: Path, out: Path) -> None:
+def _publish(staging: Path, out: Path, manifest: dict) -> None:
     """Move the output set staged in ``staging`` into ``out``.
 
-    ``report.json`` (the completion marker) is removed first and moved in last; outputs of an
+    ``report.json`` (the completion marker) is removed first, the run manifest is then rewritten
+    with the run's settings ``manifest``, and ``report.json`` is moved in last; outputs of an
     earlier run that this run does not produce are removed, and the ``calibration`` folder is
     swapped whole. A run killed in between leaves no ``report.json``; the next run removes the
     staging folder and publishes again.
     """
     (out / REPORT_FILE).unlink(missing_ok=True)
+    write_run_manifest(out, "calibrate", manifest)
     staged = {p.name: p for p in staging.iterdir()}
     for name in PUBLISHED:
         if name == REPORT_FILE:

@@ -35,8 +35,9 @@ def warning_line(fit: str, warnings: list[str], section: str) -> str | None:
 def report_lines(report: PipelineReport) -> list[str]:
     """The lines ``calibrate`` prints after a run."""
     cal = report.calibration
-    lines = [f"sharp-set calibration: {count(cal['num_frames'], 'frame')}, "
-             f"median {cal['median_error_px']:.4f} px, RMS {cal['rms_error_px']:.4f} px"]
+    lines = [f"warning: capture: {warning}" for warning in (report.capture or {}).get("warnings", [])]
+    lines += [f"sharp-set calibration: {count(cal['num_frames'], 'frame')}, "
+              f"median {cal['median_error_px']:.4f} px, RMS {cal['rms_error_px']:.4f} px"]
     if report.generic is not None:
         g = report.generic
         lines.append(f"generic calibration ({g['route']} route): {g['grid_width']}x{g['grid_height']} grid, "

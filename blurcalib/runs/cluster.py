@@ -6,10 +6,19 @@ like a local one). Workers read the frames from the paths given, so they need th
 system view as the client (a shared or network file system); each task computes with one
 thread (:func:`blurcalib.runs.runtime.configure_threads`) and keeps large allocations on the heap
 (:func:`blurcalib.runs.runtime.keep_large_allocations`). Setting up a cluster: ``docs/cluster.md``.
+
+A worker lost mid-run (killed, or restarted by its nanny) costs nothing but time: the scheduler
+runs its tasks again on the workers left or on the restarted one, and the arguments common to all
+tasks are tasks too (not scattered data, which a lost worker takes with it). A task whose workers
+keep dying (Dask's ``allowed-failures``), or a scheduler lost, ends the run with
+:class:`ClusterError` in one line, once every other task has finished or been lost: what finished
+was yielded, and so written, before.
 """
 
 from __future__ import annotations
 
+import contextlib
+import logging
 from collections.abc import Callable, Generator, Sequence
 from typing import Any, TypeVar
 from urllib.parse import urlsplit
@@ -67,22 +76,41 @@ def _single_threaded(fn: Callable[..., R], *args: Any) -> R:
     return fn(*args)
 
 
+class _OneLineLogs(logging.Filter):
+    """Dask's client logs, while it tries to reach a lost scheduler, each failed attempt with its
+    traceback: keep each record's one line, drop its traceback, and drop records with no line."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        record.exc_info, record.exc_text = None, None
+        return bool(record.getMessage().strip())
+
+
+def _value(value: R) -> R:
+    """``value`` itself: a task whose result a worker holds, computed again if that worker is lost."""
+    return value
+
+
 def run_on_cluster(address: str, fn: Callable[..., R], tasks: Sequence[tuple],
-                   shared: tuple = (), timeout_s: float = 30.0) -> Generator[tuple[int, R], None, None]:
+                   shared: tuple = (), timeout_s: float = 30.0,
+                   names: Sequence[str] | None = None) -> Generator[tuple[int, R], None, None]:
     """Run ``fn(*task, *shared)`` for every task on the Dask scheduler at ``address``.
 
     Args:
         address: the scheduler, e.g. ``tcp://10.0.0.5:8786``.
         fn: a module-level (picklable) function.
         tasks: per-task leading arguments.
-        shared: trailing arguments common to all tasks, sent to the workers once.
+        shared: trailing arguments common to all tasks, sent to the workers once (as tasks, so
+            that a worker lost with them costs nothing but their recomputation).
         timeout_s: how long to wait for the scheduler.
+        names: what each task is, for the messages (a frame's name); ``task I`` without.
     Yields:
         ``(i, result)``: the index of the task in ``tasks`` and its result, in the order they
         finish.
     Raises:
         ClusterError: ``distributed`` is not installed, the address is malformed
-            (:func:`check_address`) or the scheduler does not answer.
+            (:func:`check_address`), the scheduler does not answer, or tasks were lost (their
+            workers kept dying, or the scheduler was lost), raised after the other tasks'
+            results, naming the lost ones and how many finished.
     """
     try:
         from distributed import Client, as_completed
@@ -93,9 +121,53 @@ def run_on_cluster(address: str, fn: Callable[..., R], tasks: Sequence[tuple],
         client = Client(address, timeout=timeout_s, set_as_default=False)
     except (OSError, TimeoutError, ValueError) as exc:
         raise ClusterError(f"{address}: cannot reach the Dask scheduler ({exc})") from None
-    with client:
-        common = [client.scatter(arg, broadcast=True) for arg in shared]
+    lost: dict[int, str] = {}
+    quiet = _OneLineLogs()
+    client_log = logging.getLogger("distributed.client")
+    with contextlib.ExitStack() as stack:
+        client_log.addFilter(quiet)
+        stack.callback(client_log.removeFilter, quiet)
+        stack.enter_context(client)
+        common = [client.submit(_value, arg, pure=False) for arg in shared]
         futures = {client.submit(_single_threaded, fn, *task, *common, pure=False): i
                    for i, task in enumerate(tasks)}
         for future in as_completed(list(futures), loop=client.loop):
-            yield futures[future], future.result()
+            i = futures[future]
+            try:
+                result = future.result()
+            except Exception as exc:
+                why = _lost(exc)
+                if why is None:
+                    raise
+                lost[i] = why
+                continue
+            yield i, result
+    if lost:
+        raise ClusterError(_lost_message(address, lost, len(tasks), names))
+
+
+def _lost(exc: BaseException) -> str | None:
+    """Why a task was lost to the cluster (``exc`` its future's error), or None for an error of
+    the task itself."""
+    from concurrent.futures import CancelledError
+
+    from distributed.comm import CommClosedError
+    from distributed.scheduler import KilledWorker
+
+    if isinstance(exc, KilledWorker):
+        return "its workers kept dying while running it (out of memory?)"
+    if isinstance(exc, CancelledError):
+        return "the scheduler dropped it (lost, or restarted)"
+    if isinstance(exc, CommClosedError):
+        return "the connection to the scheduler was lost"
+    return None
+
+
+def _lost_message(address: str, lost: dict[int, str], total: int, names: Sequence[str] | None) -> str:
+    """One line: the tasks lost, why (the first one's reason), and that the others were kept."""
+    label = [names[i] if names is not None else f"task {i}" for i in sorted(lost)]
+    more = f" and {len(label) - 5} more" if len(label) > 5 else ""
+    first = lost[min(lost)]
+    return (f"{address}: {len(lost)} of {total} tasks did not finish on the Dask cluster "
+            f"({', '.join(label[:5])}{more}: {first}); the {total - len(lost)} finished are kept; "
+            f"run again to resume")

@@ -161,7 +161,7 @@ class DaskCluster:
         from blurcalib.runs.cluster import run_on_cluster
 
         results = run_on_cluster(self.address, process_frame, [(t.frame, t.hint) for t in tasks],
-                                 (job.pattern, job.settings, job.size))
+                                 (job.pattern, job.settings, job.size), names=[t.frame.name for t in tasks])
         try:
             for i, result in results:
                 yield i, result

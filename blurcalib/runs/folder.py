@@ -151,7 +151,7 @@ class _Run:
     def publish(self) -> dict[str, Path]:
         """The top-level tables of the finished frames, in the run's order."""
         names = [f.name for f in self.frames if f.name in self.records]
-        outputs = self.folder.collect(names)
+        outputs = self.folder.collect(names, self.job.settings)
         outputs["frames"] = self.folder.write_table([self.records[n] for n in names])
         return outputs
 

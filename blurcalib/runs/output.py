@@ -20,7 +20,7 @@ import numpy as np
 
 from blurcalib.extract.frame import ExtractSettings, FrameResult
 from blurcalib.extract.local_alignment import align_locally
-from blurcalib.io.atomic import OutputError, claim_output_dir, remove_temporaries
+from blurcalib.io.atomic import OutputError, claim_output_dir, remove_temporaries, write_run_manifest
 from blurcalib.io.frame_files import (
     collect_results,
     read_frame_results,
@@ -174,9 +174,11 @@ class RunFolder:
         (:data:`blurcalib.io.record.EXTRACT_COLUMNS`)."""
         return write_frames_table(self.path / FRAMES_TABLE, sorted(records, key=lambda r: r.frame))
 
-    def collect(self, names: Sequence[str]) -> dict[str, Path]:
+    def collect(self, names: Sequence[str], settings: ExtractSettings) -> dict[str, Path]:
         """The top-level tables of the finished frames ``names``, in that order
-        (:func:`blurcalib.io.frame_files.collect_results`)."""
+        (:func:`blurcalib.io.frame_files.collect_results`), after the run manifest names the run's
+        ``settings`` (:func:`blurcalib.io.atomic.write_run_manifest`)."""
+        write_run_manifest(self.path, "extract", settings_record(settings))
         return collect_results(self.path, names)
 
     def features(self, name: str) -> FeatureTable:

@@ -4,6 +4,7 @@ geometry, the readout ratio, and auto on global-shutter data."""
 from __future__ import annotations
 
 import csv
+import math
 from dataclasses import replace
 
 import numpy as np
@@ -15,7 +16,9 @@ from blurcalib.calib.joint import JointSettings, calibrate_generic
 from blurcalib.calib.rolling_frames import fit_rolling_frames
 from blurcalib.calib.rolling_shutter import (
     BlurVelocity,
+    RollingShutterResult,
     RollingShutterSettings,
+    _message,
     calibrate_rolling_shutter,
     estimate_ratio,
     parse_rolling_shutter,
@@ -300,3 +303,16 @@ def test_frames_csv_holds_the_blur_velocity(tmp_path) -> None:
     with open(write_frames(tmp_path / "frames.csv", rows), newline="", encoding="utf-8") as fh:
         table = list(csv.DictReader(fh))
     assert [r["velocity_px"] for r in table] == ["7.255", ""]
+
+
+def test_a_forced_ratio_the_test_does_not_support_is_a_warning() -> None:
+    """``--rolling-shutter 2`` on a global-shutter capture was applied without a word although the
+    test found nothing (statistic 18 against 125)."""
+    forced = RollingShutterResult(2.0, math.nan, math.nan, True, False, 18.0, 125.0, ["b0.png"])
+    message = _message(forced, True)
+    assert message.startswith("warning: rolling shutter modelled as asked (ratio 2)")
+    assert "test statistic 18, significant above 125" in message and "\n" not in message
+    found = replace(forced, significant=True, statistic=300.0)
+    assert _message(found, True).startswith("rolling shutter: modelled")
+    auto = replace(forced, mode="auto", applied=False)
+    assert "none found" in _message(auto, False)

@@ -26,7 +26,7 @@ from blurcalib.growth.quality import QualitySettings
 from blurcalib.io.atomic import OutputError
 from blurcalib.io.record import FrameStatus
 from blurcalib.io.results import FeatureFlags, read_feature_table
-from blurcalib.pipeline.run import PUBLISHED, PipelineError, PipelineSettings, run_pipeline
+from blurcalib.pipeline.run import PUBLISHED, PipelineError, PipelineSettings, run_from_features, run_pipeline
 from blurcalib.runs.events import FrameDone, RunEvent
 from blurcalib.sim.accuracy import camera_accuracy_lines, true_accuracies
 from blurcalib.sim.evaluate import camera_accuracy, evaluate_features
@@ -375,7 +375,9 @@ def test_demo_reads_as_a_result(finished, dataset) -> None:
     assert f"within {both.accuracy.median:.4f} px of the true camera" in lines[2]
     assert lines[3].startswith("  What the blurry frames bought: against the truth")
     printed = report_lines(report)
-    warned = [line for line in printed if line.startswith("warning:")]
+    capture = [line for line in printed if line.startswith("warning: capture:")]
+    assert any("below 10 the projection uncertainty" in line for line in capture)  # 6 sharp frames
+    warned = [line for line in printed if line.startswith("warning:") and line not in capture]
     assert len(warned) <= 2 and all("report.json" in line for line in warned)  # one per generic fit
     figures = figure_lines(report.outputs)
     assert any("error_directions_generic" in line for line in figures)
@@ -392,3 +394,30 @@ def test_demo_reads_as_a_result(finished, dataset) -> None:
     log.detail("sharp 1/6: sharp/0000.png ok, 200 features")
     assert stream.getvalue().endswith("2/4 extracting\n")
     assert log.path is not None and log.path.read_text().count("\n") == 2
+
+
+def test_the_capture_check_sees_the_frames_the_parametric_camera_uses(tmp_path, monkeypatch) -> None:
+    """Two face-on sharp frames are refused; when the blurry frames join the parametric stage
+    (``blurry_in_parametric``), their tilts count and the calibration starts."""
+    from blurcalib.io.results import FeatureTable, write_features
+    from tests.calib.test_capture import capture_features, sampled
+
+    sharp = capture_features(sampled(2, 1.0, 9))
+    sharp.flags[:] = int(FeatureFlags.STAR_CENTRE | FeatureFlags.SHARP_FRAME)
+    blurry = capture_features(sampled(8, 45.0, 10), seed=1)
+    blurry.frame = np.char.add("b", blurry.frame)
+    blurry.flags[:] = int(FeatureFlags.STAR_CENTRE | FeatureFlags.BLURRY_FRAME)
+    path = write_features(tmp_path / "features.csv", FeatureTable.concat([sharp, blurry]))
+
+    class StartedError(Exception):
+        pass
+
+    def started(*args, **kwargs):
+        raise StartedError
+
+    monkeypatch.setattr(pipeline, "calibrate_features", started)
+    with pytest.raises(PipelineError, match=r"degenerate capture: the 2 sharp frames .* nearly face-on"):
+        run_from_features(path, layout_pattern(), tmp_path / "a", PipelineSettings(), (1280, 720))
+    joined = PipelineSettings(calibration=SequenceSettings(blurry_in_parametric=True))
+    with pytest.raises(StartedError):
+        run_from_features(path, layout_pattern(), tmp_path / "b", joined, (1280, 720))

@@ -2,8 +2,15 @@
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+from collections.abc import Iterator
 from pathlib import Path
 
 import cv2
@@ -25,7 +32,8 @@ from blurcalib.sim.truth import TrueCamera
 pytestmark = [pytest.mark.slow, pytest.mark.cluster]
 
 distributed = pytest.importorskip(
-    "distributed", reason="Dask is not installed: pip install 'blurcalib[cluster]'")
+    "dask.distributed", reason="Dask is not installed: pip install 'blurcalib[cluster]'")
+dask = pytest.importorskip("dask")
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -45,13 +53,15 @@ def frames(tmp_path_factory) -> tuple[list[Path], Simulator]:
     return paths, sim
 
 
-@pytest.fixture(scope="module")
-def cluster():
+@contextlib.contextmanager
+def local_cluster(workers: int) -> Iterator[str]:
+    """A local Dask cluster of ``workers`` single-threaded worker processes, each under a nanny
+    that restarts it when it dies; its scheduler's address."""
     # the workers are new processes: they import this checkout's blurcalib
     old = os.environ.get("PYTHONPATH")
     os.environ["PYTHONPATH"] = os.pathsep.join([str(ROOT), *([old] if old else [])])
     try:
-        with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
+        with distributed.LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
                                       dashboard_address=None) as local:
             yield local.scheduler_address
     finally:
@@ -59,6 +69,12 @@ def cluster():
             os.environ.pop("PYTHONPATH")
         else:
             os.environ["PYTHONPATH"] = old
+
+
+@pytest.fixture(scope="module")
+def cluster():
+    with local_cluster(2) as address:
+        yield address
 
 
 @pytest.fixture
@@ -150,3 +166,84 @@ def test_cli_calibrate_on_cluster_matches_local_run(tmp_path, cluster, one_threa
     assert frames["local"] == frames["dask"]
     ref, got = (_features(out / "features.csv") for out in runs.values())
     assert len(ref) > 300 and ref.keys() == got.keys()
+
+
+def dies_once(i: int, marker: str, shared: str) -> str:
+    """Task ``i`` of a run whose task 1 kills its worker process the first time it runs."""
+    if i == 1 and not Path(marker).exists():
+        Path(marker).write_text("died")
+        os.kill(os.getpid(), signal.SIGKILL)
+    return f"{shared}{i}"
+
+
+def always_dies(i: int, shared: str) -> str:
+    """Task ``i`` of a run whose task 1 kills its worker process whenever it runs."""
+    if i == 1:
+        os.kill(os.getpid(), signal.SIGKILL)
+    return f"{shared}{i}"
+
+
+def test_the_only_worker_restarted_mid_run_loses_nothing(tmp_path) -> None:
+    """Killing the only worker (its nanny restarts it) ended the client in FutureCancelledError:
+    the arguments common to all tasks were scattered data, lost with the worker."""
+    with local_cluster(1) as address:
+        got = dict(run_on_cluster(address, dies_once, [(i, str(tmp_path / "died")) for i in range(4)],
+                                  ("frame",)))
+    assert (tmp_path / "died").is_file()  # the worker was killed while running task 1
+    assert got == {i: f"frame{i}" for i in range(4)}
+
+
+def test_a_task_whose_workers_keep_dying_ends_the_run_in_one_line() -> None:
+    """The other tasks finish and are yielded (their frames written) before the one-line error."""
+    got = []
+    with dask.config.set({"distributed.scheduler.allowed-failures": 0}), local_cluster(1) as address:
+        with pytest.raises(ClusterError) as info:
+            for item in run_on_cluster(address, always_dies, [(i,) for i in range(4)], ("frame",),
+                                       names=["a.png", "b.png", "c.png", "d.png"]):
+                got.append(item)
+    message = str(info.value)
+    assert "\n" not in message and "tasks did not finish on the Dask cluster (" in message
+    assert "b.png" in message and "its workers kept dying while running it" in message
+    lost = int(message.split(": ", 1)[1].split(" of ")[0])
+    assert f"the {4 - lost} finished are kept; run again to resume" in message
+    assert (1, "frame1") not in got and len(got) == 4 - lost >= 1
+
+
+def sleeps(i: int, shared: str) -> str:
+    """Task ``i``: a second's work."""
+    time.sleep(1.0)
+    return f"{shared}{i}"
+
+
+def test_a_lost_scheduler_ends_the_run_in_one_line_keeping_what_finished(tmp_path) -> None:
+    """Killing the scheduler ended the client in a CommClosedError or FutureCancelledError
+    traceback."""
+    with socket.socket() as free:
+        free.bind(("127.0.0.1", 0))
+        port = free.getsockname()[1]
+    address = f"tcp://127.0.0.1:{port}"
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")])}
+    quiet = {"env": env, "stdout": subprocess.DEVNULL, "stderr": subprocess.DEVNULL}
+    python = [sys.executable, "-m"]
+    scheduler = subprocess.Popen([*python, "distributed.cli.dask_scheduler", "--host", "127.0.0.1",
+                                  "--port", str(port), "--no-dashboard"], **quiet)
+    worker = subprocess.Popen([*python, "distributed.cli.dask_worker", address, "--nthreads", "1",
+                               "--no-dashboard", "--no-nanny"], **quiet)
+    got = []
+    try:
+        with dask.config.set({"distributed.comm.timeouts.connect": "5s"}):
+            with pytest.raises(ClusterError) as info:
+                names = [f"f{i}.png" for i in range(6)]
+                for item in run_on_cluster(address, sleeps, [(i,) for i in range(6)], ("frame",),
+                                           timeout_s=60.0, names=names):
+                    got.append(item)
+                    if len(got) == 2:
+                        scheduler.kill()
+    finally:
+        for process in (worker, scheduler):
+            process.kill()
+            process.wait()
+    message = str(info.value)
+    assert "\n" not in message and f"{6 - len(got)} of 6 tasks did not finish on the Dask cluster" in message
+    assert f"the {len(got)} finished are kept; run again to resume" in message and len(got) >= 2
+    assert all(result == f"frame{i}" for i, result in got)
