@@ -36,7 +36,7 @@ from blurcalib.argtypes import (
 from blurcalib.calib.alignment import BIASES, LOSSES, AlignmentSettings
 from blurcalib.calib.joint import ROUTES, JointSettings
 from blurcalib.calib.rolling_shutter import RollingShutterSettings
-from blurcalib.calib.sequence import MODELS, SequenceSettings
+from blurcalib.calib.sequence import MODELS, PARAMETRIC_MODELS, SequenceSettings
 from blurcalib.calib.validation import ValidationMethod, ValidationSettings
 from blurcalib.growth.quality import LossMode, QualitySettings
 from blurcalib.growth.settings import FinalFitFrames, GrowSettings
@@ -183,6 +183,7 @@ def _pipeline_settings(args: argparse.Namespace):
             quality=QualitySettings(tau_be=args.tau_be, tau_loss=args.tau_loss,
                                     min_sigma_major=args.min_sigma_major, loss_mode=args.loss_threshold),
             alignment=AlignmentSettings(loss=args.loss, bias=args.bias), model=args.model,
+            parametric=args.parametric,
             generic=JointSettings(cell_px=args.cell_px, route=args.route,
                                   bundle=BundleSettings(device=device)),
             lens_correction=not args.no_lens_correction,
@@ -225,8 +226,12 @@ def _run_pipeline(sharp: list[Path], blurry: list[Path], pattern: StarPattern, o
         for bar in bars.values():
             bar.close()
     cal = report.calibration
-    print(f"sharp-set calibration: {count(cal['num_frames'], 'frame')}, "
+    print(f"sharp-set calibration ({cal['model']}): {count(cal['num_frames'], 'frame')}, "
           f"median {cal['median_error_px']:.4f} px, RMS {cal['rms_error_px']:.4f} px")
+    if report.parametric_choice is not None and report.parametric_choice["summary"]:
+        print(report.parametric_choice["summary"])
+    if report.generic_failure:
+        print(f"warning: {report.generic_failure}")
     if report.generic is not None:
         g = report.generic
         print(f"generic calibration ({g['route']} route): {g['grid_width']}x{g['grid_height']} grid, "
@@ -319,9 +324,10 @@ def _check_grid(sizes: Iterable[tuple[int, int] | None], cell_px: float) -> None
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
-    """Simulate the default dataset (20 sharp and 60 blurry 1280x720 frames) into OUT/data, run
-    calibrate on it into OUT/calibration and print each camera against the true one. A complete
-    dataset is reused, and the calibration resumes where it stopped."""
+    """Simulate the default dataset (20 sharp and 60 blurry 1280x720 frames; --lens fisheye: a
+    fisheye lens of --fov degrees) into OUT/data, run calibrate on it into OUT/calibration and
+    print each camera against the true one. A complete dataset is reused, and the calibration
+    resumes where it stopped."""
     from blurcalib.io.frames import list_frames
     from blurcalib.io.results import read_feature_table
     from blurcalib.sim.evaluate import evaluate_features
@@ -453,6 +459,17 @@ def _plain(doc: str | None) -> str:
     return (doc or "").replace("``", "")
 
 
+def _add_lens_options(p: argparse._ActionsContainer) -> None:
+    """The simulated lens of ``synth`` and ``demo``."""
+    p.add_argument("--lens", choices=["standard", "fisheye"], default="standard",
+                   help="standard: a 90 degree Brown-Conrady lens like a RealSense D435I's; fisheye: a "
+                        "Kannala-Brandt lens of --fov horizontal field whose image circle is 200 degrees "
+                        "(both 1280x720 px with a smooth lens deviation of 0.3 px; default %(default)s)")
+    p.add_argument("--fov", type=float, metavar="DEG",
+                   help=f"horizontal field of view of --lens fisheye, deg, up to 200 "
+                        f"(default {FISHEYE_FOV:g})")
+
+
 def _add_synth_options(p: argparse._ActionsContainer, rolling_shutter: bool = True) -> None:
     from blurcalib.sim.synth import SynthConfig
 
@@ -537,7 +554,13 @@ def _add_pipeline_options(p: argparse._ActionsContainer) -> None:
     g = p.add_argument_group("the camera")
     g.add_argument("--model", choices=MODELS, default=SequenceSettings.model,
                    help="camera model delivered: the generic B-spline ray grid fitted to sharp and blurry "
-                        "frames together, or Brown-Conrady from the sharp set only (default %(default)s)")
+                        "frames together, or the parametric camera from the sharp set only "
+                        "(default %(default)s)")
+    g.add_argument("--parametric", choices=PARAMETRIC_MODELS, default=SequenceSettings.parametric,
+                   help="model of the parametric (sharp-set) camera, which the generic camera starts from "
+                        "and is regularised toward: Brown-Conrady, OpenCV's rational model, Kannala-Brandt "
+                        "(OpenCV's fisheye) or the reference tool's thin-prism fisheye; auto: the one "
+                        "with the lowest error on held-out frames (default %(default)s)")
     g.add_argument("--route", choices=ROUTES, default=JointSettings.route,
                    help="blurry frames in the generic fit: star centres with a free per-frame shift "
                         "(joint), or aligned to the parametric camera first, the paper's route "
@@ -596,6 +619,7 @@ def build_parser() -> argparse.ArgumentParser:
                        description=_plain(cmd_demo.__doc__))
     p.add_argument("--out", default=str(DEFAULT_DEMO_DIR), metavar="DIR",
                    help="output folder (default %(default)s); its data/ is reused when complete")
+    _add_lens_options(p)
     _add_synth_options(p, rolling_shutter=False)
     _add_pipeline_options(p)
     _add_run_options(p, workers=False)
@@ -693,13 +717,7 @@ def build_parser() -> argparse.ArgumentParser:
                        description=_plain(cmd_synth.__doc__))
     p.add_argument("--out", required=True, metavar="DIR", help="output folder")
     p.add_argument("--pattern", metavar="FILE", help="pattern YAML (default: the reference A4 17x24 target)")
-    p.add_argument("--lens", choices=["standard", "fisheye"], default="standard",
-                   help="standard: a 90 degree Brown-Conrady lens like a RealSense D435I's; fisheye: a "
-                        "Kannala-Brandt lens of --fov horizontal field whose image circle is 200 degrees "
-                        "(both 1280x720 px with a smooth lens deviation of 0.3 px; default %(default)s)")
-    p.add_argument("--fov", type=float, metavar="DEG",
-                   help=f"horizontal field of view of --lens fisheye, deg, up to 200 "
-                        f"(default {FISHEYE_FOV:g})")
+    _add_lens_options(p)
     _add_synth_options(p)
     p.set_defaults(func=cmd_synth)
     return parser

@@ -157,7 +157,11 @@ class PipelineReport:
     ``generic_sharp`` the same for the sharp frames alone, ``trust`` the assessment
     (:meth:`blurcalib.calib.trust.Trust.to_dict`), ``rolling_shutter`` the rolling-shutter step
     (:meth:`blurcalib.calib.rolling_shutter.RollingShutterResult.to_dict`: readout ratio, its
-    standard error, each moving frame's blur velocity)."""
+    standard error, each moving frame's blur velocity), ``parametric_choice`` the held-out scores
+    of the parametric models with ``parametric="auto"``
+    (:meth:`blurcalib.calib.model_choice.ModelChoice.to_dict`), ``generic_failure`` why the
+    generic camera could not be fitted (what the capture lacks; the parametric calibration and
+    the features are written all the same), else ""."""
 
     calibration: dict
     frames: list[FrameRecord]
@@ -168,6 +172,8 @@ class PipelineReport:
     generic_sharp: dict | None = None
     trust: dict | None = None
     rolling_shutter: dict | None = None
+    parametric_choice: dict | None = None
+    generic_failure: str = ""
     seconds: dict[str, float] = field(default_factory=dict)
 
     def to_dict(self) -> dict:
@@ -443,7 +449,7 @@ def _stage_run(out: Path, staging: Path, pattern: StarPattern, size: tuple[int, 
     staged.update(trust_files)
     outputs = {k: out / p.relative_to(staging) for k, p in staged.items()}
     report = PipelineReport(calibration={k: v for k, v in calibration.to_dict().items()
-                                         if k in ("camera", "median_error_px", "rms_error_px",
+                                         if k in ("model", "camera", "median_error_px", "rms_error_px",
                                                   "num_frames", "num_observations")},
                             frames=rows, outputs={k: str(v) for k, v in outputs.items()},
                             counts=status_counts(rows), settings=s.to_dict(),
@@ -453,6 +459,8 @@ def _stage_run(out: Path, staging: Path, pattern: StarPattern, size: tuple[int, 
                             trust=None if run.trust is None else run.trust.to_dict(),
                             rolling_shutter=None if run.rolling_shutter is None
                             else run.rolling_shutter.to_dict(),
+                            parametric_choice=None if run.choice is None else run.choice.to_dict(),
+                            generic_failure=run.generic_failure,
                             seconds={k: round(v, 2) for k, v in seconds.items()})
     atomic_write_json(staging / REPORT_FILE, report.to_dict(), indent=2, default=str)
     return report
