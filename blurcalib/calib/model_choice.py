@@ -3,8 +3,9 @@
 
 The sharp frames split into two folds (alternate frames in name order). Each candidate model
 (:data:`CANDIDATES`) is calibrated on each fold (:func:`blurcalib.calib.sharp.calibrate_sharp`)
-and scored on the other: each held-out frame's pose is solved with that camera and the fold's
-refined points (:func:`blurcalib.calib.pnp.solve_pose`, in viewing directions for the family's
+and scored on the other, the target points nominal (the choice needs the lens, not the points'
+last micrometres, and a fit without free points costs a fraction): each held-out frame's pose is
+solved with that camera (:func:`blurcalib.calib.pnp.solve_pose`, in viewing directions for the family's
 models, so a point beyond 90 degrees off the axis counts as any other), and its errors
 ``|p - pi(M, P)|`` (px) are those of the observations within :data:`HELD_OUT_INLIER_PX` of it.
 A model's score is the median over every held-out observation of both folds; an observation
@@ -116,8 +117,8 @@ def choose_model(table: FeatureTable, pattern: StarPattern, image_size: tuple[in
     Args:
         table: the sharp features (as :func:`calibrate_sharp` takes them).
         pattern, image_size: the target and ``(width, height)`` px.
-        calibrate: :func:`calibrate_sharp`'s keyword options (``min_frames`` applies to the whole
-            set; each fold needs 2 frames).
+        calibrate: :func:`calibrate_sharp`'s keyword options but ``refine_points`` (``min_frames``
+            applies to the whole set; each fold needs 2 frames).
 
     With fewer than 4 usable frames (two folds of two) nothing can be held out: the choice is
     the first candidate, without scores.
@@ -138,7 +139,7 @@ def choose_model(table: FeatureTable, pattern: StarPattern, image_size: tuple[in
         for model in CANDIDATES:
             start = fisheye if model not in (BrownConradyCamera.MODEL, KannalaBrandtCamera.MODEL) else None
             try:
-                fitted = calibrate_sharp(train_table, pattern, image_size, min_frames=2, model=model,
+                fitted = calibrate_sharp(train_table, pattern, image_size, False, min_frames=2, model=model,
                                          start=start, **calibrate)
             except (CalibrationError, ValueError, np.linalg.LinAlgError) as exc:
                 failures.setdefault(model, str(exc))
