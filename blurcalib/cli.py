@@ -336,6 +336,12 @@ def cmd_demo(args: argparse.Namespace) -> int:
     out = Path(args.out)
     data = out / "data"
     if (data / GROUND_TRUTH_FILE).is_file() and not args.overwrite:
+        from blurcalib.camera.parametric import BrownConrady
+
+        lens = "standard" if isinstance(load_ground_truth(data).camera.model, BrownConrady) else "fisheye"
+        if lens != args.lens:
+            raise CliError(f"{data}: holds a simulated dataset of the {lens} lens, not --lens {args.lens}; "
+                           "use another --out or --overwrite")
         print(f"reusing the simulated dataset in {data}")
     else:
         _check_empty_output(data, args.overwrite)

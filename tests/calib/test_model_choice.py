@@ -97,7 +97,7 @@ def test_pose_of_points_beyond_ninety_degrees() -> None:
     cam = pose.transform(pattern.points_3d())
     angle = np.degrees(np.arctan2(np.hypot(cam[:, 0], cam[:, 1]), cam[:, 2]))
     seen = camera.valid_directions(cam) & camera.in_image(camera.project(cam))
-    assert seen.sum() >= 20 and (angle[seen] > 90).mean() > 0.5
+    assert (angle[seen] > 90).sum() >= 40  # points behind the image plane, seen at up to 96 degrees
     px = camera.project(cam[seen]) + np.random.default_rng(0).normal(0, 0.05, (int(seen.sum()), 2))
     solved = solve_pose(camera, pattern.points_3d()[seen], px)
     assert np.allclose(solved.R, pose.R, atol=2e-3) and np.allclose(solved.t, pose.t, atol=2e-3)
