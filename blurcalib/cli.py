@@ -232,6 +232,8 @@ def _run_pipeline(sharp: list[Path], blurry: list[Path], pattern: StarPattern, o
         print(report.parametric_choice["summary"])
     if report.generic_failure:
         print(f"warning: {report.generic_failure}")
+    if report.assessment_failure:
+        print(f"warning: no assessment: {report.assessment_failure}")
     if report.generic is not None:
         g = report.generic
         print(f"generic calibration ({g['route']} route): {g['grid_width']}x{g['grid_height']} grid, "

@@ -161,7 +161,8 @@ class PipelineReport:
     of the parametric models with ``parametric="auto"``
     (:meth:`blurcalib.calib.model_choice.ModelChoice.to_dict`), ``generic_failure`` why the
     generic camera could not be fitted (what the capture lacks; the parametric calibration and
-    the features are written all the same), else ""."""
+    the features are written all the same), else "", and ``assessment_failure`` why the generic
+    camera (or the sharp-only one) has no assessment, else ""."""
 
     calibration: dict
     frames: list[FrameRecord]
@@ -174,6 +175,7 @@ class PipelineReport:
     rolling_shutter: dict | None = None
     parametric_choice: dict | None = None
     generic_failure: str = ""
+    assessment_failure: str = ""
     seconds: dict[str, float] = field(default_factory=dict)
 
     def to_dict(self) -> dict:
@@ -413,11 +415,8 @@ def _publish_run(out: Path, pattern: StarPattern, size: tuple[int, int], s: Pipe
     failed write (a full disk) removes the staging folder and leaves the earlier outputs as they
     were.
 
-    Raises:
-        PipelineError: the generic camera could not be assessed.
+    A failed assessment is written as ``report.json``'s ``assessment_failure``.
     """
-    if run.trust_failure or run.sharp_failure:
-        raise PipelineError(f"assessment: {run.trust_failure or run.sharp_failure}")
     staging = out / STAGING_DIR
     try:
         report = _stage_run(out, staging, pattern, size, s, rows, run, seconds)
@@ -461,6 +460,7 @@ def _stage_run(out: Path, staging: Path, pattern: StarPattern, size: tuple[int, 
                             else run.rolling_shutter.to_dict(),
                             parametric_choice=None if run.choice is None else run.choice.to_dict(),
                             generic_failure=run.generic_failure,
+                            assessment_failure=run.trust_failure or run.sharp_failure,
                             seconds={k: round(v, 2) for k, v in seconds.items()})
     atomic_write_json(staging / REPORT_FILE, report.to_dict(), indent=2, default=str)
     return report
