@@ -87,6 +87,7 @@ def accuracy_lines(out: Path, truth) -> list[str]:
 
 def bench(dataset: Path, cache: Path, workers: int, validation: str) -> None:
     """Run and print one dataset's figures (module docstring)."""
+    truth = load_ground_truth(dataset)  # before the long run: a folder without its truth fails now
     pattern = load_pattern(dataset / "pattern.yaml")
     sharp, blurry = list_frames([dataset / "sharp"]), list_frames([dataset / "blurry"])
     out = cache / dataset.name
@@ -99,7 +100,6 @@ def bench(dataset: Path, cache: Path, workers: int, validation: str) -> None:
         print(f"{dataset.name}: calibration failed: {exc}")
         return
     cpu = _cpu_seconds() - cpu
-    truth = load_ground_truth(dataset)
     print(f"{dataset.name}: true lens {as_family(truth.camera.model).MODEL}, {len(sharp)} sharp and "
           f"{len(blurry)} blurry frames")
     used = [r for r in report.frames if r.kind == "blurry" and r.used]
