@@ -1,4 +1,5 @@
-"""Global alignment of one frame's features to a calibrated parametric camera.
+"""Global alignment of one frame's features to a calibrated parametric camera (Brown-Conrady, or
+any model of the family: :mod:`blurcalib.camera.lens`).
 
 Deconvolution leaves every blurry-frame feature with an unknown translation (paper section
 "Global Alignment"). The discrepancy between an observation and its parametric projection is
@@ -68,6 +69,8 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from blurcalib.calib.bias import BIASES, bias_basis, coeffs_from_beta, grid_coordinates
+from blurcalib.calib.pnp import solve_pose
+from blurcalib.camera.lens import ParametricCamera, project_poses_camera
 from blurcalib.camera.parametric import BrownConrady, project_poses
 from blurcalib.geometry.pose import Pose
 from blurcalib.io.results import BlockTable
@@ -193,7 +196,7 @@ class GlobalAlignment:
 class _Problem:
     """Fixed data of one alignment: the camera, points, observations, basis and weights."""
 
-    camera: BrownConrady
+    camera: BrownConrady | ParametricCamera
     points: np.ndarray
     observed: np.ndarray
     phi: np.ndarray
@@ -203,7 +206,11 @@ class _Problem:
 
     def project(self, pose6: np.ndarray, jacobian: bool) -> tuple[np.ndarray, np.ndarray | None]:
         """``pi_d`` of the points at pose ``(rvec, tvec)``; with its ``(N, 2, 6)`` Jacobian."""
-        proj = project_poses(self.camera.params, pose6[:3], pose6[3:], self.points, jacobian=jacobian)
+        if isinstance(self.camera, BrownConrady):
+            proj = project_poses(self.camera.params, pose6[:3], pose6[3:], self.points, jacobian=jacobian)
+        else:
+            proj = project_poses_camera(self.camera, pose6[None, :3], pose6[None, 3:], self.points,
+                                        jacobian=jacobian)
         return proj.pixels, proj.d_pose
 
     def residuals(self, pose6: np.ndarray, beta: np.ndarray) -> np.ndarray:
@@ -290,9 +297,16 @@ class _Steps(SingleProblem[_Point, tuple[np.ndarray, np.ndarray, np.ndarray], np
 
 
 def _initial_pose(problem: _Problem) -> np.ndarray:
-    """A pose from ``cv2.solvePnP`` (SQPnP, then Levenberg-Marquardt refinement)."""
+    """A pose from ``cv2.solvePnP`` (SQPnP, then Levenberg-Marquardt refinement); for a camera of
+    the parametric family, :func:`blurcalib.calib.pnp.solve_pose` (in viewing directions)."""
     obj = np.ascontiguousarray(problem.points, dtype=np.float64)
     img = np.ascontiguousarray(problem.observed, dtype=np.float64)
+    if not isinstance(problem.camera, BrownConrady):
+        try:
+            pose = solve_pose(problem.camera, obj, img, ransac_px=20.0)
+        except ValueError:
+            raise ValueError("no pose found: the observations do not determine a pose") from None
+        return np.concatenate([pose.rvec, pose.t])
     ok, rvec, tvec = cv2.solvePnP(obj, img, problem.camera.K, problem.camera.dist, flags=cv2.SOLVEPNP_SQPNP)
     if not ok:
         raise ValueError("solvePnP failed: the observations do not determine a pose")
@@ -300,7 +314,7 @@ def _initial_pose(problem: _Problem) -> np.ndarray:
     return np.concatenate([rvec.reshape(3), tvec.reshape(3)])
 
 
-def align_global(camera: BrownConrady, points_3d: ArrayLike, observed: ArrayLike,
+def align_global(camera: BrownConrady | ParametricCamera, points_3d: ArrayLike, observed: ArrayLike,
                  weights: ArrayLike | None = None, grid: ArrayLike | None = None, *,
                  loss: str = "huber", huber_px: float = DEFAULT_HUBER_PX, bias: str = "translation",
                  iterations: int = 100, method: str = "joint", initial_pose: Pose | None = None,
@@ -418,7 +432,7 @@ def _solve_alternating(problem: _Problem, pose6: np.ndarray, beta: np.ndarray, i
     return pose6, beta, iterations, False
 
 
-def alignment_covariance(camera: BrownConrady, pose: Pose, points_3d: ArrayLike,
+def alignment_covariance(camera: BrownConrady | ParametricCamera, pose: Pose, points_3d: ArrayLike,
                          grid: ArrayLike | None = None, bias: str = "translation",
                          sigma_px: float = 1.0, weights: ArrayLike | None = None) -> np.ndarray:
     """Cramér-Rao covariance (px^2) of the bias coefficients for one frame.
@@ -471,7 +485,8 @@ class AlignmentSettings:
     min_blocks: int = MIN_BLOCKS
 
 
-def align_blocks(camera: BrownConrady, pattern: StarPattern, reference_points: np.ndarray | None,
+def align_blocks(camera: BrownConrady | ParametricCamera, pattern: StarPattern,
+                 reference_points: np.ndarray | None,
                  feature_id: ArrayLike, centres: ArrayLike, block_loss: ArrayLike,
                  settings: AlignmentSettings | None = None) -> GlobalAlignment:
     """Align one frame's kept blocks to a calibrated camera (``eq:global_align``).
@@ -509,7 +524,8 @@ def align_blocks(camera: BrownConrady, pattern: StarPattern, reference_points: n
         raise AlignmentError(f"global alignment failed: {exc}") from None
 
 
-def align_kept_blocks(camera: BrownConrady, pattern: StarPattern, reference_points: np.ndarray | None,
+def align_kept_blocks(camera: BrownConrady | ParametricCamera, pattern: StarPattern,
+                      reference_points: np.ndarray | None,
                       blocks: BlockTable, kept: np.ndarray, settings: AlignmentSettings | None = None
                       ) -> tuple[np.ndarray, GlobalAlignment]:
     """:func:`align_blocks` of a frame's blocks kept by the quality filter ``kept (B,)`` with

@@ -20,8 +20,20 @@ def cell_coverage(model: CentralGeneric, px: np.ndarray) -> np.ndarray:
     return np.bincount(cy * cw + cx, minlength=cw * ch).reshape(ch, cw)
 
 
+def _off_axis_deg(model: CentralGeneric, px: np.ndarray) -> str:
+    """`` , A-B degrees off the axis`` of the model's rays at pixels ``(N, 2)`` (the angle of each
+    ray from the camera's z axis), or "" where it has none."""
+    rays = model.pixel_to_ray(px)
+    rays = rays[np.all(np.isfinite(rays), axis=1)]
+    if not len(rays):
+        return ""
+    angle = np.degrees(np.arctan2(np.hypot(rays[:, 0], rays[:, 1]), rays[:, 2]))
+    return f", {angle.min():.0f}-{angle.max():.0f} degrees off the axis"
+
+
 def coverage_warnings(model: CentralGeneric, coverage: np.ndarray) -> list[str]:
-    """One line per image region (3 x 3 split) holding grid cells without observations."""
+    """One line per image region (3 x 3 split) holding grid cells without observations: where, in
+    pixels and in degrees off the optical axis (a wide lens's corners are hard to fill)."""
     ch, cw = coverage.shape
     x0, y0, x1, y1 = model.area_opencv
     cell_w = (x1 - x0) / cw
@@ -44,8 +56,9 @@ def coverage_warnings(model: CentralGeneric, coverage: np.ndarray) -> list[str]:
             xb = x0 + (cols[sel].max() + 1) * cell_w
             ya = y0 + rows[sel].min() * cell_h
             yb = y0 + (rows[sel].max() + 1) * cell_h
+            centres = np.column_stack([x0 + (cols[sel] + 0.5) * cell_w, y0 + (rows[sel] + 0.5) * cell_h])
             out.append(f"{count(int(sel.sum()), 'grid cell')} without observations in the {name} of the "
-                       f"image (x {max(xa, 0):.0f}-{xb:.0f} px, y {max(ya, 0):.0f}-{yb:.0f} px): the model "
-                       "there follows the "
-                       "initial camera (smoothness prior)")
+                       f"image (x {max(xa, 0):.0f}-{xb:.0f} px, y {max(ya, 0):.0f}-{yb:.0f} px"
+                       f"{_off_axis_deg(model, centres)}): the model there follows the initial camera "
+                       "(smoothness prior)")
     return out

@@ -1,12 +1,14 @@
-"""The least-squares problem of the parametric (Brown-Conrady) bundle adjustment of
-:mod:`blurcalib.calib.sharp` and its solver.
+"""The least-squares problem of the parametric bundle adjustment of :mod:`blurcalib.calib.sharp`
+and its solver, for any model of the parametric family (:mod:`blurcalib.camera.lens`).
 
 :class:`ParametricProblem` holds the index structure: residuals ``pi_d(M_f, P_j) - p_fj`` (px) of
 the observations, then (with free points) the points' prior ``(P_j - P_j^0) / sigma_P``, and their
-sparse analytic Jacobian over the parameters ``(9 intrinsics, 6 F pose parameters, 3 Q points)``.
-:func:`minimise` is Levenberg-Marquardt with Huber weights whose steps eliminate the poses
-(:func:`solve_poses_eliminated`); :func:`adjust` repeats it without the outliers until the
-inlier set settles, and :func:`gauge_fixed` fixes the gauge of free points.
+sparse analytic Jacobian over the parameters ``(I intrinsics, 6 F pose parameters, 3 Q points)``
+(``I`` the model's parameter count, 9 for Brown-Conrady), through
+:func:`blurcalib.camera.lens.project_poses_camera`. :func:`minimise` is Levenberg-Marquardt with
+Huber weights whose steps eliminate the poses (:func:`solve_poses_eliminated`); :func:`adjust`
+repeats it without the outliers until the inlier set settles (an observation outside the model's
+valid field is an outlier), and :func:`gauge_fixed` fixes the gauge of free points.
 """
 
 from __future__ import annotations
@@ -19,7 +21,8 @@ import numpy as np
 import scipy.linalg
 import scipy.sparse
 
-from blurcalib.camera.parametric import project_poses, rodrigues_jacobian
+from blurcalib.camera.lens import ParametricCamera, project_poses_camera
+from blurcalib.camera.parametric import rodrigues_jacobian
 from blurcalib.optim.lm import Acceptance, Damping, LmRule, SingleProblem, Stopping, run_single
 
 __all__ = ["ADJUSTMENT_DAMPING", "SETTLED_MARGIN", "SETTLED_SHARE", "ParametricProblem", "adjust",
@@ -28,8 +31,12 @@ __all__ = ["ADJUSTMENT_DAMPING", "SETTLED_MARGIN", "SETTLED_SHARE", "ParametricP
 
 @dataclass
 class ParametricProblem:
-    """Index structure of one bundle adjustment (observations of the calibrated frames)."""
+    """Index structure of one bundle adjustment (observations of the calibrated frames).
 
+    ``camera`` is the model (its parameters are the start's; the problem's own live in the
+    parameter vector)."""
+
+    camera: ParametricCamera
     frame_idx: np.ndarray  # (N,) frame index
     point_idx: np.ndarray  # (N,) index of each observation's point into ``nominal``
     observed: np.ndarray  # (N, 2) px
@@ -40,21 +47,39 @@ class ParametricProblem:
     point_sigma: float
 
     @property
+    def num_intrinsics(self) -> int:
+        return len(self.camera.params)
+
+    @property
     def num_params(self) -> int:
-        return 9 + 6 * self.num_frames + (3 * len(self.nominal) if self.refine_points else 0)
+        return (self.num_intrinsics + 6 * self.num_frames
+                + (3 * len(self.nominal) if self.refine_points else 0))
 
     def unpack(self, params: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """``params`` -> intrinsics (9,), rvecs (F, 3), tvecs (F, 3), free points (Q, 3)."""
-        poses = params[9:9 + 6 * self.num_frames].reshape(-1, 6)
-        pts = params[9 + 6 * self.num_frames:].reshape(-1, 3) if self.refine_points else self.nominal
-        return params[:9], poses[:, :3], poses[:, 3:], pts
+        """``params`` -> intrinsics (I,), rvecs (F, 3), tvecs (F, 3), free points (Q, 3)."""
+        i = self.num_intrinsics
+        poses = params[i:i + 6 * self.num_frames].reshape(-1, 6)
+        pts = params[i + 6 * self.num_frames:].reshape(-1, 3) if self.refine_points else self.nominal
+        return params[:i], poses[:, :3], poses[:, 3:], pts
 
     def obs_points(self, pts: np.ndarray, rows: np.ndarray) -> np.ndarray:
         return pts[self.point_idx[rows]] if self.refine_points else self.fixed_points[rows]
 
     def predict(self, params: np.ndarray, rows: np.ndarray) -> np.ndarray:
         intr, rvecs, tvecs, pts = self.unpack(params)
-        return project_poses(intr, rvecs, tvecs, self.obs_points(pts, rows), self.frame_idx[rows]).pixels
+        return project_poses_camera(self.camera.with_params(intr), rvecs, tvecs, self.obs_points(pts, rows),
+                                    self.frame_idx[rows]).pixels
+
+    def errors(self, params: np.ndarray) -> np.ndarray:
+        """``(N,)`` px ``|pi_d(M_f, P_j) - p_fj|`` of every observation; ``inf`` where its point lies
+        outside the model's valid field (behind a perspective camera, say)."""
+        intr, rvecs, tvecs, pts = self.unpack(params)
+        every = np.arange(len(self.observed))
+        camera = self.camera.with_params(intr)
+        R = rodrigues_jacobian(rvecs)[0][self.frame_idx]
+        cam = np.einsum("nab,nb->na", R, self.obs_points(pts, every)) + tvecs[self.frame_idx]
+        errors = np.linalg.norm(camera.project(cam) - self.observed, axis=1)
+        return np.where(camera.valid_directions(cam), errors, np.inf)
 
     def residual_fn(self, rows: np.ndarray):
         """Residuals ``(2 n + 3 Q,)``: ``pi_d - p`` of the rows (px), then the point prior."""
@@ -67,13 +92,14 @@ class ParametricProblem:
         return fun
 
     def jacobian_fn(self, rows: np.ndarray):
-        """Sparse Jacobian of :meth:`residual_fn` (CSR): 9 + 6 (+ 3) non-zeros per data row."""
+        """Sparse Jacobian of :meth:`residual_fn` (CSR): I + 6 (+ 3) non-zeros per data row."""
         n = len(rows)
+        i = self.num_intrinsics
         fi = self.frame_idx[rows]
-        cols = [np.broadcast_to(np.arange(9), (n, 9)),
-                9 + 6 * fi[:, None] + np.arange(6)]
+        cols = [np.broadcast_to(np.arange(i), (n, i)),
+                i + 6 * fi[:, None] + np.arange(6)]
         if self.refine_points:
-            cols.append(9 + 6 * self.num_frames + 3 * self.point_idx[rows][:, None] + np.arange(3))
+            cols.append(i + 6 * self.num_frames + 3 * self.point_idx[rows][:, None] + np.arange(3))
         col = np.concatenate(cols, axis=1)
         data_cols = np.repeat(col[:, None, :], 2, axis=1).ravel()
         width = col.shape[1]
@@ -81,7 +107,7 @@ class ParametricProblem:
         num_rows = 2 * n
         if self.refine_points:
             q = len(self.nominal)
-            prior_cols = 9 + 6 * self.num_frames + np.arange(3 * q)
+            prior_cols = i + 6 * self.num_frames + np.arange(3 * q)
             data_rows = np.concatenate([data_rows, 2 * n + np.arange(3 * q)])
             data_cols = np.concatenate([data_cols, prior_cols])
             num_rows += 3 * q
@@ -89,7 +115,8 @@ class ParametricProblem:
 
         def jac(params: np.ndarray) -> scipy.sparse.csr_matrix:
             intr, rvecs, tvecs, pts = self.unpack(params)
-            proj = project_poses(intr, rvecs, tvecs, self.obs_points(pts, rows), fi, jacobian=True)
+            camera = self.camera.with_params(intr)
+            proj = project_poses_camera(camera, rvecs, tvecs, self.obs_points(pts, rows), fi, jacobian=True)
             parts = (proj.d_intrinsics, proj.d_pose, proj.d_point)
             values = np.concatenate(parts if self.refine_points else parts[:2], axis=2).ravel()
             if self.refine_points:
@@ -98,20 +125,22 @@ class ParametricProblem:
         return jac
 
 
-def solve_poses_eliminated(H: scipy.sparse.spmatrix, g: np.ndarray, frames: int) -> np.ndarray:
+def solve_poses_eliminated(H: scipy.sparse.spmatrix, g: np.ndarray, frames: int, intrinsics: int = 9
+                           ) -> np.ndarray:
     """``H^-1 g`` for the adjustment's symmetric positive definite normal matrix ``H (n, n)``
-    ordered as :class:`ParametricProblem`'s parameters (9 intrinsics, ``6 F`` pose parameters, then the
-    points), by the Schur complement on the poses: their ``6 x 6`` blocks are independent, so::
+    ordered as :class:`ParametricProblem`'s parameters (``intrinsics`` intrinsics, ``6 F`` pose
+    parameters, then the points), by the Schur complement on the poses: their ``6 x 6`` blocks are
+    independent, so::
 
         S = H_oo - H_op H_pp^-1 H_po,   S x_o = g_o - H_op H_pp^-1 g_p,   x_p = H_pp^-1 (g_p - H_po x_o)
 
-    with ``o`` the intrinsics and points (``9 + 3 Q``, dense) and ``p`` the poses. Cost:
-    ``O(F (9 + 3 Q)^2)`` and one dense Cholesky solve of ``S``.
+    with ``o`` the intrinsics and points (``I + 3 Q``, dense) and ``p`` the poses. Cost:
+    ``O(F (I + 3 Q)^2)`` and one dense Cholesky solve of ``S``.
     """
     Hc = H.tocsr()
     n = Hc.shape[0]
-    pose = np.arange(9, 9 + 6 * frames)
-    other = np.concatenate([np.arange(9), np.arange(9 + 6 * frames, n)])
+    pose = np.arange(intrinsics, intrinsics + 6 * frames)
+    other = np.concatenate([np.arange(intrinsics), np.arange(intrinsics + 6 * frames, n)])
     blocks = pose.reshape(frames, 6)
     Hpp = np.asarray(Hc[np.repeat(blocks, 6, axis=1).ravel(), np.tile(blocks, (1, 6)).ravel()]).reshape(
         frames, 6, 6)
@@ -158,8 +187,9 @@ class _Robust(SingleProblem[_Point, tuple, np.ndarray]):
 
     def __init__(self, fun: Callable[[np.ndarray], np.ndarray],
                  jac: Callable[[np.ndarray], scipy.sparse.spmatrix], huber: float, frames: int,
-                 tol: float) -> None:
+                 tol: float, intrinsics: int) -> None:
         self.fun, self.jac, self.huber, self.frames, self.tol = fun, jac, huber, frames, tol
+        self.intrinsics = intrinsics
 
     def cost(self, f: np.ndarray) -> float:
         a = np.abs(f)
@@ -175,9 +205,13 @@ class _Robust(SingleProblem[_Point, tuple, np.ndarray]):
         g = J.T @ (w * p.f)
         return H, g, scipy.sparse.diags(np.maximum(H.diagonal(), 1e-12))
 
-    def solve(self, system: tuple, lam: float) -> np.ndarray:
+    def solve(self, system: tuple, lam: float) -> np.ndarray | None:
+        """The damped step, or None (a rejected trial) where the system is singular."""
         H, g, diag = system
-        return -solve_poses_eliminated(H + lam * diag, g, self.frames)
+        try:
+            return -solve_poses_eliminated(H + lam * diag, g, self.frames, self.intrinsics)
+        except np.linalg.LinAlgError:  # scipy's LinAlgError too
+            return None
 
     def trial(self, p: _Point, step: np.ndarray) -> tuple[_Point, float]:
         x = p.x + step
@@ -190,8 +224,8 @@ class _Robust(SingleProblem[_Point, tuple, np.ndarray]):
 
 
 def minimise(fun: Callable[[np.ndarray], np.ndarray], jac: Callable[[np.ndarray], scipy.sparse.spmatrix],
-              x: np.ndarray, huber: float, frames: int, max_jacobians: int = 100, tol: float = 1e-10
-              ) -> tuple[np.ndarray, int]:
+              x: np.ndarray, huber: float, frames: int, max_jacobians: int = 100, tol: float = 1e-10,
+              intrinsics: int = 9) -> tuple[np.ndarray, int]:
     """``argmin_x sum_i rho(f_i(x))`` by Levenberg-Marquardt on the sparse normal equations; the
     minimiser and the Jacobians evaluated.
 
@@ -199,13 +233,13 @@ def minimise(fun: Callable[[np.ndarray], np.ndarray], jac: Callable[[np.ndarray]
     beyond; ``huber = inf``: plain squares), by iteratively reweighted Gauss-Newton: weights
     ``w_i = min(1, h / |f_i|)``, the step ``(J^T W J + lambda diag(J^T W J)) dx = -J^T W f``
     (Marquardt's damping, which ``x_scale='jac'`` of ``scipy.optimize.least_squares`` also
-    amounts to), solved directly with the ``frames`` poses eliminated
+    amounts to), solved directly with the ``frames`` poses after the ``intrinsics`` eliminated
     (:func:`solve_poses_eliminated`); the loop is :func:`blurcalib.optim.lm.run_single` with
     :data:`ADJUSTMENT_DAMPING`, a step of equal cost accepted. Stops when an accepted step lowers
     the cost by at most ``tol`` of it or moves ``x`` by at most ``tol (tol + |x|)``, when no damping
     up to the ceiling lowers it, or after ``max_jacobians``.
     """
-    problem = _Robust(fun, jac, huber, frames, tol)
+    problem = _Robust(fun, jac, huber, frames, tol, intrinsics)
     f = fun(x)
     rule = LmRule(ADJUSTMENT_DAMPING, Stopping(max_iterations=max_jacobians, rtol=tol), Acceptance(ties=True))
     run = run_single(problem, _Point(x, f), problem.cost(f), rule)
@@ -238,20 +272,22 @@ def adjust(problem: ParametricProblem, params: np.ndarray, inlier: np.ndarray, h
     """The robust adjustment of :mod:`blurcalib.calib.sharp`: :func:`minimise` over the inliers
     ``inlier (N,)``, then every observation whose error ``|pi_d(M, P) - p|`` exceeds
     :func:`robust_threshold` of the inliers' errors is an outlier and the rest inliers (rejected
-    ones may return), in rounds until the inlier set is :func:`settled` or :data:`MAX_ROUNDS`.
+    ones may return), in rounds until the inlier set is :func:`settled` or :data:`MAX_ROUNDS`. An
+    observation outside the model's valid field (:meth:`ParametricProblem.errors`) is never an
+    inlier.
 
     Returns:
         The parameters ``(n,)``, the inliers ``(N,)`` they were fitted to, the Jacobians evaluated
         and the rounds.
     """
     iterations = 0
-    every = np.arange(len(problem.observed))
+    inlier = inlier & np.isfinite(problem.errors(params))
     for rounds in range(1, MAX_ROUNDS + 1):
         rows = np.flatnonzero(inlier)
         params, njev = minimise(problem.residual_fn(rows), problem.jacobian_fn(rows), params, huber,
-                                problem.num_frames)
+                                problem.num_frames, intrinsics=problem.num_intrinsics)
         iterations += njev
-        errors = np.linalg.norm(problem.predict(params, every) - problem.observed, axis=1)
+        errors = problem.errors(params)
         limit = robust_threshold(errors[inlier], outlier_sigmas, problem.num_params)
         new_inlier = errors <= limit
         if settled(errors[new_inlier != inlier], limit, len(errors)) or rounds == MAX_ROUNDS:
@@ -273,7 +309,7 @@ def umeyama(source: np.ndarray, target: np.ndarray) -> tuple[float, np.ndarray, 
 
 def gauge_fixed(problem: ParametricProblem, params: np.ndarray
                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """The intrinsics ``(9,)``, rotations ``(F, 3, 3)``, translations ``(F, 3)`` m and points
+    """The intrinsics ``(I,)``, rotations ``(F, 3, 3)``, translations ``(F, 3)`` m and points
     ``(Q, 3)`` m of ``params``, with free points in the gauge of :mod:`blurcalib.calib.sharp`: the
     similarity (:func:`umeyama`) that best maps the points onto the nominal ones applied to points
     and poses (``P -> s Q P + b``, ``R -> R Q^T``, ``t -> s t - R Q^T b``)."""

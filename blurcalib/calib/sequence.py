@@ -3,12 +3,16 @@
 :func:`calibrate_features` is what ``blurcalib calibrate`` (:mod:`blurcalib.pipeline.run`) and the
 app (``state/calibration.py``) run:
 
-1. the parametric (Brown-Conrady) camera and the target points from the sharp frames
-   (:func:`blurcalib.calib.sharp.calibrate_sharp`); with too few sharp frames and
+1. the parametric camera and the target points from the sharp frames
+   (:func:`blurcalib.calib.sharp.calibrate_sharp`), its model the one given or, with
+   ``parametric="auto"``, the model of the family with the lowest held-out error
+   (:func:`blurcalib.calib.model_choice.choose_model`; when its fit on every frame fails, the
+   next best); with too few sharp frames and
    :attr:`SequenceSettings.blurry_in_parametric`, the blurry frames' kept star centres join
    (their per-frame shift is not modelled there; the generic fit models it);
 2. with :attr:`SequenceSettings.lens_correction`: every star centre moved by minus the bias of
-   its block homography under that camera's distortion (:mod:`blurcalib.calib.lens_bias`), the
+   its block homography through that camera (any model of the family, any field of view)
+   (:mod:`blurcalib.calib.lens_bias`), the
    parametric camera calibrated again from the corrected features, and the blurry frames'
    blocks corrected under that final camera; sharp frames it leaves out are flagged
    ``FILTERED_OUT``;
@@ -20,6 +24,10 @@ app (``state/calibration.py``) run:
    of the sharp features and the blurry frames of the route (``joint``: every frame's kept star
    centres with a free image shift; ``aligned``: the aligned features of the well-conditioned
    frames), and the generic camera of the sharp frames alone when blurry frames entered;
+   The generic camera starts from the parametric camera's rays and its smoothness prior keeps
+   their shape. A generic fit that fails (singular normal equations, a frame without a pose) is
+   recorded (:attr:`CalibrationRun.generic_failure`: what the capture lacks), not raised: the
+   parametric calibration stands;
 5. the assessment (:func:`blurcalib.calib.trust.assess_calibration`: held-out error, projection
    uncertainty, cross-validation diff, guidance). A failed assessment is recorded
    (:attr:`CalibrationRun.trust_failure`, :attr:`CalibrationRun.sharp_failure`), not raised.
@@ -39,24 +47,28 @@ import numpy as np
 from blurcalib.calib.alignment import AlignmentError, AlignmentSettings, GlobalAlignment, align_kept_blocks
 from blurcalib.calib.joint import GenericCalibration, JointSettings, calibrate_generic
 from blurcalib.calib.lens_bias import correct_blocks, correct_features
+from blurcalib.calib.model_choice import AUTO, ModelChoice, choose_model
 from blurcalib.calib.rolling_shutter import (
     RollingShutterResult,
     RollingShutterSettings,
     blur_velocities,
     calibrate_rolling_shutter,
 )
-from blurcalib.calib.sharp import Calibration, calibrate_sharp
+from blurcalib.calib.sharp import Calibration, CalibrationError, calibrate_sharp
 from blurcalib.calib.trust import Trust, TrustSettings, assess_calibration
 from blurcalib.calib.uncertainty import projection_uncertainty
+from blurcalib.camera.family import MODELS as CAMERA_MODELS
 from blurcalib.growth.quality import FrameFilter, QualitySettings, filter_frame
 from blurcalib.io.results import BlockTable, FeatureFlags, FeatureTable
 from blurcalib.target.pattern import StarPattern
 
-__all__ = ["BlurryFrame", "BlurryOutcome", "CalibrationRun", "SequenceCancelledError", "SequenceSettings",
-           "Stage", "calibrate_features"]
+__all__ = ["PARAMETRIC_MODELS", "BlurryFrame", "BlurryOutcome", "CalibrationRun", "SequenceCancelledError",
+           "SequenceSettings", "Stage", "calibrate_features", "generic_failure"]
 
 MODELS: tuple[str, ...] = ("generic", "parametric")
 """Camera models the sequence delivers."""
+PARAMETRIC_MODELS: tuple[str, ...] = (AUTO, *CAMERA_MODELS)
+"""The settings of the parametric camera's model: ``auto`` or a model of the family."""
 BLURRY_FLAGS = FeatureFlags.STAR_CENTRE | FeatureFlags.BLURRY_FRAME
 """The flags of a blurry frame's star centres."""
 MIN_PARAMETRIC_FRAMES = 2
@@ -87,7 +99,11 @@ class SequenceSettings:
             compensates, and on simulated data the bilinear field also absorbs part of the true
             lens's non-parametric deviation (docs/pipeline.md).
         model: ``generic`` (the central generic camera fitted to sharp and blurry frames
-            together) or ``parametric`` (Brown-Conrady only).
+            together) or ``parametric`` (the parametric camera only).
+        parametric: the parametric camera's model (:data:`blurcalib.camera.family.MODELS`:
+            ``Brown_Conrady``, ``rational``, ``Kannala_Brandt``, ``thin_prism_fisheye``) or
+            ``auto``: the one with the lowest held-out error
+            (:func:`blurcalib.calib.model_choice.choose_model`).
         generic: the generic fit (grid cell, route). ``route="joint"`` (default: raw star
             centres, each frame's translational ambiguity a free shift, no orientation filter)
             or ``"aligned"`` (the paper's route: globally aligned to the parametric camera, then
@@ -95,7 +111,8 @@ class SequenceSettings:
             (``blurcalib experiment generic``, docs/generic.md): 0.005 px median error against
             the true camera for ``joint``, 0.14 px for ``aligned``.
         lens_correction: correct every star centre for the lens bias of its block homography
-            under the parametric camera and calibrate that camera again.
+            under the parametric camera and calibrate that camera again (a Brown-Conrady
+            camera; other models are not corrected).
         min_sharp_frames, min_sharp_features: fewest usable sharp frames, and features of a
             usable sharp frame, of the parametric stage.
         blurry_in_parametric: with fewer than ``min_sharp_frames`` sharp frames, the blurry
@@ -108,6 +125,7 @@ class SequenceSettings:
     quality: QualitySettings = field(default_factory=QualitySettings)
     alignment: AlignmentSettings = field(default_factory=AlignmentSettings)
     model: str = "generic"
+    parametric: str = AUTO
     generic: JointSettings = field(default_factory=JointSettings)
     lens_correction: bool = True
     min_sharp_frames: int = 5
@@ -119,6 +137,8 @@ class SequenceSettings:
     def __post_init__(self) -> None:
         if self.model not in MODELS:
             raise ValueError(f"model must be one of {MODELS}, got {self.model!r}")
+        if self.parametric not in PARAMETRIC_MODELS:
+            raise ValueError(f"parametric must be one of {PARAMETRIC_MODELS}, got {self.parametric!r}")
 
 
 @dataclass(frozen=True, eq=False)
@@ -191,6 +211,7 @@ class CalibrationRun:
 
     Attributes:
         calibration: the parametric calibration (after the lens-bias correction).
+        choice: the held-out scores of the family's models, with ``parametric="auto"``.
         sharp: the sharp features it used (corrected; frames it left out flagged ``FILTERED_OUT``).
         blurry: one outcome per blurry frame, in input order.
         parametric_with_blurry: blurry frames entered the parametric stage.
@@ -198,6 +219,8 @@ class CalibrationRun:
         generic_sharp: the generic camera of the sharp frames alone, when blurry frames entered
             ``generic``.
         trust: held-out error, uncertainty, cross-validation diff and guidance, or None.
+        generic_failure: why there is no generic camera though ``model="generic"`` (what the
+            capture lacks), or "".
         trust_failure: why there is no assessment though there is a generic camera, or "".
         sharp_failure: why there is no sharp-only generic camera though blurry frames entered, or
             why it was not assessed with the rest, or "".
@@ -211,9 +234,11 @@ class CalibrationRun:
     sharp: FeatureTable
     blurry: list[BlurryOutcome]
     parametric_with_blurry: bool = False
+    choice: ModelChoice | None = None
     generic: GenericCalibration | None = None
     generic_sharp: GenericCalibration | None = None
     trust: Trust | None = None
+    generic_failure: str = ""
     trust_failure: str = ""
     sharp_failure: str = ""
     rolling_shutter: RollingShutterResult | None = None
@@ -252,18 +277,22 @@ def calibrate_features(sharp: FeatureTable, sharp_blocks: BlockTable | None, blu
     announce(Stage.PARAMETRIC)
     t0 = time.perf_counter()
     outcomes = [BlurryOutcome(f, blocks=f.blocks) for f in blurry]
-    calibration, sharp, with_blurry = _parametric(sharp, sharp_blocks, outcomes, pattern, image_size, s)
+    calibration, sharp, with_blurry, choice = _parametric(sharp, sharp_blocks, outcomes, pattern, image_size,
+                                                          s)
     for o in outcomes:
         _align(o, calibration, pattern, image_size, s)
-    run = CalibrationRun(calibration, sharp, outcomes, with_blurry)
+    run = CalibrationRun(calibration, sharp, outcomes, with_blurry, choice)
     t1 = time.perf_counter()
     run.seconds["parametric"] = t1 - t0
     if s.model != "generic":
         return run
     announce(Stage.GENERIC)
-    run.generic, run.rolling_shutter = _fit_generic(sharp, outcomes, calibration, pattern, image_size, s)
+    try:
+        run.generic, run.rolling_shutter = _fit_generic(sharp, outcomes, calibration, pattern, image_size, s)
+    except (ValueError, np.linalg.LinAlgError, RuntimeError) as exc:  # torch's LinAlgError: RuntimeError
+        run.generic_failure = generic_failure(exc, sharp, outcomes, image_size, s.generic.cell_px)
     run.seconds["generic"] = time.perf_counter() - t1
-    if not assess:
+    if run.generic is None or not assess:
         return run
     announce(Stage.ASSESSMENT)
     _assess(run, pattern, image_size, s)
@@ -272,22 +301,35 @@ def calibrate_features(sharp: FeatureTable, sharp_blocks: BlockTable | None, blu
 
 def _parametric(sharp: FeatureTable, sharp_blocks: BlockTable | None, outcomes: list[BlurryOutcome],
                 pattern: StarPattern, size: tuple[int, int], s: SequenceSettings
-                ) -> tuple[Calibration, FeatureTable, bool]:
-    """Stages 1 and 2: the parametric camera, the lens-bias correction of the sharp star centres
-    (and of the blurry ones where they join) under it, the camera again, and the blurry frames'
-    blocks corrected under that final camera (the outcomes' ``blocks``); the sharp features it
-    used, with the frames it left out flagged."""
+                ) -> tuple[Calibration, FeatureTable, bool, ModelChoice | None]:
+    """Stages 1 and 2: the parametric camera (its model chosen with ``parametric="auto"``), the
+    lens-bias correction of the sharp star centres (and of the blurry ones where they join) under
+    a Brown-Conrady camera, the camera again, and the blurry frames' blocks corrected under that
+    final camera (the outcomes' ``blocks``); the sharp features it used, with the frames it left
+    out flagged, and the model choice."""
     frames = len(set(sharp.frame.tolist()))
     with_blurry = s.blurry_in_parametric and frames < s.min_sharp_frames
     kw = (dict(min_frames=MIN_PARAMETRIC_FRAMES, min_features=s.alignment.min_blocks) if with_blurry
           else dict(min_frames=s.min_sharp_frames, min_features=s.min_sharp_features))
 
-    def calibrate(features: FeatureTable) -> Calibration:
+    def table_of(features: FeatureTable) -> FeatureTable:
         extra = [_kept_features(o, pattern, size, s) for o in outcomes] if with_blurry else []
-        table = FeatureTable.concat([features, *(t for t in extra if t is not None)])
-        return calibrate_sharp(table, pattern, size, **kw)
+        return FeatureTable.concat([features, *(t for t in extra if t is not None)])
 
-    calibration = calibrate(sharp)
+    choice = choose_model(table_of(sharp), pattern, size, **kw) if s.parametric == AUTO else None
+    models = [s.parametric] if choice is None else choice.ranked()
+
+    def calibrate(features: FeatureTable) -> Calibration:
+        return calibrate_sharp(table_of(features), pattern, size, model=models[0], **kw)
+
+    while True:  # a chosen model whose fit on every frame fails gives way to the next
+        try:
+            calibration = calibrate(sharp)
+            break
+        except CalibrationError:
+            if len(models) == 1:
+                raise
+            models.pop(0)
     if s.lens_correction:
         if sharp_blocks is not None:
             sharp = correct_features(sharp, sharp_blocks, calibration.camera)
@@ -299,7 +341,7 @@ def _parametric(sharp: FeatureTable, sharp_blocks: BlockTable | None, outcomes: 
     sharp = replace(sharp, flags=np.where(np.isin(sharp.frame, sorted(used)), sharp.flags,
                                           sharp.flags | int(FeatureFlags.FILTERED_OUT)))
     with_blurry = with_blurry and not used.isdisjoint(o.frame.name for o in outcomes)
-    return calibration, sharp, with_blurry
+    return calibration, sharp, with_blurry, choice
 
 
 def _correct(outcomes: list[BlurryOutcome], calibration: Calibration) -> None:
@@ -417,3 +459,27 @@ def _assess(run: CalibrationRun, pattern: StarPattern, size: tuple[int, int], s:
             run.sharp_failure += f"; no uncertainty map ({type(exc).__name__}: {exc})"
     run.seconds["generic"] += t1 - t0
     run.seconds["assessment"] = time.perf_counter() - t1
+
+
+def generic_failure(exc: BaseException, sharp: FeatureTable, outcomes: Sequence[BlurryOutcome],
+                    size: tuple[int, int], cell_px: float) -> str:
+    """One line: why the generic fit failed and what the capture lacks: the share of the grid
+    cells (``cell_px`` px) of the used features' bounding box without any observation, and the
+    frames there were."""
+    used = [sharp.select((sharp.flags & int(FeatureFlags.FILTERED_OUT)) == 0)]
+    used += [o.raw for o in outcomes if o.raw is not None]
+    xy = np.concatenate([np.column_stack([t.x, t.y]) for t in used])
+    xy = xy[np.all(np.isfinite(xy), axis=1)]
+    frames = len({f for t in used for f in t.frame.tolist()})
+    reason = " ".join(f"{type(exc).__name__}: {exc}".split())
+    if len(xy) == 0:
+        return f"generic calibration failed ({reason}): the capture has no usable feature"
+    lo = np.floor(xy.min(axis=0) / cell_px)
+    cells = np.floor(xy / cell_px) - lo
+    shape = (cells.max(axis=0) + 1).astype(int)
+    filled = np.zeros((shape[1], shape[0]), dtype=bool)
+    filled[cells[:, 1].astype(int), cells[:, 0].astype(int)] = True
+    empty = 100.0 * (1.0 - filled.mean())
+    return (f"generic calibration failed ({reason}): the capture lacks observations in {empty:.0f} % of "
+            f"the {cell_px:g} px grid cells of its calibrated area ({frames} frames of {size[0]}x{size[1]} "
+            "px); add frames that fill the empty corners and edges, or use a larger --cell-px")

@@ -1,10 +1,13 @@
-"""Parametric (Brown-Conrady) calibration of the sharp set, with the target's 3D points.
+"""Parametric calibration of the sharp set, with the target's 3D points, for any model of the
+parametric family (Brown-Conrady, OpenCV's rational model, Kannala-Brandt, the thin-prism
+fisheye: :mod:`blurcalib.camera.family`) and any field of view.
 
 The paper calibrates a parametric camera ``pi_d`` and the target's 3D points ``P`` from a small
 sharp set; global alignment of the blurry frames then measures every observation against
 ``pi_d(M, P)``. This module does that calibration.
 
-Model (``Brown_Conrady`` in the paper, OpenCV convention, see :mod:`blurcalib.camera.parametric`)::
+Model (``Brown_Conrady`` in the paper, OpenCV convention, see :mod:`blurcalib.camera.parametric`;
+the other models: :mod:`blurcalib.camera.lens`)::
 
     p = pi_d(M_f, P_j) = K (d([R_f P_j + t_f]~), 1)
     d(x) = (1 + k1 r^2 + k2 r^4 + k3 r^6) x + (2 p1 x y + p2 (r^2 + 2 x^2), p1 (r^2 + 2 y^2) + 2 p2 x y)
@@ -14,15 +17,21 @@ Rodrigues vector ``rvec_f``) and target point ``P_j`` (metres) of feature ``j``.
 
 Method (:func:`calibrate_sharp`):
 
-1. **Initialisation** by ``cv2.calibrateCamera`` on the planar correspondences
-   ``(X, Y, 0) <-> (x, y)`` of every usable frame (``>= min_features`` observations): Zhang's
-   method, whose start comes from the plane homographies ``H = K [r1 r2 t]`` (``eq:T``). If some
-   observations are gross outliers of that fit (the rule below) it is run once more without them
-   and the first adjustment round leaves them out.
+1. **Initialisation** (:mod:`blurcalib.calib.parametric_start`). Brown-Conrady: by
+   ``cv2.calibrateCamera`` on the planar correspondences ``(X, Y, 0) <-> (x, y)`` of every usable
+   frame (``>= min_features`` observations): Zhang's method, whose start comes from the plane
+   homographies ``H = K [r1 r2 t]`` (``eq:T``). If some observations are gross outliers of that
+   fit (the rule below) it is run once more without them and the first adjustment round leaves
+   them out. Kannala-Brandt (and OpenCV's fit when it fails or misses the observations by more
+   than :data:`OPENCV_START_PX`): the undistorted equidistant camera whose focal length best
+   explains each frame's plane homography in viewing directions, which works beyond 90 degrees
+   off the axis. The rational model and the thin-prism fisheye start from the calibrated
+   Kannala-Brandt camera converted (fitted to its rays).
 2. **Robust bundle adjustment** by Levenberg-Marquardt with Huber weights
    (:mod:`blurcalib.calib.parametric_adjustment`: sparse analytic Jacobian, Marquardt's damping,
    the poses eliminated by the Schur complement and the rest solved directly) over the intrinsics
-   ``(fx, fy, cx, cy, k1, k2, p1, p2, k3)``, the poses ``(rvec_f, tvec_f)`` and, with
+   (Brown-Conrady's ``(fx, fy, cx, cy, k1, k2, p1, p2, k3)``, or the model's), the poses
+   ``(rvec_f, tvec_f)`` and, with
    ``refine_points``, every observed 3D point ``P_j = (X, Y, Z)`` (``Z`` free: the printed target
    may be slightly non-flat). It minimises::
 
@@ -46,7 +55,8 @@ Method (:func:`calibrate_sharp`):
    above 0.01 px) are outliers, the rest inliers (rejected ones may return), and the fit is
    repeated until the inlier set is stable: no observation changes side, or at most 1e-4 of
    them do, each within 1.5 x of the threshold
-   (:func:`blurcalib.calib.parametric_adjustment.adjust`).
+   (:func:`blurcalib.calib.parametric_adjustment.adjust`). An observation outside the model's
+   valid field (a point behind a perspective model, say) is an outlier.
 
 Residuals are reported as ``observed - predicted`` (the paper's ``p - pi_d(M, P)``) in pixels
 (OpenCV pixel-centre convention).
@@ -55,29 +65,33 @@ Residuals are reported as ``observed - predicted`` (the paper's ``p - pi_d(M, P)
 from __future__ import annotations
 
 import itertools
-import json
 import math
-import os
-from collections.abc import Sequence
-from dataclasses import dataclass
-from pathlib import Path
-from typing import Any
+from collections.abc import Callable, Sequence
 
 import cv2
 import numpy as np
-from numpy.typing import ArrayLike
 
-from blurcalib.calib.parametric_adjustment import ParametricProblem, adjust, gauge_fixed, robust_threshold
-from blurcalib.camera.parametric import (
-    BrownConrady,
-    CameraFileError,
-    load_camera_json,
-    project_poses,
-    save_camera_json,
-    save_camera_yaml,
+from blurcalib.calib.calibration import (
+    CALIBRATION_FILE,
+    CAMERA_JSON_FILE,
+    CAMERA_YAML_FILE,
+    PARAMETRIC_REF_FILE,
+    POINTS_FILE,
+    RESIDUALS_FILE,
+    Calibration,
+    CalibrationFileError,
+    load_calibration,
+    save_calibration,
 )
+from blurcalib.calib.parametric_adjustment import ParametricProblem, adjust, gauge_fixed
+from blurcalib.calib.parametric_start import Start, converted_start, equidistant_start, opencv_start
+from blurcalib.calib.pnp import solve_pose
+from blurcalib.camera.brown_conrady import BrownConradyCamera
+from blurcalib.camera.family import as_family, model_class
+from blurcalib.camera.kannala_brandt import KannalaBrandtCamera
+from blurcalib.camera.lens import ParametricCamera
+from blurcalib.camera.parametric import BrownConrady
 from blurcalib.geometry.pose import Pose
-from blurcalib.io.atomic import atomic_write_csv, atomic_write_text, ensure_writable_dir, read_csv_columns
 from blurcalib.io.results import FeatureFlags, FeatureObservation, FeatureTable
 from blurcalib.target.pattern import StarPattern
 
@@ -85,6 +99,8 @@ __all__ = [
     "CALIBRATION_FILE",
     "CAMERA_JSON_FILE",
     "CAMERA_YAML_FILE",
+    "OPENCV_START_PX",
+    "PARAMETRIC_REF_FILE",
     "POINTS_FILE",
     "RESIDUALS_FILE",
     "Calibration",
@@ -97,124 +113,13 @@ __all__ = [
     "solve_pose",
 ]
 
-CAMERA_YAML_FILE = "camera.yaml"
-CAMERA_JSON_FILE = "camera.json"
-POINTS_FILE = "points.csv"
-RESIDUALS_FILE = "residuals.csv"
-CALIBRATION_FILE = "calibration.json"
-
-_POINT_COLUMNS = ("feature_id", "X", "Y", "Z", "refined")
-_RESIDUAL_COLUMNS = ("frame", "feature_id", "x", "y", "dx", "dy", "inlier")
+OPENCV_START_PX = 2.0
+"""OpenCV's Brown-Conrady start whose median error exceeds this (px) is replaced by the
+Kannala-Brandt route (a lens Brown-Conrady cannot describe, or points beyond 90 degrees)."""
 
 
 class CalibrationError(ValueError):
     """The observations cannot be calibrated (too few usable frames); the message says why."""
-
-
-class CalibrationFileError(ValueError):
-    """A calibration folder's file is missing or malformed; the message names the file."""
-
-
-@dataclass(eq=False)
-class Calibration:
-    """A calibrated Brown-Conrady camera, the sharp frames' poses and the refined target points.
-
-    Attributes:
-        camera: the calibrated camera ``pi_d`` (``Brown_Conrady``).
-        poses: frame name -> pose ``M_f`` (target -> camera, metres), calibrated frames only.
-        points: ``(M, 3)`` metric target points (m), row ``j`` for feature id ``j`` of the
-            pattern; NaN for features not observed in any calibrated frame.
-        point_ids: ``(K,)`` sorted ids of the observed features (the finite rows of ``points``).
-        point_refined: ``(M,)`` bool, the point was a free parameter (else nominal or NaN).
-        frame: ``(N,)`` str, frame of each observation of the calibrated frames.
-        feature_id: ``(N,)`` int, feature id of each observation.
-        observed: ``(N, 2)`` px, observed positions.
-        residuals: ``(N, 2)`` px, ``observed - pi_d(M_f, P_j)``.
-        inlier: ``(N,)`` bool, the observation was used in the final fit.
-        median_error: px, median of ``|residual|`` over inliers.
-        rms_error: px, ``sqrt(mean |residual|^2)`` over inliers.
-        num_frames: number of calibrated frames.
-        num_observations: ``N``, observations of the calibrated frames (outliers included).
-        iterations: trust-region iterations (Jacobian evaluations) over all rounds.
-        rounds: bundle-adjustment rounds (outlier rejection and refit).
-        refine_points, loss, huber_px: the settings of the fit.
-        skipped_frames: frame name -> observation count of frames left out (too few features).
-    """
-
-    camera: BrownConrady
-    poses: dict[str, Pose]
-    points: np.ndarray
-    point_ids: np.ndarray
-    point_refined: np.ndarray
-    frame: np.ndarray
-    feature_id: np.ndarray
-    observed: np.ndarray
-    residuals: np.ndarray
-    inlier: np.ndarray
-    median_error: float
-    rms_error: float
-    num_frames: int
-    num_observations: int
-    iterations: int
-    rounds: int
-    refine_points: bool
-    loss: str
-    huber_px: float
-    skipped_frames: dict[str, int]
-
-    @property
-    def errors(self) -> np.ndarray:
-        """``(N,)`` px, reprojection error norms ``|residual|``."""
-        return np.linalg.norm(self.residuals, axis=1)
-
-    def frame_errors(self) -> dict[str, dict[str, Any]]:
-        """Per calibrated frame: observation and inlier counts, median and RMS inlier error (px)."""
-        errors = self.errors
-        out: dict[str, dict[str, Any]] = {}
-        for name in self.poses:
-            rows = self.frame == name
-            inl = errors[rows & self.inlier]
-            out[name] = {"num_observations": int(rows.sum()), "num_inliers": int(inl.size),
-                         "median_error_px": float(np.median(inl)) if inl.size else None,
-                         "rms_error_px": float(np.sqrt(np.mean(inl**2))) if inl.size else None}
-        return out
-
-    def flatness(self) -> tuple[float, float]:
-        """RMS and largest distance (m) of the observed points from their best-fit plane."""
-        pts = self.points[self.point_ids]
-        if len(pts) < 3:
-            return 0.0, 0.0
-        centred = pts - pts.mean(axis=0)
-        normal = np.linalg.svd(centred, full_matrices=False)[2][2]
-        dist = np.abs(centred @ normal)
-        return float(np.sqrt(np.mean(dist**2))), float(dist.max())
-
-    def to_dict(self) -> dict[str, Any]:
-        """JSON-serialisable report: camera, errors (px), settings, per-frame poses and errors.
-
-        Poses are ``rvec`` (Rodrigues, rad) and ``tvec`` (m) of ``X_cam = R X + t``.
-        """
-        per_frame = self.frame_errors()
-        for name, pose in self.poses.items():
-            per_frame[name] = {"rvec": pose.rvec.tolist(), "tvec": pose.t.tolist(), **per_frame[name]}
-        flat_rms, flat_max = self.flatness()
-        return {
-            "model": "Brown_Conrady",
-            "camera": self.camera.to_dict(),
-            "median_error_px": self.median_error,
-            "rms_error_px": self.rms_error,
-            "num_frames": self.num_frames,
-            "num_observations": self.num_observations,
-            "num_inliers": int(self.inlier.sum()),
-            "num_outliers": int((~self.inlier).sum()),
-            "iterations": self.iterations,
-            "rounds": self.rounds,
-            "settings": {"refine_points": self.refine_points, "loss": self.loss, "huber_px": self.huber_px},
-            "points": {"num_observed": int(self.point_ids.size), "num_refined": int(self.point_refined.sum()),
-                       "flatness_rms_m": flat_rms, "flatness_max_m": flat_max},
-            "frames": per_frame,
-            "skipped_frames": dict(self.skipped_frames),
-        }
 
 
 # ------------------------------------------------------------------------------ initialisation
@@ -234,50 +139,43 @@ def _usable_rows(table: FeatureTable, num_features: int) -> np.ndarray:
     return keep & ((table.flags & int(FeatureFlags.FILTERED_OUT)) == 0)
 
 
-def _initialise(obj: list[np.ndarray], img: list[np.ndarray], image_size: tuple[int, int],
-                outlier_sigmas: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """``cv2.calibrateCamera`` on planar correspondences, rerun once without gross outliers.
-
-    Returns intrinsics (9,), rvecs (F, 3), tvecs (F, 3) and the inlier mask of the
-    concatenated observations (the outlier rule applied to the first fit).
-    """
-    def run(o: list[np.ndarray], i: list[np.ndarray]):
-        _, K, dist, rvecs, tvecs = cv2.calibrateCamera(
-            [a.astype(np.float32) for a in o], [a.astype(np.float32) for a in i], image_size, None, None)
-        intr = np.array([K[0, 0], K[1, 1], K[0, 2], K[1, 2], *dist.ravel()[:5]])
-        return intr, np.array(rvecs).reshape(-1, 3), np.array(tvecs).reshape(-1, 3)
-
-    try:
-        intr, rvecs, tvecs = run(obj, img)
-    except cv2.error as exc:
-        raise CalibrationError(f"cv2.calibrateCamera failed on {len(obj)} frames: {str(exc).strip()}"
-                               ) from exc
-    errors = [np.linalg.norm(project_poses(intr, r, t, o).pixels - i, axis=1)
-              for o, i, r, t in zip(obj, img, rvecs, tvecs, strict=True)]
-    limit = robust_threshold(np.concatenate(errors), outlier_sigmas, 9 + 6 * len(obj))
-    keep = [e <= limit for e in errors]
-    if not all(k.all() for k in keep) and all(k.sum() >= 6 for k in keep):
-        intr, rvecs, tvecs = run([o[k] for o, k in zip(obj, keep, strict=True)],
-                                 [i[k] for i, k in zip(img, keep, strict=True)])
-    return intr, rvecs, tvecs, np.concatenate(keep)
-
-
-def _warm_start(start: Calibration, frames: list[str], table: FeatureTable
-                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None:
-    """:func:`_initialise`'s outputs from ``start``: its intrinsics ``(9,)``, the poses ``(F, 3)``
-    rvecs and tvecs of ``frames`` and the inlier mask of ``table``'s observations (an observation
-    ``start`` did not fit counts as an inlier); None when ``start`` lacks a frame's pose."""
+def _warm_start(start: Calibration, frames: list[str], table: FeatureTable, model: type[ParametricCamera],
+                obj: list[np.ndarray], img: list[np.ndarray], outlier_sigmas: float) -> Start | None:
+    """The start from ``start``: its intrinsics (converted when ``model`` is another:
+    :func:`blurcalib.calib.parametric_start.converted_start`), the poses of ``frames`` and its
+    inlier set on ``table``'s observations (an observation ``start`` did not fit counts as an
+    inlier); None when ``start`` lacks a frame's pose."""
     if any(f not in start.poses for f in frames):
         return None
-    c = start.camera
-    intr = np.array([c.fx, c.fy, c.cx, c.cy, c.k1, c.k2, c.p1, c.p2, c.k3])
+    camera = as_family(start.camera)
     rvecs = np.stack([start.poses[f].rvec for f in frames])
     tvecs = np.stack([start.poses[f].t for f in frames])
+    if type(camera) is not model:
+        return converted_start(camera, rvecs, tvecs, model, obj, img, outlier_sigmas)
     known = dict(zip(zip(start.frame.tolist(), start.feature_id.tolist(), strict=True),
                      start.inlier.tolist(), strict=True))
     inlier = np.array([known.get(k, True) for k in zip(table.frame.tolist(), table.feature_id.tolist(),
                                                         strict=True)], dtype=bool)
-    return intr, rvecs, tvecs, inlier
+    return Start(camera, rvecs, tvecs, inlier, math.nan)
+
+
+def _cold_start(model: type[ParametricCamera], obj: list[np.ndarray], img: list[np.ndarray],
+                size: tuple[int, int], outlier_sigmas: float, kannala_brandt: Callable[[], Calibration],
+                frames: list[str]) -> Start:
+    """The start without a calibration to start from (module docstring, step 1): OpenCV's for
+    Brown-Conrady when it fits within :data:`OPENCV_START_PX`, the equidistant scan for
+    Kannala-Brandt, else the calibrated Kannala-Brandt camera (``kannala_brandt()``) converted."""
+    if model is BrownConradyCamera:
+        start = opencv_start(obj, img, size, outlier_sigmas)
+        if start is not None and start.median_px <= OPENCV_START_PX:
+            return start
+    if model is KannalaBrandtCamera:
+        return equidistant_start(obj, img, size, outlier_sigmas)
+    fisheye = kannala_brandt()
+    camera = as_family(fisheye.camera)
+    rvecs = np.stack([fisheye.poses[f].rvec for f in frames])
+    tvecs = np.stack([fisheye.poses[f].t for f in frames])
+    return converted_start(camera, rvecs, tvecs, model, obj, img, outlier_sigmas)
 
 
 def calibrate_pinhole(points: Sequence[np.ndarray], pixels: Sequence[np.ndarray],
@@ -347,8 +245,9 @@ def calibrate_sharp(observations: FeatureTable | Sequence[FeatureObservation], p
                     image_size: tuple[int, int], refine_points: bool = True, loss: str = "huber",
                     huber_px: float = 1.0, min_frames: int = 5, *, min_features: int = 20,
                     outlier_sigmas: float = 5.0, point_sigma_m: float = 1e-3,
-                    start: Calibration | None = None) -> Calibration:
-    """Calibrate ``pi_d`` (Brown-Conrady) and the target points ``P`` from sharp-frame features.
+                    start: Calibration | None = None, model: str | None = None) -> Calibration:
+    """Calibrate ``pi_d`` (a model of the parametric family) and the target points ``P`` from
+    sharp-frame features.
 
     See the module docstring for the model, the gauge and the outlier rule.
 
@@ -366,19 +265,23 @@ def calibrate_sharp(observations: FeatureTable | Sequence[FeatureObservation], p
         outlier_sigmas: an observation whose error exceeds this many robust sigmas is an outlier.
         point_sigma_m: standard deviation (m) of the weak prior holding points near nominal.
         start: a calibration of the same camera that saw every usable frame (e.g. of more frames):
-            its intrinsics, poses and inlier set start the fit instead of OpenCV's
-            (:func:`_initialise`), which saves the start and most outlier rounds. Frames it has not
-            seen make the fit start cold.
+            its intrinsics (converted to ``model`` when it is another), poses and inlier set start
+            the fit instead of the cold start (module docstring), which saves the start and most
+            outlier rounds. Frames it has not seen make the fit start cold.
+        model: the model's name (:data:`blurcalib.camera.family.MODELS`); None: ``start``'s, or
+            ``Brown_Conrady`` without one.
 
     Returns:
         The :class:`Calibration`.
 
     Raises:
         CalibrationError: fewer than ``min_frames`` usable frames (names the count and the
-            frames left out).
+            frames left out), or no start of the model explains the observations.
         ValueError: bad arguments, a feature id outside the pattern or a repeated
             ``(frame, feature_id)``.
     """
+    name = model if model is not None else start.model if start is not None else BrownConradyCamera.MODEL
+    cls = model_class(name)
     if loss not in ("huber", "linear"):
         raise ValueError(f"loss must be 'huber' or 'linear', got {loss!r}")
     if not huber_px > 0 or not point_sigma_m > 0 or not outlier_sigmas > 0:
@@ -396,23 +299,37 @@ def calibrate_sharp(observations: FeatureTable | Sequence[FeatureObservation], p
     obs_points = nominal_all[table.feature_id]
     point_ids, point_idx = np.unique(table.feature_id, return_inverse=True)
     spans = list(itertools.pairwise(np.searchsorted(frame_idx, np.arange(len(usable) + 1))))
-    warm = _warm_start(start, usable, table) if start is not None else None
-    intr, rvecs, tvecs, inlier = warm or _initialise([obs_points[a:b] for a, b in spans],
-                                                     [observed[a:b] for a, b in spans],
-                                                     (width, height), outlier_sigmas)
-    problem = ParametricProblem(frame_idx=frame_idx, point_idx=point_idx, observed=observed,
-                       nominal=nominal_all[point_ids], fixed_points=obs_points, num_frames=len(usable),
-                       refine_points=refine_points, point_sigma=point_sigma_m)
-    params = np.concatenate([intr, np.column_stack([rvecs, tvecs]).ravel()]
+    obj, img = [obs_points[a:b] for a, b in spans], [observed[a:b] for a, b in spans]
+    warm = (_warm_start(start, usable, table, cls, obj, img, outlier_sigmas) if start is not None
+            else None)
+
+    def kannala_brandt() -> Calibration:
+        return calibrate_sharp(table, pattern, (width, height), False, loss, huber_px, 1,
+                               min_features=min_features, outlier_sigmas=outlier_sigmas,
+                               model=KannalaBrandtCamera.MODEL)
+
+    first = warm or _cold_start(cls, obj, img, (width, height), outlier_sigmas, kannala_brandt, usable)
+    problem = ParametricProblem(camera=first.camera, frame_idx=frame_idx, point_idx=point_idx,
+                                observed=observed, nominal=nominal_all[point_ids], fixed_points=obs_points,
+                                num_frames=len(usable), refine_points=refine_points,
+                                point_sigma=point_sigma_m)
+    params = np.concatenate([first.camera.params, np.column_stack([first.rvecs, first.tvecs]).ravel()]
                             + ([problem.nominal.ravel()] if refine_points else []))
     huber = huber_px if loss == "huber" else math.inf
-    params, inlier, iterations, rounds = adjust(problem, params, inlier, huber, outlier_sigmas)
+    if first.inlier.sum() < 6 * len(usable):
+        raise CalibrationError(f"no {name} camera explains the observations of the {len(usable)} frames "
+                               f"(start error {first.median_px:.3g} px median)")
+    params, inlier, iterations, rounds = adjust(problem, params, first.inlier, huber, outlier_sigmas)
     intr, rotations, tvecs, pts = gauge_fixed(problem, params)
     points = np.full((pattern.num_features, 3), np.nan)
     points[point_ids] = pts
     refined = np.zeros(pattern.num_features, dtype=bool)
     refined[point_ids] = refine_points
-    camera = BrownConrady(*intr, width=width, height=height)
+    try:
+        fitted = first.camera.with_params(intr)
+    except ValueError as exc:  # a focal length the fit drove to 0 or below
+        raise CalibrationError(f"the {name} fit diverged ({exc})") from None
+    camera = fitted.to_brown_conrady() if isinstance(fitted, BrownConradyCamera) else fitted
     poses = {name: Pose(rotations[f], tvecs[f]) for f, name in enumerate(usable)}
     residuals = _residuals(camera, poses, points, table)
     inlier_errors = np.linalg.norm(residuals[inlier], axis=1)
@@ -441,8 +358,8 @@ def reprojection_errors(calibration: Calibration,
     return _residuals(calibration.camera, calibration.poses, calibration.points, _as_table(observations))
 
 
-def _residuals(camera: BrownConrady, poses: dict[str, Pose], points: np.ndarray, table: FeatureTable
-               ) -> np.ndarray:
+def _residuals(camera: BrownConrady | ParametricCamera, poses: dict[str, Pose], points: np.ndarray,
+               table: FeatureTable) -> np.ndarray:
     """``observed - pi_d(M_f, P_j)`` ``(N, 2)`` px; NaN without a pose or a known point."""
     out = np.full((len(table), 2), np.nan)
     known = (table.feature_id >= 0) & (table.feature_id < len(points))
@@ -453,131 +370,3 @@ def _residuals(camera: BrownConrady, poses: dict[str, Pose], points: np.ndarray,
             out[rows] = np.column_stack([table.x[rows], table.y[rows]]) - predicted
     return out
 
-
-def solve_pose(camera: BrownConrady, points: ArrayLike, obs_xy: ArrayLike, *,
-               ransac_px: float = 3.0) -> Pose:
-    """Robust pose ``M = [R | t]`` of one frame from 3D-2D correspondences.
-
-    ``cv2.solvePnPRansac`` (SQPnP hypotheses, inliers within ``ransac_px``) followed by
-    ``cv2.solvePnPRefineLM`` on the inliers, minimising ``sum |pi_d(M, P_i) - p_i|^2``.
-
-    Args:
-        camera: the calibrated camera.
-        points: ``(N, 3)`` target points (m), ``N >= 4``.
-        obs_xy: ``(N, 2)`` observed pixels (OpenCV convention).
-        ransac_px: inlier threshold (px).
-
-    Raises:
-        ValueError: fewer than 4 correspondences, mismatched shapes, or no pose found.
-    """
-    pts = np.asarray(points, dtype=np.float64)
-    xy = np.asarray(obs_xy, dtype=np.float64)
-    if pts.ndim != 2 or pts.shape[1] != 3 or xy.shape != (len(pts), 2):
-        raise ValueError(f"need points (N, 3) and obs_xy (N, 2), got {pts.shape} and {xy.shape}")
-    finite = np.isfinite(pts).all(axis=1) & np.isfinite(xy).all(axis=1)
-    pts, xy = pts[finite], xy[finite]
-    if len(pts) < 4:
-        raise ValueError(f"solve_pose needs at least 4 finite correspondences, got {len(pts)}")
-    ok, rvec, tvec, inliers = cv2.solvePnPRansac(pts, xy, camera.K, camera.dist, iterationsCount=200,
-                                                 reprojectionError=float(ransac_px), confidence=0.999,
-                                                 flags=cv2.SOLVEPNP_SQPNP)
-    if not ok or inliers is None or len(inliers) < 4:
-        raise ValueError(f"no pose found for {len(pts)} correspondences within {ransac_px} px")
-    keep = inliers.ravel()
-    rvec, tvec = cv2.solvePnPRefineLM(pts[keep], xy[keep], camera.K, camera.dist, rvec, tvec)
-    return Pose.from_rvec_tvec(rvec.ravel(), tvec.ravel())
-
-
-# --------------------------------------------------------------------------------------- files
-def save_calibration(folder: str | os.PathLike, calibration: Calibration) -> dict[str, Path]:
-    """Write a calibration into ``folder`` (created if needed); every file atomically.
-
-    Files: ``camera.yaml`` (OpenCV FileStorage) and ``camera.json`` (:mod:`blurcalib.camera.parametric`),
-    ``points.csv`` (``feature_id, X, Y, Z`` m, ``refined`` 0/1; one row per pattern feature,
-    ``nan`` for unobserved ones), ``residuals.csv`` (``frame, feature_id, x, y, dx, dy`` px,
-    ``inlier`` 0/1) and ``calibration.json`` (:meth:`Calibration.to_dict`). Floats are written
-    with ``repr`` and round-trip exactly (rotations through ``rvec`` to ~1e-15).
-
-    Returns:
-        Paths by kind: ``camera_yaml``, ``camera_json``, ``points``, ``residuals``, ``calibration``.
-    """
-    out = ensure_writable_dir(folder)
-    paths = {"camera_yaml": out / CAMERA_YAML_FILE, "camera_json": out / CAMERA_JSON_FILE,
-             "points": out / POINTS_FILE, "residuals": out / RESIDUALS_FILE,
-             "calibration": out / CALIBRATION_FILE}
-    save_camera_yaml(paths["camera_yaml"], calibration.camera)
-    save_camera_json(paths["camera_json"], calibration.camera)
-    point_rows = [(i, *map(repr, p.tolist()), int(r))
-                  for i, (p, r) in enumerate(zip(calibration.points, calibration.point_refined, strict=True))]
-    atomic_write_csv(paths["points"], _POINT_COLUMNS, point_rows)
-    residual_rows = [(f, int(i), repr(o[0]), repr(o[1]), repr(r[0]), repr(r[1]), int(k))
-                     for f, i, o, r, k in zip(calibration.frame.tolist(), calibration.feature_id,
-                                              calibration.observed.tolist(), calibration.residuals.tolist(),
-                                              calibration.inlier, strict=True)]
-    atomic_write_csv(paths["residuals"], _RESIDUAL_COLUMNS, residual_rows)
-    text = json.dumps(calibration.to_dict(), indent=2, allow_nan=False)
-    atomic_write_text(paths["calibration"], text + "\n")
-    return paths
-
-
-def _parse(path: Path, values: list[str], kind: type, name: str) -> np.ndarray:
-    try:
-        return np.array([kind(v) for v in values], dtype=np.float64 if kind is float else np.int64)
-    except ValueError as exc:
-        raise CalibrationFileError(f"{path}: column {name!r}: {exc}") from None
-
-
-def _pairs(path: Path, cols: dict[str, list[str]], names: tuple[str, str]) -> np.ndarray:
-    """Two float columns as an ``(n, 2)`` array."""
-    return np.column_stack([_parse(path, cols[c], float, c) for c in names]).reshape(-1, 2)
-
-
-def load_calibration(folder: str | os.PathLike) -> Calibration:
-    """Read a calibration written by :func:`save_calibration`.
-
-    The camera comes from ``camera.json``; ``camera.yaml`` is not read.
-
-    Raises:
-        CalibrationFileError: a missing or malformed file; the message names it.
-    """
-    base = Path(folder)
-    try:
-        camera = load_camera_json(base / CAMERA_JSON_FILE)
-    except CameraFileError as exc:
-        raise CalibrationFileError(str(exc)) from None
-    path = base / CALIBRATION_FILE
-    try:
-        report = json.loads(path.read_text(encoding="utf-8"))
-        settings = report["settings"]
-        poses = {name: Pose.from_rvec_tvec(np.asarray(f["rvec"], float), np.asarray(f["tvec"], float))
-                 for name, f in report["frames"].items()}
-        scalars = {k: report[k] for k in ("median_error_px", "rms_error_px", "num_frames", "num_observations",
-                                          "iterations", "rounds")}
-        skipped = {str(k): int(v) for k, v in report["skipped_frames"].items()}
-    except FileNotFoundError:
-        raise CalibrationFileError(f"{path}: calibration file not found") from None
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise CalibrationFileError(f"{path}: cannot read ({exc})") from None
-    except (KeyError, TypeError, ValueError, AttributeError) as exc:
-        raise CalibrationFileError(f"{path}: malformed calibration report ({exc!r})") from None
-    pts_path = base / POINTS_FILE
-    cols, _ = read_csv_columns(pts_path, _POINT_COLUMNS, CalibrationFileError, "calibration file")
-    ids = _parse(pts_path, cols["feature_id"], int, "feature_id")
-    if not np.array_equal(ids, np.arange(len(ids))):
-        raise CalibrationFileError(f"{pts_path}: feature ids must run 0, 1, 2, ... in order")
-    points = np.column_stack([_parse(pts_path, cols[c], float, c) for c in ("X", "Y", "Z")])
-    res_path = base / RESIDUALS_FILE
-    rcols, _ = read_csv_columns(res_path, _RESIDUAL_COLUMNS, CalibrationFileError, "calibration file")
-    return Calibration(
-        camera=camera, poses=poses, points=points.reshape(-1, 3),
-        point_ids=np.flatnonzero(np.isfinite(points).all(axis=1)) if len(points) else np.zeros(0, np.int64),
-        point_refined=_parse(pts_path, cols["refined"], int, "refined").astype(bool),
-        frame=np.array(rcols["frame"], dtype=np.str_),
-        feature_id=_parse(res_path, rcols["feature_id"], int, "feature_id"),
-        observed=_pairs(res_path, rcols, ("x", "y")), residuals=_pairs(res_path, rcols, ("dx", "dy")),
-        inlier=_parse(res_path, rcols["inlier"], int, "inlier").astype(bool),
-        median_error=float(scalars["median_error_px"]), rms_error=float(scalars["rms_error_px"]),
-        num_frames=int(scalars["num_frames"]), num_observations=int(scalars["num_observations"]),
-        iterations=int(scalars["iterations"]), rounds=int(scalars["rounds"]),
-        refine_points=bool(settings["refine_points"]), loss=str(settings["loss"]),
-        huber_px=float(settings["huber_px"]), skipped_frames=skipped)

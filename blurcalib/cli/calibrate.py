@@ -21,7 +21,7 @@ from blurcalib.argtypes import (
 from blurcalib.calib.alignment import BIASES, LOSSES, AlignmentSettings
 from blurcalib.calib.joint import ROUTES, JointSettings
 from blurcalib.calib.rolling_shutter import RollingShutterSettings
-from blurcalib.calib.sequence import MODELS, SequenceSettings
+from blurcalib.calib.sequence import MODELS, PARAMETRIC_MODELS, SequenceSettings
 from blurcalib.calib.validation import ValidationMethod, ValidationSettings
 from blurcalib.cli.common import (
     CliError,
@@ -61,6 +61,7 @@ def pipeline_settings(args: argparse.Namespace) -> PipelineSettings:
             quality=QualitySettings(tau_be=args.tau_be, tau_loss=args.tau_loss,
                                     min_sigma_major=args.min_sigma_major, loss_mode=args.loss_threshold),
             alignment=AlignmentSettings(loss=args.loss, bias=args.bias), model=args.model,
+            parametric=args.parametric,
             generic=JointSettings(cell_px=args.cell_px, route=args.route,
                                   bundle=BundleSettings(device=device)),
             lens_correction=not args.no_lens_correction,
@@ -214,7 +215,13 @@ def add_pipeline_options(p: argparse._ActionsContainer) -> None:
     g = p.add_argument_group("the camera")
     g.add_argument("--model", choices=MODELS, default=SequenceSettings.model,
                    help="camera model delivered: the generic B-spline ray grid fitted to sharp and blurry "
-                        "frames together, or Brown-Conrady from the sharp set only (default %(default)s)")
+                        "frames together, or the parametric camera from the sharp set only "
+                        "(default %(default)s)")
+    g.add_argument("--parametric", choices=PARAMETRIC_MODELS, default=SequenceSettings.parametric,
+                   help="model of the parametric (sharp-set) camera, which the generic camera starts from "
+                        "and is regularised toward: Brown-Conrady, OpenCV's rational model, Kannala-Brandt "
+                        "(OpenCV's fisheye) or the reference tool's thin-prism fisheye; auto: the one "
+                        "with the lowest error on held-out frames (default %(default)s)")
     g.add_argument("--route", choices=ROUTES, default=JointSettings.route,
                    help="blurry frames in the generic fit: star centres with a free per-frame shift "
                         "(joint), or aligned to the parametric camera first, the paper's route "

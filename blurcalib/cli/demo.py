@@ -6,8 +6,8 @@ import argparse
 from pathlib import Path
 
 from blurcalib.cli.calibrate import add_pipeline_options, calibrate_and_report
-from blurcalib.cli.common import add_run_options, check_empty_output, plain
-from blurcalib.cli.synth import add_synth_options, simulate
+from blurcalib.cli.common import CliError, add_run_options, check_empty_output, plain
+from blurcalib.cli.synth import add_lens_options, add_synth_options, simulate
 from blurcalib.io.text import count
 from blurcalib.target.pattern import load_pattern
 
@@ -15,11 +15,12 @@ DEFAULT_DEMO_DIR = Path("out") / "demo"
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
-    """Simulate the default dataset (20 sharp and 60 blurry 1280x720 frames) into OUT/data, run
-    calibrate on it into OUT/calibration and compare each camera with the true one. Prints a
-    line per stage (also into OUT/demo.log when the output is not a terminal), then the result in
-    words, the details, the figures written and what the terms mean. A complete dataset is
-    reused, and the calibration resumes where it stopped."""
+    """Simulate the default dataset (20 sharp and 60 blurry 1280x720 frames; --lens fisheye: a
+    fisheye lens of --fov degrees) into OUT/data, run calibrate on it into OUT/calibration and
+    compare each camera with the true one. Prints a line per stage (also into OUT/demo.log when
+    the output is not a terminal), then the result in words, the details, the figures written
+    and what the terms mean. A complete dataset is reused, and the calibration resumes where it
+    stopped."""
     from blurcalib.io.frames import frame_size, list_frames
     from blurcalib.io.results import read_feature_table
     from blurcalib.pipeline.text import report_lines
@@ -31,6 +32,12 @@ def cmd_demo(args: argparse.Namespace) -> int:
     out = Path(args.out)
     data = out / "data"
     if (data / GROUND_TRUTH_FILE).is_file() and not args.overwrite:
+        from blurcalib.camera.parametric import BrownConrady
+
+        lens = "standard" if isinstance(load_ground_truth(data).camera.model, BrownConrady) else "fisheye"
+        if lens != args.lens:
+            raise CliError(f"{data}: holds a simulated dataset of the {lens} lens, not --lens {args.lens}; "
+                           "use another --out or --overwrite")
         log = DemoLog(out)
         log.stage(f"1/4 reusing the simulated dataset in {data}")
     else:
@@ -69,6 +76,7 @@ def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None
                        description=plain(cmd_demo.__doc__))
     p.add_argument("--out", default=str(DEFAULT_DEMO_DIR), metavar="DIR",
                    help="output folder (default %(default)s); its data/ is reused when complete")
+    add_lens_options(p)
     add_synth_options(p, rolling_shutter=False)
     add_pipeline_options(p)
     add_run_options(p, workers=False)

@@ -83,6 +83,17 @@ def cmd_synth(args: argparse.Namespace) -> int:
     return 0
 
 
+def add_lens_options(p: argparse._ActionsContainer) -> None:
+    """The simulated lens of ``synth`` and ``demo``."""
+    p.add_argument("--lens", choices=["standard", "fisheye"], default="standard",
+                   help="standard: a 90 degree Brown-Conrady lens like a RealSense D435I's; fisheye: a "
+                        "Kannala-Brandt lens of --fov horizontal field whose image circle is 200 degrees "
+                        "(both 1280x720 px with a smooth lens deviation of 0.3 px; default %(default)s)")
+    p.add_argument("--fov", type=float, metavar="DEG",
+                   help=f"horizontal field of view of --lens fisheye, deg, up to 200 "
+                        f"(default {FISHEYE_FOV:g})")
+
+
 def add_synth_options(p: argparse._ActionsContainer, rolling_shutter: bool = True) -> None:
     from blurcalib.sim.synth import SynthConfig
 
@@ -119,13 +130,7 @@ def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None
                        description=plain(cmd_synth.__doc__))
     p.add_argument("--out", required=True, metavar="DIR", help="output folder")
     p.add_argument("--pattern", metavar="FILE", help="pattern YAML (default: the reference A4 17x24 target)")
-    p.add_argument("--lens", choices=["standard", "fisheye"], default="standard",
-                   help="standard: a 90 degree Brown-Conrady lens like a RealSense D435I's; fisheye: a "
-                        "Kannala-Brandt lens of --fov horizontal field whose image circle is 200 degrees "
-                        "(both 1280x720 px with a smooth lens deviation of 0.3 px; default %(default)s)")
-    p.add_argument("--fov", type=float, metavar="DEG",
-                   help=f"horizontal field of view of --lens fisheye, deg, up to 200 "
-                        f"(default {FISHEYE_FOV:g})")
+    add_lens_options(p)
     p.add_argument("--rig", action="store_true",
                    help="a D435I-like infrared pair instead of one camera: two cameras 50 mm apart seeing "
                         "each set at once, one folder per camera (cam0/, cam1/) and rig_truth.json "

@@ -169,7 +169,12 @@ class PipelineReport:
     (:meth:`blurcalib.calib.trust.Trust.to_dict`), ``rolling_shutter`` the rolling-shutter step
     (:meth:`blurcalib.calib.rolling_shutter.RollingShutterResult.to_dict`: readout ratio, its
     standard error, each moving frame's blur velocity), ``capture`` the capture check
-    (:meth:`blurcalib.calib.capture.CaptureCheck.to_dict`: its figures and warnings)."""
+    (:meth:`blurcalib.calib.capture.CaptureCheck.to_dict`: its figures and warnings),
+    ``parametric_choice`` the held-out scores of the parametric models with ``parametric="auto"``
+    (:meth:`blurcalib.calib.model_choice.ModelChoice.to_dict`), ``generic_failure`` why the
+    generic camera could not be fitted (what the capture lacks; the parametric calibration and
+    the features are written all the same), else "", and ``assessment_failure`` why the generic
+    camera (or the sharp-only one) has no assessment, else ""."""
 
     calibration: dict
     frames: list[FrameRecord]
@@ -181,6 +186,9 @@ class PipelineReport:
     trust: dict | None = None
     rolling_shutter: dict | None = None
     capture: dict | None = None
+    parametric_choice: dict | None = None
+    generic_failure: str = ""
+    assessment_failure: str = ""
     seconds: dict[str, float] = field(default_factory=dict)
 
     def to_dict(self) -> dict:
@@ -455,11 +463,8 @@ def _publish_run(out: Path, pattern: StarPattern, size: tuple[int, int], s: Pipe
     staging folder and leaves the earlier outputs, and the manifest naming their settings, as they
     were.
 
-    Raises:
-        PipelineError: the generic camera could not be assessed.
+    A failed assessment is written as ``report.json``'s ``assessment_failure``.
     """
-    if run.trust_failure or run.sharp_failure:
-        raise PipelineError(f"assessment: {run.trust_failure or run.sharp_failure}")
     staging = out / STAGING_DIR
     try:
         report = _stage_run(out, staging, pattern, size, s, rows, run, seconds, capture)
@@ -492,7 +497,7 @@ def _stage_run(out: Path, staging: Path, pattern: StarPattern, size: tuple[int, 
     staged.update(trust_files)
     outputs = {k: out / p.relative_to(staging) for k, p in staged.items()}
     report = PipelineReport(calibration={k: v for k, v in calibration.to_dict().items()
-                                         if k in ("camera", "median_error_px", "rms_error_px",
+                                         if k in ("model", "camera", "median_error_px", "rms_error_px",
                                                   "num_frames", "num_observations")},
                             frames=rows, outputs={k: str(v) for k, v in outputs.items()},
                             counts=status_counts(rows), settings=s.to_dict(),
@@ -502,6 +507,9 @@ def _stage_run(out: Path, staging: Path, pattern: StarPattern, size: tuple[int, 
                             trust=None if run.trust is None else run.trust.to_dict(),
                             rolling_shutter=None if run.rolling_shutter is None
                             else run.rolling_shutter.to_dict(), capture=capture.to_dict(),
+                            parametric_choice=None if run.choice is None else run.choice.to_dict(),
+                            generic_failure=run.generic_failure,
+                            assessment_failure=run.trust_failure or run.sharp_failure,
                             seconds={k: round(v, 2) for k, v in seconds.items()})
     atomic_write_json(staging / REPORT_FILE, report.to_dict(), indent=2, default=str)
     return report

@@ -36,8 +36,14 @@ def report_lines(report: PipelineReport) -> list[str]:
     """The lines ``calibrate`` prints after a run."""
     cal = report.calibration
     lines = [f"warning: capture: {warning}" for warning in (report.capture or {}).get("warnings", [])]
-    lines += [f"sharp-set calibration: {count(cal['num_frames'], 'frame')}, "
+    lines += [f"sharp-set calibration ({cal['model']}): {count(cal['num_frames'], 'frame')}, "
               f"median {cal['median_error_px']:.4f} px, RMS {cal['rms_error_px']:.4f} px"]
+    if report.parametric_choice is not None and report.parametric_choice["summary"]:
+        lines.append(report.parametric_choice["summary"])
+    if report.generic_failure:
+        lines.append(f"warning: {report.generic_failure}")
+    if report.assessment_failure:
+        lines.append(f"warning: no assessment: {report.assessment_failure}")
     if report.generic is not None:
         g = report.generic
         lines.append(f"generic calibration ({g['route']} route): {g['grid_width']}x{g['grid_height']} grid, "

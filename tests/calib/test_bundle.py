@@ -91,6 +91,7 @@ def test_coverage_warnings_name_regions(truth: CentralGeneric) -> None:
     coverage[:2, :2] = 0
     lines = coverage_warnings(truth, coverage)
     assert len(lines) == 1 and "top-left" in lines[0] and "4 grid cells" in lines[0]
+    assert "degrees off the axis" in lines[0]  # the corner of a wide lens, also in angle
 
 
 def test_reduce_frames_is_the_schur_complement() -> None:

@@ -239,7 +239,7 @@ def test_save_load_round_trip(clean, tmp_path) -> None:
     calib = clean[2]
     paths = save_calibration(tmp_path / "calib", calib)
     assert {p.name for p in paths.values()} == {"camera.yaml", "camera.json", "points.csv", "residuals.csv",
-                                                "calibration.json"}
+                                                "calibration.json", "parametric_intrinsics0.yaml"}
     assert load_camera_yaml(paths["camera_yaml"]) == calib.camera
     loaded = load_calibration(tmp_path / "calib")
     assert loaded.camera == calib.camera

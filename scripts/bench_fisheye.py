@@ -1,0 +1,135 @@
+"""Benchmark of wide-angle and fisheye lenses: the whole pipeline on simulated captures, printed.
+
+    python scripts/bench_fisheye.py DATASET [DATASET ...] [--cache DIR] [--workers N] [--validation none]
+
+Each DATASET is a ``blurcalib synth`` folder (``sharp/``, ``blurry/``, ``pattern.yaml``,
+``ground_truth.json``), e.g. ``blurcalib synth --lens fisheye --fov 130 --sharp 10 --blurry 30
+--blur-min 3 --blur-max 18``. The pipeline (``blurcalib calibrate``, defaults: ``--parametric
+auto``) runs into ``CACHE/<dataset name>/`` (extraction resumable, so a second run only
+calibrates again). Printed per dataset:
+
+* **yield**: blurry frames given, their frames in the generic fit, features per kind;
+* **the parametric model**: the one chosen, and each model's held-out median error (px)
+  (Brown-Conrady's beside it);
+* **accuracy against the truth** (px, after the best-fit rotation:
+  :func:`blurcalib.sim.evaluate.projection_errors`), median over the generic camera's
+  calibrated area, and over its border (pixels within 10 % of the image size of an edge), of
+  the parametric camera, the generic camera of the sharp frames alone and the generic camera of
+  sharp and blurry frames;
+* **time**: process CPU time (s) of the calibration, this process and its workers (the machine
+  may be shared: wall time is not a product figure).
+"""
+
+from __future__ import annotations
+
+import argparse
+import resource
+import time
+from pathlib import Path
+
+import numpy as np
+
+from blurcalib.calib.sequence import SequenceSettings
+from blurcalib.calib.sharp import load_calibration
+from blurcalib.calib.trust import TrustSettings
+from blurcalib.calib.validation import ValidationSettings
+from blurcalib.camera.family import as_family
+from blurcalib.camera.files import read_generic_yaml
+from blurcalib.io.frames import list_frames
+from blurcalib.pipeline.run import (
+    CALIBRATION_DIR,
+    SHARP_ONLY_DIR,
+    PipelineError,
+    PipelineSettings,
+    run_pipeline,
+)
+from blurcalib.sim.evaluate import pixel_lattice, projection_errors
+from blurcalib.sim.truth import load_ground_truth
+from blurcalib.target.pattern import load_pattern
+
+BORDER = 0.10
+"""The border band: pixels within this share of the image's width (height) of a vertical
+(horizontal) edge."""
+
+
+def _cpu_seconds() -> float:
+    """CPU time (s) of this process and its finished children."""
+    children = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return time.process_time() + children.ru_utime + children.ru_stime
+
+
+def accuracy_lines(out: Path, truth) -> list[str]:
+    """Each camera of ``out/calibration`` against ``truth`` over the generic camera's calibrated
+    area and its border."""
+    folder = out / CALIBRATION_DIR
+    model = truth.camera.model
+    px = pixel_lattice(model.width, model.height, 8.0)
+    generic_file = folder / "intrinsics0.yaml"
+    area = read_generic_yaml(generic_file).in_area(px) if generic_file.is_file() else np.ones(len(px), bool)
+    size = np.array([model.width, model.height], dtype=np.float64)
+    border = np.any((px < BORDER * size) | (px > (1 - BORDER) * size - 1), axis=1)
+    parametric = load_calibration(folder)
+    cameras = [(f"parametric ({parametric.model})", parametric.camera)]
+    if (folder / SHARP_ONLY_DIR / "intrinsics0.yaml").is_file():
+        sharp_only = read_generic_yaml(folder / SHARP_ONLY_DIR / "intrinsics0.yaml")
+        cameras.append(("generic, sharp frames", sharp_only))
+    if generic_file.is_file():
+        cameras.append(("generic, sharp + blurry frames", read_generic_yaml(generic_file)))
+    lines = [f"  accuracy against the truth over the calibrated area ({100 * area.mean():.0f} % of the "
+             "image; px, median / p95 / border median):"]
+    for label, camera in cameras:
+        err = projection_errors(truth.camera, camera, px[area])
+        edge = err[border[area]]
+        lines.append(f"    {label:<36} {np.nanmedian(err):.4f} / {np.nanpercentile(err, 95):.4f} / "
+                     f"{np.nanmedian(edge) if np.isfinite(edge).any() else float('nan'):.4f}")
+    return lines
+
+
+def bench(dataset: Path, cache: Path, workers: int, validation: str) -> None:
+    """Run and print one dataset's figures (module docstring)."""
+    truth = load_ground_truth(dataset)  # before the long run: a folder without its truth fails now
+    pattern = load_pattern(dataset / "pattern.yaml")
+    sharp, blurry = list_frames([dataset / "sharp"]), list_frames([dataset / "blurry"])
+    out = cache / dataset.name
+    cpu = _cpu_seconds()
+    try:
+        trust = TrustSettings(validation=ValidationSettings(method=validation))
+        settings = PipelineSettings(calibration=SequenceSettings(trust=trust), workers=workers)
+        report = run_pipeline(sharp, blurry, pattern, out, settings, overwrite=True)
+    except PipelineError as exc:
+        print(f"{dataset.name}: calibration failed: {exc}")
+        return
+    cpu = _cpu_seconds() - cpu
+    print(f"{dataset.name}: true lens {as_family(truth.camera.model).MODEL}, {len(sharp)} sharp and "
+          f"{len(blurry)} blurry frames")
+    used = [r for r in report.frames if r.kind == "blurry" and r.used]
+    generic = report.generic or {}
+    print(f"  yield: {len(used)} of {len(blurry)} blurry frames in the generic fit "
+          f"({100 * len(used) / max(len(blurry), 1):.0f} %), {generic.get('observations', 0)} observations")
+    choice = report.parametric_choice
+    model = report.calibration["model"]
+    print(f"  {choice['summary'] if choice and choice['summary'] else f'parametric model {model}'}")
+    if report.generic_failure:
+        print(f"  {report.generic_failure}")
+    if generic:
+        print(f"  generic fit: median {generic['median_error_px']:.4f} px (sharp "
+              f"{generic['sharp_median_error_px']:.4f}, blurry {generic['blurry_median_error_px']:.4f})")
+    print("\n".join(accuracy_lines(out, truth)))
+    print(f"  time: {cpu:.0f} s CPU (extraction and calibration; extraction reused when cached)")
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("datasets", nargs="+", type=Path, help="blurcalib synth folders")
+    parser.add_argument("--cache", type=Path, default=Path("out") / "bench_fisheye",
+                        help="where each dataset's calibrate output goes (default %(default)s)")
+    parser.add_argument("--workers", type=int, default=2, help="frames extracted in parallel (default 2)")
+    parser.add_argument("--validation", choices=["kfold", "none"], default="kfold",
+                        help="the assessment's held-out validation (none: faster; the cameras are the same)")
+    args = parser.parse_args()
+    for dataset in args.datasets:
+        bench(dataset, args.cache, args.workers, args.validation)
+
+
+if __name__ == "__main__":
+    main()
