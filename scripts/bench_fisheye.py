@@ -27,6 +27,7 @@ import resource
 import time
 from pathlib import Path
 
+import benchrecord
 import numpy as np
 
 from blurcalib.calib.sequence import SequenceSettings
@@ -58,9 +59,9 @@ def _cpu_seconds() -> float:
     return time.process_time() + children.ru_utime + children.ru_stime
 
 
-def accuracy_lines(out: Path, truth) -> list[str]:
-    """Each camera of ``out/calibration`` against ``truth`` over the generic camera's calibrated
-    area and its border."""
+def accuracies(out: Path, truth) -> tuple[float, dict[str, tuple[float, float, float]]]:
+    """The share of the image the generic camera calibrated, and each camera of
+    ``out/calibration`` against ``truth`` over that area: (median, p95, border median) px."""
     folder = out / CALIBRATION_DIR
     model = truth.camera.model
     px = pixel_lattice(model.width, model.height, 8.0)
@@ -75,17 +76,16 @@ def accuracy_lines(out: Path, truth) -> list[str]:
         cameras.append(("generic, sharp frames", sharp_only))
     if generic_file.is_file():
         cameras.append(("generic, sharp + blurry frames", read_generic_yaml(generic_file)))
-    lines = [f"  accuracy against the truth over the calibrated area ({100 * area.mean():.0f} % of the "
-             "image; px, median / p95 / border median):"]
+    found = {}
     for label, camera in cameras:
         err = projection_errors(truth.camera, camera, px[area])
         edge = err[border[area]]
-        lines.append(f"    {label:<36} {np.nanmedian(err):.4f} / {np.nanpercentile(err, 95):.4f} / "
-                     f"{np.nanmedian(edge) if np.isfinite(edge).any() else float('nan'):.4f}")
-    return lines
+        found[label] = (float(np.nanmedian(err)), float(np.nanpercentile(err, 95)),
+                        float(np.nanmedian(edge)) if np.isfinite(edge).any() else float("nan"))
+    return float(area.mean()), found
 
 
-def bench(dataset: Path, cache: Path, workers: int, validation: str) -> None:
+def bench(dataset: Path, cache: Path, workers: int, validation: str, record: benchrecord.BenchRecord) -> None:
     """Run and print one dataset's figures (module docstring)."""
     truth = load_ground_truth(dataset)  # before the long run: a folder without its truth fails now
     pattern = load_pattern(dataset / "pattern.yaml")
@@ -114,8 +114,18 @@ def bench(dataset: Path, cache: Path, workers: int, validation: str) -> None:
     if generic:
         print(f"  generic fit: median {generic['median_error_px']:.4f} px (sharp "
               f"{generic['sharp_median_error_px']:.4f}, blurry {generic['blurry_median_error_px']:.4f})")
-    print("\n".join(accuracy_lines(out, truth)))
+    share, found = accuracies(out, truth)
+    print(f"  accuracy against the truth over the calibrated area ({100 * share:.0f} % of the image; px, "
+          "median / p95 / border median):")
+    for label, (median, p95, edge) in found.items():
+        print(f"    {label:<36} {median:.4f} / {p95:.4f} / {edge:.4f}")
     print(f"  time: {cpu:.0f} s CPU (extraction and calibration; extraction reused when cached)")
+    keys = {"generic, sharp frames": "generic_sharp",
+            "generic, sharp + blurry frames": "generic_sharp_blurry"}
+    figures = {f"{keys.get(label, 'parametric')}_{what}": value for label, errors in found.items()
+               for what, value in zip(("median_px", "p95_px", "border_median_px"), errors, strict=True)}
+    record.add(dataset.name, blurry_frames=len(blurry), blurry_frames_used=len(used), parametric_model=model,
+               calibrated_area_pct=100 * share, cpu_s=cpu, **figures)
 
 
 def main() -> None:
@@ -126,9 +136,12 @@ def main() -> None:
     parser.add_argument("--workers", type=int, default=2, help="frames extracted in parallel (default 2)")
     parser.add_argument("--validation", choices=["kfold", "none"], default="kfold",
                         help="the assessment's held-out validation (none: faster; the cameras are the same)")
+    benchrecord.add_option(parser)
     args = parser.parse_args()
+    record = benchrecord.start(__file__, args)
     for dataset in args.datasets:
-        bench(dataset, args.cache, args.workers, args.validation)
+        bench(dataset, args.cache, args.workers, args.validation, record)
+    record.write()
 
 
 if __name__ == "__main__":
