@@ -4,7 +4,8 @@
 thresholds, the selection and the run queue; views subscribe to its :class:`Topic` changes.
 """
 
-from state.app_state import AppState, FrameEntry, FrameView
+from state.app_state import AppState
+from state.entries import FrameEntry, FrameView
 from state.events import Notice, Topic
 from state.folder import Dataset, DatasetError, default_dataset, discover
 from state.worker import RunProgress, RunSettings

@@ -16,7 +16,7 @@ import os
 import threading
 from collections import OrderedDict
 from collections.abc import Callable, Collection, Sequence
-from dataclasses import dataclass, replace
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -32,9 +32,9 @@ from blurcalib.runs.events import FrameDone, FrameGrew, FrameStarted, RunEvent
 from blurcalib.runs.folder import RunSummary, finished_frames
 from blurcalib.runs.neighbours import neighbours_to_try
 from blurcalib.runs.output import frame_sizes
-from blurcalib.sim.truth import FrameTruth
-from blurcalib.target.pattern import PatternFileError, StarPattern, load_pattern
+from blurcalib.target.pattern import PatternFileError, load_pattern
 from state.blocks import expected_blocks, frame_filter
+from state.entries import FrameEntry, FrameView
 from state.events import Events, Notice, Topic
 from state.folder import Dataset, DatasetError, FrameFile, default_output_folder, discover
 from state.worker import Batch, ExtractionWorker, RunProgress, RunSettings
@@ -46,61 +46,6 @@ KEPT = frozenset({FrameStatus.OK, FrameStatus.NOT_SEEDED, FrameStatus.NO_BLOCKS,
 """Frame statuses whose result is kept for the views (the others grew nothing)."""
 UPLOADS_OUTPUT = "results"
 """The output folder of a dataset of uploads, inside the folder its pattern was uploaded to."""
-
-
-@dataclass
-class FrameEntry:
-    """One frame in the list.
-
-    Attributes:
-        name: path relative to the dataset folder (``VIDEO#000123`` for a video's frame).
-        path: the file (the video for a video's frame).
-        kind: ``blurry`` or ``sharp`` (chooses the extraction settings and output folder).
-        record: what is known about it (:class:`blurcalib.io.record.FrameRecord`): its status
-            (``pending``, ``queued``, ``running``, ``cancelled`` or its extraction's outcome), the
-            message why, its block counts and seconds of the last run.
-        index: the frame's index in the video ``path`` (None for an image file).
-    """
-
-    name: str
-    path: Path
-    kind: str
-    record: FrameRecord
-    index: int | None = None
-
-    @classmethod
-    def of(cls, frame: FrameFile) -> FrameEntry:
-        """A pending entry for a dataset's frame."""
-        return cls(frame.name, frame.path, frame.kind, FrameRecord(frame.name), frame.index)
-
-
-@dataclass(frozen=True)
-class FrameView:
-    """A snapshot of the current frame for drawing (arrays are shared, do not modify them).
-
-    Attributes:
-        index: the frame's index in the list.
-        entry: a copy of its list entry.
-        image: ``(H, W)`` grey levels, or None when unreadable.
-        result: the last extraction result (None before the first run).
-        live: the latest growth event of each block of the run in progress or the last run.
-        filter: the quality filter of ``result`` at the current thresholds.
-        selected: the selected block (index into ``result.blocks``), or None.
-        truth: ground truth of a simulated frame.
-        pattern: the target.
-        quality: the thresholds.
-    """
-
-    index: int
-    entry: FrameEntry
-    image: np.ndarray | None
-    result: FrameResult | None
-    live: tuple[GrowthEvent, ...]
-    filter: FrameFilter | None
-    selected: int | None
-    truth: FrameTruth | None
-    pattern: StarPattern
-    quality: QualitySettings
 
 
 class AppState:
