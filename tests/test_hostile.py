@@ -24,7 +24,8 @@ import pytest
 import torch
 
 from blurcalib.camera.generic import MAX_GRID_NODES, check_grid_size
-from blurcalib.cli import _pipeline_settings, build_parser, main
+from blurcalib.cli import build_parser, main
+from blurcalib.cli.calibrate import pipeline_settings
 from blurcalib.extract.duplicates import find_duplicates, mark_duplicates
 from blurcalib.io import atomic
 from blurcalib.io.atomic import (
@@ -811,8 +812,8 @@ def test_a_face_on_features_csv_is_refused_before_any_calibration(
     assert f"{path}: degenerate capture: the 12 sharp frames all see the target nearly face-on" in err
     assert not (tmp_path / "out").exists()
     argv = ["calibrate", "--features", str(path), "--pattern", str(FIXTURE_YAML), "--out", "o"]
-    assert _pipeline_settings(build_parser().parse_args(argv)).capture.refuse
-    assert not _pipeline_settings(build_parser().parse_args([*argv, "--allow-degenerate"])).capture.refuse
+    assert pipeline_settings(build_parser().parse_args(argv)).capture.refuse
+    assert not pipeline_settings(build_parser().parse_args([*argv, "--allow-degenerate"])).capture.refuse
 
 
 def test_copies_of_one_frame_in_a_features_csv_are_duplicates(
