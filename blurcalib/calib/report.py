@@ -83,9 +83,10 @@ def error_direction_image(xy: np.ndarray, residuals: np.ndarray, image_size: tup
 
 def direction_legend(width: int, full_px: float, title: str, observations: int) -> np.ndarray:
     """A white BGR strip ``(LEGEND_PX, width, 3)``: the colour wheel (direction as hue, length as
-    brightness), the brightness scale from 0 to ``full_px`` px, and ``title``."""
-    strip = np.full((LEGEND_PX, width, 3), 255, np.uint8)
+    brightness), the brightness scale from 0 to ``full_px`` px, and ``title``; drawn at least as wide
+    as the wheel and a short scale, and cut to ``width`` for a narrower image."""
     size = LEGEND_PX - 16
+    strip = np.full((LEGEND_PX, max(width, 2 * size + 70), 3), 255, np.uint8)
     c = (size - 1) / 2.0
     yy, xx = np.mgrid[0:size, 0:size]
     e = np.stack([(xx - c) / c, (yy - c) / c], axis=-1)
@@ -97,7 +98,7 @@ def direction_legend(width: int, full_px: float, title: str, observations: int) 
     cv2.putText(strip, "+x", (8 + size + 2, 8 + size // 2 + 4), font, 0.4, ink, 1, cv2.LINE_AA)
     cv2.putText(strip, "+y", (8 + size // 2 - 8, LEGEND_PX - 1), font, 0.35, ink, 1, cv2.LINE_AA)
     x0 = 8 + size + 30
-    bar_w = max(min(width - x0 - 16, 240), 20)
+    bar_w = max(min(strip.shape[1] - x0 - 16, 240), 20)
     ramp = direction_colours(np.stack([np.linspace(0, full_px, bar_w), np.zeros(bar_w)], axis=-1), full_px)
     strip[50:64, x0:x0 + bar_w] = np.round(ramp[None, :, ::-1]).astype(np.uint8)
     cv2.putText(strip, "0", (x0, 80), font, 0.42, ink, 1, cv2.LINE_AA)
@@ -105,7 +106,7 @@ def direction_legend(width: int, full_px: float, title: str, observations: int) 
     cv2.putText(strip, f"{title} ({observations} observations)", (x0, 18), font, 0.42, ink, 1, cv2.LINE_AA)
     cv2.putText(strip, "hue: direction (observed minus model); brightness: length", (x0, 38), font, 0.42, ink,
                 1, cv2.LINE_AA)
-    return strip
+    return strip[:, :width]
 
 
 def save_frame_error_plot(path: str | os.PathLike[str], rows: list[dict[str, Any]],
