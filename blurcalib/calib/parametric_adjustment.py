@@ -129,28 +129,43 @@ def solve_poses_eliminated(H: scipy.sparse.spmatrix, g: np.ndarray, frames: int,
                            ) -> np.ndarray:
     """``H^-1 g`` for the adjustment's symmetric positive definite normal matrix ``H (n, n)``
     ordered as :class:`ParametricProblem`'s parameters (``intrinsics`` intrinsics, ``6 F`` pose
-    parameters, then the points), by the Schur complement on the poses: their ``6 x 6`` blocks are
-    independent, so::
+    parameters, then ``3 Q`` point coordinates), by the Schur complement on a family of
+    independent blocks: the poses' ``6 x 6`` blocks, or, with free points when ``3 Q > 6 F``, the
+    points' ``3 x 3`` blocks (a point's residuals and prior involve no other point), so that the
+    dense system left is the smaller of ``I + 3 Q`` and ``I + 6 F``. With ``p`` the eliminated
+    parameters and ``o`` the others::
 
         S = H_oo - H_op H_pp^-1 H_po,   S x_o = g_o - H_op H_pp^-1 g_p,   x_p = H_pp^-1 (g_p - H_po x_o)
 
-    with ``o`` the intrinsics and points (``I + 3 Q``, dense) and ``p`` the poses. Cost:
-    ``O(F (I + 3 Q)^2)`` and one dense Cholesky solve of ``S``.
+    Cost: ``O(n_p n_o^2)`` and one dense Cholesky solve of ``S (n_o, n_o)``.
     """
-    Hc = H.tocsr()
-    n = Hc.shape[0]
-    pose = np.arange(intrinsics, intrinsics + 6 * frames)
-    other = np.concatenate([np.arange(intrinsics), np.arange(intrinsics + 6 * frames, n)])
-    blocks = pose.reshape(frames, 6)
-    Hpp = np.asarray(Hc[np.repeat(blocks, 6, axis=1).ravel(), np.tile(blocks, (1, 6)).ravel()]).reshape(
-        frames, 6, 6)
+    n = H.shape[0]
+    points = (n - intrinsics - 6 * frames) // 3
+    if 3 * points > 6 * frames:
+        start, size, count = intrinsics + 6 * frames, 3, points
+    else:
+        start, size, count = intrinsics, 6, frames
+    eliminated = np.arange(start, start + size * count)
+    other = np.concatenate([np.arange(start), np.arange(start + size * count, n)])
+    return _solve_blocks_eliminated(H.tocsr(), g, eliminated.reshape(count, size), other)
+
+
+def _solve_blocks_eliminated(Hc: scipy.sparse.csr_matrix, g: np.ndarray, blocks: np.ndarray,
+                             other: np.ndarray) -> np.ndarray:
+    """:func:`solve_poses_eliminated`'s Schur complement with the parameters ``blocks (K, b)``
+    eliminated (``H`` block diagonal over them) and ``other (n_o,)`` solved densely."""
+    count, size = blocks.shape
+    eliminated = blocks.ravel()
+    Hpp = np.asarray(Hc[np.repeat(blocks, size, axis=1).ravel(), np.tile(blocks, (1, size)).ravel()]).reshape(
+        count, size, size)
     Hpp_inv = np.linalg.inv(Hpp)
-    H_op = Hc[other][:, pose].toarray()
-    Y = np.einsum("ofj,fji->ofi", H_op.reshape(len(other), frames, 6), Hpp_inv).reshape(len(other), -1)
+    H_op = Hc[other][:, eliminated].toarray()
+    Y = np.einsum("okj,kji->oki", H_op.reshape(len(other), count, size), Hpp_inv).reshape(len(other), -1)
     S = Hc[other][:, other].toarray() - Y @ H_op.T
-    x = np.empty(n)
-    x[other] = scipy.linalg.cho_solve(scipy.linalg.cho_factor(S), g[other] - Y @ g[pose])
-    x[pose] = np.einsum("fij,fj->fi", Hpp_inv, (g[pose] - H_op.T @ x[other]).reshape(frames, 6)).ravel()
+    x = np.empty(Hc.shape[0])
+    x[other] = scipy.linalg.cho_solve(scipy.linalg.cho_factor(S), g[other] - Y @ g[eliminated])
+    x[eliminated] = np.einsum("kij,kj->ki", Hpp_inv,
+                              (g[eliminated] - H_op.T @ x[other]).reshape(count, size)).ravel()
     return x
 
 
