@@ -9,7 +9,12 @@ import cv2
 import numpy as np
 import pytest
 
-from blurcalib.calib.joint import JointSettings, undistortion_output, undistortion_report, write_undistortion_map
+from blurcalib.calib.joint import (
+    JointSettings,
+    undistortion_output,
+    undistortion_report,
+    write_undistortion_map,
+)
 from blurcalib.camera.generic import CentralGeneric, fit_to_rays
 from blurcalib.camera.lens import ParametricCamera
 from blurcalib.camera.remap import OutputProjection
