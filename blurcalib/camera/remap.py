@@ -184,7 +184,7 @@ def _off_axis(camera: RayProjector, px: np.ndarray) -> np.ndarray:
     """Angles (rad) between the image centre's ray and the rays of pixels ``(N, 2)`` that have one."""
     axis = camera.pixel_to_ray(np.array([[(camera.width - 1) / 2.0, (camera.height - 1) / 2.0]]))[0]
     rays = camera.pixel_to_ray(px)
-    return np.arccos(np.clip(rays[np.all(np.isfinite(rays), axis=1)] @ axis, -1.0, 1.0))
+    return np.asarray(np.arccos(np.clip(rays[np.all(np.isfinite(rays), axis=1)] @ axis, -1.0, 1.0)))
 
 
 def auto_output_kind(camera: RayProjector) -> str:
