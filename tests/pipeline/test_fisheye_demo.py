@@ -14,7 +14,7 @@ from blurcalib.cli import main
 @pytest.mark.slow
 def test_fisheye_demo_runs_end_to_end(tmp_path, capsys) -> None:
     """The smallest capture the pipeline takes (5 sharp frames, 2 blurry) of the 1280 x 720
-    fisheye: about 150 s of CPU on a 2-core machine (rendering and extracting 7 full-size frames,
+    fisheye: about 140 s of CPU on a 2-core machine (rendering and extracting 7 full-size frames,
     four parametric models held out against each other), more than a fast test may take."""
     out = tmp_path / "demo"
     code = main(["demo", "--lens", "fisheye", "--sharp", "5", "--blurry", "2", "--workers", "1",
