@@ -30,8 +30,8 @@ import cv2
 import numpy as np
 from numpy.typing import ArrayLike
 
-__all__ = ["MAP_TOL_PX", "OUTPUT_KINDS", "OutputProjection", "RayProjector", "RotatedCamera", "output_for",
-           "output_maps"]
+__all__ = ["MAP_TOL_PX", "OUTPUT_KINDS", "PINHOLE_FIELD_DEG", "OutputProjection", "RayProjector",
+           "RotatedCamera", "auto_output_kind", "field_of_view_deg", "output_for", "output_maps"]
 
 OUTPUT_KINDS = ("pinhole", "latlong", "stereographic", "epipolar")
 
@@ -84,6 +84,12 @@ class OutputProjection:
         if not (self.fx > 0 and self.fy > 0 and self.width > 0 and self.height > 0):
             raise ValueError(f"output focal lengths and size must be positive, got fx={self.fx}, "
                              f"fy={self.fy}, {self.width} x {self.height}")
+
+    def to_dict(self) -> dict[str, float | int | str]:
+        """``projection`` (the kind), ``fx, fy`` (px, px per rad but for a pinhole), ``cx, cy`` (px,
+        OpenCV pixels), ``width, height`` (px)."""
+        return {"projection": self.kind, "fx": self.fx, "fy": self.fy, "cx": self.cx, "cy": self.cy,
+                "width": self.width, "height": self.height}
 
     def rays(self, x: ArrayLike, y: ArrayLike) -> np.ndarray:
         """Unit directions ``(N, 3)`` of output pixels ``x, y (N,)``; NaN where the projection
@@ -164,14 +170,37 @@ def _projected_radius(kind: str, theta: float) -> float:
     return 2.0 * math.tan(theta / 2.0) if kind == "stereographic" else theta
 
 
+def field_of_view_deg(camera: RayProjector, lattice: int = 64) -> float:
+    """The camera's field (deg, full angle): twice the widest angle between its optical axis (the
+    ray of the image centre) and the ray of any pixel it has, over a ``lattice x lattice`` grid of
+    the image (a generic camera's rays outside its calibrated area do not count)."""
+    w, h = camera.width, camera.height
+    xs, ys = np.meshgrid(np.linspace(0.0, w - 1.0, lattice), np.linspace(0.0, h - 1.0, lattice))
+    theta = _off_axis(camera, np.column_stack([xs.reshape(-1), ys.reshape(-1)]))
+    return 2.0 * math.degrees(float(theta.max(initial=0.0)))
+
+
+def _off_axis(camera: RayProjector, px: np.ndarray) -> np.ndarray:
+    """Angles (rad) between the image centre's ray and the rays of pixels ``(N, 2)`` that have one."""
+    axis = camera.pixel_to_ray(np.array([[(camera.width - 1) / 2.0, (camera.height - 1) / 2.0]]))[0]
+    rays = camera.pixel_to_ray(px)
+    return np.asarray(np.arccos(np.clip(rays[np.all(np.isfinite(rays), axis=1)] @ axis, -1.0, 1.0)))
+
+
+def auto_output_kind(camera: RayProjector) -> str:
+    """``pinhole`` for a field (:func:`field_of_view_deg`) up to :data:`PINHOLE_FIELD_DEG`,
+    ``latlong`` beyond (any field up to 360 degrees, at the same px per radian along the middle
+    row and column)."""
+    return "pinhole" if field_of_view_deg(camera) <= PINHOLE_FIELD_DEG else "latlong"
+
+
 def output_for(camera: RayProjector, kind: str | None = None) -> OutputProjection:
     """The output image of a camera: its size, principal point at the image centre, and its
     px per radian near the centre as focal length, lowered where needed so that the rays of the
-    middle row's and column's ends stay in the output (a pinhole output keeps the centre's scale).
+    middle row and column (as far as the camera has rays) stay in the output (a pinhole output
+    keeps the centre's scale).
 
-    ``kind`` None picks ``pinhole`` for a field up to :data:`PINHOLE_FIELD_DEG` (the widest
-    angle between the optical axis and a ray of the image's border, doubled) and
-    ``stereographic`` beyond.
+    ``kind`` None: :func:`auto_output_kind`.
     """
     w, h = camera.width, camera.height
     centre = np.array([(w - 1) / 2.0, (h - 1) / 2.0])
@@ -179,24 +208,15 @@ def output_for(camera: RayProjector, kind: str | None = None) -> OutputProjectio
     probe = camera.pixel_to_ray(centre + np.array([[-delta, 0.0], [delta, 0.0], [0.0, -delta], [0.0, delta]]))
     angle = [math.acos(float(np.clip(probe[i] @ probe[i + 1], -1.0, 1.0))) for i in (0, 2)]
     fx, fy = 2.0 * delta / angle[0], 2.0 * delta / angle[1]
-    axis = camera.pixel_to_ray(centre[None])[0]
-
-    def off_axis(px: np.ndarray) -> np.ndarray:
-        rays = camera.pixel_to_ray(px)
-        return np.arccos(np.clip(rays[np.all(np.isfinite(rays), axis=1)] @ axis, -1.0, 1.0))
-
-    if kind is None:
-        t = np.linspace(0.0, 1.0, 65)[:, None]
-        corners = np.array([[0, 0], [w - 1, 0], [w - 1, h - 1], [0, h - 1]], dtype=np.float64)
-        border = np.concatenate([(1 - t) * corners[k] + t * corners[(k + 1) % 4] for k in range(4)])
-        field = 2.0 * math.degrees(float(off_axis(border).max(initial=0.0)))
-        kind = "pinhole" if field <= PINHOLE_FIELD_DEG else "stereographic"
+    kind = auto_output_kind(camera) if kind is None else kind
     if kind != "pinhole":
-        ends = np.array([[0.0, centre[1]], [w - 1.0, centre[1]], [centre[0], 0.0], [centre[0], h - 1.0]])
-        theta = off_axis(ends)
-        if len(theta) == 4:
-            reach = min((w - 1) / 2.0 / _projected_radius(kind, float(max(theta[:2]))),
-                        (h - 1) / 2.0 / _projected_radius(kind, float(max(theta[2:]))))
+        t = np.linspace(0.0, 1.0, 129)
+        row = np.column_stack([t * (w - 1), np.full_like(t, centre[1])])
+        column = np.column_stack([np.full_like(t, centre[0]), t * (h - 1)])
+        theta = [_off_axis(camera, px).max(initial=0.0) for px in (row, column)]
+        if min(theta) > 0:
+            reach = min((w - 1) / 2.0 / _projected_radius(kind, float(theta[0])),
+                        (h - 1) / 2.0 / _projected_radius(kind, float(theta[1])))
             scale = min(1.0, reach / max(fx, fy))
             fx, fy = fx * scale, fy * scale
     return OutputProjection(kind, fx, fy, float(centre[0]), float(centre[1]), w, h)

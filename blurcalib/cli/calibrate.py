@@ -19,7 +19,7 @@ from blurcalib.argtypes import (
     rolling_shutter_mode,
 )
 from blurcalib.calib.alignment import BIASES, LOSSES, AlignmentSettings
-from blurcalib.calib.joint import ROUTES, JointSettings
+from blurcalib.calib.joint import ROUTES, UNDISTORT, JointSettings
 from blurcalib.calib.rolling_shutter import RollingShutterSettings
 from blurcalib.calib.sequence import MODELS, PARAMETRIC_MODELS, SequenceSettings
 from blurcalib.calib.validation import ValidationMethod, ValidationSettings
@@ -63,7 +63,7 @@ def pipeline_settings(args: argparse.Namespace) -> PipelineSettings:
             alignment=AlignmentSettings(loss=args.loss, bias=args.bias), model=args.model,
             parametric=args.parametric,
             generic=JointSettings(cell_px=args.cell_px, route=args.route,
-                                  bundle=BundleSettings(device=device)),
+                                  bundle=BundleSettings(device=device), undistort=args.undistort),
             lens_correction=not args.no_lens_correction,
             trust=TrustSettings(validation=ValidationSettings(method=args.validation, folds=args.folds)),
             rolling_shutter=RollingShutterSettings(args.rolling_shutter))
@@ -228,6 +228,11 @@ def add_pipeline_options(p: argparse._ActionsContainer) -> None:
                         "(default %(default)s)")
     g.add_argument("--cell-px", type=positive_number, default=JointSettings.cell_px, metavar="PX",
                    help="cell length of the generic model's grid, px (default %(default)s)")
+    g.add_argument("--undistort", choices=UNDISTORT, default=JointSettings.undistort,
+                   help="projection of the undistortion map (calibration/undistortion_map.npz, for "
+                        "cv2.remap): a pinhole image, a latitude-longitude or a stereographic one; auto: "
+                        "pinhole for a generic camera of at most 120 degrees of field, latlong beyond "
+                        "(default %(default)s; docs/results-format.md)")
     g.add_argument("--no-lens-correction", action="store_true",
                    help="keep star centres as extracted instead of removing the bias of block homographies "
                         "under the sharp-set camera's distortion (docs/generic.md)")

@@ -19,7 +19,8 @@ generic camera to sharp and blurry frames together.
    the central generic camera (:mod:`blurcalib.calib.joint`) of sharp and blurry frames, on the
    joint route (each blurry frame with a free image shift, so frontal frames need no
    orientation filter) or the paper's aligned route, saved as the reference tool's
-   ``OUT/calibration/intrinsics0.yaml`` with the poses, an undistortion map and report images;
+   ``OUT/calibration/intrinsics0.yaml`` with the poses, an undistortion map (pinhole, or
+   latitude-longitude for a wide field: :func:`blurcalib.calib.joint.undistortion_output`), report images;
    and its assessment (:mod:`blurcalib.calib.trust`, ``docs/validation.md``);
 3. outputs: ``OUT/features.csv`` (sharp features and aligned blurry features, flagged),
    ``OUT/features.bin`` (the reference tool's format, pixel-corner convention),
@@ -54,7 +55,13 @@ import cv2
 import numpy as np
 
 from blurcalib.calib.capture import CaptureCheck, CaptureSettings, check_capture
-from blurcalib.calib.joint import INTRINSICS_FILE, generic_report, save_generic_calibration
+from blurcalib.calib.joint import (
+    INTRINSICS_FILE,
+    generic_report,
+    save_generic_calibration,
+    undistortion_output,
+    undistortion_report,
+)
 from blurcalib.calib.report import error_direction_image, save_frame_error_plot
 from blurcalib.calib.sequence import (
     BlurryFrame,
@@ -165,7 +172,9 @@ class PipelineReport:
     module docstring), ``counts`` frames per status of each kind (``{"sharp": {...}, "blurry":
     {...}}``), ``generic`` the generic fit (:func:`blurcalib.calib.joint.generic_report`: grid, median
     and RMS reprojection error in px, frames, coverage warnings; None for ``model="parametric"``),
-    ``generic_sharp`` the same for the sharp frames alone, ``trust`` the assessment
+    ``generic_sharp`` the same for the sharp frames alone, ``undistortion`` the undistortion map's
+    projection and parameters (:func:`blurcalib.calib.joint.undistortion_report`; None without a
+    generic camera), ``trust`` the assessment
     (:meth:`blurcalib.calib.trust.Trust.to_dict`), ``rolling_shutter`` the rolling-shutter step
     (:meth:`blurcalib.calib.rolling_shutter.RollingShutterResult.to_dict`: readout ratio, its
     standard error, each moving frame's blur velocity), ``capture`` the capture check
@@ -183,6 +192,7 @@ class PipelineReport:
     settings: dict
     generic: dict | None = None
     generic_sharp: dict | None = None
+    undistortion: dict | None = None
     trust: dict | None = None
     rolling_shutter: dict | None = None
     capture: dict | None = None
@@ -483,8 +493,11 @@ def _stage_run(out: Path, staging: Path, pattern: StarPattern, size: tuple[int, 
     ensure_writable_dir(staging)
     save_calibration(staging / CALIBRATION_DIR, calibration)
     trust_files: dict[str, Path] = {}
+    undistortion = None
     if generic is not None:
-        save_generic_calibration(staging / CALIBRATION_DIR, generic)
+        output = undistortion_output(generic, s.calibration.generic.undistort)
+        save_generic_calibration(staging / CALIBRATION_DIR, generic, undistort=output)
+        undistortion = undistortion_report(generic, output)
     if run.generic_sharp is not None:
         write_generic_yaml(ensure_writable_dir(staging / CALIBRATION_DIR / SHARP_ONLY_DIR) / INTRINSICS_FILE,
                            run.generic_sharp.model)
@@ -503,7 +516,7 @@ def _stage_run(out: Path, staging: Path, pattern: StarPattern, size: tuple[int, 
                             counts=status_counts(rows), settings=s.to_dict(),
                             generic=None if generic is None else generic_report(generic),
                             generic_sharp=None if run.generic_sharp is None
-                            else generic_report(run.generic_sharp),
+                            else generic_report(run.generic_sharp), undistortion=undistortion,
                             trust=None if run.trust is None else run.trust.to_dict(),
                             rolling_shutter=None if run.rolling_shutter is None
                             else run.rolling_shutter.to_dict(), capture=capture.to_dict(),

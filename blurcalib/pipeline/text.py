@@ -51,6 +51,11 @@ def report_lines(report: PipelineReport) -> list[str]:
                      f"median {g['median_error_px']:.4f} px, RMS {g['rms_error_px']:.4f} px")
         fit = "generic, sharp + blurry frames" if g["blurry_frames"] else "generic, sharp frames"
         lines.append(warning_line(fit, g["warnings"], "generic.warnings") or "")
+    if report.undistortion is not None:
+        u = report.undistortion
+        unit = "px" if u["projection"] == "pinhole" else "px per rad"
+        lines.append(f"undistortion map ({u['file']}): {u['projection']} image of {u['width']}x{u['height']} "
+                     f"px, fx {u['fx']:.1f} {unit} (generic camera's field {u['field_deg']:.0f} degrees)")
     if report.generic_sharp is not None:
         lines.append(warning_line("generic, sharp frames", report.generic_sharp["warnings"],
                                   "generic_sharp.warnings") or "")

@@ -78,6 +78,12 @@ def _by_label(found: list[TrueAccuracy]) -> dict[str, TrueAccuracy]:
     return {t.label: t for t in found}
 
 
+def _model_words(model: str) -> str:
+    """A parametric model's name (``report.json``'s ``calibration.model``) in words."""
+    return {"Brown_Conrady": "Brown-Conrady", "Kannala_Brandt": "Kannala-Brandt (fisheye)",
+            "rational": "rational (OpenCV)", "thin_prism_fisheye": "thin-prism fisheye"}.get(model, model)
+
+
 def result_lines(report: dict, found: list[TrueAccuracy], image_size: tuple[int, int]) -> list[str]:
     """The result in words, from ``report.json`` (``report``) and the cameras against the truth
     (:func:`blurcalib.sim.accuracy.true_accuracies`)."""
@@ -90,7 +96,7 @@ def result_lines(report: dict, found: list[TrueAccuracy], image_size: tuple[int,
     lines = ["Result",
              f"  Calibrated: a simulated {w} x {h} camera, as a generic camera (a grid of "
              f"{g.get('grid_width')} x {g.get('grid_height')} control points of its rays) and as a "
-             "Brown-Conrady camera, from "
+             f"{_model_words(report.get('calibration', {}).get('model', 'Brown_Conrady'))} camera, from "
              f"{count(sharp, 'sharp frame')} and {used} of the {count(blurry, 'blurry frame')}."]
     cams = _by_label(found)
     best = cams.get(GENERIC_BOTH) or cams.get(GENERIC_SHARP)

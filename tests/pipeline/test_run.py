@@ -136,6 +136,8 @@ def test_pipeline_delivers_the_generic_camera(finished, dataset) -> None:
     assert Path(report.outputs["error_directions_generic"]).is_file()
     for name in ("generic_poses.csv", "undistortion_map.npz", "generic_coverage.png"):
         assert (out / "calibration" / name).is_file()
+    assert report.undistortion["projection"] == "pinhole" and report.undistortion["field_deg"] < 120
+    assert str(np.load(out / "calibration" / "undistortion_map.npz")["projection"]) == "pinhole"
     rows = {r.frame: r for r in report.frames}
     for r in rows.values():
         assert r.status is FrameStatus.USED or r.verdict.reason, r
