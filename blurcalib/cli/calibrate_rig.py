@@ -58,9 +58,6 @@ def _from_frames(args: argparse.Namespace, pattern: StarPattern) -> RigRun:
     from blurcalib.pipeline.rig_frames import calibrate_rig_frames, camera_frames
     from blurcalib.runs.events import FrameDone, RunEvent
 
-    if args.model != "generic" or args.route != "joint":
-        raise CliError("a rig is calibrated with generic cameras on the joint route: leave out --model and "
-                       "--route")
     offsets = args.time_offset or [0] * len(args.frames)
     if len(offsets) != len(args.frames):
         raise CliError(f"--time-offset needs one value per camera ({len(args.frames)}), got {len(offsets)}")

@@ -154,13 +154,17 @@ def calibrate_rig_frames(cameras: Sequence[CameraFrames], pattern: StarPattern, 
     (module docstring); ``progress(camera, stage, event)`` during each camera's extraction.
 
     Raises:
-        PipelineError: fewer than two cameras, a camera sharing no image set with the others (the
-            message names its input), a camera's pipeline or calibration failing (named likewise).
+        PipelineError: fewer than two cameras, settings other than generic cameras on the joint
+            route, a camera sharing no image set with the others (the message names its input), a
+            camera's pipeline or calibration failing (named likewise).
         OutputError: ``out_dir`` holds something else (unless ``overwrite``) or cannot be written.
     """
     s = settings or PipelineSettings()
     if len(cameras) < 2:
         raise PipelineError(f"a rig needs the frames of two or more cameras, got {len(cameras)}")
+    if s.calibration.model != "generic" or s.calibration.generic.route != "joint":
+        raise PipelineError("a rig is calibrated with generic cameras on the joint route: leave out --model "
+                            "and --route")
     lonely = unlinked_camera([set(c.sets.values()) for c in cameras])
     if lonely is not None:
         raise PipelineError(f"{cameras[lonely].source}: camera {lonely} shares no frame name with camera 0, "
