@@ -75,7 +75,7 @@ def _has_images(folder: Path) -> bool:
     return any(p.suffix.lower() in IMAGE_EXTENSIONS and not p.name.startswith(".") for p in folder.iterdir())
 
 
-def camera_frames(source: str | os.PathLike, every: int = 1, max_frames: int | None = None,
+def camera_frames(source: str | os.PathLike[str], every: int = 1, max_frames: int | None = None,
                   offset: int = 0) -> CameraFrames:
     """The frames of one camera's input and their image sets (module docstring); ``offset``: the
     camera's time offset in frames, for a video (``every`` and ``max_frames`` as
@@ -146,8 +146,8 @@ def _camera(camera: CameraFrames, folder: Path, report: PipelineReport, pattern:
     return run.generic
 
 
-def calibrate_rig_frames(cameras: Sequence[CameraFrames], pattern: StarPattern, out_dir: str | os.PathLike,
-                         settings: PipelineSettings | None = None,
+def calibrate_rig_frames(cameras: Sequence[CameraFrames], pattern: StarPattern,
+                         out_dir: str | os.PathLike[str], settings: PipelineSettings | None = None,
                          progress: Callable[[int, str, RunEvent], None] | None = None,
                          maps: bool = True, overwrite: bool = False) -> RigFramesRun:
     """Calibrate the rig whose cameras' frames are ``cameras`` (camera 0 first) into ``out_dir``

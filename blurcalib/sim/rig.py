@@ -100,7 +100,7 @@ def d435i_stereo_rig(seed: int = 0, baseline_m: float = 0.05,
     second = Pose(R, -R @ np.array([baseline_m, 0.0, 0.0]))
     cameras = [d435i_like_camera(seed + c, deviation_px) for c in range(2)]
     if scale != 1.0:
-        cameras = [TrueCamera(c.model.scaled(scale), c.waves) for c in cameras]  # type: ignore[union-attr]
+        cameras = [TrueCamera(c.model.scaled(scale), c.waves) for c in cameras]
     return TrueRig(tuple(cameras), (Pose.identity(), second))
 
 
