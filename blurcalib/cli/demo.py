@@ -90,6 +90,7 @@ def _demo_rig(args: argparse.Namespace) -> int:
     from blurcalib.pipeline.rig import CALIBRATION_DIR
     from blurcalib.pipeline.rig_frames import calibrate_rig_frames, camera_frames
     from blurcalib.pipeline.run import PipelineError
+    from blurcalib.runs.events import FrameDone, RunEvent
     from blurcalib.sim.demo import DemoLog
     from blurcalib.sim.rig import RIG_TRUTH_FILE, load_rig_truth
     from blurcalib.sim.rig_eval import rig_accuracy, rig_accuracy_lines
@@ -111,8 +112,15 @@ def _demo_rig(args: argparse.Namespace) -> int:
     pattern = load_pattern(data / "cam0" / "pattern.yaml")
     log.stage("2/3 calibrating the rig: each camera's frames, then the extrinsics")
     cameras = [camera_frames(data / f"cam{c}") for c in range(len(truth.cameras))]
+
+    def progress(camera: int, stage: str, event: RunEvent) -> None:
+        if isinstance(event, FrameDone):
+            r = event.record
+            log.detail(f"camera {camera} {event.done}/{event.total}: {r.frame} {r.status.value}, "
+                       f"{count(r.features, 'feature')}")
+
     try:
-        run = calibrate_rig_frames(cameras, pattern, out / "calibration", pipeline_settings(args),
+        run = calibrate_rig_frames(cameras, pattern, out / "calibration", pipeline_settings(args), progress,
                                    overwrite=args.overwrite)
     except PipelineError as exc:
         raise CliError(str(exc)) from None
