@@ -98,15 +98,15 @@ def add_fit_options(p: argparse._ActionsContainer, which: str) -> None:
                         "docs/deconvolution.md; sharp frames never use it)")
 
 
-def add_source_options(p: argparse._ActionsContainer, nargs: str = "+") -> None:
-    """The frame inputs (positional ``INPUT...``, ``nargs``), ``--every``, ``--max-frames`` and
-    ``--sharp-below``, read by :func:`source_frames`."""
+def add_source_options(p: argparse._ActionsContainer, nargs: str = "+", inputs: str = "") -> None:
+    """The frame inputs (positional ``INPUT...``, ``nargs``; ``inputs`` replaces the start of its
+    help), ``--every``, ``--max-frames`` and ``--sharp-below``, read by :func:`source_frames`."""
     from blurcalib.extract.frame import SHARP_BELOW_PX
 
     p.add_argument("frames", nargs=nargs, metavar="INPUT",
-                   help="folders of frames, image files (png, jpg, tiff, bmp; 8 or 16 bit, colour is "
-                        "converted to grey) or videos (mp4, avi, mkv, mov); a video's frames are named "
-                        "VIDEO#000123")
+                   help=(inputs or "folders of frames, image files") + " (png, jpg, tiff, bmp; 8 or 16 bit, "
+                        "colour is converted to grey) or videos (mp4, avi, mkv, mov); a video's frames are "
+                        "named VIDEO#000123")
     p.add_argument("--every", type=positive_int, default=1, metavar="N",
                    help="keep every N-th frame of each folder and video (default %(default)s)")
     p.add_argument("--max-frames", type=positive_int, default=None, metavar="N",

@@ -37,7 +37,7 @@ def simulate(out: Path, args: argparse.Namespace, pattern: StarPattern | None) -
     except ValueError as exc:
         raise CliError(str(exc)) from None
     if getattr(args, "rig", False):
-        _simulate_rig(out, config, pattern, lens)
+        _simulate_rig(out, config, pattern, lens, args.rig_scale)
         return
     start = time.perf_counter()
     bar, update = progress("simulating")
@@ -56,15 +56,18 @@ def simulate(out: Path, args: argparse.Namespace, pattern: StarPattern | None) -
     print(f"  ground truth: {out / 'ground_truth.json'}")
 
 
-def _simulate_rig(out: Path, config: SynthConfig, pattern: StarPattern | None, lens: str) -> None:
-    """``synth --rig``: the D435I-like infrared pair's synchronised image sets (docs/rig.md)."""
+def _simulate_rig(out: Path, config: SynthConfig, pattern: StarPattern | None, lens: str,
+                  scale: float) -> None:
+    """``synth --rig``: the D435I-like infrared pair's synchronised image sets, its images resized
+    by ``scale`` (docs/rig.md)."""
     from blurcalib.sim.rig import RIG_TRUTH_FILE, d435i_stereo_rig, write_rig_dataset
 
     if lens != "standard":
         raise CliError("--rig simulates a pair of the standard lens; leave out --lens")
     bar, update = progress("simulating sets")
     with bar:
-        rig, sets = write_rig_dataset(out, config, d435i_stereo_rig(config.seed), pattern, progress=update)
+        rig, sets = write_rig_dataset(out, config, d435i_stereo_rig(config.seed, scale=scale), pattern,
+                                      progress=update)
     frames = [sum(s.frames[c] is not None for s in sets) for c in range(len(rig.cameras))]
     print(f"simulated {count(len(sets), 'image set')} ({config.sharp} sharp, {config.blurry} blurry) of a "
           f"{len(rig.cameras)}-camera rig into {out}: " + ", ".join(
@@ -94,14 +97,30 @@ def add_lens_options(p: argparse._ActionsContainer) -> None:
                         f"(default {FISHEYE_FOV:g})")
 
 
-def add_synth_options(p: argparse._ActionsContainer, rolling_shutter: bool = True) -> None:
+def add_rig_options(p: argparse._ActionsContainer, scale: float = 1.0) -> None:
+    """``--rig`` and ``--rig-scale`` of ``synth`` and ``demo`` (``scale`` the default image scale)."""
+    from blurcalib.argtypes import positive_number
+
+    p.add_argument("--rig", action="store_true",
+                   help="a D435I-like infrared pair instead of one camera: two cameras 50 mm apart seeing "
+                        "each set at once, one folder per camera (cam0/, cam1/) and rig_truth.json "
+                        "(docs/rig.md; rendered in one process)")
+    p.add_argument("--rig-scale", type=positive_number, default=scale, metavar="F",
+                   help="--rig: the cameras' images resized by F, same field of view (0.5: 640x360; "
+                        "default %(default)s)")
+
+
+def add_synth_options(p: argparse._ActionsContainer, rolling_shutter: bool = True,
+                      rig_counts: tuple[int, int] | None = None) -> None:
+    """The simulation's options; ``rig_counts``: the sharp and blurry sets of ``--rig`` when
+    ``--sharp`` and ``--blurry`` are not given (their defaults are then None)."""
     from blurcalib.sim.synth import SynthConfig
 
     g = p.add_argument_group("simulation")
-    g.add_argument("--sharp", type=int, default=SynthConfig.sharp, metavar="N",
-                   help="number of sharp frames (default %(default)s)")
-    g.add_argument("--blurry", type=int, default=SynthConfig.blurry, metavar="N",
-                   help="number of blurry frames (default %(default)s)")
+    for kind, default in (("sharp", SynthConfig.sharp), ("blurry", SynthConfig.blurry)):
+        extra = "" if rig_counts is None else f"; {rig_counts[kind == 'blurry']} image sets with --rig"
+        g.add_argument(f"--{kind}", type=int, default=default if rig_counts is None else None, metavar="N",
+                       help=f"number of {kind} frames (default {default}{extra})")
     g.add_argument("--blur-min", type=float, default=SynthConfig.blur_min_px, metavar="PX",
                    help="smallest median blur length of a blurry frame, px (default %(default)s)")
     g.add_argument("--blur-max", type=float, default=SynthConfig.blur_max_px, metavar="PX",
@@ -131,9 +150,6 @@ def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None
     p.add_argument("--out", required=True, metavar="DIR", help="output folder")
     p.add_argument("--pattern", metavar="FILE", help="pattern YAML (default: the reference A4 17x24 target)")
     add_lens_options(p)
-    p.add_argument("--rig", action="store_true",
-                   help="a D435I-like infrared pair instead of one camera: two cameras 50 mm apart seeing "
-                        "each set at once, one folder per camera (cam0/, cam1/) and rig_truth.json "
-                        "(docs/rig.md; rendered in one process)")
+    add_rig_options(p)
     add_synth_options(p)
     p.set_defaults(func=cmd_synth)

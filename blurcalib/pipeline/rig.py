@@ -38,7 +38,7 @@ from blurcalib.io.results import FeatureFlags
 from blurcalib.pipeline.run import PipelineError
 from blurcalib.target.pattern import StarPattern
 
-__all__ = ["RIG_REPORT_FILE", "RigRun", "calibrate_rig_features", "rig_report"]
+__all__ = ["RIG_REPORT_FILE", "RigRun", "calibrate_rig_features", "rig_report", "write_rig_outputs"]
 
 RIG_REPORT_FILE = "report.json"
 CALIBRATION_DIR = "calibration"
@@ -73,14 +73,19 @@ def _camera(path: Path, pattern: StarPattern, image_size: tuple[int, int] | None
         raise PipelineError(f"{path}: generic calibration: {exc}") from None
 
 
-def rig_report(result: RigCalibration, features: Sequence[Path]) -> dict[str, Any]:
-    """The ``report.json`` document: per camera its features, frames and errors (px), per pair
-    ``camera j <- camera i`` (OpenCV's ``R``, ``T`` m) and its baseline (mm), the image sets used."""
+def rig_report(result: RigCalibration, features: Sequence[Path], inputs: Sequence[str] | None = None
+               ) -> dict[str, Any]:
+    """The ``report.json`` document: per camera its features (and, from frames, its ``input``),
+    frames and errors (px), per pair ``camera j <- camera i`` (OpenCV's ``R``, ``T`` m) and its
+    baseline (mm), the image sets used."""
     bundle = result.bundle
     cameras = [{"features": str(path), "frames": len(cal.frames), "blurry_frames": len(cal.blurry_frames),
                 "generic_median_px": cal.median_error, "rig_median_px": float(bundle.median_error[c]),
                 "rig_rms_px": float(bundle.rms_error[c]), "rig_observations": int(bundle.inlier[c].sum())}
                for c, (cal, path) in enumerate(zip(result.cameras, features, strict=True))]
+    if inputs is not None:
+        for cam, source in zip(cameras, inputs, strict=True):
+            cam["input"] = source
     pairs = []
     for i in range(bundle.rig.size):
         for j in range(i + 1, bundle.rig.size):
@@ -114,12 +119,19 @@ def calibrate_rig_features(features: Sequence[str | os.PathLike], pattern: StarP
         raise PipelineError(f"rig: {exc}") from None
     out = claim_output_dir(out_dir, "calibrate-rig", {"features": [str(p.resolve()) for p in paths],
                                                        "cell_px": cell_px, "maps": maps}, overwrite)
+    return write_rig_outputs(out, result, pattern, paths, maps, t_cpu)
+
+
+def write_rig_outputs(out: Path, result: RigCalibration, pattern: StarPattern, features: Sequence[Path],
+                      maps: bool, t_cpu: float, inputs: Sequence[str] | None = None) -> RigRun:
+    """Write the rig's outputs into the claimed folder ``out`` (module docstring), ``report.json``
+    last (:func:`rig_report` of ``features`` and ``inputs``, with the CPU seconds since ``t_cpu``)."""
     points = pattern.points_3d()
     written = write_rig_folder(out / CALIBRATION_DIR, result.bundle.rig, result.bundle.rig_tr_global, points,
                                np.arange(len(points)))
-    for i in range(len(cameras)):
-        for j in range(i + 1, len(cameras)):
+    for i in range(len(result.cameras)):
+        for j in range(i + 1, len(result.cameras)):
             written += write_stereo_pair(out, result.bundle.rig, i, j, maps=maps)[1]
-    report = {**rig_report(result, paths), "cpu_seconds": time.process_time() - t_cpu}
+    report = {**rig_report(result, features, inputs), "cpu_seconds": time.process_time() - t_cpu}
     written.append(atomic_write_text(out / RIG_REPORT_FILE, json.dumps(report, indent=1)))
     return RigRun(result, report, written)

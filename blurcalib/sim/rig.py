@@ -89,14 +89,19 @@ class TrueRig:
 
 
 def d435i_stereo_rig(seed: int = 0, baseline_m: float = 0.05,
-                     rotation_deg: Sequence[float] = (0.3, -0.5, 0.2), deviation_px: float = 0.3) -> TrueRig:
+                     rotation_deg: Sequence[float] = (0.3, -0.5, 0.2), deviation_px: float = 0.3,
+                     scale: float = 1.0) -> TrueRig:
     """A RealSense D435I-like infrared pair: two 1280x720 cameras (:func:`d435i_like_camera`, each
-    with its own lens deviation), camera 1 ``baseline_m`` to the right of camera 0 (+x) and turned
-    by the rotation vector ``rotation_deg`` (deg) relative to it."""
+    with its own lens deviation of ``deviation_px`` px peak), camera 1 ``baseline_m`` to the right
+    of camera 0 (+x) and turned by the rotation vector ``rotation_deg`` (deg) relative to it;
+    ``scale`` resizes both images (:meth:`blurcalib.camera.parametric.BrownConrady.scaled`:
+    0.5 gives 640x360 cameras of the same field of view)."""
     R, _ = cv2.Rodrigues(np.radians(np.asarray(rotation_deg, dtype=np.float64)).reshape(3, 1))
     second = Pose(R, -R @ np.array([baseline_m, 0.0, 0.0]))
-    return TrueRig((d435i_like_camera(seed, deviation_px), d435i_like_camera(seed + 1, deviation_px)),
-                   (Pose.identity(), second))
+    cameras = [d435i_like_camera(seed + c, deviation_px) for c in range(2)]
+    if scale != 1.0:
+        cameras = [TrueCamera(c.model.scaled(scale), c.waves) for c in cameras]
+    return TrueRig(tuple(cameras), (Pose.identity(), second))
 
 
 def conjugate_motion(motion: Motion, pose: Pose, samples: int | None = None) -> Motion:

@@ -96,13 +96,21 @@ def test_rendered_set_has_each_cameras_frame(tmp_path: Path) -> None:
 
 @pytest.mark.slow
 def test_synth_rig_command(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    import cv2
+
     from blurcalib.cli import main
 
     out = tmp_path / "pair"
-    assert main(["synth", "--rig", "--sharp", "1", "--blurry", "0", "--out", str(out)]) == 0
+    assert main(["synth", "--rig", "--rig-scale", "0.25", "--sharp", "1", "--blurry", "0",
+                 "--out", str(out)]) == 0
     assert "simulated 1 image set (1 sharp, 0 blurry) of a 2-camera rig" in capsys.readouterr().out
-    assert (out / "cam0" / "sharp" / "0000.png").is_file() and (out / "cam1" / "sharp" / "0000.png").is_file()
+    for c in range(2):
+        image = cv2.imread(str(out / f"cam{c}" / "sharp" / "0000.png"), cv2.IMREAD_UNCHANGED)
+        assert image.shape == (180, 320)
     _, poses = load_rig_truth(out)
     assert list(poses) == ["sharp/0000.png"]
     assert main(["synth", "--rig", "--lens", "fisheye", "--out", str(tmp_path / "no")]) == 2
     assert "--rig simulates a pair of the standard lens" in capsys.readouterr().err
+    assert main(["demo", "--rig", "--lens", "fisheye", "--out", str(tmp_path / "no")]) == 2
+    assert "--rig simulates a pair of the standard lens" in capsys.readouterr().err
+    assert not (tmp_path / "no").exists()
