@@ -2,10 +2,10 @@
 
 from importlib.metadata import PackageNotFoundError, version
 
-from blurcalib.runs.runtime import passive_openmp_wait, quiet_openblas_wait
+from blurcalib.runs.runtime import passive_openmp_wait, quiet_openblas
 
 passive_openmp_wait()  # before any module imports torch (blurcalib.runs.runtime)
-quiet_openblas_wait()  # before any module imports NumPy
+quiet_openblas()  # before any module imports NumPy
 
 try:
     __version__ = version("blurcalib")  # pyproject.toml's version, from the installed package

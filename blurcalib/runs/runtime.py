@@ -7,9 +7,10 @@ threads they wait for: one real sharp frame on a busy 2-core machine took 4 to 8
 and 5 to 7 times the wall time with 2 threads than with 1. So the package makes OpenMP threads
 sleep while they wait (:func:`passive_openmp_wait`, set when ``blurcalib`` is imported, before
 torch starts its threads): the same frame with 2 threads then takes the CPU time of 1 thread.
-NumPy's and SciPy's OpenBLAS spin the same way in their own threads: a 171-parameter Cholesky
-solve of the parametric bundle adjustment took 0.17 s on a busy 2-core machine against 0.03 s
-with OpenBLAS's threads sent to sleep at once (:func:`quiet_openblas_wait`).
+NumPy's and SciPy's OpenBLAS wait the same way in their own threads: one solve of the parametric
+bundle adjustment (a 171-parameter Cholesky factor) took 0.17 s on a busy 2-core machine with
+OpenBLAS's default two threads, 0.07 s with its threads sent to sleep at once and 0.016 s with one
+thread, so NumPy computes with one thread too (:func:`quiet_openblas`).
 Every process still computes with one thread by default and parallelism comes from worker
 processes, one per core. The calibration
 runs in one process once the frames are done, on large tensors: its torch computes with one
@@ -49,24 +50,25 @@ def passive_openmp_wait() -> bool:
     return True
 
 
-OPENBLAS_THREAD_TIMEOUT = "OPENBLAS_THREAD_TIMEOUT"
-"""OpenBLAS's environment variable of how long an idle thread spins before it sleeps (``2^n``
-clock cycles, ``n`` from 4 to 30)."""
+OPENBLAS_POLICY = {"OPENBLAS_NUM_THREADS": "1", "OPENBLAS_THREAD_TIMEOUT": "4"}
+"""OpenBLAS's environment variables and the values :func:`quiet_openblas` gives them: one thread,
+and a thread that waits spins for ``2^4`` clock cycles before it sleeps (its default about
+``2^28``), for a user who asks for more threads."""
 
 
-def quiet_openblas_wait() -> bool:
-    """Make OpenBLAS's idle threads sleep after the shortest spin (``OPENBLAS_THREAD_TIMEOUT=4``,
-    16 clock cycles; its default spins for about 2^28) unless the environment already sets it;
-    True when this call set it.
+def quiet_openblas() -> list[str]:
+    """Make NumPy's and SciPy's OpenBLAS compute with one thread and let idle threads sleep at once
+    (:data:`OPENBLAS_POLICY`), each variable unless the environment already sets it; returns the
+    variables this call set.
 
-    OpenBLAS reads the variable when NumPy (or SciPy, with its own OpenBLAS) is first imported, so
-    this must run before that: ``blurcalib`` calls it when imported, before it imports NumPy, and
-    its worker processes inherit the environment.
+    OpenBLAS reads them when NumPy (or SciPy, with its own OpenBLAS) is first imported, so this
+    must run before that: ``blurcalib`` calls it when imported, before it imports NumPy, and its
+    worker processes inherit the environment.
     """
-    if os.environ.get(OPENBLAS_THREAD_TIMEOUT):
-        return False
-    os.environ[OPENBLAS_THREAD_TIMEOUT] = "4"
-    return True
+    chosen = [name for name in OPENBLAS_POLICY if not os.environ.get(name)]
+    for name in chosen:
+        os.environ[name] = OPENBLAS_POLICY[name]
+    return chosen
 
 
 def available_cores() -> int:

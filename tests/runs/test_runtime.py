@@ -116,21 +116,21 @@ def test_openmp_threads_sleep_while_they_wait(given: str | None, expected: str) 
     assert out.stdout.strip() == expected
 
 
-@pytest.mark.parametrize(("given", "expected"), [(None, "4"), ("20", "20")])
-def test_openblas_threads_sleep_while_they_wait(given: str | None, expected: str) -> None:
-    """Importing blurcalib makes OpenBLAS's idle threads sleep at once (their spinning took a small
-    Cholesky solve from 0.03 to 0.17 s on a busy machine), before NumPy loads OpenBLAS; a timeout
-    the user set is kept."""
+@pytest.mark.parametrize(("given", "expected"), [(None, "1 4"), ("2", "2 4")])
+def test_openblas_computes_with_one_thread(given: str | None, expected: str) -> None:
+    """Importing blurcalib gives NumPy's OpenBLAS one thread whose waits sleep at once (two
+    spinning threads took a small Cholesky solve from 0.016 to 0.17 s on a busy machine), before
+    NumPy loads OpenBLAS; threads the user set are kept."""
     import os
     import subprocess
     import sys
     from pathlib import Path
 
-    env = {k: v for k, v in os.environ.items() if k != "OPENBLAS_THREAD_TIMEOUT"}
+    env = {k: v for k, v in os.environ.items() if not k.startswith("OPENBLAS_")}
     if given is not None:
-        env["OPENBLAS_THREAD_TIMEOUT"] = given
+        env["OPENBLAS_NUM_THREADS"] = given
     env["PYTHONPATH"] = str(Path(__file__).resolve().parents[2])
     code = ("import os, sys, blurcalib; assert 'numpy' not in sys.modules; "
-            "print(os.environ['OPENBLAS_THREAD_TIMEOUT'])")
+            "print(os.environ['OPENBLAS_NUM_THREADS'], os.environ['OPENBLAS_THREAD_TIMEOUT'])")
     out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True)
     assert out.stdout.strip() == expected
