@@ -162,7 +162,7 @@ class Calibration:
             "skipped_frames": dict(self.skipped_frames),
         }
 
-def save_calibration(folder: str | os.PathLike, calibration: Calibration) -> dict[str, Path]:
+def save_calibration(folder: str | os.PathLike[str], calibration: Calibration) -> dict[str, Path]:
     """Write a calibration into ``folder`` (created if needed); every file atomically.
 
     Files: ``camera.yaml`` (OpenCV FileStorage: :func:`blurcalib.camera.parametric.save_camera_yaml`
@@ -229,7 +229,7 @@ def _load_camera(path: Path) -> BrownConrady | ParametricCamera:
     return camera.to_brown_conrady() if isinstance(camera, BrownConradyCamera) else camera
 
 
-def load_calibration(folder: str | os.PathLike) -> Calibration:
+def load_calibration(folder: str | os.PathLike[str]) -> Calibration:
     """Read a calibration written by :func:`save_calibration`.
 
     The camera comes from ``camera.json``; ``camera.yaml`` is not read.

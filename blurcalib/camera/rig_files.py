@@ -72,7 +72,7 @@ def _num(value: float) -> str:
     return f"{float(value):.14g}"
 
 
-def write_poses(path: str | os.PathLike, poses: Sequence[Pose | None]) -> Path:
+def write_poses(path: str | os.PathLike[str], poses: Sequence[Pose | None]) -> Path:
     """Write a pose file (module docstring), atomically; ``None`` entries are poses not used."""
     lines = [POSES_COMMENT, f"pose_count: {len(poses)}", "poses:"]
     for i, pose in enumerate(poses):
@@ -84,7 +84,7 @@ def write_poses(path: str | os.PathLike, poses: Sequence[Pose | None]) -> Path:
     return atomic_write_text(path, "\n".join(lines) + "\n")
 
 
-def read_poses(path: str | os.PathLike) -> list[Pose | None]:
+def read_poses(path: str | os.PathLike[str]) -> list[Pose | None]:
     """Read a pose file: ``pose_count`` entries, None where no pose is given.
 
     Raises:
@@ -140,7 +140,7 @@ class RigFolder:
     rig_tr_global: list[Pose | None]
 
 
-def write_rig_folder(folder: str | os.PathLike, rig: Rig, rig_tr_global: Sequence[Pose | None],
+def write_rig_folder(folder: str | os.PathLike[str], rig: Rig, rig_tr_global: Sequence[Pose | None],
                      points: ArrayLike | None = None, feature_ids: ArrayLike | None = None) -> list[Path]:
     """Write the reference tool's calibration folder (module docstring); ``points (M, 3)`` m with
     their ``feature_ids (M,)`` add ``points.yaml`` (the tool's loader needs it). Returns the paths."""
@@ -157,7 +157,7 @@ def write_rig_folder(folder: str | os.PathLike, rig: Rig, rig_tr_global: Sequenc
     return paths
 
 
-def read_rig_folder(folder: str | os.PathLike) -> RigFolder:
+def read_rig_folder(folder: str | os.PathLike[str]) -> RigFolder:
     """Read a reference-tool calibration folder: ``intrinsics0.yaml``, ``intrinsics1.yaml``, ... up to
     the first missing one, and the two pose files (one ``camera_tr_rig`` pose per camera).
 
@@ -187,7 +187,7 @@ def stereo_names(i: int, j: int) -> tuple[str, str]:
     return f"stereo_{i}_{j}.yaml", f"rectify_{i}_{j}.npz"
 
 
-def write_stereo_pair(folder: str | os.PathLike, rig: Rig, i: int, j: int, kind: str | None = None,
+def write_stereo_pair(folder: str | os.PathLike[str], rig: Rig, i: int, j: int, kind: str | None = None,
                       parametric: Sequence[ParametricCamera] | None = None, maps: bool = True
                       ) -> tuple[StereoRectification, list[Path]]:
     """Rectify cameras ``i`` (first) and ``j`` of ``rig`` (:func:`blurcalib.camera.stereo.stereo_rectify`)
@@ -220,7 +220,7 @@ def write_stereo_pair(folder: str | os.PathLike, rig: Rig, i: int, j: int, kind:
     return rect, paths
 
 
-def read_stereo_yaml(path: str | os.PathLike) -> StereoRectification:
+def read_stereo_yaml(path: str | os.PathLike[str]) -> StereoRectification:
     """Read a ``stereo_{i}_{j}.yaml`` back.
 
     Raises:

@@ -241,7 +241,7 @@ def _check_sizes(sharp: Sequence[Path | FrameInput], blurry: Sequence[Path | Fra
 
 
 def run_pipeline(sharp: Sequence[Path], blurry: Sequence[Path], pattern: StarPattern,
-                 out_dir: str | os.PathLike, settings: PipelineSettings | None = None,
+                 out_dir: str | os.PathLike[str], settings: PipelineSettings | None = None,
                  progress: Callable[[str, RunEvent], None] | None = None,
                  overwrite: bool = False, mixed: Sequence[FrameInput] = (),
                  on_stage: Callable[[str], None] | None = None) -> PipelineReport:
@@ -409,7 +409,7 @@ def _calibration_seconds(run: CalibrationRun) -> dict[str, float]:
     return seconds
 
 
-def run_from_features(path: str | os.PathLike, pattern: StarPattern, out_dir: str | os.PathLike,
+def run_from_features(path: str | os.PathLike[str], pattern: StarPattern, out_dir: str | os.PathLike[str],
                       settings: PipelineSettings | None = None, image_size: tuple[int, int] | None = None,
                       overwrite: bool = False) -> PipelineReport:
     """Calibrate from an existing feature file instead of images

@@ -51,7 +51,7 @@ def frame_names(paths: Sequence[Path]) -> list[str]:
     return [printable_name(p.relative_to(common).as_posix()) for p in resolved]
 
 
-def as_frame_inputs(frames: Sequence[FrameInput | str | os.PathLike]) -> list[FrameInput]:
+def as_frame_inputs(frames: Sequence[FrameInput | str | os.PathLike[str]]) -> list[FrameInput]:
     """Frames given as :class:`blurcalib.io.sources.FrameInput` or as image paths (named by
     :func:`frame_names`, each in the sequence of its folder, in the order given)."""
     paths = [Path(f) for f in frames if not isinstance(f, FrameInput)]
@@ -113,11 +113,11 @@ def common_size(sizes: Sequence[tuple[int, int] | None]) -> tuple[int, int] | No
 class RunFolder:
     """An ``extract`` output folder being written by a run (``docs/results-format.md``)."""
 
-    def __init__(self, path: str | os.PathLike) -> None:
+    def __init__(self, path: str | os.PathLike[str]) -> None:
         self.path = Path(path)
 
     @classmethod
-    def claim(cls, path: str | os.PathLike, settings: ExtractSettings, sources: Mapping[str, str],
+    def claim(cls, path: str | os.PathLike[str], settings: ExtractSettings, sources: Mapping[str, str],
               overwrite: bool = False) -> RunFolder:
         """Take ``path`` as the output folder of a run with ``settings`` over frames named as the
         keys of ``sources`` (:func:`frame_source` of each).

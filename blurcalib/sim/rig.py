@@ -199,7 +199,7 @@ class RigSimulator:
         return SimulatedFrame(sensor_image(irradiance, truth, rng), truth)
 
 
-def write_rig_dataset(out_dir: str | os.PathLike, config: SynthConfig | None = None,
+def write_rig_dataset(out_dir: str | os.PathLike[str], config: SynthConfig | None = None,
                       rig: TrueRig | None = None, pattern: StarPattern | None = None, render: bool = True,
                       progress: Callable[[int, int, str], None] | None = None
                       ) -> tuple[TrueRig, list[RigSet]]:
@@ -237,7 +237,7 @@ def write_rig_dataset(out_dir: str | os.PathLike, config: SynthConfig | None = N
     return sim.rig, sets
 
 
-def load_rig_truth(path: str | os.PathLike) -> tuple[TrueRig, dict[str, Pose]]:
+def load_rig_truth(path: str | os.PathLike[str]) -> tuple[TrueRig, dict[str, Pose]]:
     """Read ``rig_truth.json`` (the file or its folder): the rig and each set's target -> rig pose.
 
     Raises:
