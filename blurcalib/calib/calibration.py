@@ -11,7 +11,7 @@ import json
 import os
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 
@@ -111,7 +111,7 @@ class Calibration:
     @property
     def errors(self) -> np.ndarray:
         """``(N,)`` px, reprojection error norms ``|residual|``."""
-        return np.linalg.norm(self.residuals, axis=1)
+        return cast(np.ndarray, np.linalg.norm(self.residuals, axis=1))
 
     def frame_errors(self) -> dict[str, dict[str, Any]]:
         """Per calibrated frame: observation and inlier counts, median and RMS inlier error (px)."""

@@ -38,6 +38,7 @@ Pixel convention: OpenCV (the centre of the top-left pixel is ``(0, 0)``).
 from __future__ import annotations
 
 from dataclasses import replace
+from typing import cast
 
 import numpy as np
 
@@ -79,7 +80,7 @@ def fit_homographies(q: np.ndarray, y: np.ndarray) -> np.ndarray:
     back[:, 0, 0] = back[:, 1, 1] = scale[:, 0, 0]
     back[:, :2, 2] = origin[:, 0]
     back[:, 2, 2] = 1.0
-    return back @ G
+    return cast(np.ndarray, back @ G)
 
 
 _CHUNK = 512
@@ -111,7 +112,7 @@ def _rays(camera: BrownConrady | ParametricCamera, px: np.ndarray) -> np.ndarray
     :class:`BrownConrady` camera uses its own inverse (normalised coordinates ``(x, y, 1)``)."""
     if isinstance(camera, BrownConrady):
         rays = np.concatenate([camera.unproject(px), np.ones((len(px), 1))], axis=1)
-        return rays / np.linalg.norm(rays, axis=1, keepdims=True)
+        return cast(np.ndarray, rays / np.linalg.norm(rays, axis=1, keepdims=True))
     return camera.unproject(px)
 
 

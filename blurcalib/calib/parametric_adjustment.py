@@ -16,6 +16,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import cast
 
 import numpy as np
 import scipy.linalg
@@ -63,7 +64,7 @@ class ParametricProblem:
         return params[:i], poses[:, :3], poses[:, 3:], pts
 
     def obs_points(self, pts: np.ndarray, rows: np.ndarray) -> np.ndarray:
-        return pts[self.point_idx[rows]] if self.refine_points else self.fixed_points[rows]
+        return cast(np.ndarray, pts[self.point_idx[rows]] if self.refine_points else self.fixed_points[rows])
 
     def predict(self, params: np.ndarray, rows: np.ndarray) -> np.ndarray:
         intr, rvecs, tvecs, pts = self.unpack(params)
@@ -86,7 +87,7 @@ class ParametricProblem:
         def fun(params: np.ndarray) -> np.ndarray:
             res = (self.predict(params, rows) - self.observed[rows]).ravel()
             if not self.refine_points:
-                return res
+                return cast(np.ndarray, res)
             pts = self.unpack(params)[3]
             return np.concatenate([res, ((pts - self.nominal) / self.point_sigma).ravel()])
         return fun

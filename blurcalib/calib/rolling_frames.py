@@ -20,6 +20,7 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import cast
 
 import numpy as np
 import torch
@@ -226,7 +227,7 @@ class _RollingFrames:
             self.state[k][self.obs[keep]] = v[keep]
         self.cost = torch.where(better, self.moved_cost, self.cost)
         self.stale |= better
-        return accepted & (self.dp[rows].abs().amax(dim=1) < STEP_TOL)
+        return cast(torch.Tensor, accepted & (self.dp[rows].abs().amax(dim=1) < STEP_TOL))
 
 
 def _finish(projector: Projector, fit: _RollingFrames) -> RollingFit:

@@ -62,6 +62,7 @@ import os
 from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
+from typing import cast
 
 import numpy as np
 import torch
@@ -112,7 +113,7 @@ def _lattice(x0: float, y0: float, x1: float, y1: float, step_px: float
 
 def _edge_distance(x: np.ndarray, y: np.ndarray, width: int, height: int) -> np.ndarray:
     """Distance (px) of OpenCV pixels to the nearest image edge."""
-    return np.minimum.reduce([x + 0.5, y + 0.5, width - 0.5 - x, height - 0.5 - y])
+    return cast(np.ndarray, np.minimum.reduce([x + 0.5, y + 0.5, width - 0.5 - x, height - 0.5 - y]))
 
 
 @dataclass(eq=False)
@@ -173,7 +174,7 @@ class ProjectionUncertainty:
         interp = RegularGridInterpolator((ys, xs), self.sigma_px.reshape(self.shape),
                                          bounds_error=False, fill_value=np.nan)
         p = np.asarray(px, dtype=np.float64).reshape(-1, 2)
-        return interp(p[:, ::-1])
+        return cast(np.ndarray, interp(p[:, ::-1]))
 
 
 def _rotation_directions(grid: torch.Tensor) -> torch.Tensor:
@@ -184,7 +185,7 @@ def _rotation_directions(grid: torch.Tensor) -> torch.Tensor:
     """
     v = grid.reshape(-1, 3)
     t = tangent_basis(v)
-    return torch.linalg.cross(v[:, None, :].expand_as(t), t, dim=-1).reshape(-1, 3)
+    return cast(torch.Tensor, torch.linalg.cross(v[:, None, :].expand_as(t), t, dim=-1).reshape(-1, 3))
 
 
 def _grid_information(ne: NormalEquations, prior: torch.Tensor, noise_sq: float) -> torch.Tensor:

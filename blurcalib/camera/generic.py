@@ -33,6 +33,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import cast
 
 import numpy as np
 import scipy.linalg
@@ -355,7 +356,7 @@ def apply_update(grid: torch.Tensor, delta: torch.Tensor) -> torch.Tensor:
     """``v <- normalize(v + a t1 + b t2)`` for ``delta (GH, GW, 2)``; returns the new grid."""
     t = tangent_basis(grid)
     new = grid + delta[..., 0:1] * t[..., 0, :] + delta[..., 1:2] * t[..., 1, :]
-    return new / new.norm(dim=-1, keepdim=True)
+    return cast(torch.Tensor, new / new.norm(dim=-1, keepdim=True))
 
 
 @dataclass(frozen=True, eq=False)
@@ -474,7 +475,7 @@ def best_fit_rotation(a: ArrayLike, b: ArrayLike) -> np.ndarray:
     (Kabsch). A central camera's orientation is a gauge: two models are compared after it."""
     U, _, Vt = np.linalg.svd(np.asarray(b, dtype=np.float64).T @ np.asarray(a, dtype=np.float64))
     D = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))])
-    return U @ D @ Vt
+    return cast(np.ndarray, U @ D @ Vt)
 
 
 def _lattice(x0: float, y0: float, x1: float, y1: float, step: float) -> np.ndarray:
@@ -560,7 +561,7 @@ def _solve_banded_spd(A: np.ndarray, b: np.ndarray, bandwidth: int, ridge: float
     for k in range(w + 1):
         band[k, :n - k] = np.diagonal(A, -k)
     band[0] += ridge
-    return scipy.linalg.solveh_banded(band, b, lower=True)
+    return cast(np.ndarray, scipy.linalg.solveh_banded(band, b, lower=True))
 
 
 def undistortion_map(model: CentralGeneric, fx: float, fy: float, cx: float, cy: float,

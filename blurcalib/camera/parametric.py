@@ -33,7 +33,7 @@ import math
 import os
 from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, cast
 
 import cv2
 import numpy as np
@@ -341,7 +341,7 @@ class BrownConrady:
         """Distorted pixels ``(N, 2)`` px -> unit viewing rays ``(N, 3)`` in the camera frame."""
         xn = self.unproject(px)
         rays = np.concatenate([xn, np.ones((*xn.shape[:-1], 1))], axis=-1)
-        return rays / np.linalg.norm(rays, axis=-1, keepdims=True)
+        return cast(np.ndarray, rays / np.linalg.norm(rays, axis=-1, keepdims=True))
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-serialisable dict: ``model`` plus every field (floats px/unitless, ints px)."""

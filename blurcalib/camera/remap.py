@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Protocol
+from typing import Protocol, cast
 
 import cv2
 import numpy as np
@@ -92,7 +92,7 @@ class OutputProjection:
         b = (np.asarray(y, dtype=np.float64) - self.cy) / self.fy
         if self.kind == "pinhole":
             rays = np.stack([a, b, np.ones_like(a)], axis=-1)
-            return rays / np.linalg.norm(rays, axis=-1, keepdims=True)
+            return cast(np.ndarray, rays / np.linalg.norm(rays, axis=-1, keepdims=True))
         if self.kind == "latlong":
             rays = np.stack([np.sin(a) * np.cos(b), np.sin(b), np.cos(a) * np.cos(b)], axis=-1)
             rays[(np.abs(a) > math.pi) | (np.abs(b) > math.pi / 2)] = np.nan
@@ -183,7 +183,7 @@ def output_for(camera: RayProjector, kind: str | None = None) -> OutputProjectio
 
     def off_axis(px: np.ndarray) -> np.ndarray:
         rays = camera.pixel_to_ray(px)
-        return np.arccos(np.clip(rays[np.all(np.isfinite(rays), axis=1)] @ axis, -1.0, 1.0))
+        return cast(np.ndarray, np.arccos(np.clip(rays[np.all(np.isfinite(rays), axis=1)] @ axis, -1.0, 1.0)))
 
     if kind is None:
         t = np.linspace(0.0, 1.0, 65)[:, None]

@@ -32,6 +32,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import cast
 
 import cv2
 import numpy as np
@@ -178,4 +179,4 @@ def epipolar_errors(rect: StereoRectification, rays1: Callable[[np.ndarray], np.
     q1 = rectified_points(rect, rays1, 1, px1)
     q2 = rectified_points(rect, rays2, 2, px2)
     across = 1 - rect.axis
-    return np.abs(q1[:, across] - q2[:, across])
+    return cast(np.ndarray, np.abs(q1[:, across] - q2[:, across]))

@@ -9,6 +9,8 @@ pattern is periodic: beyond the block's square it continues into the neighbourin
 
 from __future__ import annotations
 
+from typing import cast
+
 import torch
 
 from blurcalib.target.star import star_signed_distance_normal
@@ -61,7 +63,8 @@ def _latent_at(H_loc: torch.Tensor, grid: tuple[int, int], num_segments: int, ta
     i = torch.arange(grid[0], device=dev, dtype=dtype)[None, :, None] + oy
 
     def row(k: int) -> torch.Tensor:  # one full-grid add: the column and row terms broadcast
-        return (M[:, k, 0, None, None] * j + M[:, k, 2, None, None]) + M[:, k, 1, None, None] * i
+        return cast(torch.Tensor,
+                    (M[:, k, 0, None, None] * j + M[:, k, 2, None, None]) + M[:, k, 1, None, None] * i)
 
     inv_w = 1.0 / row(2).clamp_min(1e-6)  # w > 0 in front of the camera (H[2, 2] = 1)
     qx, qy = row(0) * inv_w, row(1) * inv_w

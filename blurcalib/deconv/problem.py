@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import copy
 from dataclasses import dataclass, fields
+from typing import cast
 
 import numpy as np
 import torch
@@ -188,7 +189,7 @@ class BlockProblem:
 
     def to_image(self, H_loc: torch.Tensor) -> np.ndarray:
         """Latent-local homographies -> image-pixel ``(b, 3, 3)`` float64 arrays."""
-        return translation(self.lat_origin.astype(np.float64)) @ H_loc.cpu().numpy()
+        return cast(np.ndarray, translation(self.lat_origin.astype(np.float64)) @ H_loc.cpu().numpy())
 
     # ------------------------------------------------------------------- pattern and pixels
     def latent(self, H_loc: torch.Tensor, with_jac: bool) -> tuple[torch.Tensor, torch.Tensor | None]:
@@ -215,7 +216,7 @@ class BlockProblem:
                       for k in range(3))
         ew = self.s.loss_extent * wq
         inside = (wq > 0) & (qx.abs() <= ew) & (qy.abs() <= ew)
-        return inside & self.usable
+        return cast(torch.Tensor, inside & self.usable)
 
     # ------------------------------------------------------------------- the linear sub-problem
     def design(self, H_loc: torch.Tensor, support: torch.Tensor | None,

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass, field, fields
-from typing import NamedTuple
+from typing import NamedTuple, cast
 
 import numpy as np
 
@@ -144,12 +144,12 @@ class BlockFit:
                   & np.all(np.isfinite(self.psf_fit), axis=(1, 2))
                   & (self.coeffs[:, 2] > self.settings.min_contrast) & (self.num_pixels > 0))
         with np.errstate(invalid="ignore"):
-            return fitted & (self.centre_step < tol_px)
+            return cast(np.ndarray, fitted & (self.centre_step < tol_px))
 
     @property
     def H_fit(self) -> np.ndarray:
         """``(B, 3, 3)``: the fitted homographies before re-centring, ``T(-centroid) H``."""
-        return translation(-self.centroid) @ self.H
+        return cast(np.ndarray, translation(-self.centroid) @ self.H)
 
     @property
     def centre(self) -> np.ndarray:

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import replace
+from typing import cast
 
 import cv2
 import numpy as np
@@ -78,7 +79,7 @@ def field_rows(pattern: StarPattern, ids: np.ndarray, H: np.ndarray, image_shape
     status = block_windows(H[off_rim], image_shape, replace(deconv, loss_extent=settings.final_extent))[3]
     inside = np.array([st is BlockStatus.ACCEPTED for st in status], dtype=bool)
     pool = off_rim[inside] if inside.sum() >= settings.field_min_blocks else off_rim
-    return pool[spread(homography_centre(H[pool]), settings.field_blocks)]
+    return cast(np.ndarray, pool[spread(homography_centre(H[pool]), settings.field_blocks)])
 
 
 def fit_with_field(image: np.ndarray, pattern: StarPattern, ids: np.ndarray, H0: np.ndarray,

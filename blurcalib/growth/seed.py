@@ -26,6 +26,7 @@ image pixels (OpenCV convention); a block's homography is ``H_f B(fx, fy)`` with
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import cast
 
 import cv2
 import numpy as np
@@ -147,7 +148,7 @@ def line_kernel(length: float, angle: float) -> np.ndarray:
     for dx, dy, w in ((0, 0, (1 - fx) * (1 - fy)), (1, 0, fx * (1 - fy)), (0, 1, (1 - fx) * fy),
                       (1, 1, fx * fy)):
         np.add.at(k, (y0 + dy, x0 + dx), w)
-    return k / k.sum()
+    return cast(np.ndarray, k / k.sum())
 
 
 def wiener_deblur(image: np.ndarray, kernel: np.ndarray, nsr: float = 0.01) -> np.ndarray:
@@ -162,7 +163,7 @@ def wiener_deblur(image: np.ndarray, kernel: np.ndarray, nsr: float = 0.01) -> n
     kpad = np.roll(kpad, (-(ks // 2), -(ks // 2)), axis=(0, 1))
     F = np.fft.rfft2(kpad)
     out = np.fft.irfft2(np.fft.rfft2(padded) * np.conj(F) / (np.abs(F) ** 2 + nsr), s=padded.shape)
-    return out[ks:-ks, ks:-ks] + mean
+    return cast(np.ndarray, out[ks:-ks, ks:-ks] + mean)
 
 
 def detect_tags_deblurred(image: np.ndarray, wanted: set[int], scale: float = 0.5,

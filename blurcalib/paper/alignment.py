@@ -48,7 +48,7 @@ import math
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import cv2
 import numpy as np
@@ -271,7 +271,7 @@ def own_fit_distances(reference: BrownConrady, points: np.ndarray, observed: np.
 
 
 def _distances(residuals: np.ndarray) -> np.ndarray:
-    return np.hypot(residuals[:, 0], residuals[:, 1])
+    return cast(np.ndarray, np.hypot(residuals[:, 0], residuals[:, 1]))
 
 
 def align_frame(reference: BrownConrady, frame: SimulatedFeatures, shift: np.ndarray,

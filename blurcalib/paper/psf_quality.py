@@ -46,7 +46,7 @@ import math
 from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
@@ -130,12 +130,12 @@ class BlockFigures:
     @property
     def error_fit(self) -> np.ndarray:
         """``(n,)`` px, distance of the un-re-centred star centre to the true time-averaged one."""
-        return np.linalg.norm(self.centre_fit - self.true_mean, axis=1)
+        return cast(np.ndarray, np.linalg.norm(self.centre_fit - self.true_mean, axis=1))
 
     @property
     def error_recentred(self) -> np.ndarray:
         """``(n,)`` px, distance of the re-centred star centre to the true time-averaged one."""
-        return np.linalg.norm(self.centre - self.true_mean, axis=1)
+        return cast(np.ndarray, np.linalg.norm(self.centre - self.true_mean, axis=1))
 
 
 def block_figures(frames: Sequence[ExtractedFrame], pattern: StarPattern) -> BlockFigures:

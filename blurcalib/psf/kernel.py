@@ -8,7 +8,7 @@ sum to 1 unless stated.
 
 from __future__ import annotations
 
-from typing import NamedTuple
+from typing import NamedTuple, cast
 
 import numpy as np
 
@@ -140,7 +140,7 @@ def psf_centroid(psf: np.ndarray, threshold: float = 0.0) -> np.ndarray:
     offs = np.arange(k.shape[-1], dtype=np.float64) - c
     with np.errstate(invalid="ignore", divide="ignore"):
         out = np.stack([w.sum(axis=1) @ offs, w.sum(axis=2) @ offs], axis=1) / total[:, None]
-    return out[0] if single else out
+    return cast(np.ndarray, out[0] if single else out)
 
 
 def resize_kernels(k: np.ndarray, size: int) -> np.ndarray:

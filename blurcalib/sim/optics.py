@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from typing import cast
 
 import cv2
 import numpy as np
@@ -126,7 +127,7 @@ class FieldPsf:
             sr, st = (s_r * scale)[:, None, None], (s_t * scale)[:, None, None]
             dens = np.exp(-0.5 * (((dr - offset[:, None, None]) / sr) ** 2 + (dt / st) ** 2)) / (sr * st)
             out += weight * dens.reshape(len(h), K, _SUB, K, _SUB).sum(axis=(2, 4))
-        return out / out.sum(axis=(1, 2), keepdims=True)
+        return cast(np.ndarray, out / out.sum(axis=(1, 2), keepdims=True))
 
     def _nodes(self, size: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
         """Node coordinates along x and y (px): every ``node_px``, from at least a kernel radius
@@ -150,7 +151,8 @@ class FieldPsf:
     def psf_at(self, points: np.ndarray, size: tuple[int, int]) -> np.ndarray:
         """``(N, K, K)``: the image of a point source at each of ``points`` ``(N, 2)`` px as
         :meth:`apply` renders it (the bilinear blend of the lattice's kernels)."""
-        return sum(w[:, None, None] * self.kernels(node, size) for node, w in self._blend(points, size))
+        return cast(np.ndarray,
+                    sum(w[:, None, None] * self.kernels(node, size) for node, w in self._blend(points, size)))
 
     def centroid_at(self, points: np.ndarray, size: tuple[int, int]) -> np.ndarray:
         """``(N, 2)`` px: the centroid of :meth:`psf_at` (where the image of a point source at each
@@ -251,7 +253,7 @@ class DisplayGrid:
 
     def _weights(self) -> np.ndarray:
         w = np.asarray(self.subpixel_weights, dtype=np.float64)
-        return w / w.sum()
+        return cast(np.ndarray, w / w.sum())
 
     def shift_squares(self) -> np.ndarray:
         """``(2,)`` squares: how far the emission centroid of a uniformly lit pixel lies from the
@@ -264,7 +266,7 @@ class DisplayGrid:
         the pixel's emission profile along ``axis`` (0: across the stripes, 1: across the rows),
         normalised to integrate to 1 over the pixel."""
         def overlap(lo: float, hi: float) -> np.ndarray:
-            return np.clip(np.minimum(b, hi) - np.maximum(a, lo), 0.0, None)
+            return cast(np.ndarray, np.clip(np.minimum(b, hi) - np.maximum(a, lo), 0.0, None))
         if axis == 1:
             m = (1.0 - self.row_fill) / 2
             return overlap(m, 1.0 - m) / self.row_fill

@@ -19,6 +19,7 @@ import os
 from collections.abc import Callable
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import asdict, dataclass
+from typing import cast
 
 import cv2
 import numpy as np
@@ -246,7 +247,7 @@ def _visible_points(camera: TrueCamera, pose: Pose, pattern: StarPattern) -> np.
 
 def _path_lengths(camera: TrueCamera, pose: Pose, motion: Motion, pts: np.ndarray) -> np.ndarray:
     tracks = np.stack([camera.project(p.transform(pts)) for p in motion.poses(pose)])
-    return np.linalg.norm(np.diff(tracks, axis=0), axis=2).sum(axis=0)
+    return cast(np.ndarray, np.linalg.norm(np.diff(tracks, axis=0), axis=2).sum(axis=0))
 
 
 def frame_truth(name: str, kind: str, pattern: StarPattern, camera: TrueCamera, pose: Pose,
