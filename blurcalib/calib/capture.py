@@ -37,7 +37,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import cast
+from typing import Any, cast
 
 import cv2
 import numpy as np
@@ -118,7 +118,7 @@ class CaptureCheck:
     refusal: str | None = None
     warnings: list[str] = field(default_factory=list)
 
-    def to_dict(self) -> dict:
+    def to_dict(self) -> dict[str, Any]:
         """``report.json``'s ``capture`` section (docs/results-format.md)."""
         def r(v: float | None, digits: int = 2) -> float | None:
             return None if v is None or not math.isfinite(v) else round(float(v), digits)

@@ -16,7 +16,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import cast
+from typing import Any, cast
 
 import numpy as np
 import scipy.linalg
@@ -182,7 +182,7 @@ class _Point:
     f: np.ndarray
 
 
-class _Robust(SingleProblem[_Point, tuple, np.ndarray]):
+class _Robust(SingleProblem[_Point, tuple[Any, ...], np.ndarray]):
     """``sum_i rho(f_i(x))`` with Huber's ``rho`` at ``huber`` (``inf``: squares), its steps solved
     with the poses eliminated (:func:`solve_poses_eliminated`)."""
 
@@ -198,7 +198,7 @@ class _Robust(SingleProblem[_Point, tuple, np.ndarray]):
             return float(np.sum(a * a))
         return float(np.sum(np.where(a <= self.huber, a * a, 2.0 * self.huber * a - self.huber * self.huber)))
 
-    def linearise(self, p: _Point) -> tuple:
+    def linearise(self, p: _Point) -> tuple[Any, ...]:
         """``(J^T W J, J^T W f, its diagonal)`` with the IRLS weights ``w = min(1, huber / |f|)``."""
         J = self.jac(p.x).tocsr()
         w = np.minimum(1.0, self.huber / np.maximum(np.abs(p.f), 1e-300))
@@ -206,7 +206,7 @@ class _Robust(SingleProblem[_Point, tuple, np.ndarray]):
         g = J.T @ (w * p.f)
         return H, g, scipy.sparse.diags(np.maximum(H.diagonal(), 1e-12))
 
-    def solve(self, system: tuple, lam: float) -> np.ndarray | None:
+    def solve(self, system: tuple[Any, ...], lam: float) -> np.ndarray | None:
         """The damped step, or None (a rejected trial) where the system is singular."""
         H, g, diag = system
         try:

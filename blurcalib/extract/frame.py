@@ -17,6 +17,7 @@ import math
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
+from typing import Any
 
 import numpy as np
 
@@ -137,7 +138,7 @@ class FrameResult:
     message: str = ""
     blocks: BlockTable = field(default_factory=BlockTable.empty)
     features: FeatureTable = field(default_factory=FeatureTable.empty)
-    corners: list[list] = field(default_factory=list)
+    corners: list[list[Any]] = field(default_factory=list)
     seed: Seed | None = None
     growth: Growth | None = None
     local: LocalAlignment | None = None
@@ -273,7 +274,7 @@ def grow_frame(image: np.ndarray, pattern: StarPattern, frame: str, seed: Seed,
 
 
 def corner_rows(frame: str, pattern: StarPattern, H: np.ndarray, fx: np.ndarray,
-                fy: np.ndarray) -> list[list]:
+                fy: np.ndarray) -> list[list[Any]]:
     """Rows of ``corners.csv`` for the square corners shared by at least two blocks.
 
     Args:

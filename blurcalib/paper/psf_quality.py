@@ -496,7 +496,7 @@ def results_json(experiment: PsfQualityExperiment, seed: int) -> dict[str, Any]:
     b = experiment.blocks
     frames = experiment.frames
 
-    def column(values: np.ndarray) -> list:
+    def column(values: np.ndarray) -> list[Any]:
         return [finite(v) for v in np.asarray(values, dtype=np.float64).tolist()]
 
     choice = experiment.field

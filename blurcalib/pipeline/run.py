@@ -48,7 +48,7 @@ import time
 from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
-from typing import TypeVar
+from typing import Any, TypeVar
 
 import cv2
 import numpy as np
@@ -152,7 +152,7 @@ class PipelineSettings:
     workers: int = 1
     cluster: str | None = None
 
-    def to_dict(self) -> dict:
+    def to_dict(self) -> dict[str, Any]:
         """The settings that decide the results (``report.json``'s ``settings``): all but
         ``workers`` and ``cluster``."""
         return {k: v for k, v in asdict(self).items() if k not in ("workers", "cluster")}
@@ -176,22 +176,22 @@ class PipelineReport:
     the features are written all the same), else "", and ``assessment_failure`` why the generic
     camera (or the sharp-only one) has no assessment, else ""."""
 
-    calibration: dict
+    calibration: dict[str, Any]
     frames: list[FrameRecord]
     outputs: dict[str, str]
     counts: dict[str, dict[str, int]]
-    settings: dict
-    generic: dict | None = None
-    generic_sharp: dict | None = None
-    trust: dict | None = None
-    rolling_shutter: dict | None = None
-    capture: dict | None = None
-    parametric_choice: dict | None = None
+    settings: dict[str, Any]
+    generic: dict[str, Any] | None = None
+    generic_sharp: dict[str, Any] | None = None
+    trust: dict[str, Any] | None = None
+    rolling_shutter: dict[str, Any] | None = None
+    capture: dict[str, Any] | None = None
+    parametric_choice: dict[str, Any] | None = None
     generic_failure: str = ""
     assessment_failure: str = ""
     seconds: dict[str, float] = field(default_factory=dict)
 
-    def to_dict(self) -> dict:
+    def to_dict(self) -> dict[str, Any]:
         """The ``report.json`` document: the fields, with ``trust``'s sections (``validation``,
         ``uncertainty``, ``cross_validation``, ``guidance``, ``blurry_frames_gain``) at the top."""
         out = {**{k: v for k, v in vars(self).items() if k != "frames"},
@@ -329,7 +329,7 @@ def _extract(sharp: Sequence[Path], blurry: Sequence[Path], mixed: Sequence[Fram
 
     pool = ProcessPool(s.workers)  # the sharp and blurry folders share the worker processes
 
-    def extract(frames: Sequence, folder: str, settings: ExtractSettings) -> list[FrameRecord]:
+    def extract(frames: Sequence[Any], folder: str, settings: ExtractSettings) -> list[FrameRecord]:
         done = extract_to_folder(frames, pattern, out / folder, settings, workers=s.workers,
                                  progress=stage(folder), expected_size=size, overwrite=overwrite,
                                  cluster=s.cluster, pool=pool)
@@ -457,7 +457,7 @@ def run_from_features(path: str | os.PathLike[str], pattern: StarPattern, out_di
 
 def _publish_run(out: Path, pattern: StarPattern, size: tuple[int, int], s: PipelineSettings,
                  rows: list[FrameRecord], run: CalibrationRun, seconds: dict[str, float],
-                 capture: CaptureCheck, manifest: dict) -> PipelineReport:
+                 capture: CaptureCheck, manifest: dict[str, Any]) -> PipelineReport:
     """Write the run's output set into ``OUT/.staging`` and publish it (:func:`_publish`) with the
     run manifest naming ``manifest`` (the run's settings); a failed write (a full disk) removes the
     staging folder and leaves the earlier outputs, and the manifest naming their settings, as they
@@ -521,7 +521,7 @@ def _with_kind(table: Table, folder: str) -> Table:
     return replace(table, frame=np.char.add(f"{folder}/", table.frame))
 
 
-def _publish(staging: Path, out: Path, manifest: dict) -> None:
+def _publish(staging: Path, out: Path, manifest: dict[str, Any]) -> None:
     """Move the output set staged in ``staging`` into ``out``.
 
     ``report.json`` (the completion marker) is removed first, the run manifest is then rewritten

@@ -15,6 +15,7 @@ import os
 from collections.abc import Mapping, Sequence
 from dataclasses import asdict, replace
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -65,7 +66,7 @@ def frame_source(frame: FrameInput) -> str:
     return path if frame.index is None else f"{path}#{frame.index}"
 
 
-def settings_record(settings: ExtractSettings) -> dict:
+def settings_record(settings: ExtractSettings) -> dict[str, Any]:
     """The settings that determine a frame's result, as a JSON-serialisable dict (the torch
     device aside: it changes where, not what, is computed)."""
     record = asdict(settings)

@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import cast
+from typing import Any, cast
 
 import cv2
 import numpy as np
@@ -214,12 +214,12 @@ def touched_blocks(footprint: np.ndarray, quads: np.ndarray, margin_px: float = 
     return out
 
 
-def fault_to_dict(fault: Fault) -> dict:
+def fault_to_dict(fault: Fault) -> dict[str, Any]:
     """A fault as JSON: its kind and parameters."""
     return {k: (list(v) if isinstance(v, tuple) else v) for k, v in fault.__dict__.items()}
 
 
-def fault_from_dict(data: dict) -> Fault:
+def fault_from_dict(data: dict[str, Any]) -> Fault:
     """The inverse of :func:`fault_to_dict`."""
     kinds = {"glare": Glare, "finger": Finger, "defocus": Defocus}
     args = {k: (tuple(v) if isinstance(v, list) else v) for k, v in data.items() if k != "kind"}

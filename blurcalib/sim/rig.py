@@ -26,6 +26,7 @@ import json
 import os
 from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass
+from typing import Any
 
 import cv2
 import numpy as np
@@ -78,12 +79,12 @@ class TrueRig:
         """``camera j <- camera i``."""
         return self.camera_tr_rig[j].compose(self.camera_tr_rig[i].inverse())
 
-    def to_dict(self) -> dict:
+    def to_dict(self) -> dict[str, Any]:
         return {"cameras": [c.to_dict() for c in self.cameras],
                 "camera_tr_rig": [p.to_dict() for p in self.camera_tr_rig]}
 
     @classmethod
-    def from_dict(cls, data: dict) -> TrueRig:
+    def from_dict(cls, data: dict[str, Any]) -> TrueRig:
         return cls(tuple(TrueCamera.from_dict(c) for c in data["cameras"]),
                    tuple(Pose.from_dict(p) for p in data["camera_tr_rig"]))
 

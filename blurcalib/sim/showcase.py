@@ -27,6 +27,7 @@ from collections.abc import Callable
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
@@ -239,7 +240,7 @@ def write_showcase(out_dir: str | os.PathLike[str], progress: Callable[[int, int
     renderer = ShowcaseRenderer()
     renderer.pattern.save_yaml(out / "pattern.yaml")
     specs = renderer.frames
-    truths: list = [None] * len(specs)
+    truths: list[Any] = [None] * len(specs)
     faults: dict[str, dict] = {}
 
     def store(index: int, frame: SimulatedFrame, touched: list[np.ndarray]) -> None:
