@@ -418,7 +418,7 @@ def bundle_adjust(model: CentralGeneric, poses: Sequence[Pose], frame: ArrayLike
     settings = settings or BundleSettings()
     t_wall, t_cpu = time.perf_counter(), time.process_time()
     dev = torch.device(settings.device)
-    kw = {"dtype": torch.float64, "device": dev}
+    kw: dict[str, Any] = {"dtype": torch.float64, "device": dev}
     fr_np, P, p, w_np, free_np = _checked_inputs(len(poses), frame, points, observed, weights, shift_free)
     spline = model.spline(dev)
     pb = BundleProblem(spline, torch.as_tensor(fr_np, device=dev), torch.as_tensor(P, **kw),
@@ -453,7 +453,7 @@ def _start(pb: BundleProblem, spline: GridSpline, poses: Sequence[Pose], prior: 
     """The first iterate of :func:`bundle_adjust` in the gauge (module docstring): the model's grid,
     the initial grid the smoothness prior keeps (``prior``'s, else the model's), the poses, zero
     shifts and (``rolling``) zero rolling parameters; and its cost."""
-    kw = {"dtype": torch.float64, "device": spline.grid.device}
+    kw: dict[str, Any] = {"dtype": torch.float64, "device": spline.grid.device}
     Q = gauge_rotation(spline, spline.grid)
     grid = spline.grid @ Q.T
     grid0 = grid.clone()

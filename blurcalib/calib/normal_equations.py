@@ -13,6 +13,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
+from typing import Any
 
 import numpy as np
 import torch
@@ -72,7 +73,7 @@ def _at_solution(result: BundleResult) -> tuple[BundleProblem, BundleState, torc
     data = result.data
     settings = data.settings
     dev = torch.device(settings.device)
-    kw = {"dtype": torch.float64, "device": dev}
+    kw: dict[str, Any] = {"dtype": torch.float64, "device": dev}
     spline = result.model.spline(dev)
     pb = BundleProblem(spline, torch.as_tensor(data.frame, device=dev), torch.as_tensor(data.points, **kw),
                   torch.as_tensor(data.observed, **kw), torch.as_tensor(data.weights, **kw),
@@ -169,7 +170,7 @@ def leave_out_models(result: BundleResult, left_out: Sequence[ArrayLike], priors
     if any((p.grid_height, p.grid_width) != pb.spline.shape for p in priors):
         raise ValueError(f"every prior must have the model's {pb.gh} x {pb.gw} grid")
     dev = st.grid.device
-    kw = {"dtype": st.R.dtype, "device": dev}
+    kw: dict[str, Any] = {"dtype": st.R.dtype, "device": dev}
     G = 2 * pb.gh * pb.gw
     eye8 = torch.eye(8, **kw)
 

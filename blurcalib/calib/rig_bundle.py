@@ -29,6 +29,7 @@ import math
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 import torch
@@ -168,7 +169,7 @@ class _RigSteps(SingleProblem[_State, tuple[torch.Tensor, ...], tuple[torch.Tens
     def linearise(self, x: _State) -> tuple[torch.Tensor, ...]:
         C, S, K = self.C, self.S, self.K
         G = 6 * (C - 1)
-        kw = {"dtype": torch.float64}
+        kw: dict[str, Any] = {"dtype": torch.float64}
         Hgg, bg = torch.zeros(G, G, **kw), torch.zeros(G, **kw)
         Hgp, Hpp, bp = torch.zeros(G, S, K, **kw), torch.zeros(S, K, K, **kw), torch.zeros(S, K, **kw)
         eye2 = torch.eye(2, **kw)
@@ -280,7 +281,7 @@ def rig_bundle_adjust(models: Sequence[CentralGeneric], camera_tr_rig: Sequence[
         seen[np.asarray(obs.set_index, dtype=np.int64)] = True
     if not seen.all():
         raise ValueError(f"image sets without observations: {np.nonzero(~seen)[0].tolist()[:10]}")
-    kw = {"dtype": torch.float64}
+    kw: dict[str, Any] = {"dtype": torch.float64}
     base = camera_tr_rig[0]
     rel = [p.compose(base.inverse()) for p in camera_tr_rig]
     cams = [_Cam(m.spline(), torch.as_tensor(np.asarray(o.set_index, dtype=np.int64)),

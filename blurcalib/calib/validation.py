@@ -243,7 +243,7 @@ def fit_frames(projector: Projector, poses: Sequence[Pose], frame: np.ndarray, p
             its step (rad, m, px) exceeds it.
         huber_px, shift_sigma_px: as :class:`blurcalib.calib.bundle.BundleSettings`.
     """
-    kw = {"dtype": torch.float64}
+    kw: dict[str, Any] = {"dtype": torch.float64}
     F = len(poses)
     fr = torch.as_tensor(np.asarray(frame, dtype=np.int64))
     P = torch.as_tensor(np.asarray(points, dtype=np.float64))

@@ -33,7 +33,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import cast
+from typing import Any, cast
 
 import numpy as np
 import scipy.linalg
@@ -408,7 +408,7 @@ class CentralGeneric:
 
     def spline(self, device: torch.device | str = "cpu") -> GridSpline:
         """The torch form of the model (float64 on ``device``)."""
-        kw = {"dtype": torch.float64, "device": device}
+        kw: dict[str, Any] = {"dtype": torch.float64, "device": device}
         sx = (self.grid_width - 3) / (self.max_x + 1 - self.min_x)
         sy = (self.grid_height - 3) / (self.max_y + 1 - self.min_y)
         scale = torch.tensor([sx, sy], **kw)
