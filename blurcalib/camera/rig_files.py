@@ -37,6 +37,7 @@ import yaml
 from numpy.typing import ArrayLike
 
 from blurcalib.camera.files import RefCameraError, read_generic_yaml, write_generic_yaml
+from blurcalib.camera.generic import CentralGeneric
 from blurcalib.camera.lens import ParametricCamera
 from blurcalib.camera.opencv_files import write_opencv_camera
 from blurcalib.camera.remap import OutputProjection
@@ -165,7 +166,7 @@ def read_rig_folder(folder: str | os.PathLike[str]) -> RigFolder:
         RigFileError: a missing or malformed file, or poses that do not match the cameras.
     """
     base = Path(folder)
-    cameras = []
+    cameras: list[CentralGeneric] = []
     while (base / intrinsics_file(len(cameras))).is_file():
         try:
             cameras.append(read_generic_yaml(base / intrinsics_file(len(cameras))))
@@ -207,11 +208,11 @@ def write_stereo_pair(folder: str | os.PathLike[str], rig: Rig, i: int, j: int, 
     write_storage(out / yaml_name, entries)
     paths = [out / yaml_name]
     if maps:
-        arrays = {}
+        arrays: dict[str, np.ndarray] = {}
         for which, camera in ((1, rig.cameras[i]), (2, rig.cameras[j])):
             arrays[f"map{which}_x"], arrays[f"map{which}_y"] = rectification_maps(rect, camera, which)
         with atomic_path(out / maps_name) as tmp, open(tmp, "wb") as handle:
-            np.savez_compressed(handle, **arrays)
+            np.savez_compressed(handle, **arrays)  # type: ignore[arg-type]  # numpy stubs: **arrays vs allow_pickle
         paths.append(out / maps_name)
     if parametric is not None:
         for c in (i, j):

@@ -98,7 +98,8 @@ class StereoRectification:
     def E(self) -> np.ndarray:
         """``(3, 3)`` essential matrix ``[T]_x R`` (OpenCV's ``stereoCalibrate``)."""
         t = self.relative.t
-        return np.array([[0.0, -t[2], t[1]], [t[2], 0.0, -t[0]], [-t[1], t[0], 0.0]]) @ self.relative.R
+        return cast(np.ndarray, np.array([[0.0, -t[2], t[1]], [t[2], 0.0, -t[0]], [-t[1], t[0], 0.0]])
+                                @ self.relative.R)
 
     def projection_matrices(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """``P1, P2 (3, 4)`` and ``Q (4, 4)`` of a pinhole rectification (module docstring).

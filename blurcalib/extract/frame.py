@@ -90,7 +90,7 @@ class ExtractSettings:
             raise ValueError(f"sharp_below_px must be positive, got {self.sharp_below_px}")
 
     @staticmethod
-    def sharp(**changes) -> ExtractSettings:
+    def sharp(**changes: Any) -> ExtractSettings:
         """Settings for sharp frames: the same engine with a small PSF window
         (:data:`blurcalib.growth.window.SHARP_START`, 9 x 9) and free PSFs only (no motion-path
         field: a sharp frame's PSF is its defocus; 2 of the demo's 20 sharp frames adapt their
@@ -99,7 +99,7 @@ class ExtractSettings:
                                        grow=GrowSettings(psf_field=False), kind="sharp"), **changes)
 
     @staticmethod
-    def auto(**changes) -> ExtractSettings:
+    def auto(**changes: Any) -> ExtractSettings:
         """Settings that classify each frame from its measured blur (``kind="auto"``, the blurry
         frames' settings otherwise)."""
         return replace(ExtractSettings(kind="auto"), **changes)
@@ -298,7 +298,8 @@ def _block_table(frame: str, pattern: StarPattern, growth: Growth,
     if local is not None:
         H[np.flatnonzero(growth.accepted)] = local.H
     f = pattern.features[growth.feature_id]
-    return BlockTable(np.full(len(f), frame), growth.feature_id, f[:, 0], f[:, 1], growth.status, fit.loss,
+    return BlockTable(np.full(len(f), frame), growth.feature_id, f[:, 0], f[:, 1],
+                      np.array(growth.status, dtype=object), fit.loss,
                       fit.boundary_energy, fit.sigma_major, fit.sigma_minor, fit.eccentricity,
                       fit.orientation, fit.centroid, H, fit.coeffs, np.nan_to_num(fit.psf), fit.loss_extent,
                       None if noise is None else noise.block_variance(fit.coeffs))

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, cast
 
 import cv2
 import numpy as np
@@ -38,8 +38,8 @@ class Pose:
     Arrays are stored as read-only float64 copies.
     """
 
-    R: npt.NDArray[np.float64]
-    t: npt.NDArray[np.float64]
+    R: np.ndarray
+    t: np.ndarray
 
     def __post_init__(self) -> None:
         R = np.array(self.R, dtype=np.float64)
@@ -69,7 +69,7 @@ class Pose:
         if rvec.shape != (3,):
             raise ValueError(f"rvec must have 3 elements, got shape {rvec.shape}")
         R, _ = cv2.Rodrigues(rvec)
-        return cls(R, np.asarray(tvec))  # type: ignore[arg-type]  # cv2 stubs: any dtype
+        return cls(R, np.asarray(tvec))
 
     @property
     def rvec(self) -> np.ndarray:
@@ -80,12 +80,12 @@ class Pose:
     @property
     def camera_center(self) -> np.ndarray:
         """Camera centre in world coordinates ``-R^T t``, shape (3,), m."""
-        return -self.R.T @ self.t
+        return cast(np.ndarray, -self.R.T @ self.t)
 
     def transform(self, points: ArrayLike) -> np.ndarray:
         """Map world points ``(N, 3)`` m to camera coordinates ``R X + t`` ``(N, 3)`` m."""
         pts = as_points(points, 3, "points")
-        return pts @ self.R.T + self.t
+        return cast(np.ndarray, pts @ self.R.T + self.t)
 
     def inverse(self) -> Pose:
         """Inverse transform (camera -> world): ``R' = R^T``, ``t' = -R^T t``."""

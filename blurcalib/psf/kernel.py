@@ -88,7 +88,7 @@ def psf_moments(psf: np.ndarray) -> PsfMoments:
 def blur_extent(sigma_major: np.ndarray | float) -> np.ndarray | float:
     """Blur extent (px) of PSFs with major-axis second moment ``sigma_major`` (px): ``sqrt(12)
     sigma_major``, the length of a straight blur with that second moment."""
-    return np.sqrt(12.0) * sigma_major
+    return cast("np.ndarray | float", np.sqrt(12.0) * sigma_major)
 
 
 def blur_per_square(sigma_major: np.ndarray, H: np.ndarray) -> np.ndarray:

@@ -158,8 +158,8 @@ class PathField:
     def kernels(self, xy: np.ndarray, size: int) -> np.ndarray:
         """``(B, K, K)`` float64 path PSFs at ``xy (B, 2)`` px, each summing to 1."""
         k, _ = path_kernels(torch.as_tensor(self.theta(xy)), size)
-        k = k.numpy()
-        return cast(np.ndarray, k / k.sum(axis=(1, 2), keepdims=True))
+        out = k.numpy()
+        return cast(np.ndarray, out / out.sum(axis=(1, 2), keepdims=True))
 
     def with_degree(self, degree: int) -> PathField:
         """The same field as a polynomial of ``degree`` (higher terms 0; lower ones dropped)."""

@@ -151,7 +151,7 @@ def _lost(exc: BaseException) -> str | None:
     the task itself."""
     from concurrent.futures import CancelledError
 
-    from distributed.comm import CommClosedError
+    from distributed.comm.core import CommClosedError
     from distributed.scheduler import KilledWorker
 
     if isinstance(exc, KilledWorker):

@@ -22,6 +22,7 @@ import numpy as np
 from scipy.optimize import least_squares
 
 from blurcalib.camera.generic import CentralGeneric, best_fit_rotation
+from blurcalib.camera.lens import ParametricCamera
 from blurcalib.camera.parametric import BrownConrady
 from blurcalib.geometry.homography import apply_homography
 from blurcalib.geometry.pose import Pose
@@ -104,14 +105,14 @@ def pixel_lattice(width: int, height: int, step: float) -> np.ndarray:
     return np.column_stack([xx.ravel(), yy.ravel()])
 
 
-def projection_errors(truth: TrueCamera, estimate: BrownConrady | CentralGeneric, px: np.ndarray
-                      ) -> np.ndarray:
+def projection_errors(truth: TrueCamera, estimate: BrownConrady | ParametricCamera | CentralGeneric,
+                      px: np.ndarray) -> np.ndarray:
     """``(N,)`` px: the norms of :func:`projection_error_vectors`."""
     return cast(np.ndarray, np.linalg.norm(projection_error_vectors(truth, estimate, px), axis=1))
 
 
-def projection_error_vectors(truth: TrueCamera, estimate: BrownConrady | CentralGeneric, px: np.ndarray
-                             ) -> np.ndarray:
+def projection_error_vectors(truth: TrueCamera, estimate: BrownConrady | ParametricCamera | CentralGeneric,
+                             px: np.ndarray) -> np.ndarray:
     """``(N, 2)`` px: the estimate's projection of each pixel ``px (N, 2)``'s true ray, after the
     best-fit rotation, minus the pixel. NaN where the estimate is undefined (outside a generic
     model's calibrated area)."""
@@ -149,8 +150,8 @@ class CameraAccuracy:
     scale_px: float
 
 
-def camera_accuracy(truth: TrueCamera, estimate: BrownConrady | CentralGeneric, step: float = 8.0
-                    ) -> CameraAccuracy:
+def camera_accuracy(truth: TrueCamera, estimate: BrownConrady | ParametricCamera | CentralGeneric,
+                    step: float = 8.0) -> CameraAccuracy:
     """:func:`projection_errors` on a lattice every ``step`` px over the true camera's image."""
     model = truth.model
     px = pixel_lattice(model.width, model.height, step)

@@ -146,7 +146,7 @@ class Defocus:
         bracket its own (linear in sigma)."""
         local = self.local_sigma(irradiance.shape)
         levels = np.linspace(0.0, self.sigma, DEFOCUS_LEVELS)
-        copies = [irradiance.astype(np.float64)]
+        copies: list[np.ndarray] = [irradiance.astype(np.float64)]
         for s in levels[1:]:
             k = gauss_ksize(float(s))
             copies.append(cv2.GaussianBlur(copies[0], (k, k), float(s), borderType=cv2.BORDER_REFLECT))
@@ -195,7 +195,7 @@ def touched_blocks(footprint: np.ndarray, quads: np.ndarray, margin_px: float = 
     """``(M,)`` bool: the blocks whose square ``quads (M, 4, 2)`` (px), widened by ``margin_px``
     (the frame's blur reaches that far), has a pixel of ``footprint (H, W)``."""
     h, w = footprint.shape
-    grown = footprint.astype(np.uint8)
+    grown: np.ndarray = footprint.astype(np.uint8)
     if margin_px > 0:
         r = math.ceil(margin_px)
         grown = cv2.dilate(grown, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1)))
@@ -221,6 +221,7 @@ def fault_to_dict(fault: Fault) -> dict[str, Any]:
 
 def fault_from_dict(data: dict[str, Any]) -> Fault:
     """The inverse of :func:`fault_to_dict`."""
-    kinds = {"glare": Glare, "finger": Finger, "defocus": Defocus}
-    args = {k: (tuple(v) if isinstance(v, list) else v) for k, v in data.items() if k != "kind"}
+    kinds: dict[str, type[Fault]] = {"glare": Glare, "finger": Finger, "defocus": Defocus}
+    args: dict[str, Any] = {k: (tuple(v) if isinstance(v, list) else v)
+                            for k, v in data.items() if k != "kind"}
     return kinds[data["kind"]](**args)

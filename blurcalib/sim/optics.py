@@ -30,6 +30,7 @@ offset ``(j - c, i - c)`` px (``docs/conventions.md``).
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import cast
 
@@ -183,7 +184,8 @@ class FieldPsf:
                 source = np.zeros((2 * g + 1 + 2 * r, 2 * g + 1 + 2 * r))
                 source[r:-r, r:-r] = src[y0:y0 + 2 * g + 1, x0:x0 + 2 * g + 1] * weights
                 # filter2D correlates: the flipped kernel convolves, k * (w E)
-                conv = cv2.filter2D(source, -1, kernels[i][::-1, ::-1].copy(), borderType=cv2.BORDER_CONSTANT)
+                conv: np.ndarray = cv2.filter2D(source, -1, kernels[i][::-1, ::-1].copy(),
+                                               borderType=cv2.BORDER_CONSTANT)
                 out[y0 - r:y0 + 2 * g + 1 + r, x0 - r:x0 + 2 * g + 1 + r] += conv
         return out[pad:pad + H, pad:pad + W]
 
@@ -295,7 +297,8 @@ class DisplayGrid:
         return sp.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
                              shape=(len(edges) - 1, count))
 
-    def drive(self, intensity, first: tuple[int, int], count: tuple[int, int]) -> np.ndarray:
+    def drive(self, intensity: Callable[[np.ndarray], np.ndarray], first: tuple[int, int],
+              count: tuple[int, int]) -> np.ndarray:
         """``(rows, cols)`` drive luminances of screen pixels ``first + (0 .. count - 1)``
         (``(x, y)``) from ``intensity`` (feature coordinates ``(..., 2)`` -> reflectance)."""
         n = self.samples if self.raster == "area" else 1
@@ -311,7 +314,8 @@ class DisplayGrid:
         return (acc / n**2) ** self.display_gamma
 
 
-def display_texture_image(display: DisplayGrid, intensity, texel_x: np.ndarray, texel_y: np.ndarray
+def display_texture_image(display: DisplayGrid, intensity: Callable[[np.ndarray], np.ndarray],
+                          texel_x: np.ndarray, texel_y: np.ndarray
                           ) -> np.ndarray:
     """``(len(texel_y) - 1, len(texel_x) - 1)`` float32 texture of the shown page: each texel the
     average emission over its area, its edges at feature coordinates ``texel_x``, ``texel_y``

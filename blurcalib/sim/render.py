@@ -333,7 +333,7 @@ def sensor_image(irradiance: np.ndarray, truth: FrameTruth, rng: np.random.Gener
     ``[0, 255]``. ``optics`` (:mod:`blurcalib.sim.optics`) may add the lens's field-varying PSF
     (convolved before the defocus) and a tone curve (after the noise, before the rounding).
     """
-    img = irradiance.astype(np.float64)
+    img: np.ndarray = irradiance.astype(np.float64)
     if optics is not None and optics.psf is not None:
         img = optics.psf.apply(img)
     if truth.defocus_sigma > 0:

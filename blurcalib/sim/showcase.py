@@ -241,7 +241,7 @@ def write_showcase(out_dir: str | os.PathLike[str], progress: Callable[[int, int
     renderer.pattern.save_yaml(out / "pattern.yaml")
     specs = renderer.frames
     truths: list[Any] = [None] * len(specs)
-    faults: dict[str, dict] = {}
+    faults: dict[str, dict[str, Any]] = {}
 
     def store(index: int, frame: SimulatedFrame, touched: list[np.ndarray]) -> None:
         spec = specs[index]

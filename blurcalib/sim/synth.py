@@ -222,7 +222,7 @@ def sample_motion(renderer: Renderer, pose: Pose, pattern: StarPattern, rng: np.
     xi2 = np.concatenate([rng.normal(size=3), rng.normal(size=3) * 0.3 * depth]) if curved \
         else np.zeros(6)
     if curved:
-        xi2 *= rng.uniform(0.4, 1.0) * np.linalg.norm(xi) / max(np.linalg.norm(xi2), 1e-12)
+        xi2 *= rng.uniform(0.4, 1.0) * np.linalg.norm(xi) / max(float(np.linalg.norm(xi2)), 1e-12)
     pts = _visible_points(renderer.camera, pose, pattern)
     base = _path_lengths(renderer.camera, pose, Motion(xi, xi2, 33), pts)
     scale = blur_px / max(float(np.median(base)), 1e-9)

@@ -380,7 +380,7 @@ def _check_depth(text: str, path: str) -> None:
             depth -= 1
 
 
-def _field(node: dict[str, Any], key: str, kind: type, path: str, where: str = ""):
+def _field(node: dict[str, Any], key: str, kind: type, path: str, where: str = "") -> Any:
     name = f"{where}{key}"
     if not isinstance(node, dict) or key not in node:
         raise PatternFileError(f"{path}: missing field '{name}'")
