@@ -88,7 +88,7 @@ def latent_spectrum(L: torch.Tensor, K: int) -> torch.Tensor | None:
     """The transform of latent channels ``L (b, C, Hl, Wl)`` on the FFT grid of their valid
     convolution with ``K x K`` kernels (:func:`fft_grid`), ``(b, C, rows, cols // 2 + 1)``, for
     :func:`valid_convolution`; None where that convolution is direct."""
-    grid = fft_grid(tuple(L.shape[-2:]), K)
+    grid = fft_grid((L.shape[-2], L.shape[-1]), K)
     return None if grid is None else torch.fft.rfft2(L, s=grid)
 
 

@@ -50,7 +50,7 @@ def latent_pattern(H_loc: torch.Tensor, grid: tuple[int, int], num_segments: int
     if supersample == 1:
         return samples[0]
     S = torch.stack([smp[0] for smp in samples]).mean(dim=0)
-    dS = torch.stack([smp[1] for smp in samples]).mean(dim=0) if with_jac else None
+    dS = torch.stack([d for _, d in samples if d is not None]).mean(dim=0) if with_jac else None
     return S, dS
 
 

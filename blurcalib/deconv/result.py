@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass, field, fields
-from typing import NamedTuple, cast
+from typing import Any, NamedTuple, cast
 
 import numpy as np
 
@@ -99,7 +99,7 @@ class BlockFit:
     def take(self, rows: Sequence[int] | np.ndarray) -> BlockFit:
         """The rows ``rows`` of this fit, in that order."""
         rows = np.asarray(rows, dtype=np.int64)
-        values = {}
+        values: dict[str, Any] = {}
         for f in fields(self):
             v = getattr(self, f.name)
             if f.name == "status":
@@ -114,7 +114,7 @@ class BlockFit:
     def concat(fits: Sequence[BlockFit]) -> BlockFit:
         """The rows of ``fits`` in order, kernels zero-padded (centred) to the largest window."""
         size = max(f.kernel_size for f in fits)
-        values = {}
+        values: dict[str, Any] = {}
         for f in fields(fits[0]):
             items = [getattr(fit, f.name) for fit in fits]
             if f.name == "status":
