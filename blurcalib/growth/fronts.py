@@ -92,7 +92,8 @@ def fit_hinted(image: np.ndarray, H0: np.ndarray, num_segments: int, kernel_size
         return fit
     if BlockStatus.ACCEPTED in fit.status:
         with np.errstate(invalid="ignore", divide="ignore"):
-            failed &= blur_per_square(psf_moments(psf_hint).sigma_major, H0) < s.retry_below_blur_per_square
+            failed &= (blur_per_square(np.asarray(psf_moments(psf_hint).sigma_major), H0)
+                       < s.retry_below_blur_per_square)
         settled = failed & fit.converged_within(s.hinted_converge_px)
         if settled.any():
             fit = replace(fit, converged=fit.converged | settled,

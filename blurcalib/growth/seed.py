@@ -301,7 +301,7 @@ def tag_ring_features(pattern: StarPattern) -> np.ndarray:
         for fy in range(y0 - 1, y1 + 2):
             for fx in range(x0 - 1, x1 + 2):
                 if (fx in (x0 - 1, x1 + 1) or fy in (y0 - 1, y1 + 1)) and \
-                        bool(pattern.is_valid_feature(fx, fy)):
+                        bool(pattern.is_valid_feature(np.asarray(fx), np.asarray(fy))):
                     ring.append((fx, fy))
     return np.array(ring, dtype=np.int64).reshape(-1, 2)
 
@@ -353,7 +353,7 @@ def homography_from_features(fx: np.ndarray, fy: np.ndarray, x: np.ndarray, y: n
     H, _ = cv2.findHomography(src[ok], dst[ok], cv2.RANSAC, threshold_px)
     if H is None or not np.all(np.isfinite(H)) or abs(H[2, 2]) < 1e-12:
         return None
-    return H / H[2, 2]
+    return cast(np.ndarray, H / H[2, 2])
 
 
 def render_target(pattern: StarPattern, H_feature: np.ndarray, shape: tuple[int, int],
@@ -417,7 +417,7 @@ def check_labelling(image: np.ndarray, pattern: StarPattern, H_feature: np.ndarr
     small = img if scale == 1.0 else cv2.resize(img, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA)
     kernel = None
     if psf is not None:
-        k = np.clip(np.asarray(psf, dtype=np.float32), 0, None)
+        k: np.ndarray = np.clip(np.asarray(psf, dtype=np.float32), 0, None)
         size = max(1, round(k.shape[0] * scale)) | 1
         k = cv2.resize(k, (size, size), interpolation=cv2.INTER_AREA) if size != k.shape[0] else k
         kernel = k[::-1, ::-1] / k.sum() if k.sum() > 0 else None

@@ -45,7 +45,7 @@ from __future__ import annotations
 import os
 import shutil
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any, TypeVar
@@ -339,8 +339,8 @@ def _extract(sharp: Sequence[Path], blurry: Sequence[Path], mixed: Sequence[Fram
         if mixed:
             rows = extract(mixed, MIXED, replace(s.extraction, kind="auto"))
         else:
-            rows = {"sharp": extract(sharp, "sharp", ExtractSettings.sharp(deconv=s.extraction.deconv)),
-                    "blurry": extract(blurry, "blurry", s.extraction)}
+            by_kind = {"sharp": extract(sharp, "sharp", ExtractSettings.sharp(deconv=s.extraction.deconv)),
+                       "blurry": extract(blurry, "blurry", s.extraction)}
     if mixed:
         features = _with_kind(read_feature_table(out / MIXED / FEATURES_FILE), MIXED)
         blocks = _with_kind(read_block_table(out / MIXED), MIXED)
@@ -351,11 +351,11 @@ def _extract(sharp: Sequence[Path], blurry: Sequence[Path], mixed: Sequence[Fram
                           features, blocks.select(is_sharp), blocks.select(~is_sharp))
     features = FeatureTable.concat([_with_kind(read_feature_table(out / kind / FEATURES_FILE), kind)
                                     for kind in KINDS])
-    return _Extracted(rows, features, _with_kind(read_block_table(out / "sharp"), "sharp"),
+    return _Extracted(by_kind, features, _with_kind(read_block_table(out / "sharp"), "sharp"),
                       _with_kind(read_block_table(out / "blurry"), "blurry"))
 
 
-def _rows(sharp: list[FrameRecord], blurry: list[FrameRecord], outcomes: dict[str, BlurryOutcome | None],
+def _rows(sharp: list[FrameRecord], blurry: list[FrameRecord], outcomes: Mapping[str, BlurryOutcome | None],
           run: CalibrationRun, s: SequenceSettings) -> list[FrameRecord]:
     """Every frame's row, sharp frames first, each decided once from what the run made of it."""
     velocity = None if run.rolling_shutter is None else run.rolling_shutter.velocity_px
@@ -570,11 +570,11 @@ def _write_outputs(out: Path, pattern: StarPattern, size: tuple[int, int], rows:
 
     # Reprojection-error directions: the parametric alignment of the blurry frames, the sharp-set
     # calibration and, when fitted, the generic camera (its inliers).
-    aligned = [o for o in run.blurry if o.alignment is not None]
+    aligned = [(o.raw, o.alignment) for o in run.blurry if o.alignment is not None and o.raw is not None]
     if aligned:
         direction_image("error_directions_blurry",
-                        np.concatenate([np.stack([o.raw.x, o.raw.y], axis=1) for o in aligned]),
-                        np.concatenate([o.alignment.residuals for o in aligned]),
+                        np.concatenate([np.stack([raw.x, raw.y], axis=1) for raw, _ in aligned]),
+                        np.concatenate([ga.residuals for _, ga in aligned]),
                         "blurry frames after alignment to the parametric camera")
     direction_image("error_directions_sharp", calibration.observed, calibration.residuals,
                     "sharp frames under the parametric camera")

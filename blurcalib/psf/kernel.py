@@ -8,7 +8,7 @@ sum to 1 unless stated.
 
 from __future__ import annotations
 
-from typing import NamedTuple, cast
+from typing import NamedTuple, cast, overload
 
 import numpy as np
 
@@ -83,6 +83,14 @@ def psf_moments(psf: np.ndarray) -> PsfMoments:
         return PsfMoments(centroid[0], float(major[0]), float(minor[0]), float(ecc[0]),
                           float(orient[0]))
     return PsfMoments(centroid, major, minor, ecc, orient)
+
+
+@overload
+def blur_extent(sigma_major: float) -> float: ...
+
+
+@overload
+def blur_extent(sigma_major: np.ndarray) -> np.ndarray: ...
 
 
 def blur_extent(sigma_major: np.ndarray | float) -> np.ndarray | float:
