@@ -252,8 +252,9 @@ def _normal_equations(problem: _Problem, pose6: np.ndarray, beta: np.ndarray, wi
     proj, jpose = problem.project(pose6, jacobian=with_pose)
     e = problem.observed - problem.phi @ beta.reshape(2, -1).T - proj
     w = problem.weights * problem.robust_weight(np.hypot(e[:, 0], e[:, 1]))
-    blocks = []
+    blocks: list[np.ndarray] = []
     if with_pose:
+        assert jpose is not None  # asked for
         blocks.append(jpose)
     if with_bias:
         nb = problem.phi.shape[1]

@@ -130,7 +130,7 @@ def _fit_homography(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
         q = a @ G[:, :2].T + G[:, 2]
         w = q[:, 2:]
         p = q[:, :2] / w
-        J = np.zeros((n, 2, 8))
+        J: np.ndarray = np.zeros((n, 2, 8))
         J[:, 0, 0:2], J[:, 0, 2] = a / w, 1.0 / w[:, 0]
         J[:, 1, 3:5], J[:, 1, 5] = a / w, 1.0 / w[:, 0]
         J[:, :, 6] = -p * a[:, :1] / w

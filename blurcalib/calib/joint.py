@@ -49,6 +49,7 @@ from blurcalib.camera.generic import (
     fit_to_rays,
     undistortion_map,
 )
+from blurcalib.camera.lens import ParametricCamera
 from blurcalib.camera.parametric import BrownConrady
 from blurcalib.camera.shutter import row_time
 from blurcalib.geometry.pose import Pose
@@ -109,7 +110,7 @@ class GenericCalibration:
 
     Attributes:
         model: the generic camera.
-        parametric: the Brown-Conrady camera it started from.
+        parametric: the parametric camera it started from.
         poses: frame -> pose (target -> camera) in the generic model's frame.
         shifts: frame -> ``(2,)`` px estimated image shift (blurry frames, joint route).
         frames: names of the frames used, in the bundle adjustment's order.
@@ -129,7 +130,7 @@ class GenericCalibration:
     """
 
     model: CentralGeneric
-    parametric: BrownConrady
+    parametric: BrownConrady | ParametricCamera
     poses: dict[str, Pose]
     shifts: dict[str, np.ndarray]
     frames: list[str]
@@ -244,7 +245,7 @@ def calibrate_generic(sharp_features: FeatureTable, blurry_features: FeatureTabl
         rolling={} if res.theta is None else {f: res.theta[i] for i, f in enumerate(frames) if moving[i]})
 
 
-def difference_field(model: CentralGeneric, camera: BrownConrady, step: float = 8.0
+def difference_field(model: CentralGeneric, camera: BrownConrady | ParametricCamera, step: float = 8.0
                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Generic minus parametric over the calibrated area: ``(xs, ys, diff (H', W', 2))`` px.
 

@@ -82,7 +82,7 @@ class ParametricProblem:
         errors = np.linalg.norm(camera.project(cam) - self.observed, axis=1)
         return np.where(camera.valid_directions(cam), errors, np.inf)
 
-    def residual_fn(self, rows: np.ndarray):
+    def residual_fn(self, rows: np.ndarray) -> Callable[[np.ndarray], np.ndarray]:
         """Residuals ``(2 n + 3 Q,)``: ``pi_d - p`` of the rows (px), then the point prior."""
         def fun(params: np.ndarray) -> np.ndarray:
             res = (self.predict(params, rows) - self.observed[rows]).ravel()
@@ -92,7 +92,7 @@ class ParametricProblem:
             return np.concatenate([res, ((pts - self.nominal) / self.point_sigma).ravel()])
         return fun
 
-    def jacobian_fn(self, rows: np.ndarray):
+    def jacobian_fn(self, rows: np.ndarray) -> Callable[[np.ndarray], scipy.sparse.csr_matrix]:
         """Sparse Jacobian of :meth:`residual_fn` (CSR): I + 6 (+ 3) non-zeros per data row."""
         n = len(rows)
         i = self.num_intrinsics
@@ -118,8 +118,9 @@ class ParametricProblem:
             intr, rvecs, tvecs, pts = self.unpack(params)
             camera = self.camera.with_params(intr)
             proj = project_poses_camera(camera, rvecs, tvecs, self.obs_points(pts, rows), fi, jacobian=True)
+            assert proj.d_intrinsics is not None and proj.d_pose is not None and proj.d_point is not None
             parts = (proj.d_intrinsics, proj.d_pose, proj.d_point)
-            values = np.concatenate(parts if self.refine_points else parts[:2], axis=2).ravel()
+            values: np.ndarray = np.concatenate(parts if self.refine_points else parts[:2], axis=2).ravel()
             if self.refine_points:
                 values = np.concatenate([values, np.full(3 * len(self.nominal), 1.0 / self.point_sigma)])
             return scipy.sparse.csr_matrix((values, (data_rows, data_cols)), shape=shape)

@@ -119,6 +119,7 @@ def refine_pose(camera: ParametricCamera, pose: Pose, points: ArrayLike, observe
         r = np.where(valid[:, None], proj.pixels - obs, 0.0)
         e = np.linalg.norm(r, axis=1)
         cost = float(np.sum(np.where(e <= huber_px, e * e, 2 * huber_px * e - huber_px**2)))
+        assert proj.d_pose is not None  # asked for
         J = np.where(valid[:, None, None], proj.d_pose, 0.0)
         return r, J, cost
 
