@@ -488,6 +488,7 @@ def save_fig_exp42(experiment: AlignmentExperiment, path: str | Path, loss: str 
             ax.set_ylim(h - 1, 0)
             ax.set_aspect("equal")
             ax.tick_params(labelsize=6)
+    assert image is not None  # at least one panel
     fig.colorbar(image, ax=axes[1, :].tolist(), shrink=0.8, label="residual (px)")
     fig.suptitle(f"Reprojection residual direction and magnitude, {loss} loss (paper fig:exp42)",
                  fontsize=9)

@@ -144,7 +144,7 @@ def block_figures(frames: Sequence[ExtractedFrame], pattern: StarPattern) -> Blo
     for i, f in enumerate(frames):
         if not f.ok:
             continue
-        growth = f.result.growth
+        growth = f.growth
         fit = growth.fit
         k = np.flatnonzero(np.isfinite(fit.loss) & np.isfinite(fit.boundary_energy)
                            & np.isfinite(fit.sigma_major))
@@ -512,7 +512,7 @@ def results_json(experiment: PsfQualityExperiment, seed: int) -> dict[str, Any]:
         "frames": experiment.rows,
         "field_frame": None if choice is None else {
             "frame": frames[choice.frame].name, "variation": finite(choice.variation),
-            "region_features": [int(frames[choice.frame].result.growth.feature_id[k]) for k in choice.region],
+            "region_features": [int(frames[choice.frame].growth.feature_id[k]) for k in choice.region],
             "region_box_px": [finite(v) for v in choice.box]},
         "blocks": {
             "frame": [frames[i].name for i in b.frame.tolist()],
