@@ -63,6 +63,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from typing import cast
 
 import cv2
 import numpy as np
@@ -216,15 +217,15 @@ class _Problem:
     def residuals(self, pose6: np.ndarray, beta: np.ndarray) -> np.ndarray:
         """``e = p_obs - b - pi_d(M, P)``, ``(N, 2)`` px."""
         proj, _ = self.project(pose6, jacobian=False)
-        return self.observed - self.phi @ beta.reshape(2, -1).T - proj
+        return cast(np.ndarray, self.observed - self.phi @ beta.reshape(2, -1).T - proj)
 
     def robust_weight(self, dist: np.ndarray) -> np.ndarray:
         """IRLS weights ``rho'(d) / d`` of the loss."""
         if self.loss == "mean":
             return np.ones_like(dist)
         if self.loss == "huber":
-            return np.minimum(1.0, self.huber_px / np.maximum(dist, 1e-300))
-        return 1.0 / np.maximum(dist, _L1_FLOOR_PX)
+            return cast(np.ndarray, np.minimum(1.0, self.huber_px / np.maximum(dist, 1e-300)))
+        return cast(np.ndarray, 1.0 / np.maximum(dist, _L1_FLOOR_PX))
 
     def cost(self, e: np.ndarray) -> float:
         """``sum_k w_k rho(d_k)`` with ``rho`` the loss of the distance ``d`` (px)."""
@@ -251,8 +252,9 @@ def _normal_equations(problem: _Problem, pose6: np.ndarray, beta: np.ndarray, wi
     proj, jpose = problem.project(pose6, jacobian=with_pose)
     e = problem.observed - problem.phi @ beta.reshape(2, -1).T - proj
     w = problem.weights * problem.robust_weight(np.hypot(e[:, 0], e[:, 1]))
-    blocks = []
+    blocks: list[np.ndarray] = []
     if with_pose:
+        assert jpose is not None  # asked for
         blocks.append(jpose)
     if with_bias:
         nb = problem.phi.shape[1]
@@ -457,7 +459,7 @@ def alignment_covariance(camera: BrownConrady | ParametricCamera, pose: Pose, po
     A, _, _ = _normal_equations(problem, pose6, np.zeros(2 * phi.shape[1]), True, True)
     cov = sigma_px**2 * np.linalg.pinv(A)[6:, 6:]
     index = coeffs_from_beta(np.arange(cov.shape[0]), bias).ravel()
-    return cov[np.ix_(index, index)]
+    return cast(np.ndarray, cov[np.ix_(index, index)])
 
 
 # ------------------------------------------------------------------ a frame's kept blocks

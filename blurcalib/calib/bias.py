@@ -9,6 +9,8 @@ fitted with the pose by :func:`blurcalib.calib.alignment.align_global`.
 
 from __future__ import annotations
 
+from typing import cast
+
 import numpy as np
 from numpy.typing import ArrayLike
 
@@ -113,4 +115,4 @@ def bias_field(grid: ArrayLike | None, bias: str, coeffs: ArrayLike, n: int | No
         n = int(np.asarray(grid).shape[0])
     phi = bias_basis(grid, bias, n)
     beta = beta_from_coeffs(coeffs, bias).reshape(2, -1)
-    return phi @ beta.T
+    return cast(np.ndarray, phi @ beta.T)

@@ -203,7 +203,7 @@ def reduce_frames(Hgg: torch.Tensor, Hgp: torch.Tensor, Hpp_inv: torch.Tensor, b
     last = torch.where(touched, rows, -1).amax(0)
     order = torch.argsort(first)
     order = order[first[order] < G]
-    for chunk in order.split(FRAME_CHUNK):
+    for chunk in order.split(FRAME_CHUNK):  # type: ignore[no-untyped-call]  # torch stubs: Tensor.split
         a, b = int(first[chunk].min()), int(last[chunk].max()) + 1
         H = Hgp[a:b, chunk]
         Y = torch.einsum("gfi,fij->gfj", H, Hpp_inv[chunk]).reshape(b - a, -1)
@@ -219,6 +219,10 @@ def reduce_frames(Hgg: torch.Tensor, Hgp: torch.Tensor, Hpp_inv: torch.Tensor, b
     return S, c
 
 
+SchurSystem = tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]
+"""The normal equations ``(Hgg, Hgp, Hpp, bg, bp)`` that :func:`schur_step` solves."""
+
+
 def schur_step(Hgg: torch.Tensor, Hgp: torch.Tensor, Hpp: torch.Tensor, bg: torch.Tensor,
                bp: torch.Tensor, lam: float) -> tuple[torch.Tensor, torch.Tensor] | None:
     """The damped step ``(dg (G,), dp (F, K))`` of the normal equations with global unknowns
@@ -230,15 +234,16 @@ def schur_step(Hgg: torch.Tensor, Hgp: torch.Tensor, Hpp: torch.Tensor, bg: torc
     Hpp_d = Hpp + lam * torch.diag_embed(torch.diagonal(Hpp, dim1=1, dim2=2)) + 1e-12 * eye
     try:
         Lp = torch.linalg.cholesky(Hpp_d)
-    except torch.linalg.LinAlgError:
+    except torch.linalg.LinAlgError:  # type: ignore[attr-defined]  # torch stubs: not re-exported
         return None
     Hpp_inv = torch.cholesky_inverse(Lp)
     S, rhs = reduce_frames(Hgg, Hgp, Hpp_inv, bg, bp, lower=True)
     diag = torch.diagonal(Hgg)
     S.diagonal().add_(lam * diag + 1e-12 * float(diag.mean()))
+    assert rhs is not None  # bg given
     try:
         dg = solve_lower(S, rhs)
-    except torch.linalg.LinAlgError:
+    except torch.linalg.LinAlgError:  # type: ignore[attr-defined]  # torch stubs: not re-exported
         return None
     dp = torch.einsum("fij,fj->fi", Hpp_inv, bp - torch.einsum("gfi,g->fi", Hgp, dg))
     return dg, dp
@@ -319,18 +324,18 @@ class _Iterate:
     use: torch.Tensor
 
 
-class _Steps(SingleProblem[_Iterate, tuple[torch.Tensor, ...], tuple[torch.Tensor, torch.Tensor]]):
+class _Steps(SingleProblem[_Iterate, SchurSystem, tuple[torch.Tensor, torch.Tensor]]):
     """The Levenberg-Marquardt steps of :func:`bundle_adjust`: Huber-weighted normal equations,
     the per-frame blocks eliminated (:func:`schur_step`), the grid re-gauged after each accepted step."""
 
     def __init__(self, pb: BundleProblem, spline: GridSpline) -> None:
         self.pb, self.spline = pb, spline
 
-    def linearise(self, x: _Iterate) -> tuple[torch.Tensor, ...]:
+    def linearise(self, x: _Iterate) -> SchurSystem:
         w = x.use * robust_weights(x.r, self.pb.settings.huber_px)
         return normal_equations(self.pb, x.st, w, x.r)[:5]
 
-    def solve(self, system: tuple[torch.Tensor, ...], lam: float) -> tuple[torch.Tensor, torch.Tensor] | None:
+    def solve(self, system: SchurSystem, lam: float) -> tuple[torch.Tensor, torch.Tensor] | None:
         return schur_step(*system, lam)
 
     def trial(self, x: _Iterate, step: tuple[torch.Tensor, torch.Tensor]) -> tuple[_Iterate, float]:
@@ -418,7 +423,7 @@ def bundle_adjust(model: CentralGeneric, poses: Sequence[Pose], frame: ArrayLike
     settings = settings or BundleSettings()
     t_wall, t_cpu = time.perf_counter(), time.process_time()
     dev = torch.device(settings.device)
-    kw = {"dtype": torch.float64, "device": dev}
+    kw: dict[str, Any] = {"dtype": torch.float64, "device": dev}
     fr_np, P, p, w_np, free_np = _checked_inputs(len(poses), frame, points, observed, weights, shift_free)
     spline = model.spline(dev)
     pb = BundleProblem(spline, torch.as_tensor(fr_np, device=dev), torch.as_tensor(P, **kw),
@@ -453,7 +458,7 @@ def _start(pb: BundleProblem, spline: GridSpline, poses: Sequence[Pose], prior: 
     """The first iterate of :func:`bundle_adjust` in the gauge (module docstring): the model's grid,
     the initial grid the smoothness prior keeps (``prior``'s, else the model's), the poses, zero
     shifts and (``rolling``) zero rolling parameters; and its cost."""
-    kw = {"dtype": torch.float64, "device": spline.grid.device}
+    kw: dict[str, Any] = {"dtype": torch.float64, "device": spline.grid.device}
     Q = gauge_rotation(spline, spline.grid)
     grid = spline.grid @ Q.T
     grid0 = grid.clone()

@@ -106,7 +106,7 @@ class BundleProblem:
         return rolling_points(R, t, theta, fr, P, y)
 
     def project(self, grid: torch.Tensor, R: torch.Tensor, t: torch.Tensor,
-                s: torch.Tensor, init: torch.Tensor, theta: torch.Tensor | None = None
+                s: torch.Tensor, init: torch.Tensor | None, theta: torch.Tensor | None = None
                 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Projections ``(N, 2)``, inside ``(N,)`` and residuals ``(N, 2)`` for trial values."""
         X = self.rolling_camera_points(R, t, theta)[0]
@@ -153,7 +153,8 @@ def _second_difference_triples(gh: int, gw: int, device: torch.device
     idx = torch.arange(gh * gw, device=device).reshape(gh, gw)
     rows = (idx[:, :-2].reshape(-1), idx[:, 1:-1].reshape(-1), idx[:, 2:].reshape(-1))
     cols = (idx[:-2].reshape(-1), idx[1:-1].reshape(-1), idx[2:].reshape(-1))
-    return tuple(torch.cat([a, b]) for a, b in zip(rows, cols, strict=True))
+    i, j, k = (torch.cat([a, b]) for a, b in zip(rows, cols, strict=True))
+    return i, j, k
 
 
 def robust_weights(r: torch.Tensor, huber_px: float) -> torch.Tensor:
@@ -195,7 +196,7 @@ def data_equations(pb: BundleProblem, st: BundleState, w: torch.Tensor, r: torch
     bp = torch.zeros(F, K, dtype=dt, device=dev)
     bg = torch.zeros(G, dtype=dt, device=dev)
     lanes = torch.arange(K, device=dev)
-    for sel in torch.nonzero(w > 0).squeeze(1).split(OBSERVATION_CHUNK):
+    for sel in torch.nonzero(w > 0).squeeze(1).split(OBSERVATION_CHUNK):  # type: ignore[no-untyped-call]
         fr = pb.frame[sel]
         X, Ri, RP = pb.rolling_camera_points(st.R, st.t, st.theta, sel)
         J_p, J_g, nodes = projection_jacobians(spline, st.u[sel], X)

@@ -11,7 +11,7 @@ import json
 import os
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 
@@ -111,7 +111,7 @@ class Calibration:
     @property
     def errors(self) -> np.ndarray:
         """``(N,)`` px, reprojection error norms ``|residual|``."""
-        return np.linalg.norm(self.residuals, axis=1)
+        return cast(np.ndarray, np.linalg.norm(self.residuals, axis=1))
 
     def frame_errors(self) -> dict[str, dict[str, Any]]:
         """Per calibrated frame: observation and inlier counts, median and RMS inlier error (px)."""
@@ -162,7 +162,7 @@ class Calibration:
             "skipped_frames": dict(self.skipped_frames),
         }
 
-def save_calibration(folder: str | os.PathLike, calibration: Calibration) -> dict[str, Path]:
+def save_calibration(folder: str | os.PathLike[str], calibration: Calibration) -> dict[str, Path]:
     """Write a calibration into ``folder`` (created if needed); every file atomically.
 
     Files: ``camera.yaml`` (OpenCV FileStorage: :func:`blurcalib.camera.parametric.save_camera_yaml`
@@ -229,7 +229,7 @@ def _load_camera(path: Path) -> BrownConrady | ParametricCamera:
     return camera.to_brown_conrady() if isinstance(camera, BrownConradyCamera) else camera
 
 
-def load_calibration(folder: str | os.PathLike) -> Calibration:
+def load_calibration(folder: str | os.PathLike[str]) -> Calibration:
     """Read a calibration written by :func:`save_calibration`.
 
     The camera comes from ``camera.json``; ``camera.yaml`` is not read.

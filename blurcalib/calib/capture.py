@@ -37,6 +37,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from typing import Any, cast
 
 import cv2
 import numpy as np
@@ -117,7 +118,7 @@ class CaptureCheck:
     refusal: str | None = None
     warnings: list[str] = field(default_factory=list)
 
-    def to_dict(self) -> dict:
+    def to_dict(self) -> dict[str, Any]:
         """``report.json``'s ``capture`` section (docs/results-format.md)."""
         def r(v: float | None, digits: int = 2) -> float | None:
             return None if v is None or not math.isfinite(v) else round(float(v), digits)
@@ -154,7 +155,7 @@ def _centred(homographies: list[np.ndarray], size: tuple[int, int]) -> np.ndarra
     w, h = size
     T = np.array([[1.0, 0.0, -(w - 1) / 2], [0.0, 1.0, -(h - 1) / 2], [0.0, 0.0, 1.0]])
     Hc = T @ np.stack(homographies)
-    return Hc / np.linalg.norm(Hc[:, :2, :2], axis=(1, 2))[:, None, None]
+    return cast(np.ndarray, Hc / np.linalg.norm(Hc[:, :2, :2], axis=(1, 2))[:, None, None])
 
 
 def rough_focal(homographies: list[np.ndarray], size: tuple[int, int]) -> tuple[float | None, float]:

@@ -40,7 +40,7 @@ def coverage_warnings(model: CentralGeneric, coverage: np.ndarray) -> list[str]:
     cell_h = (y1 - y0) / ch
     names_y = ("top", "middle", "bottom")
     names_x = ("left", "centre", "right")
-    out = []
+    out: list[str] = []
     rows, cols = np.nonzero(coverage == 0)
     if len(rows) == 0:
         return out

@@ -23,6 +23,7 @@ Pixel convention: OpenCV (the centre of the top-left pixel is ``(0, 0)``).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import cast
 
 import numpy as np
 
@@ -105,7 +106,7 @@ def _distorted_px(camera: BrownConrady, u: np.ndarray) -> np.ndarray:
 
 def _apply(H: np.ndarray, p: np.ndarray) -> np.ndarray:
     q = p @ H[:, :2].T + H[:, 2]
-    return q[:, :2] / q[:, 2:]
+    return cast(np.ndarray, q[:, :2] / q[:, 2:])
 
 
 def _fit_homography(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
@@ -129,7 +130,7 @@ def _fit_homography(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
         q = a @ G[:, :2].T + G[:, 2]
         w = q[:, 2:]
         p = q[:, :2] / w
-        J = np.zeros((n, 2, 8))
+        J: np.ndarray = np.zeros((n, 2, 8))
         J[:, 0, 0:2], J[:, 0, 2] = a / w, 1.0 / w[:, 0]
         J[:, 1, 3:5], J[:, 1, 5] = a / w, 1.0 / w[:, 0]
         J[:, :, 6] = -p * a[:, :1] / w
@@ -138,7 +139,7 @@ def _fit_homography(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
         r = (b - p).reshape(-1)
         step = np.linalg.lstsq(J, r, rcond=None)[0]
         G = G + np.append(step, 0.0).reshape(3, 3)
-    return np.linalg.inv(Td) @ G @ Ts
+    return cast(np.ndarray, np.linalg.inv(Td) @ G @ Ts)
 
 
 def cross_residuals(a: FeatureTable, b: FeatureTable, camera: BrownConrady, *, outlier_px: float = 0.3,

@@ -126,7 +126,7 @@ class GenericCalibration:
 
     Attributes:
         model: the generic camera.
-        parametric: the Brown-Conrady camera it started from.
+        parametric: the parametric camera it started from.
         poses: frame -> pose (target -> camera) in the generic model's frame.
         shifts: frame -> ``(2,)`` px estimated image shift (blurry frames, joint route).
         frames: names of the frames used, in the bundle adjustment's order.
@@ -146,7 +146,7 @@ class GenericCalibration:
     """
 
     model: CentralGeneric
-    parametric: BrownConrady
+    parametric: BrownConrady | ParametricCamera
     poses: dict[str, Pose]
     shifts: dict[str, np.ndarray]
     frames: list[str]
@@ -261,7 +261,7 @@ def calibrate_generic(sharp_features: FeatureTable, blurry_features: FeatureTabl
         rolling={} if res.theta is None else {f: res.theta[i] for i, f in enumerate(frames) if moving[i]})
 
 
-def difference_field(model: CentralGeneric, camera: BrownConrady, step: float = 8.0
+def difference_field(model: CentralGeneric, camera: BrownConrady | ParametricCamera, step: float = 8.0
                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Generic minus parametric over the calibrated area: ``(xs, ys, diff (H', W', 2))`` px.
 

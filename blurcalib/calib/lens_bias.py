@@ -38,6 +38,7 @@ Pixel convention: OpenCV (the centre of the top-left pixel is ``(0, 0)``).
 from __future__ import annotations
 
 from dataclasses import replace
+from typing import cast
 
 import numpy as np
 
@@ -79,7 +80,7 @@ def fit_homographies(q: np.ndarray, y: np.ndarray) -> np.ndarray:
     back[:, 0, 0] = back[:, 1, 1] = scale[:, 0, 0]
     back[:, :2, 2] = origin[:, 0]
     back[:, 2, 2] = 1.0
-    return back @ G
+    return cast(np.ndarray, back @ G)
 
 
 _CHUNK = 512
@@ -102,8 +103,8 @@ def facing_rotations(rays: np.ndarray) -> np.ndarray:
     K[:, 0, 1], K[:, 0, 2], K[:, 1, 2] = -k[:, 2], k[:, 1], -k[:, 0]
     K[:, 1, 0], K[:, 2, 0], K[:, 2, 1] = k[:, 2], -k[:, 1], k[:, 0]
     angle = np.arctan2(s, c)
-    return (np.eye(3) + np.sin(angle)[:, None, None] * K
-            + (1.0 - np.cos(angle))[:, None, None] * (K @ K))
+    return cast(np.ndarray, np.eye(3) + np.sin(angle)[:, None, None] * K
+                + (1.0 - np.cos(angle))[:, None, None] * (K @ K))
 
 
 def _rays(camera: BrownConrady | ParametricCamera, px: np.ndarray) -> np.ndarray:
@@ -111,7 +112,7 @@ def _rays(camera: BrownConrady | ParametricCamera, px: np.ndarray) -> np.ndarray
     :class:`BrownConrady` camera uses its own inverse (normalised coordinates ``(x, y, 1)``)."""
     if isinstance(camera, BrownConrady):
         rays = np.concatenate([camera.unproject(px), np.ones((len(px), 1))], axis=1)
-        return rays / np.linalg.norm(rays, axis=1, keepdims=True)
+        return cast(np.ndarray, rays / np.linalg.norm(rays, axis=1, keepdims=True))
     return camera.unproject(px)
 
 
@@ -148,6 +149,7 @@ def centre_bias(camera: BrownConrady | ParametricCamera, H: np.ndarray,
 def correct_blocks(blocks: BlockTable, camera: BrownConrady | ParametricCamera) -> BlockTable:
     """The blocks with each ``H`` moved by minus its :func:`centre_bias` (``H <- T(-bias) H``),
     so that their centres, and the features made from them, are corrected."""
+    assert blocks.loss_extent is not None  # filled in by BlockTable
     bias = np.nan_to_num(centre_bias(camera, blocks.H, blocks.loss_extent))
     return replace(blocks, H=translation(-bias) @ blocks.H)
 
@@ -162,6 +164,7 @@ def correct_features(features: FeatureTable, blocks: BlockTable,
     match = np.array([row.get((f, int(i)), -1) for f, i in pairs], dtype=np.int64)
     found = match >= 0
     bias = np.zeros((len(features), 2))
+    assert blocks.loss_extent is not None  # filled in by BlockTable
     bias[found] = np.nan_to_num(centre_bias(camera, blocks.H[match[found]], blocks.loss_extent[match[found]]))
     flags = np.where(found, features.flags | int(FeatureFlags.LENS_CORRECTED), features.flags)
     return replace(features, x=features.x - bias[:, 0], y=features.y - bias[:, 1], flags=flags)

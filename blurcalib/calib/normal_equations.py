@@ -13,6 +13,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
+from typing import Any
 
 import numpy as np
 import torch
@@ -72,7 +73,7 @@ def _at_solution(result: BundleResult) -> tuple[BundleProblem, BundleState, torc
     data = result.data
     settings = data.settings
     dev = torch.device(settings.device)
-    kw = {"dtype": torch.float64, "device": dev}
+    kw: dict[str, Any] = {"dtype": torch.float64, "device": dev}
     spline = result.model.spline(dev)
     pb = BundleProblem(spline, torch.as_tensor(data.frame, device=dev), torch.as_tensor(data.points, **kw),
                   torch.as_tensor(data.observed, **kw), torch.as_tensor(data.weights, **kw),
@@ -169,7 +170,7 @@ def leave_out_models(result: BundleResult, left_out: Sequence[ArrayLike], priors
     if any((p.grid_height, p.grid_width) != pb.spline.shape for p in priors):
         raise ValueError(f"every prior must have the model's {pb.gh} x {pb.gw} grid")
     dev = st.grid.device
-    kw = {"dtype": st.R.dtype, "device": dev}
+    kw: dict[str, Any] = {"dtype": st.R.dtype, "device": dev}
     G = 2 * pb.gh * pb.gw
     eye8 = torch.eye(8, **kw)
 
@@ -186,13 +187,18 @@ def leave_out_models(result: BundleResult, left_out: Sequence[ArrayLike], priors
         diag = torch.diagonal(Hgg).clone()
         Hpp_inv = torch.cholesky_inverse(torch.linalg.cholesky(Hpp))
         S, c = reduce_frames(Hgg, Hgp, Hpp_inv, bg, bp, lower=True, overwrite=True)
+        assert c is not None  # bg given
         return S, c, diag
 
     parts: list[tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None] = [
         terms(torch.as_tensor(m, device=dev)) for m in sets[:_leading_partition(sets)]]
     if parts:  # the folds partition the frames: all frames' terms are their sums
-        S_all, c_all, d_all = (v.clone() for v in parts[0])
-        for S_k, c_k, d_k in parts[1:]:
+        first = parts[0]
+        assert first is not None  # parts are freed only below
+        S_all, c_all, d_all = (v.clone() for v in first)
+        for part in parts[1:]:
+            assert part is not None
+            S_k, c_k, d_k = part
             S_all += S_k
             c_all += c_k
             d_all += d_k
@@ -204,7 +210,9 @@ def leave_out_models(result: BundleResult, left_out: Sequence[ArrayLike], priors
     d_all += torch.diagonal(S_all) - before  # the prior's diagonal
     models = []
     for k, (mask, prior) in enumerate(zip(sets, priors, strict=True)):
-        S, c, d = parts[k] if k < len(parts) else terms(torch.as_tensor(mask, device=dev))
+        part = parts[k] if k < len(parts) else terms(torch.as_tensor(mask, device=dev))
+        assert part is not None  # each set's terms are used once
+        S, c, d = part
         if k < len(parts):
             parts[k] = None
         S = torch.sub(S_all, S, out=S)

@@ -16,6 +16,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Any, cast
 
 import numpy as np
 import scipy.linalg
@@ -63,7 +64,7 @@ class ParametricProblem:
         return params[:i], poses[:, :3], poses[:, 3:], pts
 
     def obs_points(self, pts: np.ndarray, rows: np.ndarray) -> np.ndarray:
-        return pts[self.point_idx[rows]] if self.refine_points else self.fixed_points[rows]
+        return cast(np.ndarray, pts[self.point_idx[rows]] if self.refine_points else self.fixed_points[rows])
 
     def predict(self, params: np.ndarray, rows: np.ndarray) -> np.ndarray:
         intr, rvecs, tvecs, pts = self.unpack(params)
@@ -81,17 +82,17 @@ class ParametricProblem:
         errors = np.linalg.norm(camera.project(cam) - self.observed, axis=1)
         return np.where(camera.valid_directions(cam), errors, np.inf)
 
-    def residual_fn(self, rows: np.ndarray):
+    def residual_fn(self, rows: np.ndarray) -> Callable[[np.ndarray], np.ndarray]:
         """Residuals ``(2 n + 3 Q,)``: ``pi_d - p`` of the rows (px), then the point prior."""
         def fun(params: np.ndarray) -> np.ndarray:
             res = (self.predict(params, rows) - self.observed[rows]).ravel()
             if not self.refine_points:
-                return res
+                return cast(np.ndarray, res)
             pts = self.unpack(params)[3]
             return np.concatenate([res, ((pts - self.nominal) / self.point_sigma).ravel()])
         return fun
 
-    def jacobian_fn(self, rows: np.ndarray):
+    def jacobian_fn(self, rows: np.ndarray) -> Callable[[np.ndarray], scipy.sparse.csr_matrix]:
         """Sparse Jacobian of :meth:`residual_fn` (CSR): I + 6 (+ 3) non-zeros per data row."""
         n = len(rows)
         i = self.num_intrinsics
@@ -117,8 +118,9 @@ class ParametricProblem:
             intr, rvecs, tvecs, pts = self.unpack(params)
             camera = self.camera.with_params(intr)
             proj = project_poses_camera(camera, rvecs, tvecs, self.obs_points(pts, rows), fi, jacobian=True)
+            assert proj.d_intrinsics is not None and proj.d_pose is not None and proj.d_point is not None
             parts = (proj.d_intrinsics, proj.d_pose, proj.d_point)
-            values = np.concatenate(parts if self.refine_points else parts[:2], axis=2).ravel()
+            values: np.ndarray = np.concatenate(parts if self.refine_points else parts[:2], axis=2).ravel()
             if self.refine_points:
                 values = np.concatenate([values, np.full(3 * len(self.nominal), 1.0 / self.point_sigma)])
             return scipy.sparse.csr_matrix((values, (data_rows, data_cols)), shape=shape)
@@ -196,7 +198,7 @@ class _Point:
     f: np.ndarray
 
 
-class _Robust(SingleProblem[_Point, tuple, np.ndarray]):
+class _Robust(SingleProblem[_Point, tuple[Any, ...], np.ndarray]):
     """``sum_i rho(f_i(x))`` with Huber's ``rho`` at ``huber`` (``inf``: squares), its steps solved
     with the poses eliminated (:func:`solve_poses_eliminated`)."""
 
@@ -212,7 +214,7 @@ class _Robust(SingleProblem[_Point, tuple, np.ndarray]):
             return float(np.sum(a * a))
         return float(np.sum(np.where(a <= self.huber, a * a, 2.0 * self.huber * a - self.huber * self.huber)))
 
-    def linearise(self, p: _Point) -> tuple:
+    def linearise(self, p: _Point) -> tuple[Any, ...]:
         """``(J^T W J, J^T W f, its diagonal)`` with the IRLS weights ``w = min(1, huber / |f|)``."""
         J = self.jac(p.x).tocsr()
         w = np.minimum(1.0, self.huber / np.maximum(np.abs(p.f), 1e-300))
@@ -220,7 +222,7 @@ class _Robust(SingleProblem[_Point, tuple, np.ndarray]):
         g = J.T @ (w * p.f)
         return H, g, scipy.sparse.diags(np.maximum(H.diagonal(), 1e-12))
 
-    def solve(self, system: tuple, lam: float) -> np.ndarray | None:
+    def solve(self, system: tuple[Any, ...], lam: float) -> np.ndarray | None:
         """The damped step, or None (a rejected trial) where the system is singular."""
         H, g, diag = system
         try:

@@ -24,6 +24,7 @@ Pixels follow OpenCV (top-left pixel centre at ``(0, 0)``); poses map target to 
 from __future__ import annotations
 
 import math
+from typing import cast
 
 import cv2
 import numpy as np
@@ -67,7 +68,7 @@ def plane_homography(rays: ArrayLike, points: ArrayLike) -> np.ndarray:
     p, T = _normalised_plane(np.asarray(points, dtype=np.float64).reshape(-1, 3))
     Hn = np.linalg.svd(_dlt_rows(v, p).reshape(-1, 9))[2][-1].reshape(3, 3)
     sign = 1.0 if float(np.einsum("ij,nj,ni->", Hn, p, v)) >= 0 else -1.0
-    return sign * Hn @ T
+    return cast(np.ndarray, sign * Hn @ T)
 
 
 def homography_pose(H: np.ndarray) -> Pose | None:
@@ -99,7 +100,7 @@ def _ransac_inliers(rays: np.ndarray, points: np.ndarray, threshold_rad: float, 
     seen *= sign[:, None, None]
     cos = np.einsum("kni,ni->kn", seen, rays) / np.maximum(np.linalg.norm(seen, axis=2), 1e-300)
     inliers = np.arccos(np.clip(cos, -1.0, 1.0)) < threshold_rad
-    return inliers[int(np.argmax(inliers.sum(axis=1)))]
+    return cast(np.ndarray, inliers[int(np.argmax(inliers.sum(axis=1)))])
 
 
 def refine_pose(camera: ParametricCamera, pose: Pose, points: ArrayLike, observed: ArrayLike, *,
@@ -118,6 +119,7 @@ def refine_pose(camera: ParametricCamera, pose: Pose, points: ArrayLike, observe
         r = np.where(valid[:, None], proj.pixels - obs, 0.0)
         e = np.linalg.norm(r, axis=1)
         cost = float(np.sum(np.where(e <= huber_px, e * e, 2 * huber_px * e - huber_px**2)))
+        assert proj.d_pose is not None  # asked for
         J = np.where(valid[:, None, None], proj.d_pose, 0.0)
         return r, J, cost
 
@@ -149,7 +151,7 @@ def refine_pose(camera: ParametricCamera, pose: Pose, points: ArrayLike, observe
 def _camera_points(x: np.ndarray, P: np.ndarray) -> np.ndarray:
     """Camera-frame points ``R P + t`` ``(N, 3)`` of the pose ``x = (rvec, tvec)``."""
     R, _ = cv2.Rodrigues(np.ascontiguousarray(x[:3]))
-    return P @ R.T + x[3:]
+    return cast(np.ndarray, P @ R.T + x[3:])
 
 
 def solve_pose(camera: BrownConrady | ParametricCamera, points: ArrayLike, obs_xy: ArrayLike, *,

@@ -29,11 +29,12 @@ import math
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 import torch
 
-from blurcalib.calib.bundle import BundleSettings, adjust_with_outliers, schur_step
+from blurcalib.calib.bundle import BundleSettings, SchurSystem, adjust_with_outliers, schur_step
 from blurcalib.camera.generic import CentralGeneric, GridSpline, projection_jacobians
 from blurcalib.camera.rig import Rig
 from blurcalib.geometry.lie import exp_so3, orthonormal, skew
@@ -124,7 +125,7 @@ class _State:
     r: list[torch.Tensor]
 
 
-class _RigSteps(SingleProblem[_State, tuple[torch.Tensor, ...], tuple[torch.Tensor, torch.Tensor]]):
+class _RigSteps(SingleProblem[_State, SchurSystem, tuple[torch.Tensor, torch.Tensor]]):
     """The Levenberg-Marquardt steps of :func:`rig_bundle_adjust` (module docstring)."""
 
     def __init__(self, cams: list[_Cam], settings: BundleSettings) -> None:
@@ -165,10 +166,10 @@ class _RigSteps(SingleProblem[_State, tuple[torch.Tensor, ...], tuple[torch.Tens
             total = total + (self.use(st, c) * rho).sum() + self.shift_w * (free * st.s[c] ** 2).sum()
         return float(total)
 
-    def linearise(self, x: _State) -> tuple[torch.Tensor, ...]:
+    def linearise(self, x: _State) -> SchurSystem:
         C, S, K = self.C, self.S, self.K
         G = 6 * (C - 1)
-        kw = {"dtype": torch.float64}
+        kw: dict[str, Any] = {"dtype": torch.float64}
         Hgg, bg = torch.zeros(G, G, **kw), torch.zeros(G, **kw)
         Hgp, Hpp, bp = torch.zeros(G, S, K, **kw), torch.zeros(S, K, K, **kw), torch.zeros(S, K, **kw)
         eye2 = torch.eye(2, **kw)
@@ -211,7 +212,7 @@ class _RigSteps(SingleProblem[_State, tuple[torch.Tensor, ...], tuple[torch.Tens
             Hgp[:, fixed, cols] = 0.0
         return Hgg, Hgp, Hpp, bg, bp
 
-    def solve(self, system: tuple[torch.Tensor, ...], lam: float) -> tuple[torch.Tensor, torch.Tensor] | None:
+    def solve(self, system: SchurSystem, lam: float) -> tuple[torch.Tensor, torch.Tensor] | None:
         return schur_step(*system, lam)
 
     def trial(self, x: _State, step: tuple[torch.Tensor, torch.Tensor]) -> tuple[_State, float]:
@@ -280,7 +281,7 @@ def rig_bundle_adjust(models: Sequence[CentralGeneric], camera_tr_rig: Sequence[
         seen[np.asarray(obs.set_index, dtype=np.int64)] = True
     if not seen.all():
         raise ValueError(f"image sets without observations: {np.nonzero(~seen)[0].tolist()[:10]}")
-    kw = {"dtype": torch.float64}
+    kw: dict[str, Any] = {"dtype": torch.float64}
     base = camera_tr_rig[0]
     rel = [p.compose(base.inverse()) for p in camera_tr_rig]
     cams = [_Cam(m.spline(), torch.as_tensor(np.asarray(o.set_index, dtype=np.int64)),

@@ -20,6 +20,7 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Any, cast
 
 import numpy as np
 import torch
@@ -129,7 +130,7 @@ class _RollingFrames:
     def __init__(self, projector: Projector, poses: Sequence[Pose], frame: np.ndarray, points: np.ndarray,
                  observed: np.ndarray, shift_free: np.ndarray, rolling: np.ndarray, height: int,
                  huber_px: float, shift_sigma_px: float, twist_sigma: float) -> None:
-        kw = {"dtype": torch.float64}
+        kw: dict[str, Any] = {"dtype": torch.float64}
         F = len(poses)
         self.projector, self.huber_px = projector, huber_px
         self.fr = torch.as_tensor(np.asarray(frame, dtype=np.int64))
@@ -226,7 +227,7 @@ class _RollingFrames:
             self.state[k][self.obs[keep]] = v[keep]
         self.cost = torch.where(better, self.moved_cost, self.cost)
         self.stale |= better
-        return accepted & (self.dp[rows].abs().amax(dim=1) < STEP_TOL)
+        return cast(torch.Tensor, accepted & (self.dp[rows].abs().amax(dim=1) < STEP_TOL))
 
 
 def _finish(projector: Projector, fit: _RollingFrames) -> RollingFit:
@@ -264,7 +265,7 @@ def rolling_displacement(projector: Projector, poses: Sequence[Pose], theta: np.
     """``(N, 2)`` px: ``pi(rolling pose) - pi(rigid pose)`` of each observation under ``projector``
     with the frames' poses ``(F,)`` and rolling parameters ``theta (F, 12)`` (NaN where either
     projection leaves the area)."""
-    kw = {"dtype": torch.float64}
+    kw: dict[str, Any] = {"dtype": torch.float64}
     fr = torch.as_tensor(np.asarray(frame, dtype=np.int64))
     P = torch.as_tensor(np.asarray(points, dtype=np.float64))
     y = torch.as_tensor(row_coordinate(np.asarray(observed)[:, 1], height))

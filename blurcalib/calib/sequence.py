@@ -41,6 +41,7 @@ import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
 from enum import Enum
+from typing import Any
 
 import numpy as np
 
@@ -309,6 +310,7 @@ def _parametric(sharp: FeatureTable, sharp_blocks: BlockTable | None, outcomes: 
     out flagged, and the model choice."""
     frames = len(set(sharp.frame.tolist()))
     with_blurry = s.blurry_in_parametric and frames < s.min_sharp_frames
+    kw: dict[str, Any]
     kw = (dict(min_frames=MIN_PARAMETRIC_FRAMES, min_features=s.alignment.min_blocks) if with_blurry
           else dict(min_frames=s.min_sharp_frames, min_features=s.min_sharp_features))
 
@@ -376,6 +378,7 @@ def _align(o: BlurryOutcome, calibration: Calibration, pattern: StarPattern, siz
     o.raw = _kept_features(o, pattern, size, s)
     if o.raw is None or o.blocks is None:
         return
+    assert o.kept is not None  # kept with the blocks
     try:
         _, o.alignment = align_kept_blocks(calibration.camera, pattern, calibration.points, o.blocks, o.kept,
                                            s.alignment)
@@ -408,7 +411,8 @@ def _fit_generic(sharp: FeatureTable, outcomes: list[BlurryOutcome], calibration
     generic = calibrate_generic(sharp, blurry, calibration, pattern, size, s.generic)
     rolling = None
     if joint and blurry is not None and generic.blurry_frames:
-        blocks = [o.blocks.select(o.kept) for o in outcomes if o.raw is not None and o.blocks is not None]
+        blocks = [o.blocks.select(o.kept) for o in outcomes
+                  if o.raw is not None and o.blocks is not None and o.kept is not None]
         generic, rolling = calibrate_rolling_shutter(sharp, blurry, calibration, pattern, size,
                                                      s.rolling_shutter, s.generic, blur_velocities(blocks),
                                                      first=generic)
@@ -418,9 +422,11 @@ def _fit_generic(sharp: FeatureTable, outcomes: list[BlurryOutcome], calibration
         if name in generic.skipped_frames:
             o.skipped_features = generic.skipped_frames[name]
             kept = o.aligned if o.aligned is not None else o.raw
+            assert kept is not None  # a frame that entered has its star centres
             o.aligned = replace(kept, flags=kept.flags | int(FeatureFlags.FILTERED_OUT))
         elif joint:
             o.shift = generic.shifts[name]
+            assert o.raw is not None  # a frame that entered has its star centres
             flags = int(o.raw.flags[0] | FeatureFlags.GLOBALLY_ALIGNED)
             seen = o.raw if corrected is None else corrected.select(corrected.frame == name)
             o.aligned = replace(seen, x=seen.x - o.shift[0], y=seen.y - o.shift[1],
@@ -434,6 +440,7 @@ def _assess(run: CalibrationRun, pattern: StarPattern, size: tuple[int, int], s:
     without its assessment, and when only the sharp-only camera's part fails, the generic camera
     is assessed alone and the sharp-only camera keeps its uncertainty map."""
     t0 = time.perf_counter()
+    assert run.generic is not None  # stage 4 ran
     if run.generic.blurry_frames:
         try:
             run.generic_sharp = calibrate_generic(run.sharp, None, run.calibration, pattern, size, s.generic)

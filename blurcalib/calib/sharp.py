@@ -67,6 +67,7 @@ from __future__ import annotations
 import itertools
 import math
 from collections.abc import Callable, Sequence
+from typing import cast
 
 import cv2
 import numpy as np
@@ -136,7 +137,7 @@ def _usable_rows(table: FeatureTable, num_features: int) -> np.ndarray:
         raise ValueError(f"feature id {int(table.feature_id[bad_ids][0])} is not a feature of the pattern "
                          f"(ids 0..{num_features - 1})")
     keep = np.isfinite(table.x) & np.isfinite(table.y) & (table.weight > 0)
-    return keep & ((table.flags & int(FeatureFlags.FILTERED_OUT)) == 0)
+    return cast(np.ndarray, keep & ((table.flags & int(FeatureFlags.FILTERED_OUT)) == 0))
 
 
 def _warm_start(start: Calibration, frames: list[str], table: FeatureTable, model: type[ParametricCamera],

@@ -193,7 +193,8 @@ def assess_calibration(generic: GenericCalibration, generic_sharp: GenericCalibr
     elif settings.cross_validation and validation is None:
         split = half_split(generic, sharp_features, pattern, size, calibration)
         if split is not None:
-            cv = cross_validation_diff(*leave_out_generic(generic, *split))
+            a, b = leave_out_generic(generic, *split)
+            cv = cross_validation_diff(a, b)
     advice = guidance(unc, size[0], size[1], threshold_px=settings.guidance_px)
     seconds = {"validation": t1 - t0, "uncertainty": t2 - t1, "cross_validation": time.perf_counter() - t2}
     skipped = None

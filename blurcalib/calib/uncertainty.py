@@ -62,6 +62,7 @@ import os
 from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
+from typing import Any, cast
 
 import numpy as np
 import torch
@@ -112,7 +113,7 @@ def _lattice(x0: float, y0: float, x1: float, y1: float, step_px: float
 
 def _edge_distance(x: np.ndarray, y: np.ndarray, width: int, height: int) -> np.ndarray:
     """Distance (px) of OpenCV pixels to the nearest image edge."""
-    return np.minimum.reduce([x + 0.5, y + 0.5, width - 0.5 - x, height - 0.5 - y])
+    return cast(np.ndarray, np.minimum.reduce([x + 0.5, y + 0.5, width - 0.5 - x, height - 0.5 - y]))
 
 
 @dataclass(eq=False)
@@ -173,7 +174,7 @@ class ProjectionUncertainty:
         interp = RegularGridInterpolator((ys, xs), self.sigma_px.reshape(self.shape),
                                          bounds_error=False, fill_value=np.nan)
         p = np.asarray(px, dtype=np.float64).reshape(-1, 2)
-        return interp(p[:, ::-1])
+        return cast(np.ndarray, interp(p[:, ::-1]))
 
 
 def _rotation_directions(grid: torch.Tensor) -> torch.Tensor:
@@ -184,7 +185,7 @@ def _rotation_directions(grid: torch.Tensor) -> torch.Tensor:
     """
     v = grid.reshape(-1, 3)
     t = tangent_basis(v)
-    return torch.linalg.cross(v[:, None, :].expand_as(t), t, dim=-1).reshape(-1, 3)
+    return cast(torch.Tensor, torch.linalg.cross(v[:, None, :].expand_as(t), t, dim=-1).reshape(-1, 3))
 
 
 def _grid_information(ne: NormalEquations, prior: torch.Tensor, noise_sq: float) -> torch.Tensor:
@@ -417,7 +418,7 @@ def guidance(unc: ProjectionUncertainty, width: int, height: int, threshold_px: 
 
 
 def draw_lattice_map(ax: Axes, x: np.ndarray, y: np.ndarray, shape: tuple[int, int], values: np.ndarray,
-                     width: int, height: int, title: str, **imshow: object) -> AxesImage:
+                     width: int, height: int, title: str, **imshow: Any) -> AxesImage:
     """``values (K,)`` on the pixel lattice ``x, y (K,)`` (``shape (ny, nx)``, OpenCV px) over the
     whole ``width x height`` image, grey outside the lattice; returns the image for a colour bar."""
     ny, nx = shape
@@ -449,6 +450,7 @@ def uncertainty_figure(maps: Sequence[tuple[str, ProjectionUncertainty]], width:
     for ax, (title, unc) in zip(axes, maps, strict=True):
         im = draw_lattice_map(ax, unc.x, unc.y, unc.shape, unc.sigma_px, width, height,
                               f"{title}: median {unc.median():.3g} px", cmap="viridis", norm=norm)
+    assert im is not None  # maps is not empty
     fig.colorbar(im, ax=list(axes), label="1-sigma projection uncertainty (px, log scale)", extend="both",
                  fraction=0.03, pad=0.02)
     return fig
@@ -495,5 +497,5 @@ def save_uncertainty_npz(path: str | os.PathLike[str], unc: ProjectionUncertaint
         arrays["noise_px_sharp"] = np.float64(sharp.noise_px)
     out = Path(path)
     with atomic_path(out) as tmp, open(tmp, "wb") as handle:
-        np.savez_compressed(handle, **arrays)
+        np.savez_compressed(handle, **arrays)  # type: ignore[arg-type]  # numpy stubs: **arrays vs allow_pickle
     return out

@@ -51,6 +51,7 @@ from blurcalib.calib.joint import GenericCalibration
 from blurcalib.calib.normal_equations import leave_out_models
 from blurcalib.calib.sharp import Calibration, CalibrationError, calibrate_sharp, solve_pose
 from blurcalib.camera.generic import CentralGeneric, fit_to_rays, projection_jacobians
+from blurcalib.camera.lens import ParametricCamera
 from blurcalib.camera.parametric import BrownConrady
 from blurcalib.geometry.lie import exp_so3, orthonormal
 from blurcalib.geometry.pose import Pose
@@ -179,13 +180,13 @@ class FrameFit:
     residuals: np.ndarray
 
 
-def assign_folds(frames: Sequence[str], blurry: Sequence[bool], folds: int) -> np.ndarray:
+def assign_folds(frames: Sequence[str], blurry: Sequence[bool] | np.ndarray, folds: int) -> np.ndarray:
     """Fold ``(F,)`` of every frame: sharp and blurry frames each dealt in turn, in their order
     (neighbouring frames of a sequence land in different folds, every fold gets both kinds)."""
-    blurry = np.asarray(blurry, dtype=bool)
+    is_blurry = np.asarray(blurry, dtype=bool)
     out = np.zeros(len(frames), dtype=np.int64)
-    out[~blurry] = np.arange(int((~blurry).sum())) % folds
-    out[blurry] = (np.arange(int(blurry.sum())) + int((~blurry).sum())) % folds
+    out[~is_blurry] = np.arange(int((~is_blurry).sum())) % folds
+    out[is_blurry] = (np.arange(int(is_blurry.sum())) + int((~is_blurry).sum())) % folds
     return out
 
 
@@ -202,7 +203,7 @@ def generic_projector(model: CentralGeneric) -> Projector:
     return project
 
 
-def parametric_projector(camera: BrownConrady, step_m: float = 1e-6) -> Projector:
+def parametric_projector(camera: BrownConrady | ParametricCamera, step_m: float = 1e-6) -> Projector:
     """The Brown-Conrady projection (:meth:`blurcalib.camera.parametric.BrownConrady.project`), its
     derivative by central differences of ``step_m`` m; inside: in front and within the image."""
     size = np.array([camera.width, camera.height], dtype=np.float64)
@@ -243,7 +244,7 @@ def fit_frames(projector: Projector, poses: Sequence[Pose], frame: np.ndarray, p
             its step (rad, m, px) exceeds it.
         huber_px, shift_sigma_px: as :class:`blurcalib.calib.bundle.BundleSettings`.
     """
-    kw = {"dtype": torch.float64}
+    kw: dict[str, Any] = {"dtype": torch.float64}
     F = len(poses)
     fr = torch.as_tensor(np.asarray(frame, dtype=np.int64))
     P = torch.as_tensor(np.asarray(points, dtype=np.float64))
@@ -256,7 +257,7 @@ def fit_frames(projector: Projector, poses: Sequence[Pose], frame: np.ndarray, p
     eye2 = torch.eye(2, **kw)
 
     def evaluate(R: torch.Tensor, t: torch.Tensor, s: torch.Tensor, rows: torch.Tensor,
-                 init: torch.Tensor | None):
+                 init: torch.Tensor | None) -> tuple[torch.Tensor, ...]:
         """Points, projections, their derivatives, inside, residuals of the observations ``rows``
         and the cost ``(F,)`` of their frames (0 for the others)."""
         f = fr[rows]
@@ -361,7 +362,7 @@ def half_split(generic: GenericCalibration, sharp_features: FeatureTable, patter
     return [half == 0, half == 1], priors
 
 
-def parametric_prior(camera: BrownConrady, model: CentralGeneric) -> CentralGeneric:
+def parametric_prior(camera: BrownConrady | ParametricCamera, model: CentralGeneric) -> CentralGeneric:
     """``camera``'s rays on ``model``'s calibrated area and grid (the cold start's grid)."""
     return fit_to_rays(camera.pixel_to_ray, model.width, model.height,
                        area=(model.min_x, model.min_y, model.max_x, model.max_y),
@@ -441,9 +442,9 @@ def kfold_validation(generic: GenericCalibration, generic_sharp: GenericCalibrat
         generic_poses = [generic.poses[f] for f in held_names]
         cams: dict[str, tuple[Projector, list[Pose]]] = {
             key: (generic_projector(m[k]), generic_poses) for key, m in models.items()}
-        if params[k] is not None:
-            cams["parametric"] = (parametric_projector(params[k].camera),
-                                  [_parametric_pose(params[k], generic, f) for f in held_names])
+        if (param := params[k]) is not None:
+            cams["parametric"] = (parametric_projector(param.camera),
+                                  [_parametric_pose(param, generic, f) for f in held_names])
         for key, (cam, poses) in cams.items():
             e = _score_frames(cam, poses, generic, held, bundle)
             errors[key][obs_fold == k] = e[obs_fold == k]

@@ -33,6 +33,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Any, cast
 
 import numpy as np
 import scipy.linalg
@@ -40,6 +41,8 @@ import torch
 from numpy.typing import ArrayLike
 
 from blurcalib.camera.remap import OutputProjection, output_maps
+from blurcalib.camera.spline_projection import PROJECTION_DAMPING, SplineProjection
+from blurcalib.optim.lm import LmRule, Stopping, run_batch
 
 __all__ = [
     "DEFAULT_CELL_PX",
@@ -237,10 +240,11 @@ class GridSpline:
                 iterations: int = 100, tol_px: float = 1e-8) -> tuple[torch.Tensor, torch.Tensor]:
         """Project camera-frame points ``(N, 3)`` to OpenCV pixels ``(N, 2)``.
 
-        Levenberg-Marquardt on ``|d(u) - p / |p||^2`` per point (initial lambda 0.5 % of the
-        diagonal from the lattice start, :data:`_WARM_DAMPING` from ``init``; /2 on success, x4 on
-        failure), clamped to the calibrated area (a point held at
-        its edge for several iterations is given up), started from
+        Levenberg-Marquardt (:func:`blurcalib.optim.lm.run_batch` on
+        :class:`blurcalib.camera.spline_projection.SplineProjection`) on ``|d(u) - p / |p||^2`` per
+        point, at most ``iterations`` trials (initial lambda 0.5 % of the diagonal from the lattice
+        start, :data:`_WARM_DAMPING` from ``init``; /2 on success, x4 on failure), clamped to the
+        calibrated area (a point held at its edge for several iterations is given up), started from
         ``init`` ``(N, 2)`` (a previous projection) or from the best pixel of a lattice. A point
         whose next step is below ``tol_px`` takes it and stops, its residual there linearised
         (``r - D step``) instead of evaluated: a warm-started projection then costs two
@@ -249,55 +253,14 @@ class GridSpline:
         projection means the point is outside the calibrated field of view).
         """
         p = points / points.norm(dim=-1, keepdim=True)
-        u = self.clamp(init.clone() if init is not None else self.start_pixels(p))
-        ev = self.evaluate(u)
-        D = ev.dd_du
-        r = ev.d - p
-        cost = (r * r).sum(-1)
-        lam_all = (0.005 if init is None else _WARM_DAMPING) * (D * D).sum(dim=(1, 2))
-        active = torch.ones(len(u), dtype=torch.bool, device=u.device)
-        on_edge = torch.zeros(len(u), dtype=torch.long, device=u.device)
-        for _ in range(iterations):
-            idx = torch.nonzero(active).squeeze(1)
-            if len(idx) == 0:
-                break
-            J = D[idx]
-            H = J.transpose(1, 2) @ J
-            b = (J.transpose(1, 2) @ r[idx, :, None]).squeeze(-1)
-            lm = lam_all[idx]
-            a00, a01, a11 = H[:, 0, 0] + lm, H[:, 0, 1], H[:, 1, 1] + lm
-            det = a00 * a11 - a01 * a01
-            step = torch.stack([(a11 * b[:, 0] - a01 * b[:, 1]) / det,
-                                (a00 * b[:, 1] - a01 * b[:, 0]) / det], -1)
-            small = step.abs().amax(-1) < tol_px
-            if bool(small.any()):  # converged: the last step is taken without evaluating its end
-                done = idx[small]
-                u[done] = self.clamp(u[done] - step[small])
-                after = r[done] - (J[small] @ step[small, :, None])[..., 0]  # its residual, linearised
-                cost[done] = (after * after).sum(-1)
-                active[done] = False
-                idx, step, lm = idx[~small], step[~small], lm[~small]
-                if len(idx) == 0:
-                    break
-            u_new = self.clamp(u[idx] - step)
-            ev_new = self.evaluate(u_new)
-            r_new = ev_new.d - p[idx]
-            cost_new = (r_new * r_new).sum(-1)
-            ok = cost_new < cost[idx]
-            stalled = ok & (cost[idx] - cost_new <= 1e-10 * cost[idx])
-            moved = (u_new - u[idx]).abs().amax(-1)
-            acc = idx[ok]
-            u[acc] = u_new[ok]
-            r[acc] = r_new[ok]
-            cost[acc] = cost_new[ok]
-            D[acc] = ev_new.dd_du[ok]
-            lam_all[idx] = torch.where(ok, lm * 0.5, lm * 4.0)
-            edge = torch.any((u[idx] <= self.lo) | (u[idx] >= self.hi), dim=-1)
-            on_edge[idx] = torch.where(edge, on_edge[idx] + 1, 0)
-            done = (moved < tol_px) | (cost[idx] < 1e-26) | stalled | (on_edge[idx] >= _EDGE_ITERATIONS)
-            active[idx[done]] = False
+        start = self.clamp(init.clone() if init is not None else self.start_pixels(p))
+        fit = SplineProjection(self, p, start, tol_px, _EDGE_ITERATIONS)
+        lam = (0.005 if init is None else _WARM_DAMPING) * (fit.D * fit.D).sum(dim=(1, 2))
+        run_batch(fit, LmRule(PROJECTION_DAMPING, Stopping(max_trials=iterations)), lam)
+        u, cost = fit.u, fit.cost
         inside = torch.all((u > self.lo) & (u < self.hi), dim=-1) & (cost < 1e-16)
         return u, inside
+
 
 
 def projection_jacobians(spline: GridSpline, u: torch.Tensor, points: torch.Tensor
@@ -355,7 +318,7 @@ def apply_update(grid: torch.Tensor, delta: torch.Tensor) -> torch.Tensor:
     """``v <- normalize(v + a t1 + b t2)`` for ``delta (GH, GW, 2)``; returns the new grid."""
     t = tangent_basis(grid)
     new = grid + delta[..., 0:1] * t[..., 0, :] + delta[..., 1:2] * t[..., 1, :]
-    return new / new.norm(dim=-1, keepdim=True)
+    return cast(torch.Tensor, new / new.norm(dim=-1, keepdim=True))
 
 
 @dataclass(frozen=True, eq=False)
@@ -407,7 +370,7 @@ class CentralGeneric:
 
     def spline(self, device: torch.device | str = "cpu") -> GridSpline:
         """The torch form of the model (float64 on ``device``)."""
-        kw = {"dtype": torch.float64, "device": device}
+        kw: dict[str, Any] = {"dtype": torch.float64, "device": device}
         sx = (self.grid_width - 3) / (self.max_x + 1 - self.min_x)
         sy = (self.grid_height - 3) / (self.max_y + 1 - self.min_y)
         scale = torch.tensor([sx, sy], **kw)
@@ -474,7 +437,7 @@ def best_fit_rotation(a: ArrayLike, b: ArrayLike) -> np.ndarray:
     (Kabsch). A central camera's orientation is a gauge: two models are compared after it."""
     U, _, Vt = np.linalg.svd(np.asarray(b, dtype=np.float64).T @ np.asarray(a, dtype=np.float64))
     D = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))])
-    return U @ D @ Vt
+    return cast(np.ndarray, U @ D @ Vt)
 
 
 def _lattice(x0: float, y0: float, x1: float, y1: float, step: float) -> np.ndarray:
@@ -560,7 +523,7 @@ def _solve_banded_spd(A: np.ndarray, b: np.ndarray, bandwidth: int, ridge: float
     for k in range(w + 1):
         band[k, :n - k] = np.diagonal(A, -k)
     band[0] += ridge
-    return scipy.linalg.solveh_banded(band, b, lower=True)
+    return cast(np.ndarray, scipy.linalg.solveh_banded(band, b, lower=True))
 
 
 def undistortion_map(model: CentralGeneric, fx: float, fy: float, cx: float, cy: float,

@@ -29,7 +29,7 @@ import math
 from collections.abc import Mapping
 from dataclasses import dataclass
 from functools import cached_property
-from typing import Any, ClassVar
+from typing import Any, ClassVar, cast
 
 import numpy as np
 from numpy.typing import ArrayLike
@@ -107,7 +107,7 @@ def direction_of_base(m: np.ndarray, angular: bool) -> np.ndarray:
     equidistant base, ``(sin(theta) m / theta, cos(theta))`` with ``theta = |m|``."""
     if not angular:
         rays = np.concatenate([m, np.ones((len(m), 1))], axis=1)
-        return rays / np.linalg.norm(rays, axis=1, keepdims=True)
+        return cast(np.ndarray, rays / np.linalg.norm(rays, axis=1, keepdims=True))
     theta = np.linalg.norm(m, axis=1)
     sinc = np.sinc(theta / np.pi)  # sin(theta) / theta
     return np.column_stack([m * sinc[:, None], np.cos(theta)])
@@ -255,7 +255,7 @@ class ParametricCamera:
                 ok &= pts[:, 2] > 0
             J = distort_with_jacobian(np.nan_to_num(m), self.coefficients).d_m
             det = J[:, 0, 0] * J[:, 1, 1] - J[:, 0, 1] * J[:, 1, 0]
-        return ok & (det > 0)
+        return cast(np.ndarray, ok & (det > 0))
 
     def in_image(self, px: ArrayLike) -> np.ndarray:
         """``(N,) bool``: pixels ``(N, 2)`` on the sensor, ``[-0.5, W - 0.5) x [-0.5, H - 0.5)``."""
@@ -274,7 +274,7 @@ class ParametricCamera:
         m, _ = base_point(pts.reshape(-1, 3), self.angular)
         d = distort(m, self.coefficients)
         px = d * self.params[:2] + self.params[2:4]
-        return px.reshape(*pts.shape[:-1], 2)
+        return cast(np.ndarray, px.reshape(*pts.shape[:-1], 2))
 
     def project_valid(self, points: ArrayLike, init: ArrayLike | None = None, tol_px: float = 0.0
                       ) -> tuple[np.ndarray, np.ndarray]:
@@ -396,7 +396,7 @@ class ParametricCamera:
 
     def valid_pixels(self, px: ArrayLike) -> np.ndarray:
         """``(N,) bool``: pixels ``(N, 2)`` that have a ray in the valid field."""
-        return np.all(np.isfinite(self.unproject(px).reshape(-1, 3)), axis=1)
+        return cast(np.ndarray, np.all(np.isfinite(self.unproject(px).reshape(-1, 3)), axis=1))
 
     # -- files -------------------------------------------------------------------------------
     def _extra(self) -> dict[str, Any]:

@@ -33,7 +33,7 @@ import math
 import os
 from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any, cast
 
 import cv2
 import numpy as np
@@ -42,6 +42,9 @@ from numpy.typing import ArrayLike
 from blurcalib.camera.storage import CameraFileError, StorageReader, read_text, write_storage
 from blurcalib.geometry.pose import Pose, as_points
 from blurcalib.io.atomic import atomic_write_text
+
+if TYPE_CHECKING:
+    from blurcalib.camera.lens import ParametricCamera
 
 __all__ = [
     "BrownConrady",
@@ -341,7 +344,7 @@ class BrownConrady:
         """Distorted pixels ``(N, 2)`` px -> unit viewing rays ``(N, 3)`` in the camera frame."""
         xn = self.unproject(px)
         rays = np.concatenate([xn, np.ones((*xn.shape[:-1], 1))], axis=-1)
-        return rays / np.linalg.norm(rays, axis=-1, keepdims=True)
+        return cast(np.ndarray, rays / np.linalg.norm(rays, axis=-1, keepdims=True))
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-serialisable dict: ``model`` plus every field (floats px/unitless, ints px)."""
@@ -488,7 +491,7 @@ def load_camera_yaml(path: str | os.PathLike[str]) -> BrownConrady:
         return BrownConrady.from_matrix(K, dist, width, height)
 
 
-def save_camera_json(path: str | os.PathLike[str], camera: BrownConrady) -> None:
+def save_camera_json(path: str | os.PathLike[str], camera: BrownConrady | ParametricCamera) -> None:
     """Write ``camera.to_dict()`` as JSON, atomically (floats round-trip exactly)."""
     atomic_write_text(path, json.dumps(camera.to_dict(), indent=2) + "\n")
 

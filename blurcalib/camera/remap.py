@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Protocol
+from typing import Protocol, cast
 
 import cv2
 import numpy as np
@@ -98,7 +98,7 @@ class OutputProjection:
         b = (np.asarray(y, dtype=np.float64) - self.cy) / self.fy
         if self.kind == "pinhole":
             rays = np.stack([a, b, np.ones_like(a)], axis=-1)
-            return rays / np.linalg.norm(rays, axis=-1, keepdims=True)
+            return cast(np.ndarray, rays / np.linalg.norm(rays, axis=-1, keepdims=True))
         if self.kind == "latlong":
             rays = np.stack([np.sin(a) * np.cos(b), np.sin(b), np.cos(a) * np.cos(b)], axis=-1)
             rays[(np.abs(a) > math.pi) | (np.abs(b) > math.pi / 2)] = np.nan

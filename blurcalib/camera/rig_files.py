@@ -37,6 +37,7 @@ import yaml
 from numpy.typing import ArrayLike
 
 from blurcalib.camera.files import RefCameraError, read_generic_yaml, write_generic_yaml
+from blurcalib.camera.generic import CentralGeneric
 from blurcalib.camera.lens import ParametricCamera
 from blurcalib.camera.opencv_files import write_opencv_camera
 from blurcalib.camera.remap import OutputProjection
@@ -72,7 +73,7 @@ def _num(value: float) -> str:
     return f"{float(value):.14g}"
 
 
-def write_poses(path: str | os.PathLike, poses: Sequence[Pose | None]) -> Path:
+def write_poses(path: str | os.PathLike[str], poses: Sequence[Pose | None]) -> Path:
     """Write a pose file (module docstring), atomically; ``None`` entries are poses not used."""
     lines = [POSES_COMMENT, f"pose_count: {len(poses)}", "poses:"]
     for i, pose in enumerate(poses):
@@ -84,7 +85,7 @@ def write_poses(path: str | os.PathLike, poses: Sequence[Pose | None]) -> Path:
     return atomic_write_text(path, "\n".join(lines) + "\n")
 
 
-def read_poses(path: str | os.PathLike) -> list[Pose | None]:
+def read_poses(path: str | os.PathLike[str]) -> list[Pose | None]:
     """Read a pose file: ``pose_count`` entries, None where no pose is given.
 
     Raises:
@@ -140,7 +141,7 @@ class RigFolder:
     rig_tr_global: list[Pose | None]
 
 
-def write_rig_folder(folder: str | os.PathLike, rig: Rig, rig_tr_global: Sequence[Pose | None],
+def write_rig_folder(folder: str | os.PathLike[str], rig: Rig, rig_tr_global: Sequence[Pose | None],
                      points: ArrayLike | None = None, feature_ids: ArrayLike | None = None) -> list[Path]:
     """Write the reference tool's calibration folder (module docstring); ``points (M, 3)`` m with
     their ``feature_ids (M,)`` add ``points.yaml`` (the tool's loader needs it). Returns the paths."""
@@ -157,7 +158,7 @@ def write_rig_folder(folder: str | os.PathLike, rig: Rig, rig_tr_global: Sequenc
     return paths
 
 
-def read_rig_folder(folder: str | os.PathLike) -> RigFolder:
+def read_rig_folder(folder: str | os.PathLike[str]) -> RigFolder:
     """Read a reference-tool calibration folder: ``intrinsics0.yaml``, ``intrinsics1.yaml``, ... up to
     the first missing one, and the two pose files (one ``camera_tr_rig`` pose per camera).
 
@@ -165,7 +166,7 @@ def read_rig_folder(folder: str | os.PathLike) -> RigFolder:
         RigFileError: a missing or malformed file, or poses that do not match the cameras.
     """
     base = Path(folder)
-    cameras = []
+    cameras: list[CentralGeneric] = []
     while (base / intrinsics_file(len(cameras))).is_file():
         try:
             cameras.append(read_generic_yaml(base / intrinsics_file(len(cameras))))
@@ -187,7 +188,7 @@ def stereo_names(i: int, j: int) -> tuple[str, str]:
     return f"stereo_{i}_{j}.yaml", f"rectify_{i}_{j}.npz"
 
 
-def write_stereo_pair(folder: str | os.PathLike, rig: Rig, i: int, j: int, kind: str | None = None,
+def write_stereo_pair(folder: str | os.PathLike[str], rig: Rig, i: int, j: int, kind: str | None = None,
                       parametric: Sequence[ParametricCamera] | None = None, maps: bool = True
                       ) -> tuple[StereoRectification, list[Path]]:
     """Rectify cameras ``i`` (first) and ``j`` of ``rig`` (:func:`blurcalib.camera.stereo.stereo_rectify`)
@@ -207,11 +208,11 @@ def write_stereo_pair(folder: str | os.PathLike, rig: Rig, i: int, j: int, kind:
     write_storage(out / yaml_name, entries)
     paths = [out / yaml_name]
     if maps:
-        arrays = {}
+        arrays: dict[str, np.ndarray] = {}
         for which, camera in ((1, rig.cameras[i]), (2, rig.cameras[j])):
             arrays[f"map{which}_x"], arrays[f"map{which}_y"] = rectification_maps(rect, camera, which)
         with atomic_path(out / maps_name) as tmp, open(tmp, "wb") as handle:
-            np.savez_compressed(handle, **arrays)
+            np.savez_compressed(handle, **arrays)  # type: ignore[arg-type]  # numpy stubs: **arrays vs allow_pickle
         paths.append(out / maps_name)
     if parametric is not None:
         for c in (i, j):
@@ -220,7 +221,7 @@ def write_stereo_pair(folder: str | os.PathLike, rig: Rig, i: int, j: int, kind:
     return rect, paths
 
 
-def read_stereo_yaml(path: str | os.PathLike) -> StereoRectification:
+def read_stereo_yaml(path: str | os.PathLike[str]) -> StereoRectification:
     """Read a ``stereo_{i}_{j}.yaml`` back.
 
     Raises:

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import cast
 
 import numpy as np
 from numpy.typing import ArrayLike
@@ -66,4 +67,4 @@ def window_weights(grid: ExposureGrid, centres: ArrayLike) -> np.ndarray:
     c = np.asarray(centres, dtype=np.float64)[None, :]
     a = grid.start + np.arange(len(grid.times))[:, None] / grid.samples
     b = a + 1.0 / grid.samples
-    return np.clip(np.minimum(b, c + 0.5) - np.maximum(a, c - 0.5), 0.0, None)
+    return cast(np.ndarray, np.clip(np.minimum(b, c + 0.5) - np.maximum(a, c - 0.5), 0.0, None))

@@ -32,6 +32,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import cast
 
 import cv2
 import numpy as np
@@ -97,7 +98,8 @@ class StereoRectification:
     def E(self) -> np.ndarray:
         """``(3, 3)`` essential matrix ``[T]_x R`` (OpenCV's ``stereoCalibrate``)."""
         t = self.relative.t
-        return np.array([[0.0, -t[2], t[1]], [t[2], 0.0, -t[0]], [-t[1], t[0], 0.0]]) @ self.relative.R
+        return cast(np.ndarray, np.array([[0.0, -t[2], t[1]], [t[2], 0.0, -t[0]], [-t[1], t[0], 0.0]])
+                                @ self.relative.R)
 
     def projection_matrices(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """``P1, P2 (3, 4)`` and ``Q (4, 4)`` of a pinhole rectification (module docstring).
@@ -178,4 +180,4 @@ def epipolar_errors(rect: StereoRectification, rays1: Callable[[np.ndarray], np.
     q1 = rectified_points(rect, rays1, 1, px1)
     q2 = rectified_points(rect, rays2, 2, px2)
     across = 1 - rect.axis
-    return np.abs(q1[:, across] - q2[:, across])
+    return cast(np.ndarray, np.abs(q1[:, across] - q2[:, across]))

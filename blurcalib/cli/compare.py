@@ -20,6 +20,7 @@ def cmd_compare(args: argparse.Namespace) -> int:
     definition that depended only on the lens would leave no systematic residual. Writes nothing."""
     from blurcalib.calib.cross_pattern import check_patterns
     from blurcalib.calib.sharp import CalibrationError, calibrate_sharp
+    from blurcalib.camera.parametric import BrownConrady
     from blurcalib.io.feature_input import FeatureInputError, read_feature_input
     from blurcalib.io.results import FeatureFlags
 
@@ -35,12 +36,15 @@ def cmd_compare(args: argparse.Namespace) -> int:
             raise CliError(str(exc)) from None
         table = table.select((table.flags & int(FeatureFlags.BLURRY_FRAME)) == 0)
         try:
-            cameras.append(calibrate_sharp(table, pattern, size).camera)
+            camera = calibrate_sharp(table, pattern, size).camera
         except CalibrationError as exc:
             raise CliError(f"{path}: {exc}") from None
+        assert isinstance(camera, BrownConrady)  # the default model
+        cameras.append(camera)
         tables.append(table)
     try:
-        check = check_patterns(*tables, *cameras, z_limit=args.z_limit, limit_px=args.limit_px)
+        check = check_patterns(tables[0], tables[1], cameras[0], cameras[1], z_limit=args.z_limit,
+                               limit_px=args.limit_px)
     except ValueError as exc:
         raise CliError(f"{args.features[0]} and {args.features[1]}: {exc}") from None
     print(f"{args.features[1]} against {args.features[0]}:")

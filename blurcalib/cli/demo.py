@@ -75,7 +75,9 @@ def cmd_demo(args: argparse.Namespace) -> int:
                        f"median over {count(len(acc), 'frame')} {med:.4f} px (per frame "
                        f"{min(a.median for a in acc):.4f} to {max(a.median for a in acc):.4f} px)")
     details += camera_accuracy_lines(found)
-    print("\n".join(["", *result_lines(report.to_dict(), found, frame_size(sharp[0])), "", "Details",
+    size = frame_size(sharp[0])
+    assert size is not None  # a frame the simulator wrote
+    print("\n".join(["", *result_lines(report.to_dict(), found, size), "", "Details",
                      *(f"  {line}" for line in details), "", *figure_lines(report.outputs), "",
                      *term_lines()]))
     if log.path is not None:

@@ -193,8 +193,10 @@ def _fit(image: np.ndarray, H0: np.ndarray, num_segments: int, K: int, settings:
             if start == "free":
                 res = fit_free_batch(prob, Hn[sel])
             elif start == "hinted":
+                assert kernels is not None
                 res = fit_hinted_batch(prob, Hn[sel], torch.as_tensor(kernels[sel], device=dev))
             else:
+                assert kernels is not None
                 res = fit_fixed_batch(prob, Hn[sel], torch.as_tensor(kernels[sel], device=dev))
             for i, m in zip(sel, res.masks, strict=True):
                 out.masks[i] = m

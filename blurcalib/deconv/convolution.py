@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import functools
 from collections.abc import Callable
-from typing import ParamSpec, TypeVar
+from typing import ParamSpec, TypeVar, cast
 
 import torch
 import torch.nn.functional as nnf
@@ -81,14 +81,14 @@ def fft_grid(latent: tuple[int, int], K: int) -> tuple[int, int] | None:
 def kernel_spectrum(k: torch.Tensor, grid: tuple[int, int]) -> torch.Tensor:
     """The transform of kernels ``k (b, K, K)`` or ``(b, C, K, K)`` on an FFT ``grid``
     (:func:`fft_grid`), ``(b, 1 or C, rows, cols // 2 + 1)``, for :func:`valid_convolution`."""
-    return torch.fft.rfft2(k[:, None] if k.ndim == 3 else k, s=grid)
+    return cast(torch.Tensor, torch.fft.rfft2(k[:, None] if k.ndim == 3 else k, s=grid))
 
 
 def latent_spectrum(L: torch.Tensor, K: int) -> torch.Tensor | None:
     """The transform of latent channels ``L (b, C, Hl, Wl)`` on the FFT grid of their valid
     convolution with ``K x K`` kernels (:func:`fft_grid`), ``(b, C, rows, cols // 2 + 1)``, for
     :func:`valid_convolution`; None where that convolution is direct."""
-    grid = fft_grid(tuple(L.shape[-2:]), K)
+    grid = fft_grid((L.shape[-2], L.shape[-1]), K)
     return None if grid is None else torch.fft.rfft2(L, s=grid)
 
 
@@ -121,4 +121,4 @@ def valid_convolution(L: torch.Tensor, k: torch.Tensor, spectrum: torch.Tensor |
     kf = kernel_spectrum(k, grid) if spectrum is None else spectrum
     lf = torch.fft.rfft2(L, s=grid) if latent is None else latent
     out = torch.fft.irfft2(lf * kf, s=grid)
-    return out[..., r2:r2 + h, r2:r2 + w]
+    return cast(torch.Tensor, out[..., r2:r2 + h, r2:r2 + w])

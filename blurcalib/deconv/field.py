@@ -143,6 +143,7 @@ class _FieldProblem:
         r = (pb.img * self.mask - (lin * p[:, :, None, None]).sum(dim=1)).reshape(b, -1)
         out = {"r": r, "bright": bright}
         if with_jac:
+            assert dk is not None
             A = (p[:, 0, None, None] * u + p[:, 1, None, None] * v + p[:, 2, None, None]) * self.mask
             # (b, 5, h, w): d model / d theta
             dC = pb.conv(chans[:, :1], dk, latent=None if spec is None else spec[:, :1]) * A[:, None]

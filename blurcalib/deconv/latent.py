@@ -9,6 +9,8 @@ pattern is periodic: beyond the block's square it continues into the neighbourin
 
 from __future__ import annotations
 
+from typing import cast
+
 import torch
 
 from blurcalib.target.star import star_signed_distance_normal
@@ -48,7 +50,7 @@ def latent_pattern(H_loc: torch.Tensor, grid: tuple[int, int], num_segments: int
     if supersample == 1:
         return samples[0]
     S = torch.stack([smp[0] for smp in samples]).mean(dim=0)
-    dS = torch.stack([smp[1] for smp in samples]).mean(dim=0) if with_jac else None
+    dS = torch.stack([d for _, d in samples if d is not None]).mean(dim=0) if with_jac else None
     return S, dS
 
 
@@ -61,7 +63,8 @@ def _latent_at(H_loc: torch.Tensor, grid: tuple[int, int], num_segments: int, ta
     i = torch.arange(grid[0], device=dev, dtype=dtype)[None, :, None] + oy
 
     def row(k: int) -> torch.Tensor:  # one full-grid add: the column and row terms broadcast
-        return (M[:, k, 0, None, None] * j + M[:, k, 2, None, None]) + M[:, k, 1, None, None] * i
+        return cast(torch.Tensor,
+                    (M[:, k, 0, None, None] * j + M[:, k, 2, None, None]) + M[:, k, 1, None, None] * i)
 
     inv_w = 1.0 / row(2).clamp_min(1e-6)  # w > 0 in front of the camera (H[2, 2] = 1)
     qx, qy = row(0) * inv_w, row(1) * inv_w

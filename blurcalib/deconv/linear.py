@@ -2,13 +2,14 @@
 
 from __future__ import annotations
 
-from typing import NamedTuple
+from dataclasses import dataclass
 
 import torch
 import torch.nn.functional as nnf
 
 
-class Factor(NamedTuple):
+@dataclass(frozen=True)
+class Factor:
     """The Cholesky factor of a kernel solve's free system, compacted to its free entries.
 
     ``chol (b, F, F)`` factors ``G`` restricted to ``index (b, F)`` (the free entries first, in

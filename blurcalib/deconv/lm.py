@@ -87,6 +87,7 @@ class _BlockFit:
     def solve(self, lam: torch.Tensor, going: torch.Tensor) -> torch.Tensor:
         """Every block's damped Gauss-Newton step; those whose predicted decrease is worth a trial."""
         best = self.best
+        assert best.N is not None and best.g is not None  # evaluated with its Jacobian
         diag = best.N.diagonal(dim1=1, dim2=2)
         A = best.N + torch.diag_embed(lam[:, None] * diag + 1e-12 * diag.mean(1, keepdim=True) + 1e-30)
         self.delta = torch.nan_to_num(torch.linalg.solve_ex(A, best.g[..., None])[0][..., 0])
@@ -129,6 +130,7 @@ def _chord(prob: BlockProblem, cur: KernelSolve, best: KernelSolve, accept: torc
     ``J (b, 10, n)`` scaled by the ratio of their contrasts ``a3`` (the model is ``a3 (k * S)``),
     so ``N`` by its square, and ``g = J r`` with the trial's residual ``r``. The blocks that
     reject it keep ``best``'s system, the point they step from again."""
+    assert best.N is not None and best.g is not None and best.J is not None and cur.res is not None
     N, g, J = best.N.clone(), best.g.clone(), best.J.clone()
     rows = torch.nonzero(accept & ~fresh)[:, 0]
     if rows.numel():
@@ -139,5 +141,6 @@ def _chord(prob: BlockProblem, cur: KernelSolve, best: KernelSolve, accept: torc
     rows = torch.nonzero(fresh)[:, 0]
     if rows.numel():
         part = prob.evaluate(H_loc[rows], alpha[rows], des.take(rows), best.lam[rows], with_jac=True)
+        assert part.N is not None and part.g is not None and part.J is not None
         N[rows], g[rows], J[rows] = part.N, part.g, part.J
     return replace(cur, N=N, g=g, J=J)

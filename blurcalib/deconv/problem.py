@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import copy
 from dataclasses import dataclass, fields
+from typing import Any, cast
 
 import numpy as np
 import torch
@@ -70,7 +71,7 @@ class Design:
     def take(self, rows: torch.Tensor) -> Design:
         """The design of blocks ``rows`` (indices), padded as this one (the pixel and kernel-entry
         lists keep their length, so a block's solve is the same in either)."""
-        values = {}
+        values: dict[str, Any] = {}
         for f in fields(self):
             value = getattr(self, f.name)
             values[f.name] = value[rows] if isinstance(value, torch.Tensor) else value
@@ -105,8 +106,9 @@ class KernelSolve:
 
     def take(self, rows: torch.Tensor) -> KernelSolve:
         """The solves of blocks ``rows`` (indices or a ``(b,)`` bool mask), copied."""
-        return KernelSolve(**{f.name: None if getattr(self, f.name) is None else getattr(self, f.name)[rows]
-                              for f in fields(self)})
+        values: dict[str, Any] = {f.name: None if getattr(self, f.name) is None
+                                  else getattr(self, f.name)[rows] for f in fields(self)}
+        return KernelSolve(**values)
 
     def put(self, rows: torch.Tensor, other: KernelSolve) -> None:
         """Replace blocks ``rows`` (indices) by ``other``'s solves (one per row), in place; a field
@@ -188,7 +190,7 @@ class BlockProblem:
 
     def to_image(self, H_loc: torch.Tensor) -> np.ndarray:
         """Latent-local homographies -> image-pixel ``(b, 3, 3)`` float64 arrays."""
-        return translation(self.lat_origin.astype(np.float64)) @ H_loc.cpu().numpy()
+        return cast(np.ndarray, translation(self.lat_origin.astype(np.float64)) @ H_loc.cpu().numpy())
 
     # ------------------------------------------------------------------- pattern and pixels
     def latent(self, H_loc: torch.Tensor, with_jac: bool) -> tuple[torch.Tensor, torch.Tensor | None]:
@@ -215,7 +217,7 @@ class BlockProblem:
                       for k in range(3))
         ew = self.s.loss_extent * wq
         inside = (wq > 0) & (qx.abs() <= ew) & (qy.abs() <= ew)
-        return inside & self.usable
+        return cast(torch.Tensor, inside & self.usable)
 
     # ------------------------------------------------------------------- the linear sub-problem
     def design(self, H_loc: torch.Tensor, support: torch.Tensor | None,
@@ -326,7 +328,8 @@ class BlockProblem:
         # D = [P; U] (b, m + 3, n): the kernel entries' patches, then the offset's rows (u, v, 1)
         D = torch.empty((b, m + 3, n), dtype=self.dt, device=src.device)
         if fixed:
-            chans = torch.cat([S[:, None], dS], dim=1) if with_jac else S[:, None]
+            assert des.fixed is not None
+            chans = torch.cat([S[:, None], dS], dim=1) if dS is not None else S[:, None]  # dS iff with_jac
             conv = torch.gather(self.conv(chans, des.fixed, des.spectrum).reshape(b, chans.shape[1], -1), 2,
                                 des.pix[:, None, :].expand(-1, chans.shape[1], -1))
             D[:, :1] = conv[:, :1]
@@ -347,6 +350,7 @@ class BlockProblem:
                           res=res if fixed else None)
         if not with_jac:
             return out
+        assert dS is not None
         if fixed:  # the model is a3 (k * S): its convolutions, scaled
             conv = conv * x[:, :1, None].to(self.dt)
         else:

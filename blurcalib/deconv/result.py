@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass, field, fields
-from typing import NamedTuple
+from typing import Any, NamedTuple, cast
 
 import numpy as np
 
@@ -99,7 +99,7 @@ class BlockFit:
     def take(self, rows: Sequence[int] | np.ndarray) -> BlockFit:
         """The rows ``rows`` of this fit, in that order."""
         rows = np.asarray(rows, dtype=np.int64)
-        values = {}
+        values: dict[str, Any] = {}
         for f in fields(self):
             v = getattr(self, f.name)
             if f.name == "status":
@@ -114,7 +114,7 @@ class BlockFit:
     def concat(fits: Sequence[BlockFit]) -> BlockFit:
         """The rows of ``fits`` in order, kernels zero-padded (centred) to the largest window."""
         size = max(f.kernel_size for f in fits)
-        values = {}
+        values: dict[str, Any] = {}
         for f in fields(fits[0]):
             items = [getattr(fit, f.name) for fit in fits]
             if f.name == "status":
@@ -144,12 +144,12 @@ class BlockFit:
                   & np.all(np.isfinite(self.psf_fit), axis=(1, 2))
                   & (self.coeffs[:, 2] > self.settings.min_contrast) & (self.num_pixels > 0))
         with np.errstate(invalid="ignore"):
-            return fitted & (self.centre_step < tol_px)
+            return cast(np.ndarray, fitted & (self.centre_step < tol_px))
 
     @property
     def H_fit(self) -> np.ndarray:
         """``(B, 3, 3)``: the fitted homographies before re-centring, ``T(-centroid) H``."""
-        return translation(-self.centroid) @ self.H
+        return cast(np.ndarray, translation(-self.centroid) @ self.H)
 
     @property
     def centre(self) -> np.ndarray:

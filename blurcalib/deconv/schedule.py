@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, fields
+from typing import Any
 
 import numpy as np
 import torch
@@ -51,7 +52,7 @@ class BatchFit:
     def merge(parts: list[BatchFit], groups: list[np.ndarray]) -> BatchFit:
         """The results of the stage groups ``groups`` (block indices) back in the batch's order."""
         inverse = np.argsort(np.concatenate(groups))
-        values = {}
+        values: dict[str, Any] = {}
         for f in fields(BatchFit):
             if f.name == "masks":
                 masks = [m for part in parts for m in part.masks]

@@ -17,6 +17,7 @@ import math
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
+from typing import Any
 
 import numpy as np
 
@@ -89,7 +90,7 @@ class ExtractSettings:
             raise ValueError(f"sharp_below_px must be positive, got {self.sharp_below_px}")
 
     @staticmethod
-    def sharp(**changes) -> ExtractSettings:
+    def sharp(**changes: Any) -> ExtractSettings:
         """Settings for sharp frames: the same engine with a small PSF window
         (:data:`blurcalib.growth.window.SHARP_START`, 9 x 9) and free PSFs only (no motion-path
         field: a sharp frame's PSF is its defocus; 2 of the demo's 20 sharp frames adapt their
@@ -98,7 +99,7 @@ class ExtractSettings:
                                        grow=GrowSettings(psf_field=False), kind="sharp"), **changes)
 
     @staticmethod
-    def auto(**changes) -> ExtractSettings:
+    def auto(**changes: Any) -> ExtractSettings:
         """Settings that classify each frame from its measured blur (``kind="auto"``, the blurry
         frames' settings otherwise)."""
         return replace(ExtractSettings(kind="auto"), **changes)
@@ -137,7 +138,7 @@ class FrameResult:
     message: str = ""
     blocks: BlockTable = field(default_factory=BlockTable.empty)
     features: FeatureTable = field(default_factory=FeatureTable.empty)
-    corners: list[list] = field(default_factory=list)
+    corners: list[list[Any]] = field(default_factory=list)
     seed: Seed | None = None
     growth: Growth | None = None
     local: LocalAlignment | None = None
@@ -273,7 +274,7 @@ def grow_frame(image: np.ndarray, pattern: StarPattern, frame: str, seed: Seed,
 
 
 def corner_rows(frame: str, pattern: StarPattern, H: np.ndarray, fx: np.ndarray,
-                fy: np.ndarray) -> list[list]:
+                fy: np.ndarray) -> list[list[Any]]:
     """Rows of ``corners.csv`` for the square corners shared by at least two blocks.
 
     Args:
@@ -297,7 +298,8 @@ def _block_table(frame: str, pattern: StarPattern, growth: Growth,
     if local is not None:
         H[np.flatnonzero(growth.accepted)] = local.H
     f = pattern.features[growth.feature_id]
-    return BlockTable(np.full(len(f), frame), growth.feature_id, f[:, 0], f[:, 1], growth.status, fit.loss,
+    return BlockTable(np.full(len(f), frame), growth.feature_id, f[:, 0], f[:, 1],
+                      np.array(growth.status, dtype=object), fit.loss,
                       fit.boundary_energy, fit.sigma_major, fit.sigma_minor, fit.eccentricity,
                       fit.orientation, fit.centroid, H, fit.coeffs, np.nan_to_num(fit.psf), fit.loss_extent,
                       None if noise is None else noise.block_variance(fit.coeffs))

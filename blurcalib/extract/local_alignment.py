@@ -17,6 +17,7 @@ PSF-centroid convention (the blocks were re-centred on their PSF centroids befor
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import cast
 
 import numpy as np
 import scipy.sparse as sp
@@ -73,7 +74,7 @@ def corner_gaps(H: np.ndarray, a: np.ndarray, b: np.ndarray, kind: np.ndarray) -
     """``(P, 2, 2)`` px: ``H_a(c_a) - H_b(c_b)`` for both shared corners of each pair."""
     ca = np.where(kind[:, None, None] == 0, _CORNERS_RIGHT[0], _CORNERS_DOWN[0])
     cb = np.where(kind[:, None, None] == 0, _CORNERS_RIGHT[1], _CORNERS_DOWN[1])
-    return apply_homography(H[a], ca) - apply_homography(H[b], cb)
+    return cast(np.ndarray, apply_homography(H[a], ca) - apply_homography(H[b], cb))
 
 
 def align_locally(H: np.ndarray, fx: np.ndarray, fy: np.ndarray,

@@ -6,7 +6,10 @@ OpenCV (the centre of the top-left pixel is ``(0, 0)`` px).
 
 from __future__ import annotations
 
+from typing import cast
+
 import numpy as np
+import numpy.typing as npt
 from numpy.typing import ArrayLike
 
 from blurcalib.geometry.pose import Pose, as_points
@@ -32,7 +35,7 @@ def plane_homography(K: ArrayLike, pose: Pose) -> np.ndarray:
     K = np.asarray(K, dtype=np.float64)
     if K.shape != (3, 3):
         raise ValueError(f"K must have shape (3, 3), got {K.shape}")
-    return K @ np.column_stack([pose.R[:, 0], pose.R[:, 1], pose.t])
+    return cast(npt.NDArray[np.float64], K @ np.column_stack([pose.R[:, 0], pose.R[:, 1], pose.t]))
 
 
 def translation(x: ArrayLike) -> np.ndarray:
@@ -68,7 +71,7 @@ def homography_centre(H: ArrayLike) -> np.ndarray:
     coordinates) where ``H`` is degenerate (maps the origin to infinity or is not finite)."""
     H = np.asarray(H, dtype=np.float64)
     with np.errstate(divide="ignore", invalid="ignore"):
-        centre = H[..., :2, 2] / H[..., 2:, 2]
+        centre: npt.NDArray[np.float64] = H[..., :2, 2] / H[..., 2:, 2]
     centre[~np.isfinite(centre).all(axis=-1)] = np.nan
     return centre
 
@@ -81,7 +84,7 @@ def homography_scale(H: ArrayLike) -> np.ndarray:
     H = np.asarray(H, dtype=np.float64)
     c = homography_centre(H)
     with np.errstate(divide="ignore", invalid="ignore"):
-        J = (H[..., :2, :2] - c[..., :, None] * H[..., None, 2, :2]) / H[..., 2:, 2:]
+        J: npt.NDArray[np.float64] = (H[..., :2, :2] - c[..., :, None] * H[..., None, 2, :2]) / H[..., 2:, 2:]
         return np.sqrt(np.abs(J[..., 0, 0] * J[..., 1, 1] - J[..., 0, 1] * J[..., 1, 0]))
 
 

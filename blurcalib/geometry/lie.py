@@ -4,7 +4,10 @@ propagation share (rotation increments ``R <- exp([omega]_x) R``)."""
 
 from __future__ import annotations
 
+from typing import cast
+
 import numpy as np
+import numpy.typing as npt
 import torch
 
 __all__ = ["exp_so3", "orthonormal", "skew"]
@@ -26,7 +29,7 @@ def exp_so3(w: torch.Tensor) -> torch.Tensor:
     return eye + torch.sin(theta) * K + (1 - torch.cos(theta)) * (K @ K)
 
 
-def orthonormal(R: np.ndarray) -> np.ndarray:
+def orthonormal(R: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
     """The nearest rotation (SVD) to a numerically drifted one ``(3, 3)``."""
     U, _, Vt = np.linalg.svd(R)
-    return U @ Vt
+    return cast(npt.NDArray[np.float64], U @ Vt)

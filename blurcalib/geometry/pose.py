@@ -8,17 +8,18 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, cast
 
 import cv2
 import numpy as np
+import numpy.typing as npt
 from numpy.typing import ArrayLike
 from scipy.spatial.transform import Rotation
 
 _ROTATION_TOL = 1e-6
 
 
-def as_points(values: ArrayLike, dim: int, name: str) -> np.ndarray:
+def as_points(values: ArrayLike, dim: int, name: str) -> npt.NDArray[np.float64]:
     """Convert to a float64 array of shape ``(..., dim)`` or raise ValueError."""
     arr = np.asarray(values, dtype=np.float64)
     if arr.ndim < 1 or arr.shape[-1] != dim:
@@ -68,7 +69,7 @@ class Pose:
         if rvec.shape != (3,):
             raise ValueError(f"rvec must have 3 elements, got shape {rvec.shape}")
         R, _ = cv2.Rodrigues(rvec)
-        return cls(R, tvec)
+        return cls(R, np.asarray(tvec))
 
     @property
     def rvec(self) -> np.ndarray:
@@ -79,12 +80,12 @@ class Pose:
     @property
     def camera_center(self) -> np.ndarray:
         """Camera centre in world coordinates ``-R^T t``, shape (3,), m."""
-        return -self.R.T @ self.t
+        return cast(np.ndarray, -self.R.T @ self.t)
 
     def transform(self, points: ArrayLike) -> np.ndarray:
         """Map world points ``(N, 3)`` m to camera coordinates ``R X + t`` ``(N, 3)`` m."""
         pts = as_points(points, 3, "points")
-        return pts @ self.R.T + self.t
+        return cast(np.ndarray, pts @ self.R.T + self.t)
 
     def inverse(self) -> Pose:
         """Inverse transform (camera -> world): ``R' = R^T``, ``t' = -R^T t``."""
@@ -118,12 +119,12 @@ class Pose:
         norm = float(np.linalg.norm(q)) if q.shape == (4,) else 0.0
         if not (np.isfinite(norm) and norm > 0):
             raise ValueError(f"quaternion must be 4 finite numbers of non-zero norm, got {q.tolist()}")
-        return cls(Rotation.from_quat(q / norm).as_matrix(), t)
+        return cls(Rotation.from_quat(q / norm).as_matrix(), np.asarray(t))
 
     @property
     def quaternion(self) -> np.ndarray:
         """``(4,)`` unit quaternion ``(qx, qy, qz, qw)`` of ``R``, ``qw >= 0``."""
-        q = Rotation.from_matrix(self.R).as_quat()
+        q: npt.NDArray[np.float64] = Rotation.from_matrix(self.R).as_quat()
         return -q if q[3] < 0 else q
 
     def to_dict(self) -> dict[str, Any]:

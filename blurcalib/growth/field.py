@@ -9,6 +9,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import replace
+from typing import cast
 
 import cv2
 import numpy as np
@@ -78,7 +79,7 @@ def field_rows(pattern: StarPattern, ids: np.ndarray, H: np.ndarray, image_shape
     status = block_windows(H[off_rim], image_shape, replace(deconv, loss_extent=settings.final_extent))[3]
     inside = np.array([st is BlockStatus.ACCEPTED for st in status], dtype=bool)
     pool = off_rim[inside] if inside.sum() >= settings.field_min_blocks else off_rim
-    return pool[spread(homography_centre(H[pool]), settings.field_blocks)]
+    return cast(np.ndarray, pool[spread(homography_centre(H[pool]), settings.field_blocks)])
 
 
 def fit_with_field(image: np.ndarray, pattern: StarPattern, ids: np.ndarray, H0: np.ndarray,
@@ -187,7 +188,7 @@ def local_predictions(pattern: StarPattern, ids: np.ndarray, accepted_H: dict[in
     out = fallback.copy()
     local = np.array([H is not None for H in homographies], dtype=bool)
     for b in np.flatnonzero(local):
-        out[b] = normalise(block_homography(homographies[b], f[b, 0:1], f[b, 1:2])[0])
+        out[b] = normalise(block_homography(cast(np.ndarray, homographies[b]), f[b, 0:1], f[b, 1:2])[0])
     return out, local
 
 
@@ -250,6 +251,7 @@ def field_growth(image: np.ndarray, pattern: StarPattern, growth: Growth, window
     for k in demoted.astype(np.int64):
         if ledger.status[k] is BlockStatus.ACCEPTED:
             ledger.restate(int(k), BlockStatus.NOT_CONVERGED, growth.fit, int(k))
+    assert ledger.fit is not None  # the growth's fits
     for k in ledger.accepted_rows:
         ledger.accept(ledger.ids[k], ledger.fit.H[k])
     psf_field, field_of = _grow_with_field(image, pattern, ledger, psf_field, max_loss, window, deconv,

@@ -10,6 +10,7 @@ smaller gain (docs/decisions/final-fit-extent.md).
 from __future__ import annotations
 
 from dataclasses import replace
+from typing import cast
 
 import numpy as np
 
@@ -76,5 +77,5 @@ def inner(pattern: StarPattern, ids: np.ndarray) -> np.ndarray:
     """``(B,)`` bool: features ``ids`` off the pattern's outer rim, whose squares grown by half a
     square (a loss over 1.5 x the square) still show printed stars only."""
     f = pattern.features[ids]
-    return (f[:, 0] > 0) & (f[:, 1] > 0) & (f[:, 0] < pattern.squares_x - 2) \
-        & (f[:, 1] < pattern.squares_y - 2)
+    return cast(np.ndarray, (f[:, 0] > 0) & (f[:, 1] > 0) & (f[:, 0] < pattern.squares_x - 2)
+                & (f[:, 1] < pattern.squares_y - 2))

@@ -13,6 +13,7 @@ the ring is fitted twice: the seed homography is re-estimated from the first fit
 from __future__ import annotations
 
 from dataclasses import replace
+from typing import cast
 
 import cv2
 import numpy as np
@@ -37,7 +38,7 @@ def shift_q(dx: int, dy: int) -> np.ndarray:
 
 def normalise(H: np.ndarray) -> np.ndarray:
     """Homographies ``(..., 3, 3)`` scaled to ``H[2, 2] = 1``."""
-    return H / H[..., 2:3, 2:3]
+    return cast(np.ndarray, H / H[..., 2:3, 2:3])
 
 
 def first_front(pattern: StarPattern, seed: Seed, image_shape: tuple[int, int]
@@ -91,7 +92,8 @@ def fit_hinted(image: np.ndarray, H0: np.ndarray, num_segments: int, kernel_size
         return fit
     if BlockStatus.ACCEPTED in fit.status:
         with np.errstate(invalid="ignore", divide="ignore"):
-            failed &= blur_per_square(psf_moments(psf_hint).sigma_major, H0) < s.retry_below_blur_per_square
+            failed &= (blur_per_square(np.asarray(psf_moments(psf_hint).sigma_major), H0)
+                       < s.retry_below_blur_per_square)
         settled = failed & fit.converged_within(s.hinted_converge_px)
         if settled.any():
             fit = replace(fit, converged=fit.converged | settled,

@@ -146,6 +146,7 @@ class GrowthLedger:
 
     def replace_fits(self, rows: np.ndarray, other: BlockFit, other_rows: np.ndarray) -> None:
         """The fits of rows ``rows`` are now the rows ``other_rows`` of ``other``."""
+        assert self.fit is not None  # rows to replace are rows added
         self.fit = self.fit.with_rows(rows, other, other_rows)
 
     @property
@@ -155,6 +156,7 @@ class GrowthLedger:
 
     def growth(self, psf_field: PathField | None = None) -> Growth:
         """The :class:`Growth` of the rows recorded (their fits all added)."""
+        assert self.fit is not None  # callers record a fit first
         return Growth(self.fit, np.array(self.ids, dtype=np.int64), list(self.status),
                       np.array(self.front, dtype=np.int64), np.stack(self.predicted), list(self.events),
                       psf_field)

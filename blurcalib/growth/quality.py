@@ -150,6 +150,7 @@ def filter_frame(blocks: BlockTable, image_size: tuple[int, int], settings: Qual
     out = blocks.status.astype(object)
     high_be = grown & ~(blocks.boundary_energy <= s.tau_be)
     out[high_be] = BlockStatus.FILTERED_BOUNDARY_ENERGY.value
+    assert blocks.noise_var is not None  # filled in by BlockTable
     high_loss = grown & ~high_be & ~(loss <= s.loss_limit(blocks.noise_var))
     out[high_loss] = BlockStatus.FILTERED_LOSS.value
     survivors = grown & ~high_be & ~high_loss

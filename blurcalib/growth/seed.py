@@ -26,6 +26,7 @@ image pixels (OpenCV convention); a block's homography is ``H_f B(fx, fy)`` with
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import cast
 
 import cv2
 import numpy as np
@@ -147,7 +148,7 @@ def line_kernel(length: float, angle: float) -> np.ndarray:
     for dx, dy, w in ((0, 0, (1 - fx) * (1 - fy)), (1, 0, fx * (1 - fy)), (0, 1, (1 - fx) * fy),
                       (1, 1, fx * fy)):
         np.add.at(k, (y0 + dy, x0 + dx), w)
-    return k / k.sum()
+    return cast(np.ndarray, k / k.sum())
 
 
 def wiener_deblur(image: np.ndarray, kernel: np.ndarray, nsr: float = 0.01) -> np.ndarray:
@@ -162,7 +163,7 @@ def wiener_deblur(image: np.ndarray, kernel: np.ndarray, nsr: float = 0.01) -> n
     kpad = np.roll(kpad, (-(ks // 2), -(ks // 2)), axis=(0, 1))
     F = np.fft.rfft2(kpad)
     out = np.fft.irfft2(np.fft.rfft2(padded) * np.conj(F) / (np.abs(F) ** 2 + nsr), s=padded.shape)
-    return out[ks:-ks, ks:-ks] + mean
+    return cast(np.ndarray, out[ks:-ks, ks:-ks] + mean)
 
 
 def detect_tags_deblurred(image: np.ndarray, wanted: set[int], scale: float = 0.5,
@@ -300,7 +301,7 @@ def tag_ring_features(pattern: StarPattern) -> np.ndarray:
         for fy in range(y0 - 1, y1 + 2):
             for fx in range(x0 - 1, x1 + 2):
                 if (fx in (x0 - 1, x1 + 1) or fy in (y0 - 1, y1 + 1)) and \
-                        bool(pattern.is_valid_feature(fx, fy)):
+                        bool(pattern.is_valid_feature(np.asarray(fx), np.asarray(fy))):
                     ring.append((fx, fy))
     return np.array(ring, dtype=np.int64).reshape(-1, 2)
 
@@ -352,7 +353,7 @@ def homography_from_features(fx: np.ndarray, fy: np.ndarray, x: np.ndarray, y: n
     H, _ = cv2.findHomography(src[ok], dst[ok], cv2.RANSAC, threshold_px)
     if H is None or not np.all(np.isfinite(H)) or abs(H[2, 2]) < 1e-12:
         return None
-    return H / H[2, 2]
+    return cast(np.ndarray, H / H[2, 2])
 
 
 def render_target(pattern: StarPattern, H_feature: np.ndarray, shape: tuple[int, int],
@@ -416,7 +417,7 @@ def check_labelling(image: np.ndarray, pattern: StarPattern, H_feature: np.ndarr
     small = img if scale == 1.0 else cv2.resize(img, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA)
     kernel = None
     if psf is not None:
-        k = np.clip(np.asarray(psf, dtype=np.float32), 0, None)
+        k: np.ndarray = np.clip(np.asarray(psf, dtype=np.float32), 0, None)
         size = max(1, round(k.shape[0] * scale)) | 1
         k = cv2.resize(k, (size, size), interpolation=cv2.INTER_AREA) if size != k.shape[0] else k
         kernel = k[::-1, ::-1] / k.sum() if k.sum() > 0 else None

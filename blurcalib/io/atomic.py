@@ -31,6 +31,7 @@ import tempfile
 from collections.abc import Iterable, Iterator, Sequence
 from pathlib import Path
 from types import ModuleType
+from typing import Any
 
 from blurcalib.io.csv_reader import csv_chunks
 
@@ -62,7 +63,7 @@ def storage_error(exc: OSError) -> OutputError | None:
 
 
 @contextlib.contextmanager
-def output_lock(path: str | os.PathLike) -> Iterator[Path]:
+def output_lock(path: str | os.PathLike[str]) -> Iterator[Path]:
     """Hold the output folder ``path`` for one run: a second run that asks for it, for a folder
     inside it (``calibrate``'s ``OUT/frames``, ``OUT/sharp``, ``OUT/blurry``) or for a folder around
     it while this one holds it is refused with :class:`OutputError`.
@@ -140,18 +141,18 @@ def _strict(value: object) -> object:
     return value
 
 
-def strict_json(doc: object, **kwargs: object) -> str:
+def strict_json(doc: object, **kwargs: Any) -> str:
     """``doc`` as strict JSON (RFC 8259): NaN and infinities become ``null``; ``kwargs`` go to
     ``json.dumps`` (``indent``, ``default``, ``sort_keys``)."""
     return json.dumps(_strict(doc), allow_nan=False, **kwargs)
 
 
-def atomic_write_json(path: str | os.PathLike, doc: object, **kwargs: object) -> Path:
+def atomic_write_json(path: str | os.PathLike[str], doc: object, **kwargs: object) -> Path:
     """Write ``doc`` as strict JSON (:func:`strict_json`, a trailing newline) atomically."""
     return atomic_write_text(path, strict_json(doc, **kwargs) + "\n")
 
 
-def ensure_writable_dir(path: str | os.PathLike) -> Path:
+def ensure_writable_dir(path: str | os.PathLike[str]) -> Path:
     """Create ``path`` (and parents) if needed and check that files can be written in it.
 
     Raises:
@@ -170,7 +171,7 @@ def ensure_writable_dir(path: str | os.PathLike) -> Path:
 
 
 @contextlib.contextmanager
-def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
+def atomic_path(path: str | os.PathLike[str]) -> Iterator[Path]:
     """Yield a temporary path next to ``path``; on success it is renamed onto ``path``.
 
     The caller writes the whole file to the yielded path (with any library: cv2, numpy,
@@ -208,7 +209,7 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
         raise
 
 
-def remove_temporaries(folder: str | os.PathLike) -> list[Path]:
+def remove_temporaries(folder: str | os.PathLike[str]) -> list[Path]:
     """Delete the temporary files that :func:`atomic_path` left in ``folder`` when a run was
     killed mid-write (not recursive); return their paths."""
     folder = Path(folder)
@@ -221,7 +222,7 @@ def remove_temporaries(folder: str | os.PathLike) -> list[Path]:
     return stray
 
 
-def run_manifest(folder: str | os.PathLike) -> dict | None:
+def run_manifest(folder: str | os.PathLike[str]) -> dict[str, Any] | None:
     """The run manifest of ``folder``, or None when it has none (or an unreadable one)."""
     try:
         doc = json.loads((Path(folder) / RUN_MANIFEST).read_text(encoding="utf-8"))
@@ -236,7 +237,8 @@ def _command(folder: Path) -> str | None:
     return None if manifest is None else manifest.get("command")
 
 
-def output_dir_problem(path: str | os.PathLike, command: str, extractions: Sequence[str] = ()) -> str | None:
+def output_dir_problem(path: str | os.PathLike[str], command: str,
+                       extractions: Sequence[str] = ()) -> str | None:
     """Why :func:`claim_output_dir` would refuse ``path`` as the output folder of a ``command``
     run without ``overwrite`` (a message naming the folder), or None when it would take it;
     nothing is written."""
@@ -253,7 +255,7 @@ def output_dir_problem(path: str | os.PathLike, command: str, extractions: Seque
     return None
 
 
-def claim_output_dir(path: str | os.PathLike, command: str, settings: dict,
+def claim_output_dir(path: str | os.PathLike[str], command: str, settings: dict[str, Any],
                      overwrite: bool = False, extractions: Sequence[str] = ()) -> Path:
     """Make ``path`` the output folder of a ``command`` run.
 
@@ -289,7 +291,7 @@ def claim_output_dir(path: str | os.PathLike, command: str, settings: dict,
     return folder
 
 
-def write_run_manifest(folder: str | os.PathLike, command: str, settings: dict) -> Path:
+def write_run_manifest(folder: str | os.PathLike[str], command: str, settings: dict[str, Any]) -> Path:
     """Write ``folder``'s run manifest (atomically): a ``command`` output made with ``settings``
     (JSON-serialisable). A run calls it when it publishes its outputs, before the first of them
     replaces an earlier run's."""
@@ -307,21 +309,21 @@ def _check_writable_tree(folder: Path) -> None:
                 raise OutputError(f"{sub}: output folder is not writable")
 
 
-def atomic_write_text(path: str | os.PathLike, text: str) -> Path:
+def atomic_write_text(path: str | os.PathLike[str], text: str) -> Path:
     """Write ``text`` (UTF-8) to ``path`` atomically and return the path."""
     with atomic_path(path) as tmp:
         tmp.write_text(text, encoding="utf-8")
     return Path(path)
 
 
-def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> Path:
+def atomic_write_bytes(path: str | os.PathLike[str], data: bytes) -> Path:
     """Write ``data`` to ``path`` atomically and return the path."""
     with atomic_path(path) as tmp:
         tmp.write_bytes(data)
     return Path(path)
 
 
-def atomic_write_csv(path: str | os.PathLike, header: Sequence[str],
+def atomic_write_csv(path: str | os.PathLike[str], header: Sequence[str],
                      rows: Iterable[Sequence[object]]) -> Path:
     """Write a CSV table (``header`` then ``rows``, quoted as the ``csv`` module does) atomically."""
     buffer = io.StringIO()

@@ -96,6 +96,7 @@ def read_feature_input(path: str | os.PathLike[str], pattern: TargetFeatures,
             if os.path.getsize(p) > MAX_FILE_BYTES[suffix]:
                 raise FeatureInputError(f"{p}: {byte_size(os.path.getsize(p))}, more than the "
                                         f"{byte_size(MAX_FILE_BYTES[suffix])} a features file may have")
+            assert image_size is not None  # a features.csv without one is refused above
             table, size = read_feature_table(p, MAX_TABLE_BYTES), image_size
             where = _csv_rows
             _check_ids(p, table, pattern, where)

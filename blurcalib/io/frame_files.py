@@ -18,6 +18,7 @@ import re
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 from blurcalib.io.atomic import (
     atomic_write_csv,
@@ -163,10 +164,10 @@ class FrameFiles:
 
     features: FeatureTable
     blocks: BlockTable
-    corners: list[list]
+    corners: list[list[Any]]
 
 
-def read_corner_rows(path: Path) -> list[list]:
+def read_corner_rows(path: Path) -> list[list[Any]]:
     """The rows of a ``corners.csv``: frame, corner ``(cx2, cy2)`` (ints), ``X``, ``Y`` (m), ``x``,
     ``y`` (px) and the blocks sharing it.
 

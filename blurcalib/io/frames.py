@@ -18,10 +18,11 @@ import tempfile
 import threading
 from collections.abc import Iterator, Sequence
 from pathlib import Path
-from typing import BinaryIO
+from typing import BinaryIO, Literal
 
 import cv2
 import numpy as np
+import numpy.typing as npt
 
 from blurcalib.io.input_file import InputFileError, open_input, read_input
 
@@ -74,7 +75,7 @@ class FrameSizeError(FrameError):
     """A readable frame has another size than the frames it is processed with."""
 
 
-def _natural_key(path: Path) -> tuple:
+def _natural_key(path: Path) -> tuple[tuple[int | str, ...], str]:
     """Sort key putting ``2.png`` before ``10.png``: digit runs compare as numbers.
 
     ``re.split`` with a capturing group alternates text and digit runs starting with text, so
@@ -194,7 +195,7 @@ def _tiff_size(handle: BinaryIO) -> tuple[int, int] | None:
     """``(width, height)`` from the first image file directory of a TIFF or BigTIFF
     (``ImageWidth`` 256, ``ImageLength`` 257), read without decoding."""
     head = _read_at(handle, 0, 16)
-    order = "little" if head[:2] == b"II" else "big"
+    order: Literal["little", "big"] = "little" if head[:2] == b"II" else "big"
     big = int.from_bytes(head[2:4], order) == 43
     offset = int.from_bytes(head[8:16] if big else head[4:8], order)
     count_size, entry_size, value_at = (8, 20, 12) if big else (2, 12, 8)
@@ -347,7 +348,7 @@ def load_frame(path: str | os.PathLike[str], expected_size: tuple[int, int] | No
         raise FrameError(f"{path}: cannot decode image (not a PNG, JPEG, TIFF or BMP file)")
     header = _header_size(io.BytesIO(data))
     if header is None:  # nothing is decoded whose size is unknown
-        problem = _truncation(data) or "cannot decode image (no image size in its header)"
+        problem: str | None = _truncation(data) or "cannot decode image (no image size in its header)"
         raise FrameError(f"{path}: {problem}")
     problem = frame_size_problem(*header)
     if problem is not None:
@@ -374,10 +375,10 @@ def load_frame(path: str | os.PathLike[str], expected_size: tuple[int, int] | No
     channels = 1 if image.ndim == 2 else image.shape[2]
     codes = {3: cv2.COLOR_BGR2GRAY, 4: cv2.COLOR_BGRA2GRAY}
     if channels == 1:
-        grey = image.reshape(image.shape[:2]).astype(np.float32)
+        grey: npt.NDArray[np.float32] = image.reshape(image.shape[:2]).astype(np.float32)
     elif channels in codes:
         grey = np.empty(image.shape[:2], dtype=np.float32)
-        for r0 in range(0, grey.shape[0], _CONVERT_ROWS):
+        for r0 in range(0, grey.shape[0], _CONVERT_ROWS):  # type: ignore[misc]  # numpy stubs: np.empty of shape[:2] as 0-d
             rows = image[r0:r0 + _CONVERT_ROWS].astype(np.float32)
             grey[r0:r0 + _CONVERT_ROWS] = cv2.cvtColor(rows, codes[channels])
     else:

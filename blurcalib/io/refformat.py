@@ -56,6 +56,10 @@ class TargetFeatures(Protocol):
     @property
     def features(self) -> np.ndarray: ...
 
+    def points_3d(self) -> np.ndarray:
+        """``(N, 3)`` target points ``(X, Y, 0)`` (m) of the feature ids ``0..N-1``."""
+        ...
+
     @property
     def num_features(self) -> int: ...
 
@@ -147,7 +151,7 @@ class _Reader:
         return chunk
 
     def u32(self, what: str) -> int:
-        return struct.unpack(">I", self.take(4, what))[0]
+        return int(struct.unpack(">I", self.take(4, what))[0])
 
     def array(self, dtype: np.dtype, count: int, what: str) -> np.ndarray:
         return np.frombuffer(self.take(count * dtype.itemsize, what), dtype=dtype)

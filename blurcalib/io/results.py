@@ -24,6 +24,7 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from enum import Enum, IntFlag
 from pathlib import Path
+from typing import cast
 
 import numpy as np
 
@@ -134,8 +135,8 @@ class FeatureObservation:
 
 
 # -------------------------------------------------------------------------------- column tables
-def _column(values: Sequence | np.ndarray, dtype: type, n: int | None = None) -> np.ndarray:
-    out = np.asarray(values, dtype=dtype)
+def _column(values: Sequence[object] | np.ndarray, dtype: type, n: int | None = None) -> np.ndarray:
+    out: np.ndarray = np.asarray(values, dtype=dtype)
     if out.ndim != 1 or (n is not None and len(out) != n):
         raise ValueError(f"column must be 1-D of length {n}, got shape {out.shape}")
     return out
@@ -174,14 +175,14 @@ class FeatureTable:
     @classmethod
     def empty(cls) -> FeatureTable:
         """A table with no rows."""
-        return cls(*([] for _ in FEATURE_COLUMNS))
+        return cls(np.array([], dtype=np.str_), *(np.zeros(0) for _ in FEATURE_COLUMNS[1:]))
 
     @classmethod
     def from_observations(cls, features: Sequence[FeatureObservation]) -> FeatureTable:
         """Columns of a list of observations (row order kept)."""
         if not features:
             return cls.empty()
-        return cls(*(list(col) for col in zip(*((f.frame, f.feature_id, f.fx, f.fy, f.X, f.Y, f.x, f.y,
+        return cls(*(np.asarray(col) for col in zip(*((f.frame, f.feature_id, f.fx, f.fy, f.X, f.Y, f.x, f.y,
                                                  f.weight, f.flags) for f in features), strict=True)))
 
     def to_observations(self) -> list[FeatureObservation]:
@@ -277,8 +278,10 @@ class BlockTable:
     @classmethod
     def empty(cls, kernel_size: int = 0) -> BlockTable:
         """A table with no rows and kernels of ``kernel_size``."""
-        return cls([], [], [], [], [], *([] for _ in cls._SCALARS), np.zeros((0, 2)),
-                   np.zeros((0, 3, 3)), np.zeros((0, 6)), np.zeros((0, kernel_size, kernel_size)))
+        return cls(np.array([], dtype=np.str_),
+                   **{n: np.zeros(0) for n in cls._FIELDS[1:5 + len(cls._SCALARS)]},
+                   centroid=np.zeros((0, 2)), H=np.zeros((0, 3, 3)), coeffs=np.zeros((0, 6)),
+                   psf=np.zeros((0, kernel_size, kernel_size)))
 
     @property
     def centre(self) -> np.ndarray:
@@ -288,7 +291,7 @@ class BlockTable:
     @property
     def accepted(self) -> np.ndarray:
         """``(B,)`` bool, the blocks whose status is ``accepted``."""
-        return self.status == BlockStatus.ACCEPTED.value
+        return cast(np.ndarray, self.status == BlockStatus.ACCEPTED.value)
 
     @property
     def blur_per_square(self) -> np.ndarray:
@@ -322,7 +325,7 @@ class BlockTable:
 
         def column(t: BlockTable, name: str) -> np.ndarray:
             if name != "psf":
-                return getattr(t, name)
+                return cast(np.ndarray, getattr(t, name))
             p = (size - t.psf.shape[1]) // 2
             return np.pad(t.psf, ((0, 0), (p, p), (p, p)))
 
@@ -374,6 +377,7 @@ def write_features(path: str | os.PathLike[str],
 def write_blocks(csv_path: str | os.PathLike[str], npz_path: str | os.PathLike[str],
                  t: BlockTable) -> tuple[Path, Path]:
     """Write ``blocks.csv`` and ``psfs.npz`` atomically (each on its own); return their paths."""
+    assert t.loss_extent is not None and t.noise_var is not None  # filled in by BlockTable
     cols = [_str_strings(t.frame), *(_int_strings(getattr(t, n)) for n in ("feature_id", "fx", "fy")),
             _str_strings(t.status), *(_float_strings(getattr(t, n)) for n in BlockTable._SCALARS),
             *(_float_strings(t.centroid[:, i]) for i in range(2)),
@@ -456,9 +460,9 @@ def read_feature_table(path: str | os.PathLike[str], max_bytes: int | None = Non
     for first, cols in csv_chunks(p, FEATURE_COLUMNS, ResultsFileError, "results file"):
         part = FeatureTable(
             np.array(cols["frame"], dtype=np.str_),
-            *(_ints(p, cols, n, first) for n in ("feature_id", "fx", "fy")),
-            *(_floats(p, cols, n, first) for n in ("X", "Y", "x", "y", "weight")),
-            _ints(p, cols, "flags", first))
+            **{n: _ints(p, cols, n, first) for n in ("feature_id", "fx", "fy")},
+            **{n: _floats(p, cols, n, first) for n in ("X", "Y", "x", "y", "weight")},
+            flags=_ints(p, cols, "flags", first))
         parts.append(part)
         rows, longest = rows + len(part), max(longest, part.frame.dtype.itemsize // 4)
         if max_bytes is not None and table_bytes(rows, longest) > max_bytes:
@@ -533,13 +537,14 @@ def read_block_files(csv_path: Path, npz_path: Path) -> BlockTable:
         differs = arrays[key] != ours
         if key == "H":
             differs &= ~(np.isnan(arrays[key]) & np.isnan(ours))
-        bad = np.flatnonzero(differs.reshape(n, -1).any(axis=1)) if n else []
+        bad: Sequence[int] | np.ndarray = np.flatnonzero(differs.reshape(n, -1).any(axis=1)) if n else []
         if len(bad):
             raise ResultsFileError(f"{npz_path}: array '{key}' differs from {csv_path.name} at row "
                                    f"{bad[0] + 1}")
     return BlockTable(
         frame, feature_id, _ints(csv_path, cols, "fx"), _ints(csv_path, cols, "fy"),
-        _status(csv_path, cols["status"]), *(_floats(csv_path, cols, c) for c in BlockTable._SCALARS),
-        np.stack([_floats(csv_path, cols, c) for c in ("centroid_x", "centroid_y")], axis=1), H,
-        np.stack([_floats(csv_path, cols, c) for c in COEFF_COLUMNS], axis=1), arrays["psf"],
-        *(_floats(csv_path, cols, c) if c in cols else None for c in BLOCK_COLUMNS[-2:]))
+        _status(csv_path, cols["status"]), **{c: _floats(csv_path, cols, c) for c in BlockTable._SCALARS},
+        centroid=np.stack([_floats(csv_path, cols, c) for c in ("centroid_x", "centroid_y")], axis=1), H=H,
+        coeffs=np.stack([_floats(csv_path, cols, c) for c in COEFF_COLUMNS], axis=1), psf=arrays["psf"],
+        loss_extent=_floats(csv_path, cols, "loss_extent") if "loss_extent" in cols else None,
+        noise_var=_floats(csv_path, cols, "noise_var") if "noise_var" in cols else None)

@@ -206,7 +206,7 @@ def read_video_frame(path: str | os.PathLike[str], index: int) -> np.ndarray:
             capture.release()
             capture = _open(path)
             ok = all(capture.grab() for _ in range(index))
-            ok, frame = capture.read() if ok else (False, None)
+            ok, frame = capture.read() if ok else (False, None)  # type: ignore[assignment]  # cv2 reads None on failure
     except cv2.error as exc:
         raise FrameError(f"{path} frame {index}: cannot decode ({' '.join(str(exc).split())})") from None
     finally:

@@ -247,7 +247,8 @@ class BatchProblem(Protocol):
         cost: ``(B,)`` float64, the items' current costs.
     """
 
-    cost: Array
+    @property
+    def cost(self) -> Array: ...
 
     def solve(self, lam: Array, going: Array) -> Array | None:
         """Solve the damped system of the items ``going (B,)`` with dampings ``lam (B,)``,

@@ -48,7 +48,7 @@ import math
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import cv2
 import numpy as np
@@ -271,7 +271,7 @@ def own_fit_distances(reference: BrownConrady, points: np.ndarray, observed: np.
 
 
 def _distances(residuals: np.ndarray) -> np.ndarray:
-    return np.hypot(residuals[:, 0], residuals[:, 1])
+    return cast(np.ndarray, np.hypot(residuals[:, 0], residuals[:, 1]))
 
 
 def align_frame(reference: BrownConrady, frame: SimulatedFeatures, shift: np.ndarray,
@@ -488,6 +488,7 @@ def save_fig_exp42(experiment: AlignmentExperiment, path: str | Path, loss: str 
             ax.set_ylim(h - 1, 0)
             ax.set_aspect("equal")
             ax.tick_params(labelsize=6)
+    assert image is not None  # at least one panel
     fig.colorbar(image, ax=axes[1, :].tolist(), shrink=0.8, label="residual (px)")
     fig.suptitle(f"Reprojection residual direction and magnitude, {loss} loss (paper fig:exp42)",
                  fontsize=9)

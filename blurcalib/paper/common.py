@@ -14,12 +14,13 @@ import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TypeVar
+from typing import Any, TypeVar
 
 import numpy as np
 
 from blurcalib.deconv.settings import DeconvSettings
 from blurcalib.extract.frame import ExtractSettings, FrameResult, extract_frame
+from blurcalib.growth.ledger import Growth
 from blurcalib.growth.settings import GrowSettings
 from blurcalib.growth.window import WindowPolicy
 from blurcalib.io.atomic import OutputError
@@ -153,6 +154,12 @@ class ExtractedFrame:
         """Extraction succeeded with at least one accepted block."""
         return self.result.status is FrameStatus.OK and self.result.growth is not None
 
+    @property
+    def growth(self) -> Growth:
+        """The growth of a frame whose extraction reached it (every frame that is :attr:`ok`)."""
+        assert self.result.growth is not None, f"{self.name}: extraction ended before the growth"
+        return self.result.growth
+
     def summary(self) -> str:
         """One progress line: status, block counts, true median blur, time."""
         growth = self.result.growth
@@ -208,7 +215,7 @@ def experiment_parser(name: str, description: str, outputs: str, settings: type 
     return parser
 
 
-def settings_from(settings: type[S], options: Sequence[Option], args: argparse.Namespace, **fixed) -> S:
+def settings_from(settings: type[S], options: Sequence[Option], args: argparse.Namespace, **fixed: Any) -> S:
     """The ``settings`` dataclass of the parsed ``options``, with the ``fixed`` fields."""
     return settings(**{o.field: getattr(args, o.field) for o in options}, **fixed)
 

@@ -43,7 +43,7 @@ import json
 import math
 import sys
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -140,7 +140,7 @@ def _blur_motion(camera: TrueCamera, pose: Pose, points: np.ndarray, rng: np.ran
     xi2 = np.zeros(6)
     if curved:
         xi2 = np.concatenate([rng.normal(size=3), rng.normal(size=3) * 0.3 * depth])
-        xi2 *= rng.uniform(0.4, 1.0) * np.linalg.norm(xi) / max(np.linalg.norm(xi2), 1e-12)
+        xi2 *= rng.uniform(0.4, 1.0) * np.linalg.norm(xi) / max(float(np.linalg.norm(xi2)), 1e-12)
     scale = 1.0
     for _ in range(2):
         m = Motion(xi * scale, xi2 * scale, 33)
@@ -292,6 +292,7 @@ def run_generic_experiment(settings: GenericSettings | None = None,
     pattern = pattern or layout_pattern()
     truth = d435i_like_camera(settings.seed, settings.deviation_px)
     W, H = truth.model.width, truth.model.height
+    say: Callable[[str], None]
     say = (lambda msg: print(msg, file=sys.stderr, flush=True)) if progress else (lambda msg: None)
     say(f"simulating {settings.sharp} sharp and {settings.blurry} blurry frames")
     frames = simulate_frames(settings, pattern, truth)

@@ -24,7 +24,7 @@ import math
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import matplotlib
 import numpy as np
@@ -164,7 +164,7 @@ def glyph_kernel(char: str, size: int = 15, sigma: float = 0.8, margin_px: float
         ink ^= MplPath(poly).contains_points(points)
     coverage = ink.reshape(size, supersample, size, supersample).mean(axis=(1, 3))
     kernel = gaussian_filter(coverage, sigma, mode="constant")
-    return kernel / kernel.sum()
+    return cast(np.ndarray, kernel / kernel.sum())
 
 
 # ------------------------------------------------------------------------------ latent images
@@ -191,7 +191,7 @@ def pattern_intensity(pattern: str, p: np.ndarray, num_segments: int = 16) -> np
     if pattern == "star":
         return star_sector_white(px - np.round(px), py - np.round(py), num_segments).astype(float)
     if pattern == "checkerboard":
-        return np.mod(np.floor(px) + np.floor(py), 2.0)
+        return cast(np.ndarray, np.mod(np.floor(px) + np.floor(py), 2.0))
     raise ValueError(f"unknown pattern {pattern!r}; expected one of {', '.join(PATTERNS)}")
 
 
@@ -216,7 +216,7 @@ def latent_image(pattern: str, size: int, square_px: float = 32.0, num_segments:
     pix = np.stack([x, y, np.ones_like(x)], axis=-1) @ np.linalg.inv(h).T
     p = pix[..., :2] / pix[..., 2:]
     value = pattern_intensity(pattern, p, num_segments)
-    return value.reshape(size, supersample, size, supersample).mean(axis=(1, 3))
+    return cast(np.ndarray, value.reshape(size, supersample, size, supersample).mean(axis=(1, 3)))
 
 
 def window_gram(latent: np.ndarray, kernel_size: int) -> np.ndarray:
@@ -267,7 +267,7 @@ def blur_valid(latent: np.ndarray, kernel: np.ndarray) -> np.ndarray:
     Returns:
         ``(S - K + 1, S - K + 1)``; pixel ``(y, x)`` sees latent pixel ``(y + c, x + c)``.
     """
-    return convolve2d(latent, kernel, mode="valid")
+    return cast(np.ndarray, convolve2d(latent, kernel, mode="valid"))
 
 
 # ----------------------------------------------------------------------------------- solver
@@ -324,7 +324,7 @@ class KernelSolver:
         total = kernel.sum()
         if unit_sum and total > 0:
             kernel = kernel / total
-        return kernel
+        return cast(np.ndarray, kernel)
 
 
 # ---------------------------------------------------------------------------------- metrics
@@ -353,7 +353,7 @@ def ssim(a: np.ndarray, b: np.ndarray, data_range: float = 1.0, sigma: float = 1
     inner = (slice(radius, a.shape[0] - radius), slice(radius, a.shape[1] - radius))
 
     def local_mean(z: np.ndarray) -> np.ndarray:
-        return gaussian_filter(z, sigma, mode="constant", truncate=radius / sigma)[inner]
+        return cast(np.ndarray, gaussian_filter(z, sigma, mode="constant", truncate=radius / sigma)[inner])
 
     mu_a, mu_b = local_mean(a), local_mean(b)
     var_a = local_mean(a * a) - mu_a**2

@@ -39,7 +39,7 @@ def field_variation(frame: ExtractedFrame, camera: TrueCamera, pattern: StarPatt
     same blur everywhere), large with roll (blur turning and growing away from the roll centre)
     or zoom.
     """
-    growth = frame.result.growth
+    growth = frame.growth
     ids = growth.feature_id[growth.accepted]
     poses = frame.truth.motion.poses(frame.truth.pose)
     if len(ids) < 2 or len(poses) < 2:
@@ -78,12 +78,12 @@ def choose_field_frame(frames: Sequence[ExtractedFrame], camera: TrueCamera, pat
     drifting PSFs sit near the border) and its ``magnified - 1`` nearest accepted neighbours on
     the grid (Manhattan distance, ties broken by the Chebyshev distance).
     """
-    ok = [i for i, f in enumerate(frames) if f.ok and f.result.growth.accepted.sum() >= 2]
+    ok = [i for i, f in enumerate(frames) if f.ok and f.growth.accepted.sum() >= 2]
     if not ok:
         return None
 
     def fits(i: int) -> bool:
-        g = frames[i].result.growth
+        g = frames[i].growth
         acc = g.accepted
         return acc.sum() >= 12 and float(np.median(g.fit.boundary_energy[acc])) <= tau_be
 
@@ -95,7 +95,7 @@ def choose_field_frame(frames: Sequence[ExtractedFrame], camera: TrueCamera, pat
     eligible = [i for i in fitting if blurred(i)] or fitting or ok
     scores = {i: field_variation(frames[i], camera, pattern) for i in eligible}
     best = max(eligible, key=lambda i: scores[i])
-    growth = frames[best].result.growth
+    growth = frames[best].growth
     fit = growth.fit
     acc = np.flatnonzero(growth.accepted)
     good = acc[fit.boundary_energy[acc] <= tau_be]
@@ -126,7 +126,7 @@ def psf_mosaic(frame: ExtractedFrame, psfs: np.ndarray, zoom: int = 2, fill: flo
     """
     w, h = frame.image_size
     canvas = np.zeros((h * zoom, w * zoom))
-    growth = frame.result.growth
+    growth = frame.growth
     fit = growth.fit
     acc = np.flatnonzero(growth.accepted)
     corners = apply_homography(fit.H[acc], np.broadcast_to(SQUARE_CORNERS, (len(acc), 4, 2)))
@@ -153,8 +153,8 @@ def save_fig_exp_real1(frames: Sequence[ExtractedFrame], choice: FieldChoice, pa
     centroid correction, and the magnified PSFs of the red-boxed region (bottom row: each
     block's PSF before and after; a cross at the kernel centre, a dot at the centroid)."""
     frame = frames[choice.frame]
-    fit = frame.result.growth.fit
-    acc = frame.result.growth.accepted
+    fit = frame.growth.fit
+    acc = frame.growth.accepted
     n = len(choice.region)
     fig = Figure(figsize=(12.0, 6.6), dpi=110)
     FigureCanvasAgg(fig)

@@ -46,7 +46,7 @@ import math
 from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
@@ -130,12 +130,12 @@ class BlockFigures:
     @property
     def error_fit(self) -> np.ndarray:
         """``(n,)`` px, distance of the un-re-centred star centre to the true time-averaged one."""
-        return np.linalg.norm(self.centre_fit - self.true_mean, axis=1)
+        return cast(np.ndarray, np.linalg.norm(self.centre_fit - self.true_mean, axis=1))
 
     @property
     def error_recentred(self) -> np.ndarray:
         """``(n,)`` px, distance of the re-centred star centre to the true time-averaged one."""
-        return np.linalg.norm(self.centre - self.true_mean, axis=1)
+        return cast(np.ndarray, np.linalg.norm(self.centre - self.true_mean, axis=1))
 
 
 def block_figures(frames: Sequence[ExtractedFrame], pattern: StarPattern) -> BlockFigures:
@@ -144,7 +144,7 @@ def block_figures(frames: Sequence[ExtractedFrame], pattern: StarPattern) -> Blo
     for i, f in enumerate(frames):
         if not f.ok:
             continue
-        growth = f.result.growth
+        growth = f.growth
         fit = growth.fit
         k = np.flatnonzero(np.isfinite(fit.loss) & np.isfinite(fit.boundary_energy)
                            & np.isfinite(fit.sigma_major))
@@ -496,7 +496,7 @@ def results_json(experiment: PsfQualityExperiment, seed: int) -> dict[str, Any]:
     b = experiment.blocks
     frames = experiment.frames
 
-    def column(values: np.ndarray) -> list:
+    def column(values: np.ndarray) -> list[Any]:
         return [finite(v) for v in np.asarray(values, dtype=np.float64).tolist()]
 
     choice = experiment.field
@@ -512,7 +512,7 @@ def results_json(experiment: PsfQualityExperiment, seed: int) -> dict[str, Any]:
         "frames": experiment.rows,
         "field_frame": None if choice is None else {
             "frame": frames[choice.frame].name, "variation": finite(choice.variation),
-            "region_features": [int(frames[choice.frame].result.growth.feature_id[k]) for k in choice.region],
+            "region_features": [int(frames[choice.frame].growth.feature_id[k]) for k in choice.region],
             "region_box_px": [finite(v) for v in choice.box]},
         "blocks": {
             "frame": [frames[i].name for i in b.frame.tolist()],

@@ -216,7 +216,7 @@ def config_homographies(frame: ExtractedFrame, config: str) -> np.ndarray:
     ``H(0, 0)`` are the star centres: ``H_fit`` for ``raw``, ``H`` otherwise, with the
     extraction's local alignment for the accepted blocks in ``local_aligned``
     (``local_aligned_kept`` re-solves it after filtering, :func:`sweep_frame`)."""
-    growth = frame.result.growth
+    growth = frame.growth
     if config == "raw":
         return growth.fit.H_fit
     H = growth.fit.H.copy()
@@ -229,7 +229,7 @@ def true_floor(frame: ExtractedFrame, camera: TrueCamera, pattern: StarPattern) 
     """Median true error (px) of the exact time-averaged positions of the frame's accepted
     blocks, the pose refitted: what a perfect extraction would score (the blur path is not a
     single perspective view)."""
-    growth = frame.result.growth
+    growth = frame.growth
     ids = growth.feature_id[growth.accepted]
     if len(ids) < 6:
         return math.nan
@@ -241,8 +241,8 @@ def true_floor(frame: ExtractedFrame, camera: TrueCamera, pattern: StarPattern) 
 
 def _align(frame: ExtractedFrame, kept: np.ndarray, centre: np.ndarray, bias: str, calibration: Calibration,
            camera: TrueCamera, pattern: StarPattern, settings: SweepSettings) -> FrameAlignment:
-    fit = frame.result.growth.fit
-    ids = frame.result.growth.feature_id[kept]
+    fit = frame.growth.fit
+    ids = frame.growth.feature_id[kept]
     try:
         ga = align_blocks(calibration.camera, pattern, calibration.points, ids, centre[kept], fit.loss[kept],
                           AlignmentSettings(loss=settings.loss, bias=bias, min_blocks=settings.min_blocks))
@@ -354,6 +354,7 @@ def calibrate(sim: Simulator, settings: SweepSettings, seed: int,
               progress: Callable[[str], None] | None = None) -> Calibration:
     """``pi_d`` and the target points from the sharp frames (``settings.sharp_source``)."""
     indices = range(settings.sharp)
+    observations: FeatureTable | list[FeatureObservation]
     if settings.sharp_source == "truth":
         observations = sharp_observations_from_truth(sim, indices, settings.sharp_noise_px, seed)
     else:
@@ -419,7 +420,7 @@ def results_json(experiment: SweepExperiment, seed: int) -> dict[str, Any]:
             "true_median_blur_px": finite(np.median(f.truth.blur_length[f.truth.visible])),
             "true_floor_px": finite(experiment.floors[i])}
         if f.ok:
-            row["accepted"] = int(f.result.growth.accepted.sum())
+            row["accepted"] = int(f.growth.accepted.sum())
             if f.result.local is not None:
                 row["local_alignment_rms_px"] = [finite(f.result.local.rms_before),
                                                  finite(f.result.local.rms_after)]

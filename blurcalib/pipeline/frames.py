@@ -12,6 +12,7 @@ from __future__ import annotations
 import math
 from dataclasses import replace
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -80,11 +81,12 @@ def blurry_row(extracted: FrameRecord, outcome: BlurryOutcome | None, settings: 
         return _calibrated(extracted, "blurry", FrameStatus.NO_BLOCKS,
                            "a feature file holds no blocks to align to the parametric camera (the "
                            "generic model uses it)")
-    flt, figures = outcome.filter, dict[str, object]()
+    flt, figures = outcome.filter, dict[str, Any]()
     velocity = (velocity_px or {}).get(outcome.frame.name)
     if velocity is not None and math.isfinite(velocity):
         figures.update(velocity_px=round(float(velocity), 3))
     if flt is not None:
+        assert outcome.blocks is not None  # filtered from them
         figures.update(blocks=len(outcome.blocks), kept=int(flt.kept.sum()),
                        centre_sigma_major=round(flt.centre_sigma_major, 3), filter_counts=flt.counts())
         if not flt.frame_ok:

@@ -96,8 +96,8 @@ def rig_report(result: RigCalibration, features: Sequence[Path], inputs: Sequenc
             "pixel_convention": "opencv (top-left pixel centre at (0, 0))"}
 
 
-def calibrate_rig_features(features: Sequence[str | os.PathLike], pattern: StarPattern,
-                           out_dir: str | os.PathLike, image_size: tuple[int, int] | None = None,
+def calibrate_rig_features(features: Sequence[str | os.PathLike[str]], pattern: StarPattern,
+                           out_dir: str | os.PathLike[str], image_size: tuple[int, int] | None = None,
                            cell_px: float = DEFAULT_CELL_PX, maps: bool = True, overwrite: bool = False
                            ) -> RigRun:
     """Calibrate the rig whose cameras' features are ``features`` (one file per camera, camera 0

@@ -46,10 +46,10 @@ from __future__ import annotations
 import os
 import shutil
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
-from typing import TypeVar
+from typing import Any, TypeVar
 
 import cv2
 import numpy as np
@@ -159,7 +159,7 @@ class PipelineSettings:
     workers: int = 1
     cluster: str | None = None
 
-    def to_dict(self) -> dict:
+    def to_dict(self) -> dict[str, Any]:
         """The settings that decide the results (``report.json``'s ``settings``): all but
         ``workers`` and ``cluster``."""
         return {k: v for k, v in asdict(self).items() if k not in ("workers", "cluster")}
@@ -185,23 +185,23 @@ class PipelineReport:
     the features are written all the same), else "", and ``assessment_failure`` why the generic
     camera (or the sharp-only one) has no assessment, else ""."""
 
-    calibration: dict
+    calibration: dict[str, Any]
     frames: list[FrameRecord]
     outputs: dict[str, str]
     counts: dict[str, dict[str, int]]
-    settings: dict
-    generic: dict | None = None
-    generic_sharp: dict | None = None
-    undistortion: dict | None = None
-    trust: dict | None = None
-    rolling_shutter: dict | None = None
-    capture: dict | None = None
-    parametric_choice: dict | None = None
+    settings: dict[str, Any]
+    generic: dict[str, Any] | None = None
+    generic_sharp: dict[str, Any] | None = None
+    undistortion: dict[str, Any] | None = None
+    trust: dict[str, Any] | None = None
+    rolling_shutter: dict[str, Any] | None = None
+    capture: dict[str, Any] | None = None
+    parametric_choice: dict[str, Any] | None = None
     generic_failure: str = ""
     assessment_failure: str = ""
     seconds: dict[str, float] = field(default_factory=dict)
 
-    def to_dict(self) -> dict:
+    def to_dict(self) -> dict[str, Any]:
         """The ``report.json`` document: the fields, with ``trust``'s sections (``validation``,
         ``uncertainty``, ``cross_validation``, ``guidance``, ``blurry_frames_gain``) at the top."""
         out = {**{k: v for k, v in vars(self).items() if k != "frames"},
@@ -251,7 +251,7 @@ def _check_sizes(sharp: Sequence[Path | FrameInput], blurry: Sequence[Path | Fra
 
 
 def run_pipeline(sharp: Sequence[Path], blurry: Sequence[Path], pattern: StarPattern,
-                 out_dir: str | os.PathLike, settings: PipelineSettings | None = None,
+                 out_dir: str | os.PathLike[str], settings: PipelineSettings | None = None,
                  progress: Callable[[str, RunEvent], None] | None = None,
                  overwrite: bool = False, mixed: Sequence[FrameInput] = (),
                  on_stage: Callable[[str], None] | None = None) -> PipelineReport:
@@ -339,7 +339,7 @@ def _extract(sharp: Sequence[Path], blurry: Sequence[Path], mixed: Sequence[Fram
 
     pool = ProcessPool(s.workers)  # the sharp and blurry folders share the worker processes
 
-    def extract(frames: Sequence, folder: str, settings: ExtractSettings) -> list[FrameRecord]:
+    def extract(frames: Sequence[Any], folder: str, settings: ExtractSettings) -> list[FrameRecord]:
         done = extract_to_folder(frames, pattern, out / folder, settings, workers=s.workers,
                                  progress=stage(folder), expected_size=size, overwrite=overwrite,
                                  cluster=s.cluster, pool=pool)
@@ -349,8 +349,8 @@ def _extract(sharp: Sequence[Path], blurry: Sequence[Path], mixed: Sequence[Fram
         if mixed:
             rows = extract(mixed, MIXED, replace(s.extraction, kind="auto"))
         else:
-            rows = {"sharp": extract(sharp, "sharp", ExtractSettings.sharp(deconv=s.extraction.deconv)),
-                    "blurry": extract(blurry, "blurry", s.extraction)}
+            by_kind = {"sharp": extract(sharp, "sharp", ExtractSettings.sharp(deconv=s.extraction.deconv)),
+                       "blurry": extract(blurry, "blurry", s.extraction)}
     if mixed:
         features = _with_kind(read_feature_table(out / MIXED / FEATURES_FILE), MIXED)
         blocks = _with_kind(read_block_table(out / MIXED), MIXED)
@@ -361,11 +361,11 @@ def _extract(sharp: Sequence[Path], blurry: Sequence[Path], mixed: Sequence[Fram
                           features, blocks.select(is_sharp), blocks.select(~is_sharp))
     features = FeatureTable.concat([_with_kind(read_feature_table(out / kind / FEATURES_FILE), kind)
                                     for kind in KINDS])
-    return _Extracted(rows, features, _with_kind(read_block_table(out / "sharp"), "sharp"),
+    return _Extracted(by_kind, features, _with_kind(read_block_table(out / "sharp"), "sharp"),
                       _with_kind(read_block_table(out / "blurry"), "blurry"))
 
 
-def _rows(sharp: list[FrameRecord], blurry: list[FrameRecord], outcomes: dict[str, BlurryOutcome | None],
+def _rows(sharp: list[FrameRecord], blurry: list[FrameRecord], outcomes: Mapping[str, BlurryOutcome | None],
           run: CalibrationRun, s: SequenceSettings) -> list[FrameRecord]:
     """Every frame's row, sharp frames first, each decided once from what the run made of it."""
     velocity = None if run.rolling_shutter is None else run.rolling_shutter.velocity_px
@@ -419,7 +419,7 @@ def _calibration_seconds(run: CalibrationRun) -> dict[str, float]:
     return seconds
 
 
-def run_from_features(path: str | os.PathLike, pattern: StarPattern, out_dir: str | os.PathLike,
+def run_from_features(path: str | os.PathLike[str], pattern: StarPattern, out_dir: str | os.PathLike[str],
                       settings: PipelineSettings | None = None, image_size: tuple[int, int] | None = None,
                       overwrite: bool = False) -> PipelineReport:
     """Calibrate from an existing feature file instead of images
@@ -467,7 +467,7 @@ def run_from_features(path: str | os.PathLike, pattern: StarPattern, out_dir: st
 
 def _publish_run(out: Path, pattern: StarPattern, size: tuple[int, int], s: PipelineSettings,
                  rows: list[FrameRecord], run: CalibrationRun, seconds: dict[str, float],
-                 capture: CaptureCheck, manifest: dict) -> PipelineReport:
+                 capture: CaptureCheck, manifest: dict[str, Any]) -> PipelineReport:
     """Write the run's output set into ``OUT/.staging`` and publish it (:func:`_publish`) with the
     run manifest naming ``manifest`` (the run's settings); a failed write (a full disk) removes the
     staging folder and leaves the earlier outputs, and the manifest naming their settings, as they
@@ -534,7 +534,7 @@ def _with_kind(table: Table, folder: str) -> Table:
     return replace(table, frame=np.char.add(f"{folder}/", table.frame))
 
 
-def _publish(staging: Path, out: Path, manifest: dict) -> None:
+def _publish(staging: Path, out: Path, manifest: dict[str, Any]) -> None:
     """Move the output set staged in ``staging`` into ``out``.
 
     ``report.json`` (the completion marker) is removed first, the run manifest is then rewritten
@@ -583,11 +583,11 @@ def _write_outputs(out: Path, pattern: StarPattern, size: tuple[int, int], rows:
 
     # Reprojection-error directions: the parametric alignment of the blurry frames, the sharp-set
     # calibration and, when fitted, the generic camera (its inliers).
-    aligned = [o for o in run.blurry if o.alignment is not None]
+    aligned = [(o.raw, o.alignment) for o in run.blurry if o.alignment is not None and o.raw is not None]
     if aligned:
         direction_image("error_directions_blurry",
-                        np.concatenate([np.stack([o.raw.x, o.raw.y], axis=1) for o in aligned]),
-                        np.concatenate([o.alignment.residuals for o in aligned]),
+                        np.concatenate([np.stack([raw.x, raw.y], axis=1) for raw, _ in aligned]),
+                        np.concatenate([ga.residuals for _, ga in aligned]),
                         "blurry frames after alignment to the parametric camera")
     direction_image("error_directions_sharp", calibration.observed, calibration.residuals,
                     "sharp frames under the parametric camera")

@@ -8,7 +8,7 @@ sum to 1 unless stated.
 
 from __future__ import annotations
 
-from typing import NamedTuple
+from typing import NamedTuple, cast, overload
 
 import numpy as np
 
@@ -85,10 +85,18 @@ def psf_moments(psf: np.ndarray) -> PsfMoments:
     return PsfMoments(centroid, major, minor, ecc, orient)
 
 
+@overload
+def blur_extent(sigma_major: float) -> float: ...
+
+
+@overload
+def blur_extent(sigma_major: np.ndarray) -> np.ndarray: ...
+
+
 def blur_extent(sigma_major: np.ndarray | float) -> np.ndarray | float:
     """Blur extent (px) of PSFs with major-axis second moment ``sigma_major`` (px): ``sqrt(12)
     sigma_major``, the length of a straight blur with that second moment."""
-    return np.sqrt(12.0) * sigma_major
+    return cast("np.ndarray | float", np.sqrt(12.0) * sigma_major)
 
 
 def blur_per_square(sigma_major: np.ndarray, H: np.ndarray) -> np.ndarray:
@@ -140,7 +148,7 @@ def psf_centroid(psf: np.ndarray, threshold: float = 0.0) -> np.ndarray:
     offs = np.arange(k.shape[-1], dtype=np.float64) - c
     with np.errstate(invalid="ignore", divide="ignore"):
         out = np.stack([w.sum(axis=1) @ offs, w.sum(axis=2) @ offs], axis=1) / total[:, None]
-    return out[0] if single else out
+    return cast(np.ndarray, out[0] if single else out)
 
 
 def resize_kernels(k: np.ndarray, size: int) -> np.ndarray:

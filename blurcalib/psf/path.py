@@ -32,7 +32,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, cast
 
 import cv2
 import numpy as np
@@ -60,7 +60,8 @@ def _path_points(theta: np.ndarray) -> np.ndarray:
     """``(B, T, 2)`` px: the path ``p(tau_t)`` of ``eq:path_psf`` at its :data:`PATH_SAMPLES`
     time samples for path parameters ``theta (B, 5)``."""
     basis = _basis_in_time(PATH_SAMPLES, torch.float64, torch.device("cpu")).numpy()
-    return np.einsum("tj,bjc->btc", basis, np.asarray(theta, dtype=np.float64)[:, :4].reshape(-1, 2, 2))
+    return cast(np.ndarray,
+                np.einsum("tj,bjc->btc", basis, np.asarray(theta, dtype=np.float64)[:, :4].reshape(-1, 2, 2)))
 
 
 def path_kernels(theta: torch.Tensor, size: int, with_jac: bool = False, samples: int = PATH_SAMPLES
@@ -134,7 +135,8 @@ class PathField:
     def reach(self, xy: np.ndarray) -> np.ndarray:
         """``(B,)`` px: the largest distance of the path from the star's time-averaged image,
         plus three Gaussian widths (what a window must hold)."""
-        return np.abs(_path_points(self.theta(xy))).max(axis=(1, 2)) + 3.0 * math.exp(self.log_sigma)
+        return cast(np.ndarray,
+                    np.abs(_path_points(self.theta(xy))).max(axis=(1, 2)) + 3.0 * math.exp(self.log_sigma))
 
     def path_change(self, other: PathField, xy: np.ndarray) -> np.ndarray:
         """``(B,)`` px: how far ``other``'s paths at image points ``xy (B, 2)`` px lie from this
@@ -145,7 +147,8 @@ class PathField:
         p, q = _path_points(mine), _path_points(theirs)
         forward = np.linalg.norm(p - q, axis=2).max(axis=1)
         backward = np.linalg.norm(p - q[:, ::-1], axis=2).max(axis=1)  # tau -> -tau: a -> -a
-        return np.minimum(forward, backward) + np.abs(np.exp(mine[:, 4]) - np.exp(theirs[:, 4]))
+        return cast(np.ndarray,
+                    np.minimum(forward, backward) + np.abs(np.exp(mine[:, 4]) - np.exp(theirs[:, 4])))
 
     def kernel_size(self, xy: np.ndarray, largest: int) -> int:
         """The odd window side (px) that holds the paths at ``xy``, at most ``largest``."""
@@ -155,8 +158,8 @@ class PathField:
     def kernels(self, xy: np.ndarray, size: int) -> np.ndarray:
         """``(B, K, K)`` float64 path PSFs at ``xy (B, 2)`` px, each summing to 1."""
         k, _ = path_kernels(torch.as_tensor(self.theta(xy)), size)
-        k = k.numpy()
-        return k / k.sum(axis=(1, 2), keepdims=True)
+        out = k.numpy()
+        return cast(np.ndarray, out / out.sum(axis=(1, 2), keepdims=True))
 
     def with_degree(self, degree: int) -> PathField:
         """The same field as a polynomial of ``degree`` (higher terms 0; lower ones dropped)."""

@@ -90,8 +90,8 @@ def _value(value: R) -> R:
     return value
 
 
-def run_on_cluster(address: str, fn: Callable[..., R], tasks: Sequence[tuple],
-                   shared: tuple = (), timeout_s: float = 30.0,
+def run_on_cluster(address: str, fn: Callable[..., R], tasks: Sequence[tuple[Any, ...]],
+                   shared: tuple[Any, ...] = (), timeout_s: float = 30.0,
                    names: Sequence[str] | None = None) -> Generator[tuple[int, R], None, None]:
     """Run ``fn(*task, *shared)`` for every task on the Dask scheduler at ``address``.
 
@@ -151,7 +151,7 @@ def _lost(exc: BaseException) -> str | None:
     the task itself."""
     from concurrent.futures import CancelledError
 
-    from distributed.comm import CommClosedError
+    from distributed.comm.core import CommClosedError
     from distributed.scheduler import KilledWorker
 
     if isinstance(exc, KilledWorker):

@@ -103,7 +103,7 @@ class ProcessPool:
     def side_by_side(self, frames: int) -> int:
         return self.workers if self.workers > 1 else 0
 
-    def submit(self, task: FrameTask, job: FrameJob) -> Future:
+    def submit(self, task: FrameTask, job: FrameJob) -> Future[FrameResult]:
         """Process a task in a worker; the processes start on the first task."""
         if self._executor is None:
             spawn = multiprocessing.get_context("spawn")

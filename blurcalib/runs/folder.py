@@ -156,7 +156,7 @@ class _Run:
         return outputs
 
 
-def run_frames(frames: Sequence[FrameInput | Path], pattern: StarPattern, out_dir: str | os.PathLike,
+def run_frames(frames: Sequence[FrameInput | Path], pattern: StarPattern, out_dir: str | os.PathLike[str],
                settings: ExtractSettings | None = None, executor: Executor | None = None,
                progress: Progress | None = None, expected_size: tuple[int, int] | None = None,
                overwrite: bool = False, cancel: threading.Event | None = None,
@@ -219,8 +219,9 @@ def run_frames(frames: Sequence[FrameInput | Path], pattern: StarPattern, out_di
     return RunSummary([run.records[n] for n in todo if n in run.records], skipped, outputs)
 
 
-def extract_to_folder(frames: Sequence[FrameInput | Path], pattern: StarPattern, out_dir: str | os.PathLike,
-                      settings: ExtractSettings | None = None, workers: int = 1,
+def extract_to_folder(frames: Sequence[FrameInput | Path], pattern: StarPattern,
+                      out_dir: str | os.PathLike[str], settings: ExtractSettings | None = None,
+                      workers: int = 1,
                       progress: Progress | None = None, expected_size: tuple[int, int] | None = None,
                       overwrite: bool = False, cluster: str | None = None,
                       pool: ProcessPool | None = None) -> RunSummary:
@@ -241,8 +242,9 @@ def extract_to_folder(frames: Sequence[FrameInput | Path], pattern: StarPattern,
         return run_frames(frames, pattern, out_dir, settings, executor, progress, expected_size, overwrite)
 
 
-def finished_frames(frames: Sequence[FrameInput | Path], pattern: StarPattern, out_dir: str | os.PathLike,
-                    settings: ExtractSettings | None = None, expected_size: tuple[int, int] | None = None
+def finished_frames(frames: Sequence[FrameInput | Path], pattern: StarPattern,
+                    out_dir: str | os.PathLike[str], settings: ExtractSettings | None = None,
+                    expected_size: tuple[int, int] | None = None
                     ) -> list[tuple[FrameRecord, FrameResult]]:
     """The frames of ``frames`` that :func:`run_frames` with these arguments would skip (finished
     in ``out_dir`` with the same key), extracted from the same files, each with its record and its

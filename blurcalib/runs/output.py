@@ -15,6 +15,7 @@ import os
 from collections.abc import Mapping, Sequence
 from dataclasses import asdict, replace
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -51,7 +52,7 @@ def frame_names(paths: Sequence[Path]) -> list[str]:
     return [printable_name(p.relative_to(common).as_posix()) for p in resolved]
 
 
-def as_frame_inputs(frames: Sequence[FrameInput | str | os.PathLike]) -> list[FrameInput]:
+def as_frame_inputs(frames: Sequence[FrameInput | str | os.PathLike[str]]) -> list[FrameInput]:
     """Frames given as :class:`blurcalib.io.sources.FrameInput` or as image paths (named by
     :func:`frame_names`, each in the sequence of its folder, in the order given)."""
     paths = [Path(f) for f in frames if not isinstance(f, FrameInput)]
@@ -65,7 +66,7 @@ def frame_source(frame: FrameInput) -> str:
     return path if frame.index is None else f"{path}#{frame.index}"
 
 
-def settings_record(settings: ExtractSettings) -> dict:
+def settings_record(settings: ExtractSettings) -> dict[str, Any]:
     """The settings that determine a frame's result, as a JSON-serialisable dict (the torch
     device aside: it changes where, not what, is computed)."""
     record = asdict(settings)
@@ -113,11 +114,11 @@ def common_size(sizes: Sequence[tuple[int, int] | None]) -> tuple[int, int] | No
 class RunFolder:
     """An ``extract`` output folder being written by a run (``docs/results-format.md``)."""
 
-    def __init__(self, path: str | os.PathLike) -> None:
+    def __init__(self, path: str | os.PathLike[str]) -> None:
         self.path = Path(path)
 
     @classmethod
-    def claim(cls, path: str | os.PathLike, settings: ExtractSettings, sources: Mapping[str, str],
+    def claim(cls, path: str | os.PathLike[str], settings: ExtractSettings, sources: Mapping[str, str],
               overwrite: bool = False) -> RunFolder:
         """Take ``path`` as the output folder of a run with ``settings`` over frames named as the
         keys of ``sources`` (:func:`frame_source` of each).

@@ -20,6 +20,7 @@ from blurcalib.calib.sharp import load_calibration
 from blurcalib.calib.trust import UNCERTAINTY_NPZ
 from blurcalib.camera.files import read_generic_yaml
 from blurcalib.camera.generic import CentralGeneric
+from blurcalib.camera.lens import ParametricCamera
 from blurcalib.camera.parametric import BrownConrady
 from blurcalib.pipeline.run import CALIBRATION_DIR, GLOBAL_SHUTTER_DIR, SHARP_ONLY_DIR
 from blurcalib.sim.evaluate import CameraAccuracy, camera_accuracy, projection_errors
@@ -41,9 +42,9 @@ class TrueAccuracy:
     honesty: float | None
 
 
-def _cameras(folder: Path) -> list[tuple[str, BrownConrady | CentralGeneric, str | None]]:
+def _cameras(folder: Path) -> list[tuple[str, BrownConrady | ParametricCamera | CentralGeneric, str | None]]:
     """``(label, camera, uncertainty key or None)`` of each camera the folder holds."""
-    cameras: list[tuple[str, BrownConrady | CentralGeneric, str | None]] = [
+    cameras: list[tuple[str, BrownConrady | ParametricCamera | CentralGeneric, str | None]] = [
         (PARAMETRIC, load_calibration(folder).camera, None)]
     sharp_only = folder / SHARP_ONLY_DIR / "intrinsics0.yaml"
     if sharp_only.is_file():
@@ -64,7 +65,7 @@ def true_accuracies(out: str | Path, truth: TrueCamera) -> list[TrueAccuracy]:
     found = []
     for label, camera, key in _cameras(folder):
         honesty = None
-        if unc is not None and key in unc:
+        if unc is not None and key in unc and isinstance(camera, CentralGeneric):
             sigma = unc[key].reshape(-1)
             px = np.column_stack([unc["x"].reshape(-1), unc["y"].reshape(-1)])
             ok = np.isfinite(sigma) & camera.in_area(px)

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import cast
 
 import cv2
 import numpy as np
@@ -49,7 +50,7 @@ def _motion_kernel(rng: np.random.Generator, length: float, size: int, gauss_sig
     k = splat(pts, size)
     if gauss_sigma > 0:
         k = cv2.GaussianBlur(k, (0, 0), gauss_sigma, borderType=cv2.BORDER_CONSTANT)
-    return k / k.sum()
+    return cast(np.ndarray, k / k.sum())
 
 
 def simulate_blocks(pattern: StarPattern, num_blocks: int, rng: np.random.Generator, *,

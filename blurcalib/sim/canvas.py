@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from typing import cast
 
 import cv2
 import numpy as np
@@ -76,7 +77,7 @@ class LensMap:
         M = self.K if shift is None else shift @ self.K
         if self.R is not None:
             M = M @ self.R
-        return M @ np.column_stack([pose.R[:, 0], pose.R[:, 1], pose.t])
+        return cast(np.ndarray, M @ np.column_stack([pose.R[:, 0], pose.R[:, 1], pose.t]))
 
     def box(self, s0: int, s1: int) -> tuple[int, int, int, int] | None:
         """The canvas box ``(x0, y0, x1, y1)`` sub-sample rows ``s0 .. s1 - 1`` look into (with a
@@ -248,5 +249,5 @@ class WideLens:
             det = np.abs(J[:, 0, 0] * J[:, 1, 1] - J[:, 0, 1] * J[:, 1, 0])
             rho[seen] = 1.0 / (texel_m * self.ss * np.sqrt(np.maximum(det, 1e-300)))
         lam = np.clip(np.log2(np.maximum(rho, 1e-12)), 0, levels - 1).reshape(xs.shape)
-        return cv2.resize(lam.astype(np.float32), (xs.shape[1] * step, xs.shape[0] * step),
-                          interpolation=cv2.INTER_LINEAR)[:ch, :cw]
+        return cast(np.ndarray, cv2.resize(lam.astype(np.float32), (xs.shape[1] * step, xs.shape[0] * step),
+                                           interpolation=cv2.INTER_LINEAR)[:ch, :cw])

@@ -13,7 +13,7 @@ from __future__ import annotations
 import sys
 import time
 from pathlib import Path
-from typing import TextIO
+from typing import Any, TextIO
 
 from blurcalib.io.text import count
 from blurcalib.sim.accuracy import GENERIC_BOTH, GENERIC_SHARP, TrueAccuracy
@@ -84,7 +84,7 @@ def _model_words(model: str) -> str:
             "rational": "rational (OpenCV)", "thin_prism_fisheye": "thin-prism fisheye"}.get(model, model)
 
 
-def result_lines(report: dict, found: list[TrueAccuracy], image_size: tuple[int, int]) -> list[str]:
+def result_lines(report: dict[str, Any], found: list[TrueAccuracy], image_size: tuple[int, int]) -> list[str]:
     """The result in words, from ``report.json`` (``report``) and the cameras against the truth
     (:func:`blurcalib.sim.accuracy.true_accuracies`)."""
     g = report.get("generic") or {}

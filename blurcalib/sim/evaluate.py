@@ -15,12 +15,14 @@ the total error of an otherwise accurate generic camera.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import cast
 
 import cv2
 import numpy as np
 from scipy.optimize import least_squares
 
 from blurcalib.camera.generic import CentralGeneric, best_fit_rotation
+from blurcalib.camera.lens import ParametricCamera
 from blurcalib.camera.parametric import BrownConrady
 from blurcalib.geometry.homography import apply_homography
 from blurcalib.geometry.pose import Pose
@@ -57,16 +59,16 @@ def pose_consistent_errors(xy: np.ndarray, truth_xy: np.ndarray) -> np.ndarray:
     features, after their mean offset instead."""
     if len(xy) < 8:
         d = xy - truth_xy
-        return np.linalg.norm(d - d.mean(axis=0), axis=1)
+        return cast(np.ndarray, np.linalg.norm(d - d.mean(axis=0), axis=1))
     H, _ = cv2.findHomography(truth_xy.astype(np.float64), xy.astype(np.float64), cv2.LMEDS)
-    return np.linalg.norm(xy - apply_homography(H, truth_xy), axis=1)
+    return cast(np.ndarray, np.linalg.norm(xy - apply_homography(H, truth_xy), axis=1))
 
 
 def refit_pose(camera: TrueCamera, points: np.ndarray, xy: np.ndarray, start: Pose) -> Pose:
     """Least-squares pose under the true camera: ``argmin_M sum |pi(M P) - x|^2``."""
     def residual(v: np.ndarray) -> np.ndarray:
         R, _ = cv2.Rodrigues(v[:3])
-        return (camera.project(points @ R.T + v[3:]) - xy).ravel()
+        return cast(np.ndarray, (camera.project(points @ R.T + v[3:]) - xy).ravel())
 
     sol = least_squares(residual, np.concatenate([start.rvec, start.t]), method="lm")
     return Pose.from_rvec_tvec(sol.x[:3], sol.x[3:])
@@ -103,14 +105,14 @@ def pixel_lattice(width: int, height: int, step: float) -> np.ndarray:
     return np.column_stack([xx.ravel(), yy.ravel()])
 
 
-def projection_errors(truth: TrueCamera, estimate: BrownConrady | CentralGeneric, px: np.ndarray
-                      ) -> np.ndarray:
+def projection_errors(truth: TrueCamera, estimate: BrownConrady | ParametricCamera | CentralGeneric,
+                      px: np.ndarray) -> np.ndarray:
     """``(N,)`` px: the norms of :func:`projection_error_vectors`."""
-    return np.linalg.norm(projection_error_vectors(truth, estimate, px), axis=1)
+    return cast(np.ndarray, np.linalg.norm(projection_error_vectors(truth, estimate, px), axis=1))
 
 
-def projection_error_vectors(truth: TrueCamera, estimate: BrownConrady | CentralGeneric, px: np.ndarray
-                             ) -> np.ndarray:
+def projection_error_vectors(truth: TrueCamera, estimate: BrownConrady | ParametricCamera | CentralGeneric,
+                             px: np.ndarray) -> np.ndarray:
     """``(N, 2)`` px: the estimate's projection of each pixel ``px (N, 2)``'s true ray, after the
     best-fit rotation, minus the pixel. NaN where the estimate is undefined (outside a generic
     model's calibrated area)."""
@@ -122,8 +124,8 @@ def projection_error_vectors(truth: TrueCamera, estimate: BrownConrady | Central
         u, inside = estimate.project(turned)
         err = u - px
         err[~inside | ~ok] = np.nan
-        return err
-    return estimate.project(turned) - px
+        return cast(np.ndarray, err)
+    return cast(np.ndarray, estimate.project(turned) - px)
 
 
 @dataclass(frozen=True)
@@ -148,8 +150,8 @@ class CameraAccuracy:
     scale_px: float
 
 
-def camera_accuracy(truth: TrueCamera, estimate: BrownConrady | CentralGeneric, step: float = 8.0
-                    ) -> CameraAccuracy:
+def camera_accuracy(truth: TrueCamera, estimate: BrownConrady | ParametricCamera | CentralGeneric,
+                    step: float = 8.0) -> CameraAccuracy:
     """:func:`projection_errors` on a lattice every ``step`` px over the true camera's image."""
     model = truth.model
     px = pixel_lattice(model.width, model.height, step)

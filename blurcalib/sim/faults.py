@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Any, cast
 
 import cv2
 import numpy as np
@@ -65,10 +66,11 @@ class Glare:
         u = dx * math.cos(a) + dy * math.sin(a)
         v = (-dx * math.sin(a) + dy * math.cos(a)) * self.aspect
         d = np.hypot(u, v)
-        return self.peak * np.clip((self.radius - d) / max(self.softness, 1e-6) + 0.5, 0.0, 1.0)
+        return cast(np.ndarray,
+                    self.peak * np.clip((self.radius - d) / max(self.softness, 1e-6) + 0.5, 0.0, 1.0))
 
     def apply(self, irradiance: np.ndarray) -> np.ndarray:
-        return irradiance + self.strength(irradiance.shape).astype(irradiance.dtype)
+        return cast(np.ndarray, irradiance + self.strength(irradiance.shape).astype(irradiance.dtype))
 
     def footprint(self, shape: tuple[int, int]) -> np.ndarray:
         return self.strength(shape) > FOOTPRINT_TOLERANCE
@@ -101,7 +103,7 @@ class Finger:
         a, b = np.asarray(self.start, float), np.asarray(self.end, float)
         ab = b - a
         t = np.clip(((xs - a[0]) * ab[0] + (ys - a[1]) * ab[1]) / max(float(ab @ ab), 1e-12), 0.0, 1.0)
-        return np.hypot(xs - (a[0] + t * ab[0]), ys - (a[1] + t * ab[1]))
+        return cast(np.ndarray, np.hypot(xs - (a[0] + t * ab[0]), ys - (a[1] + t * ab[1])))
 
     def cover(self, shape: tuple[int, int]) -> np.ndarray:
         """``(H, W)`` in [0, 1]: how much of each pixel the finger hides."""
@@ -112,7 +114,7 @@ class Finger:
         d = self.distance(irradiance.shape)
         cover = self.cover(irradiance.shape)
         skin = self.level * (1.0 - 0.35 * np.clip(d / self.radius, 0.0, 1.0) ** 2)
-        return ((1.0 - cover) * irradiance + cover * skin).astype(irradiance.dtype)
+        return cast(np.ndarray, ((1.0 - cover) * irradiance + cover * skin).astype(irradiance.dtype))
 
     def footprint(self, shape: tuple[int, int]) -> np.ndarray:
         return self.cover(shape) > FOOTPRINT_TOLERANCE
@@ -144,7 +146,7 @@ class Defocus:
         bracket its own (linear in sigma)."""
         local = self.local_sigma(irradiance.shape)
         levels = np.linspace(0.0, self.sigma, DEFOCUS_LEVELS)
-        copies = [irradiance.astype(np.float64)]
+        copies: list[np.ndarray] = [irradiance.astype(np.float64)]
         for s in levels[1:]:
             k = gauss_ksize(float(s))
             copies.append(cv2.GaussianBlur(copies[0], (k, k), float(s), borderType=cv2.BORDER_REFLECT))
@@ -154,7 +156,7 @@ class Defocus:
         stack = np.stack(copies)
         rows, cols = np.indices(local.shape)
         out = (1.0 - frac) * stack[lo, rows, cols] + frac * stack[lo + 1, rows, cols]
-        return out.astype(irradiance.dtype)
+        return cast(np.ndarray, out.astype(irradiance.dtype))
 
     def footprint(self, shape: tuple[int, int]) -> np.ndarray:
         return self.local_sigma(shape) > DEFOCUS_TOLERANCE_PX
@@ -166,7 +168,7 @@ Fault = Glare | Finger | Defocus
 def _distance2(shape: tuple[int, int], centre: tuple[float, float]) -> np.ndarray:
     h, w = shape
     ys, xs = np.mgrid[0:h, 0:w].astype(np.float64)
-    return (xs - centre[0]) ** 2 + (ys - centre[1]) ** 2
+    return cast(np.ndarray, (xs - centre[0]) ** 2 + (ys - centre[1]) ** 2)
 
 
 def apply_faults(irradiance: np.ndarray, faults: tuple[Fault, ...] | list[Fault]) -> np.ndarray:
@@ -193,7 +195,7 @@ def touched_blocks(footprint: np.ndarray, quads: np.ndarray, margin_px: float = 
     """``(M,)`` bool: the blocks whose square ``quads (M, 4, 2)`` (px), widened by ``margin_px``
     (the frame's blur reaches that far), has a pixel of ``footprint (H, W)``."""
     h, w = footprint.shape
-    grown = footprint.astype(np.uint8)
+    grown: np.ndarray = footprint.astype(np.uint8)
     if margin_px > 0:
         r = math.ceil(margin_px)
         grown = cv2.dilate(grown, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1)))
@@ -212,13 +214,14 @@ def touched_blocks(footprint: np.ndarray, quads: np.ndarray, margin_px: float = 
     return out
 
 
-def fault_to_dict(fault: Fault) -> dict:
+def fault_to_dict(fault: Fault) -> dict[str, Any]:
     """A fault as JSON: its kind and parameters."""
     return {k: (list(v) if isinstance(v, tuple) else v) for k, v in fault.__dict__.items()}
 
 
-def fault_from_dict(data: dict) -> Fault:
+def fault_from_dict(data: dict[str, Any]) -> Fault:
     """The inverse of :func:`fault_to_dict`."""
-    kinds = {"glare": Glare, "finger": Finger, "defocus": Defocus}
-    args = {k: (tuple(v) if isinstance(v, list) else v) for k, v in data.items() if k != "kind"}
+    kinds: dict[str, type[Fault]] = {"glare": Glare, "finger": Finger, "defocus": Defocus}
+    args: dict[str, Any] = {k: (tuple(v) if isinstance(v, list) else v)
+                            for k, v in data.items() if k != "kind"}
     return kinds[data["kind"]](**args)

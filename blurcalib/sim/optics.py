@@ -30,7 +30,9 @@ offset ``(j - c, i - c)`` px (``docs/conventions.md``).
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import cast
 
 import cv2
 import numpy as np
@@ -126,7 +128,7 @@ class FieldPsf:
             sr, st = (s_r * scale)[:, None, None], (s_t * scale)[:, None, None]
             dens = np.exp(-0.5 * (((dr - offset[:, None, None]) / sr) ** 2 + (dt / st) ** 2)) / (sr * st)
             out += weight * dens.reshape(len(h), K, _SUB, K, _SUB).sum(axis=(2, 4))
-        return out / out.sum(axis=(1, 2), keepdims=True)
+        return cast(np.ndarray, out / out.sum(axis=(1, 2), keepdims=True))
 
     def _nodes(self, size: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
         """Node coordinates along x and y (px): every ``node_px``, from at least a kernel radius
@@ -150,7 +152,8 @@ class FieldPsf:
     def psf_at(self, points: np.ndarray, size: tuple[int, int]) -> np.ndarray:
         """``(N, K, K)``: the image of a point source at each of ``points`` ``(N, 2)`` px as
         :meth:`apply` renders it (the bilinear blend of the lattice's kernels)."""
-        return sum(w[:, None, None] * self.kernels(node, size) for node, w in self._blend(points, size))
+        return cast(np.ndarray,
+                    sum(w[:, None, None] * self.kernels(node, size) for node, w in self._blend(points, size)))
 
     def centroid_at(self, points: np.ndarray, size: tuple[int, int]) -> np.ndarray:
         """``(N, 2)`` px: the centroid of :meth:`psf_at` (where the image of a point source at each
@@ -181,7 +184,8 @@ class FieldPsf:
                 source = np.zeros((2 * g + 1 + 2 * r, 2 * g + 1 + 2 * r))
                 source[r:-r, r:-r] = src[y0:y0 + 2 * g + 1, x0:x0 + 2 * g + 1] * weights
                 # filter2D correlates: the flipped kernel convolves, k * (w E)
-                conv = cv2.filter2D(source, -1, kernels[i][::-1, ::-1].copy(), borderType=cv2.BORDER_CONSTANT)
+                conv: np.ndarray = cv2.filter2D(source, -1, kernels[i][::-1, ::-1].copy(),
+                                               borderType=cv2.BORDER_CONSTANT)
                 out[y0 - r:y0 + 2 * g + 1 + r, x0 - r:x0 + 2 * g + 1 + r] += conv
         return out[pad:pad + H, pad:pad + W]
 
@@ -251,7 +255,7 @@ class DisplayGrid:
 
     def _weights(self) -> np.ndarray:
         w = np.asarray(self.subpixel_weights, dtype=np.float64)
-        return w / w.sum()
+        return cast(np.ndarray, w / w.sum())
 
     def shift_squares(self) -> np.ndarray:
         """``(2,)`` squares: how far the emission centroid of a uniformly lit pixel lies from the
@@ -264,7 +268,7 @@ class DisplayGrid:
         the pixel's emission profile along ``axis`` (0: across the stripes, 1: across the rows),
         normalised to integrate to 1 over the pixel."""
         def overlap(lo: float, hi: float) -> np.ndarray:
-            return np.clip(np.minimum(b, hi) - np.maximum(a, lo), 0.0, None)
+            return cast(np.ndarray, np.clip(np.minimum(b, hi) - np.maximum(a, lo), 0.0, None))
         if axis == 1:
             m = (1.0 - self.row_fill) / 2
             return overlap(m, 1.0 - m) / self.row_fill
@@ -293,7 +297,8 @@ class DisplayGrid:
         return sp.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
                              shape=(len(edges) - 1, count))
 
-    def drive(self, intensity, first: tuple[int, int], count: tuple[int, int]) -> np.ndarray:
+    def drive(self, intensity: Callable[[np.ndarray], np.ndarray], first: tuple[int, int],
+              count: tuple[int, int]) -> np.ndarray:
         """``(rows, cols)`` drive luminances of screen pixels ``first + (0 .. count - 1)``
         (``(x, y)``) from ``intensity`` (feature coordinates ``(..., 2)`` -> reflectance)."""
         n = self.samples if self.raster == "area" else 1
@@ -309,7 +314,8 @@ class DisplayGrid:
         return (acc / n**2) ** self.display_gamma
 
 
-def display_texture_image(display: DisplayGrid, intensity, texel_x: np.ndarray, texel_y: np.ndarray
+def display_texture_image(display: DisplayGrid, intensity: Callable[[np.ndarray], np.ndarray],
+                          texel_x: np.ndarray, texel_y: np.ndarray
                           ) -> np.ndarray:
     """``(len(texel_y) - 1, len(texel_x) - 1)`` float32 texture of the shown page: each texel the
     average emission over its area, its edges at feature coordinates ``texel_x``, ``texel_y``

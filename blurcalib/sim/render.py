@@ -22,7 +22,7 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, cast
 
 import cv2
 import numpy as np
@@ -333,7 +333,7 @@ def sensor_image(irradiance: np.ndarray, truth: FrameTruth, rng: np.random.Gener
     ``[0, 255]``. ``optics`` (:mod:`blurcalib.sim.optics`) may add the lens's field-varying PSF
     (convolved before the defocus) and a tone curve (after the noise, before the rounding).
     """
-    img = irradiance.astype(np.float64)
+    img: np.ndarray = irradiance.astype(np.float64)
     if optics is not None and optics.psf is not None:
         img = optics.psf.apply(img)
     if truth.defocus_sigma > 0:
@@ -351,7 +351,7 @@ def sensor_image(irradiance: np.ndarray, truth: FrameTruth, rng: np.random.Gener
     noisy = gain * rng.poisson(np.maximum(grey, 0) / gain) + rng.normal(0, read_sigma, grey.shape)
     if optics is not None and optics.tone is not None:
         noisy = optics.tone(noisy)
-    return np.clip(np.round(noisy), 0, 255).astype(np.uint8)
+    return cast(np.ndarray, np.clip(np.round(noisy), 0, 255).astype(np.uint8))
 
 
 def mip_levels_for(camera: TrueCamera, pose: Pose, pattern: StarPattern, supersample: int) -> range:

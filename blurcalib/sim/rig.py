@@ -26,6 +26,7 @@ import json
 import os
 from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass
+from typing import Any
 
 import cv2
 import numpy as np
@@ -78,12 +79,12 @@ class TrueRig:
         """``camera j <- camera i``."""
         return self.camera_tr_rig[j].compose(self.camera_tr_rig[i].inverse())
 
-    def to_dict(self) -> dict:
+    def to_dict(self) -> dict[str, Any]:
         return {"cameras": [c.to_dict() for c in self.cameras],
                 "camera_tr_rig": [p.to_dict() for p in self.camera_tr_rig]}
 
     @classmethod
-    def from_dict(cls, data: dict) -> TrueRig:
+    def from_dict(cls, data: dict[str, Any]) -> TrueRig:
         return cls(tuple(TrueCamera.from_dict(c) for c in data["cameras"]),
                    tuple(Pose.from_dict(p) for p in data["camera_tr_rig"]))
 
@@ -204,7 +205,7 @@ class RigSimulator:
         return SimulatedFrame(sensor_image(irradiance, truth, rng), truth)
 
 
-def write_rig_dataset(out_dir: str | os.PathLike, config: SynthConfig | None = None,
+def write_rig_dataset(out_dir: str | os.PathLike[str], config: SynthConfig | None = None,
                       rig: TrueRig | None = None, pattern: StarPattern | None = None, render: bool = True,
                       progress: Callable[[int, int, str], None] | None = None
                       ) -> tuple[TrueRig, list[RigSet]]:
@@ -242,7 +243,7 @@ def write_rig_dataset(out_dir: str | os.PathLike, config: SynthConfig | None = N
     return sim.rig, sets
 
 
-def load_rig_truth(path: str | os.PathLike) -> tuple[TrueRig, dict[str, Pose]]:
+def load_rig_truth(path: str | os.PathLike[str]) -> tuple[TrueRig, dict[str, Pose]]:
     """Read ``rig_truth.json`` (the file or its folder): the rig and each set's target -> rig pose.
 
     Raises:

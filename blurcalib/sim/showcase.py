@@ -27,6 +27,7 @@ from collections.abc import Callable
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
@@ -225,7 +226,7 @@ def _render_in_worker(index: int) -> tuple[SimulatedFrame, list[np.ndarray]]:
     return _WORKER.render(index)
 
 
-def write_showcase(out_dir: str | os.PathLike, progress: Callable[[int, int, str], None] | None = None,
+def write_showcase(out_dir: str | os.PathLike[str], progress: Callable[[int, int, str], None] | None = None,
                    workers: int = 1) -> DatasetTruth:
     """Render the dataset into ``out_dir``: ``pattern.yaml``, ``sharp/*.png``, ``blurry/*.png``,
     :data:`FAULTS_FILE` and ``ground_truth.json``, written last (a folder with it is complete).
@@ -239,8 +240,8 @@ def write_showcase(out_dir: str | os.PathLike, progress: Callable[[int, int, str
     renderer = ShowcaseRenderer()
     renderer.pattern.save_yaml(out / "pattern.yaml")
     specs = renderer.frames
-    truths: list = [None] * len(specs)
-    faults: dict[str, dict] = {}
+    truths: list[Any] = [None] * len(specs)
+    faults: dict[str, dict[str, Any]] = {}
 
     def store(index: int, frame: SimulatedFrame, touched: list[np.ndarray]) -> None:
         spec = specs[index]
@@ -271,7 +272,7 @@ def write_showcase(out_dir: str | os.PathLike, progress: Callable[[int, int, str
     return truth
 
 
-def load_faults(folder: str | os.PathLike) -> dict[str, FrameFaults]:
+def load_faults(folder: str | os.PathLike[str]) -> dict[str, FrameFaults]:
     """The frames' faults of a dataset folder (empty when it has no :data:`FAULTS_FILE`).
 
     Raises:

@@ -19,6 +19,7 @@ import os
 from collections.abc import Callable
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import asdict, dataclass
+from typing import cast
 
 import cv2
 import numpy as np
@@ -221,7 +222,7 @@ def sample_motion(renderer: Renderer, pose: Pose, pattern: StarPattern, rng: np.
     xi2 = np.concatenate([rng.normal(size=3), rng.normal(size=3) * 0.3 * depth]) if curved \
         else np.zeros(6)
     if curved:
-        xi2 *= rng.uniform(0.4, 1.0) * np.linalg.norm(xi) / max(np.linalg.norm(xi2), 1e-12)
+        xi2 *= rng.uniform(0.4, 1.0) * np.linalg.norm(xi) / max(float(np.linalg.norm(xi2)), 1e-12)
     pts = _visible_points(renderer.camera, pose, pattern)
     base = _path_lengths(renderer.camera, pose, Motion(xi, xi2, 33), pts)
     scale = blur_px / max(float(np.median(base)), 1e-9)
@@ -246,7 +247,7 @@ def _visible_points(camera: TrueCamera, pose: Pose, pattern: StarPattern) -> np.
 
 def _path_lengths(camera: TrueCamera, pose: Pose, motion: Motion, pts: np.ndarray) -> np.ndarray:
     tracks = np.stack([camera.project(p.transform(pts)) for p in motion.poses(pose)])
-    return np.linalg.norm(np.diff(tracks, axis=0), axis=2).sum(axis=0)
+    return cast(np.ndarray, np.linalg.norm(np.diff(tracks, axis=0), axis=2).sum(axis=0))
 
 
 def frame_truth(name: str, kind: str, pattern: StarPattern, camera: TrueCamera, pose: Pose,

@@ -20,7 +20,7 @@ import math
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import cv2
 import numpy as np
@@ -103,7 +103,7 @@ class TrueCamera:
     def project(self, points_cam: np.ndarray) -> np.ndarray:
         """Camera-frame points ``(N, 3)`` m -> pixels ``(N, 2)`` px."""
         p = self.model.project(points_cam)
-        return p + self.deviation(p)
+        return cast(np.ndarray, p + self.deviation(p))
 
     def in_view(self, points_cam: np.ndarray) -> np.ndarray:
         """``(N,) bool``: camera-frame points ``(N, 3)`` the lens sees (``Z > 0`` for the
@@ -112,7 +112,7 @@ class TrueCamera:
         if isinstance(self.model, BrownConrady):
             return pts[:, 2] > 0
         cos = pts[:, 2] / np.maximum(np.linalg.norm(pts, axis=1), 1e-300)
-        return self.model.valid_directions(pts) & (cos >= math.cos(self.field_stop))
+        return cast(np.ndarray, self.model.valid_directions(pts) & (cos >= math.cos(self.field_stop)))
 
     def _undeviate(self, px: np.ndarray) -> np.ndarray:
         """The model's pixel ``y`` with ``y + delta(y) = px``: fixed-point iteration
@@ -140,7 +140,7 @@ class TrueCamera:
             return self.model.unproject(y)
         xn = self.model.unproject(y)
         rays = np.concatenate([xn, np.ones((*xn.shape[:-1], 1))], axis=-1)
-        return rays / np.linalg.norm(rays, axis=-1, keepdims=True)
+        return cast(np.ndarray, rays / np.linalg.norm(rays, axis=-1, keepdims=True))
 
     def point_jacobian(self, points_cam: np.ndarray) -> np.ndarray:
         """``(N, 2, 3)`` px/m: the lens model's ``d pi / d X`` (the deviation's own slope, below
@@ -461,7 +461,7 @@ def _backproject_to_plane(camera: TrueCamera, pose: Pose, px: np.ndarray) -> np.
     rays = camera.pixel_to_ray(px) @ pose.R  # world directions
     origin = pose.camera_center
     s = -origin[2] / rays[:, 2]
-    return origin + s[:, None] * rays
+    return cast(np.ndarray, origin + s[:, None] * rays)
 
 
 def splat(offsets: np.ndarray, size: int, weights: np.ndarray | None = None) -> np.ndarray:

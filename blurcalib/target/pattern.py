@@ -27,7 +27,7 @@ import re
 from dataclasses import dataclass, field
 from functools import cached_property
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import cv2
 import numpy as np
@@ -245,7 +245,7 @@ class StarPattern:
     def page_mm_to_feature(self, mm: np.ndarray) -> np.ndarray:
         """Page millimetres ``(..., 2)`` to feature coordinates ``(..., 2)``."""
         start = np.array([self.page.pattern_start_x_mm, self.page.pattern_start_y_mm])
-        return (np.asarray(mm, dtype=np.float64) - start) / self.square_length_mm - 1.0
+        return cast(np.ndarray, (np.asarray(mm, dtype=np.float64) - start) / self.square_length_mm - 1.0)
 
     def tag_corners(self, tag: AprilTagPlacement) -> np.ndarray:
         """``(4, 2)`` feature coordinates of the tag's black square, in OpenCV aruco corner order.
@@ -380,7 +380,7 @@ def _check_depth(text: str, path: str) -> None:
             depth -= 1
 
 
-def _field(node: dict[str, Any], key: str, kind: type, path: str, where: str = ""):
+def _field(node: dict[str, Any], key: str, kind: type, path: str, where: str = "") -> Any:
     name = f"{where}{key}"
     if not isinstance(node, dict) or key not in node:
         raise PatternFileError(f"{path}: missing field '{name}'")

@@ -15,6 +15,7 @@ import struct
 import zlib
 from collections.abc import Sequence
 from pathlib import Path
+from typing import cast
 
 import cv2
 import numpy as np
@@ -49,7 +50,7 @@ def sector_polygons(num_segments: int) -> list[np.ndarray]:
     """
     def border(theta: float) -> np.ndarray:
         d = np.array([math.sin(theta), math.cos(theta)])
-        return 0.5 * d / np.abs(d).max()
+        return cast(np.ndarray, 0.5 * d / np.abs(d).max())
 
     corner_angles = [math.pi / 4 + k * math.pi / 2 for k in range(4)]
     step = 2.0 * math.pi / num_segments

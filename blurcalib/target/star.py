@@ -13,6 +13,7 @@ at 0, the square's corners at ``(+-1, +-1)``).
 from __future__ import annotations
 
 import math
+from typing import cast
 
 import numpy as np
 import torch
@@ -29,7 +30,7 @@ def star_sector_white(u: np.ndarray, v: np.ndarray, num_segments: int) -> np.nda
     """
     theta = np.mod(np.arctan2(u, v), 2.0 * np.pi)
     sector = np.floor(theta * (num_segments / (2.0 * np.pi))).astype(np.int64) % num_segments
-    return (sector % 2) == 1
+    return cast(np.ndarray, (sector % 2) == 1)
 
 
 def star_signed_distance(q: torch.Tensor, num_segments: int) -> torch.Tensor:
