@@ -31,7 +31,7 @@ import numpy as np
 
 from blurcalib.calib.cross_pattern import check_patterns, compare_cameras
 from blurcalib.calib.sequence import CalibrationRun, calibrate_features
-from blurcalib.calib.sharp import CalibrationError
+from blurcalib.calib.sharp import CalibrationError, calibrate_sharp
 from blurcalib.io.feature_input import FeatureInputError, read_feature_input
 from blurcalib.io.results import FeatureTable
 from blurcalib.io.text import count
@@ -136,12 +136,15 @@ def pattern_check(run: CalibrationRun, patterns: PatternSet, tables: Sequence[Fe
                                "uncertainty_median_px": None if one.trust is None
                                else round(one.trust.uncertainty.median(), 5)}
     first = alone[0]
+    try:  # Brown-Conrady cameras, as blurcalib compare's: one model for every pattern
+        bc = [calibrate_sharp(one.sharp, patterns.patterns[k], size).camera for k, one in enumerate(alone)]
+    except CalibrationError as exc:
+        doc["failure"] = f"Brown-Conrady camera of a pattern alone: {exc}"
+        return doc
     for k in range(1, len(alone)):
-        label = patterns.labels[k]
-        other = alone[k]
+        label, other = patterns.labels[k], alone[k]
         pair = f"{label} - {patterns.labels[0]}"
-        focal = [100.0 * (other.calibration.camera.fx / first.calibration.camera.fx - 1.0),
-                 100.0 * (other.calibration.camera.fy / first.calibration.camera.fy - 1.0)]
+        focal = [100.0 * (bc[k].fx / bc[0].fx - 1.0), 100.0 * (bc[k].fy / bc[0].fy - 1.0)]
         entry: dict[str, Any] = {"parametric_focal_pct": [round(v, 4) for v in focal]}
         if first.generic is None or other.generic is None or first.trust is None or other.trust is None:
             entry["failure"] = "no generic camera with an uncertainty for each pattern alone"
@@ -155,7 +158,7 @@ def pattern_check(run: CalibrationRun, patterns: PatternSet, tables: Sequence[Fe
                 entry.update(cmp.to_dict(), verdict=cmp.verdict(patterns.labels[0], label))
         doc["cameras"][pair] = entry
         try:
-            fc = check_patterns(first.sharp, other.sharp, first.calibration.camera, other.calibration.camera)
+            fc = check_patterns(first.sharp, other.sharp, bc[0], bc[k])
         except ValueError:
             continue  # frames not named alike: no feature-level comparison
         doc["features"][pair] = {"systematic": fc.systematic, "worst_radial_px": round(fc.worst_radial_px, 5),
@@ -177,7 +180,7 @@ def pattern_lines(doc: dict[str, Any] | None) -> list[str]:
         lines.append(f"  warning: no cross-pattern check: {doc['failure']}")
     for pair, cam in doc["cameras"].items():
         focal = cam["parametric_focal_pct"]
-        lines.append(f"  {pair}: parametric focal lengths {focal[0]:+.3f} % / {focal[1]:+.3f} %")
+        lines.append(f"  {pair}: Brown-Conrady focal lengths {focal[0]:+.3f} % / {focal[1]:+.3f} %")
         lines.append(f"  {'warning: ' if cam.get('systematic') else ''}"
                      f"{cam.get('verdict') or 'no camera comparison: ' + cam.get('failure', '')}")
     for pair, feat in doc["features"].items():
