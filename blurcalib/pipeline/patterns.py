@@ -145,7 +145,7 @@ def pattern_check(run: CalibrationRun, patterns: PatternSet, tables: Sequence[Fe
         label, other = patterns.labels[k], alone[k]
         pair = f"{label} - {patterns.labels[0]}"
         focal = [100.0 * (bc[k].fx / bc[0].fx - 1.0), 100.0 * (bc[k].fy / bc[0].fy - 1.0)]
-        entry: dict[str, Any] = {"parametric_focal_pct": [round(v, 4) for v in focal]}
+        entry: dict[str, Any] = {"brown_conrady_focal_pct": [round(v, 4) for v in focal]}
         if first.generic is None or other.generic is None or first.trust is None or other.trust is None:
             entry["failure"] = "no generic camera with an uncertainty for each pattern alone"
         else:
@@ -179,7 +179,7 @@ def pattern_lines(doc: dict[str, Any] | None) -> list[str]:
     if doc["failure"]:
         lines.append(f"  warning: no cross-pattern check: {doc['failure']}")
     for pair, cam in doc["cameras"].items():
-        focal = cam["parametric_focal_pct"]
+        focal = cam["brown_conrady_focal_pct"]
         lines.append(f"  {pair}: Brown-Conrady focal lengths {focal[0]:+.3f} % / {focal[1]:+.3f} %")
         lines.append(f"  {'warning: ' if cam.get('systematic') else ''}"
                      f"{cam.get('verdict') or 'no camera comparison: ' + cam.get('failure', '')}")
