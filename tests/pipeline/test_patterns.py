@@ -102,7 +102,7 @@ def test_camera_comparison_names_a_focal_scale_beyond_the_uncertainty() -> None:
     0.5 px; a camera against itself differs by nothing."""
     model = d435i_like_camera(0, 0.0).model
     longer = replace(model, fx=model.fx * 1.0005, fy=model.fy * 1.0005)
-    a, b = (fit_to_rays(m.pixel_to_ray, SIZE[0], SIZE[1], cell_px=40.0) for m in (model, longer))
+    a, b = (fit_to_rays(m.pixel_to_ray, SIZE[0], SIZE[1], cell_px=CELL_PX) for m in (model, longer))
     tight = compare_cameras(a, _uncertainty(a, 0.01), b, _uncertainty(b, 0.01))
     assert tight.systematic and tight.ratio > 5.0
     assert tight.scale_pct == pytest.approx(0.05, abs=0.01)
