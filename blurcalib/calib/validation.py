@@ -37,7 +37,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any, Literal, get_args
 
 import cv2
@@ -152,6 +152,8 @@ class Validation:
         fold_of: frame -> its fold.
         halves: the generic cameras (sharp + blurry frames) of the two interleaved halves of the
             frames (:func:`half_split`), when asked for and each half has enough sharp frames.
+        frame: ``(N,)`` the frame of each observation of the generic fit; errors: camera -> the
+            held-out residual norm ``(N,)`` px of each (NaN: not scored).
     """
 
     method: str
@@ -159,6 +161,20 @@ class Validation:
     scores: dict[str, CameraScore]
     fold_of: dict[str, int]
     halves: tuple[CentralGeneric, CentralGeneric] | None = None
+    frame: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.str_))
+    errors: dict[str, np.ndarray] = field(default_factory=dict)
+
+    def scores_of(self, frames: Sequence[str], blurry_frames: Sequence[str] = ()) -> dict[str, CameraScore]:
+        """The held-out scores of the observations of ``frames`` alone (e.g. one pattern's),
+        ``blurry_frames`` counted as blurry; a camera without a scored observation there is left out."""
+        rows = np.isin(self.frame, np.asarray(frames, dtype=np.str_))
+        blurry = np.isin(self.frame[rows], np.asarray(blurry_frames, dtype=np.str_))
+        out = {}
+        for key, e in self.errors.items():
+            ok = np.isfinite(e[rows])
+            if ok.any():
+                out[key] = _score(e[rows], blurry, len(set(self.frame[rows][ok].tolist())))
+        return out
 
     def to_dict(self) -> dict[str, Any]:
         return {"method": self.method, "folds": self.folds,
@@ -451,7 +467,8 @@ def kfold_validation(generic: GenericCalibration, generic_sharp: GenericCalibrat
     scores = {key: _score(e, obs_blurry, len(set(generic.frame[np.isfinite(e)].tolist())))
               for key, e in errors.items() if np.isfinite(e).any()}
     return Validation("kfold", K, scores, fold_of,
-                      None if split is None else (models["generic"][K], models["generic"][K + 1]))
+                      None if split is None else (models["generic"][K], models["generic"][K + 1]),
+                      frame=np.asarray(generic.frame), errors=errors)
 
 
 def _same_grid(a: CentralGeneric, b: CentralGeneric) -> bool:

@@ -75,10 +75,13 @@ def pipeline_settings(args: argparse.Namespace) -> PipelineSettings:
 
 def calibrate_and_report(sharp: list[Path], blurry: list[Path], pattern: StarPattern, out: Path,
                          args: argparse.Namespace, features: Path | None = None,
-                         mixed: Sequence[FrameInput] = (), log: DemoLog | None = None) -> PipelineReport:
+                         mixed: Sequence[FrameInput] = (), log: DemoLog | None = None,
+                         feature_sets: Sequence[tuple[Path, StarPattern]] = ()) -> PipelineReport:
     """Run the pipeline on frames (``sharp`` and ``blurry``, or ``mixed`` frames classified by
-    their own blur), or on a feature file (``features``), and print its figures; with ``log`` (the
-    demo's :class:`blurcalib.sim.demo.DemoLog`) tell it the stages instead and print nothing."""
+    their own blur), on a feature file (``features``) or on feature files of several patterns
+    (``feature_sets``, each with its pattern), and print its figures; with ``log`` (the demo's
+    :class:`blurcalib.sim.demo.DemoLog`) tell it the stages instead and print nothing."""
+    from blurcalib.pipeline.patterns import run_from_feature_sets
     from blurcalib.pipeline.run import PipelineError, run_from_features, run_pipeline
     from blurcalib.pipeline.text import report_lines
     from blurcalib.runs.events import FrameDone, RunEvent
@@ -105,7 +108,10 @@ def calibrate_and_report(sharp: list[Path], blurry: list[Path], pattern: StarPat
             log.stage(f"3/4 {name}")
 
     try:
-        if features is not None:
+        if feature_sets:
+            report = run_from_feature_sets(feature_sets, out, pipeline_settings(args), args.image_size,
+                                           overwrite=args.overwrite)
+        elif features is not None:
             report = run_from_features(features, pattern, out, pipeline_settings(args), args.image_size,
                                        overwrite=args.overwrite)
         else:
@@ -131,23 +137,40 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     format), the Brown-Conrady camera (calibration/camera.yaml, OpenCV's), the observations
     (features.csv, features.bin), each frame's status (frames.csv) and report.json, written last
     (docs/results-format.md). Prints both cameras' reprojection errors, the held-out errors, the
-    projection uncertainty and the frames used. Resumable: extracted frames are reused."""
+    projection uncertainty and the frames used. Resumable: extracted frames are reused.
+
+    Several feature files, each with its own --pattern (e.g. the star and the checkerboard shown to
+    one camera), give one camera from all their frames, each frame through its own pattern's
+    geometry, and the cross-pattern check: each pattern's camera alone against the others'
+    (difference, focal-length scale, and whether their uncertainties explain it), the held-out
+    error on each pattern's frames, and the features of frames named alike compared
+    (docs/accuracy.md)."""
     from blurcalib.io.frames import FrameError, frame_size, list_frames
     from blurcalib.io.sources import FrameInput
 
-    pattern = load_pattern(args.pattern)
+    patterns = [load_pattern(p) for p in args.pattern]
+    features = [Path(f) for f in args.features or []]
     given = [name for name, v in (("INPUT", args.frames), ("--sharp", args.sharp),
-                                  ("--features", args.features)) if v]
+                                  ("--features", features)) if v]
     if len(given) != 1:
         raise CliError("give the frames (INPUT... or --sharp DIR [--blurry DIR]) or a feature file "
                        f"(--features FILE), one of them (got {', '.join(given) or 'none'})")
     if args.blurry and not args.sharp:
         raise CliError("--blurry DIR goes with --sharp DIR (or give every folder as INPUT)")
-    if args.features is not None:
+    if len(patterns) > 1 and len(patterns) != len(features):
+        raise CliError(f"{len(patterns)} --pattern files: several patterns go with one --features FILE each, "
+                       f"in the same order (got {len(features)}; frames of several patterns: extract each "
+                       "set with 'blurcalib extract' and calibrate from their features.csv)")
+    if features:
         if args.model == "generic":
-            _check_grid([_features_image_size(Path(args.features), args.image_size)], args.cell_px)
-        calibrate_and_report([], [], pattern, Path(args.out), args, features=Path(args.features))
+            _check_grid([_features_image_size(f, args.image_size) for f in features], args.cell_px)
+        if len(features) > 1:
+            pairs = list(zip(features, patterns * (len(features) // len(patterns)), strict=True))
+            calibrate_and_report([], [], patterns[0], Path(args.out), args, feature_sets=pairs)
+        else:
+            calibrate_and_report([], [], patterns[0], Path(args.out), args, features=features[0])
         return 0
+    pattern = patterns[0]
     if args.frames:
         mixed = source_frames(args)
         if args.model == "generic":
@@ -268,12 +291,16 @@ def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None
                    help="folder of sharp frames (instead of INPUT: the kinds given, not measured)")
     g.add_argument("--blurry", metavar="DIR",
                    help="folder of blurry frames, with --sharp (optional: a sharp-only calibration)")
-    g.add_argument("--features", metavar="FILE",
+    g.add_argument("--features", metavar="FILE", action="append",
                    help="calibrate from a feature file instead of frames: the reference tool's dataset "
-                        "(.bin) or a blurcalib features.csv (rows flagged BLURRY_FRAME get a free shift)")
+                        "(.bin) or a blurcalib features.csv (rows flagged BLURRY_FRAME get a free shift); "
+                        "repeat it with one --pattern each to calibrate one camera from several patterns "
+                        "(with the cross-pattern check; docs/accuracy.md)")
     g.add_argument("--image-size", type=image_size, metavar="WxH",
                    help="image size of a features.csv, px (a .bin holds its own)")
-    g.add_argument("--pattern", required=True, metavar="FILE", help="pattern YAML of the target")
+    g.add_argument("--pattern", required=True, metavar="FILE", action="append",
+                   help="pattern YAML of the target; with several --features, one per file in the same "
+                        "order (or one for all)")
     g = p.add_argument_group("output")
     g.add_argument("--out", required=True, metavar="DIR", help="output folder (resumable)")
     g.add_argument("--overwrite", action="store_true",

@@ -10,21 +10,22 @@ global alignment and ``features.bin``). Every other status comes with its reason
 from __future__ import annotations
 
 import math
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from blurcalib.calib.joint import GenericCalibration
-from blurcalib.calib.sequence import BlurryOutcome, SequenceSettings
+from blurcalib.calib.sequence import BlurryFrame, BlurryOutcome, SequenceSettings
 from blurcalib.calib.sharp import Calibration
 from blurcalib.extract.duplicates import mark_duplicates
 from blurcalib.io.record import CALIBRATE_COLUMNS, FrameRecord, FrameStatus, Verdict, write_frames_table
 from blurcalib.io.results import BLUR_PER_SQUARE_LIMIT, BlockTable, FeatureFlags, FeatureTable
 from blurcalib.io.text import count
 
-__all__ = ["blurry_row", "feature_file_frames", "sharp_row", "status_counts", "write_frames"]
+__all__ = ["FeatureFileInputs", "blurry_row", "feature_file_frames", "feature_file_inputs", "sharp_row",
+           "status_counts", "write_frames"]
 
 
 def _calibrated(extracted: FrameRecord, kind: str, status: FrameStatus, reason: str = "",
@@ -147,6 +148,32 @@ def feature_file_frames(table: FeatureTable) -> tuple[list[FrameRecord], list[Fr
                     for i in np.argsort(first, kind="stable")]
     marked = mark_duplicates(records, table)
     return [r for r in marked if r.kind == "sharp"], [r for r in marked if r.kind == "blurry"]
+
+
+@dataclass(frozen=True)
+class FeatureFileInputs:
+    """A feature file's frames as the calibration sequence takes them
+    (:func:`feature_file_inputs`): the frame records of each kind, the sharp frames' features and
+    the blurry frames (each with its features), duplicates left out."""
+
+    sharp_rows: list[FrameRecord]
+    blurry_rows: list[FrameRecord]
+    sharp: FeatureTable
+    blurry: FeatureTable
+    frames: list[BlurryFrame]
+
+
+def feature_file_inputs(table: FeatureTable, with_blurry: bool = True) -> FeatureFileInputs:
+    """The frames of a feature file (:func:`feature_file_frames`) and the features the calibration
+    sequence calibrates from: the sharp and blurry frames that are not duplicates; ``with_blurry``
+    False: no blurry frame to fit (the parametric model)."""
+    sharp_rows, blurry_rows = feature_file_frames(table)
+    views = {r.frame for r in sharp_rows + blurry_rows if r.status is FrameStatus.OK}
+    sharp = table.select(np.isin(table.frame, [r.frame for r in sharp_rows if r.frame in views]))
+    blurry = table.select(np.isin(table.frame, [r.frame for r in blurry_rows if r.frame in views]))
+    frames = ([BlurryFrame(r.frame, features=table.select(table.frame == r.frame)) for r in blurry_rows
+               if r.frame in views] if with_blurry else [])
+    return FeatureFileInputs(sharp_rows, blurry_rows, sharp, blurry, frames)
 
 
 def write_frames(path: Path, rows: list[FrameRecord]) -> Path:

@@ -51,7 +51,6 @@ from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any, TypeVar
 
-import cv2
 import numpy as np
 
 from blurcalib.calib.capture import CaptureCheck, CaptureSettings, check_capture
@@ -62,7 +61,6 @@ from blurcalib.calib.joint import (
     undistortion_output,
     undistortion_report,
 )
-from blurcalib.calib.report import error_direction_image, save_frame_error_plot
 from blurcalib.calib.sequence import (
     BlurryFrame,
     BlurryOutcome,
@@ -76,7 +74,6 @@ from blurcalib.camera.files import write_generic_yaml
 from blurcalib.extract.duplicates import mark_duplicates
 from blurcalib.extract.frame import ExtractSettings
 from blurcalib.io.atomic import (
-    atomic_path,
     atomic_write_json,
     claim_output_dir,
     ensure_writable_dir,
@@ -85,7 +82,6 @@ from blurcalib.io.atomic import (
 from blurcalib.io.feature_input import FeatureInputError, read_feature_input
 from blurcalib.io.frames import frame_size, frame_size_problem
 from blurcalib.io.record import FrameRecord, FrameStatus
-from blurcalib.io.refformat import to_ref_dataset, write_ref_dataset
 from blurcalib.io.results import (
     FEATURES_FILE,
     BlockTable,
@@ -93,16 +89,15 @@ from blurcalib.io.results import (
     FeatureTable,
     read_block_table,
     read_feature_table,
-    write_features,
 )
 from blurcalib.io.sources import FrameInput
 from blurcalib.pipeline.frames import (
     blurry_row,
-    feature_file_frames,
+    feature_file_inputs,
     sharp_row,
     status_counts,
-    write_frames,
 )
+from blurcalib.pipeline.outputs import write_outputs
 from blurcalib.runs.events import RunEvent
 from blurcalib.runs.executors import ProcessPool
 from blurcalib.runs.folder import extract_to_folder
@@ -182,8 +177,9 @@ class PipelineReport:
     ``parametric_choice`` the held-out scores of the parametric models with ``parametric="auto"``
     (:meth:`blurcalib.calib.model_choice.ModelChoice.to_dict`), ``generic_failure`` why the
     generic camera could not be fitted (what the capture lacks; the parametric calibration and
-    the features are written all the same), else "", and ``assessment_failure`` why the generic
-    camera (or the sharp-only one) has no assessment, else ""."""
+    the features are written all the same), else "", ``assessment_failure`` why the generic
+    camera (or the sharp-only one) has no assessment, else "", and ``patterns`` the cross-pattern
+    check of a calibration from several patterns (:mod:`blurcalib.pipeline.patterns`), else None."""
 
     calibration: dict[str, Any]
     frames: list[FrameRecord]
@@ -200,6 +196,7 @@ class PipelineReport:
     generic_failure: str = ""
     assessment_failure: str = ""
     seconds: dict[str, float] = field(default_factory=dict)
+    patterns: dict[str, Any] | None = None
 
     def to_dict(self) -> dict[str, Any]:
         """The ``report.json`` document: the fields, with ``trust``'s sections (``validation``,
@@ -423,51 +420,69 @@ def run_from_features(path: str | os.PathLike[str], pattern: StarPattern, out_di
                       settings: PipelineSettings | None = None, image_size: tuple[int, int] | None = None,
                       overwrite: bool = False) -> PipelineReport:
     """Calibrate from an existing feature file instead of images
-    (:func:`blurcalib.io.feature_input.read_feature_input`): the parametric camera on the sharp
-    frames, then the generic cameras, their assessment and the same outputs as
-    :func:`run_pipeline`. Blurry frames enter the generic fit on the joint route (a free shift
-    each); without blocks there is no lens-bias correction (a blurcalib ``features.csv`` is
-    already corrected) and no parametric alignment.
+    (:func:`blurcalib.io.feature_input.read_feature_input`; :func:`run_from_table`).
 
     Raises:
-        PipelineError: unusable input (see :func:`blurcalib.io.feature_input.read_feature_input`,
-            too few sharp frames, or ``route="aligned"``, which needs the blocks).
+        PipelineError: unusable input (see :func:`blurcalib.io.feature_input.read_feature_input`
+            and :func:`run_from_table`).
         OutputError: as :func:`run_pipeline`.
     """
     s = settings or PipelineSettings()
-    if s.calibration.generic.route != "joint":
-        raise PipelineError("calibrating from features needs the joint route (the aligned route aligns "
-                            "blocks to the parametric camera): use --route joint")
+    check_feature_route(s)
     try:
         table, size = read_feature_input(path, pattern, image_size)
     except FeatureInputError as exc:
         raise PipelineError(str(exc)) from None
-    sharp_rows, blurry_rows = feature_file_frames(table)
-    views = {r.frame for r in sharp_rows + blurry_rows if r.status is FrameStatus.OK}
-    sharp = table.select(np.isin(table.frame, [r.frame for r in sharp_rows if r.frame in views]))
-    blurry = table.select(np.isin(table.frame, [r.frame for r in blurry_rows if r.frame in views]))
-    capture = _check_capture(sharp, blurry, size, s, f"{path}: ")
-    manifest = {**asdict(s), "features": str(Path(path).resolve())}
+    source = {"features": str(Path(path).resolve())}
+    return run_from_table(table, size, pattern, out_dir, s, overwrite, source, f"{path}: ")
+
+
+def check_feature_route(s: PipelineSettings) -> None:
+    """Refuse the aligned route for features without blocks."""
+    if s.calibration.generic.route != "joint":
+        raise PipelineError("calibrating from features needs the joint route (the aligned route aligns "
+                            "blocks to the parametric camera): use --route joint")
+
+
+def run_from_table(table: FeatureTable, size: tuple[int, int], pattern: StarPattern,
+                   out_dir: str | os.PathLike[str], s: PipelineSettings, overwrite: bool,
+                   source: dict[str, Any], where: str,
+                   patterns: Callable[[CalibrationRun], dict[str, Any]] | None = None) -> PipelineReport:
+    """Calibrate from features (read and checked): the parametric camera on the sharp frames, then
+    the generic cameras, their assessment and the same outputs as :func:`run_pipeline`. Blurry
+    frames enter the generic fit on the joint route (a free shift each); without blocks there is
+    no lens-bias correction (a blurcalib ``features.csv`` is already corrected) and no parametric
+    alignment. ``source``: what the run manifest names as the input; ``where`` prefixes a refusal;
+    ``patterns``: the cross-pattern check of the run, kept as ``report.json``'s ``patterns``.
+
+    Raises:
+        PipelineError: too few sharp frames, or a generic fit that cannot be made.
+        OutputError: as :func:`run_pipeline`.
+    """
+    inputs = feature_file_inputs(table, s.calibration.model != "parametric")
+    capture = _check_capture(inputs.sharp, inputs.blurry, size, s, where)
+    manifest = {**asdict(s), **source}
     out = claim_output_dir(out_dir, "calibrate", manifest, overwrite)
     shutil.rmtree(out / STAGING_DIR, ignore_errors=True)
-    frames = ([] if s.calibration.model == "parametric" else
-              [BlurryFrame(r.frame, features=table.select(table.frame == r.frame)) for r in blurry_rows
-               if r.frame in views])
     try:
         with compute_threads(_calibration_threads(s)):
-            run = calibrate_features(sharp, None, frames, pattern, size, s.calibration)
+            run = calibrate_features(inputs.sharp, None, inputs.frames, pattern, size, s.calibration)
+            checked = None if patterns is None else patterns(run)
     except CalibrationError as exc:
-        raise PipelineError(f"sharp-set calibration from {path}: {exc}{_left_out(sharp_rows)}") from None
+        left = _left_out(inputs.sharp_rows)
+        raise PipelineError(f"sharp-set calibration from {where}{exc}{left}") from None
     except ValueError as exc:
         raise PipelineError(f"generic calibration: {exc}") from None
     outcomes: dict[str, BlurryOutcome | None] = {o.frame.name: o for o in run.blurry}
-    rows = _rows(sharp_rows, blurry_rows, outcomes, run, s.calibration)
-    return _publish_run(out, pattern, size, s, rows, run, _calibration_seconds(run), capture, manifest)
+    rows = _rows(inputs.sharp_rows, inputs.blurry_rows, outcomes, run, s.calibration)
+    return _publish_run(out, pattern, size, s, rows, run, _calibration_seconds(run), capture, manifest,
+                        checked)
 
 
 def _publish_run(out: Path, pattern: StarPattern, size: tuple[int, int], s: PipelineSettings,
                  rows: list[FrameRecord], run: CalibrationRun, seconds: dict[str, float],
-                 capture: CaptureCheck, manifest: dict[str, Any]) -> PipelineReport:
+                 capture: CaptureCheck, manifest: dict[str, Any], patterns: dict[str, Any] | None = None
+                 ) -> PipelineReport:
     """Write the run's output set into ``OUT/.staging`` and publish it (:func:`_publish`) with the
     run manifest naming ``manifest`` (the run's settings); a failed write (a full disk) removes the
     staging folder and leaves the earlier outputs, and the manifest naming their settings, as they
@@ -477,7 +492,7 @@ def _publish_run(out: Path, pattern: StarPattern, size: tuple[int, int], s: Pipe
     """
     staging = out / STAGING_DIR
     try:
-        report = _stage_run(out, staging, pattern, size, s, rows, run, seconds, capture)
+        report = _stage_run(out, staging, pattern, size, s, rows, run, seconds, capture, patterns)
     except OSError:  # OutputError too
         shutil.rmtree(staging, ignore_errors=True)
         raise
@@ -487,7 +502,7 @@ def _publish_run(out: Path, pattern: StarPattern, size: tuple[int, int], s: Pipe
 
 def _stage_run(out: Path, staging: Path, pattern: StarPattern, size: tuple[int, int], s: PipelineSettings,
                rows: list[FrameRecord], run: CalibrationRun, seconds: dict[str, float],
-               capture: CaptureCheck) -> PipelineReport:
+               capture: CaptureCheck, patterns: dict[str, Any] | None = None) -> PipelineReport:
     """Write the run's output set into ``staging``; ``report.json`` last."""
     calibration, generic = run.calibration, run.generic
     ensure_writable_dir(staging)
@@ -506,7 +521,7 @@ def _stage_run(out: Path, staging: Path, pattern: StarPattern, size: tuple[int, 
         write_generic_yaml(folder / INTRINSICS_FILE, run.rolling_shutter.global_shutter.model)
     if run.trust is not None:
         trust_files = save_trust(staging / CALIBRATION_DIR, run.trust, size)
-    staged = _write_outputs(staging, pattern, size, rows, run)
+    staged = write_outputs(staging, pattern, size, rows, run)
     staged.update(trust_files)
     outputs = {k: out / p.relative_to(staging) for k, p in staged.items()}
     report = PipelineReport(calibration={k: v for k, v in calibration.to_dict().items()
@@ -522,7 +537,7 @@ def _stage_run(out: Path, staging: Path, pattern: StarPattern, size: tuple[int, 
                             else run.rolling_shutter.to_dict(), capture=capture.to_dict(),
                             parametric_choice=None if run.choice is None else run.choice.to_dict(),
                             generic_failure=run.generic_failure,
-                            assessment_failure=run.trust_failure or run.sharp_failure,
+                            assessment_failure=run.trust_failure or run.sharp_failure, patterns=patterns,
                             seconds={k: round(v, 2) for k, v in seconds.items()})
     atomic_write_json(staging / REPORT_FILE, report.to_dict(), indent=2, default=str)
     return report
@@ -558,43 +573,3 @@ def _publish(staging: Path, out: Path, manifest: dict[str, Any]) -> None:
             os.replace(staged[name], dest)
     os.replace(staged[REPORT_FILE], out / REPORT_FILE)
     shutil.rmtree(staging)
-
-
-def _write_outputs(out: Path, pattern: StarPattern, size: tuple[int, int], rows: list[FrameRecord],
-                   run: CalibrationRun) -> dict[str, Path]:
-    """The features (``features.csv``, ``features.bin``), ``frames.csv`` and the figures."""
-    calibration, generic = run.calibration, run.generic
-    features = FeatureTable.concat([run.sharp, *(o.aligned for o in run.blurry if o.aligned is not None)])
-    outputs = {"features": write_features(out / "features.csv", features)}
-    names = sorted(set(features.frame.tolist()))
-    index = {f: i for i, f in enumerate(names)}
-    usable = (features.flags & int(FeatureFlags.FILTERED_OUT)) == 0
-    ref = to_ref_dataset(size, names, np.array([index[f] for f in features.frame[usable]]),
-                         features.feature_id[usable], features.x[usable], features.y[usable],
-                         pattern)
-    outputs["reference_features"] = write_ref_dataset(out / "features.bin", ref)
-    outputs["frames"] = write_frames(out / "frames.csv", rows)
-
-    def direction_image(key: str, xy: np.ndarray, residuals: np.ndarray, title: str) -> None:
-        path = out / f"{key}.png"
-        with atomic_path(path) as tmp:
-            cv2.imwrite(str(tmp), error_direction_image(xy, residuals, size, title=title))
-        outputs[key] = path
-
-    # Reprojection-error directions: the parametric alignment of the blurry frames, the sharp-set
-    # calibration and, when fitted, the generic camera (its inliers).
-    aligned = [(o.raw, o.alignment) for o in run.blurry if o.alignment is not None and o.raw is not None]
-    if aligned:
-        direction_image("error_directions_blurry",
-                        np.concatenate([np.stack([raw.x, raw.y], axis=1) for raw, _ in aligned]),
-                        np.concatenate([ga.residuals for _, ga in aligned]),
-                        "blurry frames after alignment to the parametric camera")
-    direction_image("error_directions_sharp", calibration.observed, calibration.residuals,
-                    "sharp frames under the parametric camera")
-    if generic is not None:
-        direction_image("error_directions_generic", generic.observed[generic.inlier],
-                        generic.residuals[generic.inlier], "all frames under the generic camera")
-    outputs["frame_errors"] = save_frame_error_plot(out / "frame_errors.png",
-                                                    [r.to_row() for r in rows if r.kind == "blurry"],
-                                                    calibration.frame_errors())
-    return outputs

@@ -8,6 +8,7 @@ import re
 
 from blurcalib.calib.trust import summary_lines
 from blurcalib.io.text import count
+from blurcalib.pipeline.patterns import pattern_lines
 from blurcalib.pipeline.run import REPORT_FILE, PipelineReport
 
 _REGION = re.compile(r"^(\d+) grid cells? without observations in the (.+?) of the image")
@@ -62,6 +63,7 @@ def report_lines(report: PipelineReport) -> list[str]:
     if report.rolling_shutter is not None and report.rolling_shutter["message"]:
         lines.append(report.rolling_shutter["message"])
     lines += summary_lines(report.to_dict())
+    lines += pattern_lines(report.patterns)
     for kind in ("sharp", "blurry"):
         statuses = ", ".join(f"{v} {k}" for k, v in sorted(report.counts[kind].items()))
         lines.append(f"{kind} frames: {statuses or 'none'}")
