@@ -104,6 +104,13 @@ def _print_rig(run: RigRun, out: str) -> None:
         angle = float(np.degrees(np.linalg.norm(Pose(np.array(pair["R"]), np.zeros(3)).rvec)))
         print(f"camera {j} <- camera {i}: T = ({', '.join(f'{v * 1000:.3f}' for v in pair['T_m'])}) mm, "
               f"baseline {pair['baseline_mm']:.3f} mm, rotation {angle:.4f} deg")
+        if pair.get("translation_uncertainty_mm") is not None:
+            print(f"  uncertainty {pair['translation_uncertainty_mm']:.4f} mm, "
+                  f"{pair['rotation_uncertainty_deg']:.5f} deg (expected size of the extrinsics' error)")
+        if pair.get("holdout_error_px") is not None:
+            print(f"  held-out error {pair['holdout_error_px']:.4f} px (median over "
+                  f"{pair['holdout_predictions']} features of sets left out, predicted from the other "
+                  f"camera)")
     print(f"image sets used: {report['sets']}; wrote {len(run.outputs)} files into {out}")
 
 
