@@ -31,7 +31,8 @@ def cmd_calibrate_rig(args: argparse.Namespace) -> int:
     Writes into --out the reference tool's rig folder (calibration/intrinsics{N}.yaml,
     camera_tr_rig.yaml, rig_tr_global.yaml, points.yaml), OpenCV's stereo_{i}_{j}.yaml (R, T, E,
     R1, R2, P1, P2, Q) with its rectification maps rectify_{i}_{j}.npz for every pair, and
-    report.json, written last. Prints each camera's errors and each pair's extrinsics."""
+    report.json, written last. Prints each camera's errors and each pair's extrinsics, their
+    uncertainty and held-out error."""
     from blurcalib.pipeline.rig import calibrate_rig_features
     from blurcalib.pipeline.run import PipelineError
 
