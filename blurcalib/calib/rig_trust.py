@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -119,7 +120,7 @@ class PairTrust:
     holdout_px: float
     holdout_count: int
 
-    def to_dict(self) -> dict:
+    def to_dict(self) -> dict[str, Any]:
         return {"cameras": [self.i, self.j], "translation_uncertainty_mm": self.translation_mm,
                 "rotation_uncertainty_deg": self.rotation_deg, "holdout_error_px": self.holdout_px,
                 "holdout_predictions": self.holdout_count}
