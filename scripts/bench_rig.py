@@ -1,6 +1,7 @@
 """Benchmark of the stereo rig calibration: extrinsics against the truth, printed.
 
-    python scripts/bench_rig.py [--sharp 20] [--blurry 60] [--noise-px 0.05] [--seed 0]
+    python scripts/bench_rig.py [--cameras 2 3] [--sharp 20] [--blurry 60] [--sets3 10 14]
+                                [--noise-px 0.05] [--seed 0]
 
 A simulated RealSense D435I-like infrared pair (``blurcalib.sim.rig.d435i_stereo_rig``: two
 1280 x 720 cameras 50 mm apart, each with its own 0.3 px lens deviation) sees the target in
@@ -15,92 +16,172 @@ true camera, the extrinsics' error (rotation deg, translation mm, after each cam
 rotation), the rectified epipolar error of the true feature positions seen by both cameras (the
 calibrated pair's rectification, px), the yield (sets and observations used) and the CPU time
 (the machine may be shared).
+
+The same run then measures a row of three cameras (``--cameras 3`` alone;
+``blurcalib.sim.rig.chain_rig``: each camera 50 mm right of the previous one and turned 20 degrees
+further; ``--sets3`` sharp and blurry sets), whose image sets alternate between cameras 0 and 1
+and cameras 1 and 2 (the simulator's visibility rule): camera 2 never shares a set with camera 0
+and is linked to it only through camera 1. Printed per camera: its generic error, its extrinsics'
+error against the truth (``camera c <- camera 0``, mm and deg) and the frames it was calibrated
+from; per pair its uncertainty and held-out error (``blurcalib.calib.rig_trust``) beside its true
+error, and the epipolar error of each pair sharing sets.
 """
 
 from __future__ import annotations
 
 import argparse
 import time
+from collections.abc import Sequence
 
 import benchrecord
 import numpy as np
 import torch
 
-from blurcalib.calib.joint import calibrate_generic
-from blurcalib.calib.rig_calibration import calibrate_rig
+from blurcalib.calib.joint import GenericCalibration, calibrate_generic
+from blurcalib.calib.rig_calibration import RigCalibration, calibrate_rig
+from blurcalib.calib.rig_trust import rig_trust
 from blurcalib.calib.sharp import calibrate_sharp
 from blurcalib.camera.stereo import epipolar_errors, stereo_rectify
 from blurcalib.sim.evaluate import camera_accuracy
-from blurcalib.sim.rig import RigSimulator, d435i_stereo_rig
+from blurcalib.sim.rig import RigSet, RigSimulator, TrueRig, chain_rig, d435i_stereo_rig
 from blurcalib.sim.rig_eval import extrinsic_error, truth_features
 from blurcalib.sim.synth import SynthConfig
-from blurcalib.target.pattern import layout_pattern
+from blurcalib.target.pattern import StarPattern, layout_pattern
+
+
+def calibrate_cameras(rig: TrueRig, sets: Sequence[RigSet], routes: tuple[str, ...], pattern: StarPattern,
+                      noise_px: float, rng: np.random.Generator) -> list[GenericCalibration]:
+    """Each camera calibrated alone from the truth's features of its frames in the ``routes`` sets."""
+    calibrations = []
+    for c in range(len(rig.cameras)):
+        frames = [s.frames[c] for s in sets if s.frames[c] is not None and s.kind in routes]
+        sharp = truth_features([f for f in frames if f.kind == "sharp"], pattern, noise_px, 0.0, rng)
+        blurry = [f for f in frames if f.kind == "blurry"]
+        blurry_table = truth_features(blurry, pattern, noise_px, 3.0, rng) if blurry else None
+        param = calibrate_sharp(sharp, pattern, (1280, 720))
+        calibrations.append(calibrate_generic(sharp, blurry_table, param, pattern, (1280, 720)))
+    return calibrations
+
+
+def pair_epipolar(result: RigCalibration, sets: Sequence[RigSet], i: int, j: int) -> np.ndarray:
+    """The rectified epipolar errors (px) of the true feature positions seen by cameras ``i`` and ``j``."""
+    calibrated = result.bundle.rig
+    rect = stereo_rectify(calibrated.cameras[i], calibrated.cameras[j], calibrated.relative(i, j))
+    both = [(s.frames[i], s.frames[j]) for s in sets if s.frames[i] is not None and s.frames[j] is not None]
+    pairs = [np.nonzero(fi.visible & fj.visible)[0] for fi, fj in both]
+    cams = calibrated.cameras
+    epipolar = epipolar_errors(rect, cams[i].pixel_to_ray, cams[j].pixel_to_ray,
+                               np.concatenate([f[0].mid[k] for f, k in zip(both, pairs, strict=True)]),
+                               np.concatenate([f[1].mid[k] for f, k in zip(both, pairs, strict=True)]))
+    return epipolar[np.isfinite(epipolar)]
+
+
+def report_case(rig: TrueRig, sets: Sequence[RigSet], result: RigCalibration,
+                calibrations: Sequence[GenericCalibration]) -> dict[str, float | int]:
+    """Print each camera's and each sharing pair's figures; return them for the record."""
+    figures: dict[str, float | int] = {}
+    for c, cal in enumerate(calibrations):
+        acc = camera_accuracy(rig.cameras[c], cal.model)
+        used = int(result.bundle.inlier[c].sum())
+        line = (f"camera {c}: generic {acc.median:.4f} px from the truth (median), {len(cal.frames)} frames, "
+                f"rig bundle median {result.bundle.median_error[c]:.4f} px over {used} observations")
+        if c > 0:
+            err = extrinsic_error(rig, result.bundle.rig, 0, c)
+            line += f"; extrinsics {err.translation_mm:.4f} mm, {err.rotation_deg:.5f} deg from the truth"
+            figures[f"camera{c}_translation_error_mm"] = err.translation_mm
+            figures[f"camera{c}_rotation_error_deg"] = err.rotation_deg
+        print(line)
+        figures[f"camera{c}_error_px"] = acc.median
+        figures[f"camera{c}_frames"] = len(cal.frames)
+        figures[f"camera{c}_observations"] = used
+    for pair in rig_trust(result, folds=5):
+        err = extrinsic_error(rig, result.bundle.rig, pair.i, pair.j)
+        print(f"camera {pair.j} <- camera {pair.i}: uncertainty {pair.translation_mm:.4f} mm, "
+              f"{pair.rotation_deg:.5f} deg (true error {err.translation_mm:.4f} mm, "
+              f"{err.rotation_deg:.5f} deg); " + (
+                  f"held-out error {pair.holdout_px:.4f} px over {pair.holdout_count} predicted features"
+                  if pair.holdout_count else "no held-out error (no shared set)"))
+        key = f"pair{pair.i}{pair.j}"
+        figures[f"{key}_translation_uncertainty_mm"] = pair.translation_mm
+        figures[f"{key}_rotation_uncertainty_deg"] = pair.rotation_deg
+        figures[f"{key}_holdout_px"] = pair.holdout_px
+    C = len(rig.cameras)
+    for i in range(C):
+        for j in range(i + 1, C):
+            if not any(s.frames[i] is not None and s.frames[j] is not None for s in sets):
+                print(f"cameras {i} and {j} share no set")
+                continue
+            try:
+                epipolar = pair_epipolar(result, sets, i, j)
+            except ValueError as exc:
+                print(f"cameras {i}, {j}: rectification failed ({exc})")
+                continue
+            print(f"cameras {i}, {j}: rectified epipolar error (true feature positions, {len(epipolar)} "
+                  f"points): median {np.median(epipolar):.4f} px, "
+                  f"95th percentile {np.percentile(epipolar, 95):.4f} px")
+            figures[f"pair{i}{j}_epipolar_median_px"] = float(np.median(epipolar))
+    return figures
+
+
+def run_case(cameras: int, sharp: int, blurry: int, noise_px: float, seed: int,
+             record: benchrecord.BenchRecord) -> None:
+    """Simulate, calibrate and print one rig (the pair, or the row of three), sharp sets only and
+    sharp and blurry sets; add its figures to ``record``."""
+    pattern = layout_pattern()
+    config = SynthConfig(sharp=sharp, blurry=blurry, seed=seed)
+    if cameras == 2:
+        rig = d435i_stereo_rig(seed)
+        sim = RigSimulator(config, rig, pattern)
+        title = f"simulated D435I-like pair: baseline {np.linalg.norm(rig.relative(0, 1).t) * 1000:.1f} mm"
+    else:
+        rig = chain_rig(3, seed)
+        sim = RigSimulator(config, rig, pattern, groups=[(0, 1), (1, 2)])
+        title = "simulated row of three cameras 50 mm apart, turned 20 deg each; sets of cameras 0+1 or 1+2"
+    sets = [sim.image_set(k) for k in range(len(sim.set_names()))]
+    rng = np.random.default_rng(seed)
+    print(f"== {title}, {sharp} sharp + {blurry} blurry sets, noise {noise_px} px ==")
+    prefix = "" if cameras == 2 else "three cameras: "
+    for routes in (("sharp",), ("sharp", "blurry")):
+        t0 = time.process_time()
+        calibrations = calibrate_cameras(rig, sets, routes, pattern, noise_px, rng)
+        cpu_cameras = time.process_time() - t0
+        result = calibrate_rig(calibrations)
+        cpu_rig = time.process_time() - t0 - cpu_cameras
+        name = " + ".join(routes)
+        print(f"-- {name} sets --")
+        figures = report_case(rig, sets, result, calibrations)
+        err = extrinsic_error(rig, result.bundle.rig, 0, 1)
+        print(f"extrinsics (camera 1 <- camera 0): rotation {err.rotation_deg:.5f} deg, translation "
+              f"{err.translation_mm:.4f} mm (targets 0.01 deg, 0.1 mm); {len(result.sets)} of {len(sets)} "
+              f"sets used, {result.bundle.iterations} iterations")
+        print(f"CPU time: cameras {cpu_cameras:.1f} s, rig bundle {result.bundle.cpu_seconds:.1f} s "
+              f"(shared machine: CPU time, not wall)")
+        pair = {}
+        if cameras == 2 and "pair01_epipolar_median_px" in figures:
+            pair = {"epipolar_median_px": figures.pop("pair01_epipolar_median_px")}
+        record.add(f"{prefix}{name} sets", rotation_error_deg=err.rotation_deg,
+                   translation_error_mm=err.translation_mm, **pair, sets_used=len(result.sets),
+                   sets=len(sets), cpu_cameras_s=cpu_cameras, cpu_rig_s=cpu_rig, **figures)
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--sharp", type=int, default=20, help="sharp image sets (default 20)")
-    ap.add_argument("--blurry", type=int, default=60, help="blurry image sets (default 60)")
+    ap.add_argument("--cameras", type=int, nargs="+", choices=(2, 3), default=[2, 3],
+                    help="the rigs measured: 2, the D435I-like pair; 3, a row of three whose camera 2 is "
+                         "linked only through camera 1 (default both)")
+    ap.add_argument("--sharp", type=int, default=20, help="sharp image sets of the pair (default 20)")
+    ap.add_argument("--blurry", type=int, default=60, help="blurry image sets of the pair (default 60)")
+    ap.add_argument("--sets3", type=int, nargs=2, default=[10, 14], metavar=("SHARP", "BLURRY"),
+                    help="sharp and blurry image sets of the row of three (default 10 14)")
     ap.add_argument("--noise-px", type=float, default=0.05, help="feature noise, px per axis (default 0.05)")
     ap.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     benchrecord.add_option(ap)
     args = ap.parse_args()
     record = benchrecord.start(__file__, args)
     torch.set_num_threads(1)
-    pattern = layout_pattern()
-    rig = d435i_stereo_rig(args.seed)
-    sim = RigSimulator(SynthConfig(sharp=args.sharp, blurry=args.blurry, seed=args.seed), rig, pattern)
-    sets = [sim.image_set(k) for k in range(len(sim.set_names()))]
-    rng = np.random.default_rng(args.seed)
-    print(f"== simulated D435I-like pair: baseline {np.linalg.norm(rig.relative(0, 1).t) * 1000:.1f} mm, "
-          f"{args.sharp} sharp + {args.blurry} blurry sets, noise {args.noise_px} px ==")
-    for routes in (("sharp",), ("sharp", "blurry")):
-        t0 = time.process_time()
-        calibrations = []
-        for c in range(len(rig.cameras)):
-            frames = [s.frames[c] for s in sets if s.frames[c] is not None and s.kind in routes]
-            sharp = truth_features([f for f in frames if f.kind == "sharp"], pattern, args.noise_px, 0.0, rng)
-            blurry = [f for f in frames if f.kind == "blurry"]
-            blurry_table = truth_features(blurry, pattern, args.noise_px, 3.0, rng) if blurry else None
-            param = calibrate_sharp(sharp, pattern, (1280, 720))
-            calibrations.append(calibrate_generic(sharp, blurry_table, param, pattern, (1280, 720)))
-        cpu_cameras = time.process_time() - t0
-        result = calibrate_rig(calibrations)
-        cpu_rig = time.process_time() - t0 - cpu_cameras
-        err = extrinsic_error(rig, result.bundle.rig)
-        calibrated = result.bundle.rig
-        rect = stereo_rectify(calibrated.cameras[0], calibrated.cameras[1], calibrated.relative(0, 1))
-        both = [s.frames for s in sets if all(f is not None for f in s.frames)]
-        pairs = [np.nonzero(f0.visible & f1.visible)[0] for f0, f1 in both]
-        cams = calibrated.cameras
-        epipolar = epipolar_errors(rect, cams[0].pixel_to_ray, cams[1].pixel_to_ray,
-                                   np.concatenate([f[0].mid[k] for f, k in zip(both, pairs, strict=True)]),
-                                   np.concatenate([f[1].mid[k] for f, k in zip(both, pairs, strict=True)]))
-        epipolar = epipolar[np.isfinite(epipolar)]
-        name = " + ".join(routes)
-        print(f"-- {name} sets --")
-        figures: dict[str, float | int] = {}
-        for c, cal in enumerate(calibrations):
-            acc = camera_accuracy(rig.cameras[c], cal.model)
-            used = int(result.bundle.inlier[c].sum())
-            print(f"camera {c}: generic {acc.median:.4f} px from the truth (median), "
-                  f"{len(cal.frames)} frames, rig bundle median {result.bundle.median_error[c]:.4f} px "
-                  f"over {used} observations")
-            figures[f"camera{c}_error_px"] = acc.median
-            figures[f"camera{c}_frames"] = len(cal.frames)
-            figures[f"camera{c}_observations"] = used
-        print(f"extrinsics: rotation {err.rotation_deg:.5f} deg, translation {err.translation_mm:.4f} mm "
-              f"(targets 0.01 deg, 0.1 mm); {len(result.sets)} of {len(sets)} sets used, "
-              f"{result.bundle.iterations} iterations")
-        print(f"rectified epipolar error (true feature positions of both cameras, {len(epipolar)} points): "
-              f"median {np.median(epipolar):.4f} px, 95th percentile {np.percentile(epipolar, 95):.4f} px")
-        print(f"CPU time: cameras {cpu_cameras:.1f} s, rig bundle {result.bundle.cpu_seconds:.1f} s "
-              f"(shared machine: CPU time, not wall)")
-        record.add(f"{name} sets", rotation_error_deg=err.rotation_deg,
-                   translation_error_mm=err.translation_mm,
-                   epipolar_median_px=float(np.median(epipolar)), sets_used=len(result.sets),
-                   sets=len(sets), cpu_cameras_s=cpu_cameras,
-                   cpu_rig_s=cpu_rig, **figures)
+    for cameras in args.cameras:
+        sharp, blurry = (args.sharp, args.blurry) if cameras == 2 else args.sets3
+        run_case(cameras, sharp, blurry, args.noise_px, args.seed, record)
     record.write()
 
 

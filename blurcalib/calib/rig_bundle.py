@@ -84,6 +84,12 @@ class RigBundleResult:
         median_error, rms_error: ``(C,)`` px over each camera's inliers.
         iterations: LM iterations run; cost: final objective (px^2).
         cpu_seconds: process CPU time.
+        covariance: ``(6 (C-1), 6 (C-1))`` the covariance of the extrinsics of cameras ``1 .. C-1``
+            (per camera the rotation increment ``omega`` (rad, ``R_c <- exp(omega) R_c``) then
+            ``dt`` (m)): ``sigma^2 H^-1`` with ``H`` the normal equations' matrix at the solution,
+            the sets' blocks eliminated (Schur complement), and ``sigma^2`` the residual variance
+            ``sum w |r|^2 / (2 N - unknowns)`` over the inliers; NaN if singular. The cameras are
+            held fixed, so their own errors are not in it.
     """
 
     rig: Rig
@@ -96,6 +102,7 @@ class RigBundleResult:
     iterations: int
     cost: float
     cpu_seconds: float
+    covariance: np.ndarray = field(repr=False, default_factory=lambda: np.zeros((0, 0)))
 
 
 @dataclass
@@ -226,6 +233,23 @@ class _RigSteps(SingleProblem[_State, SchurSystem, tuple[torch.Tensor, torch.Ten
         moved = self.project(_State(Rc, tc, Rs, ts, s, x.u, x.inside, x.r))
         return moved, self.cost(moved)
 
+    def covariance(self, x: _State) -> np.ndarray:
+        """The extrinsics' covariance at ``x`` (:class:`RigBundleResult`)."""
+        Hgg, Hgp, Hpp, _, _ = self.linearise(x)
+        G = Hgg.shape[0]
+        total, count = 0.0, 0
+        for c, cam in enumerate(self.cams):
+            keep = (cam.weights > 0) & x.inside[c]
+            total += float((cam.weights[keep] * (x.r[c][keep] ** 2).sum(-1)).sum())
+            count += 2 * int(keep.sum())
+        unknowns = G + 6 * self.S + 2 * sum(int(cam.free.sum()) for cam in self.cams)
+        try:
+            reduced = Hgg - torch.einsum("gfi,fij,hfj->gh", Hgp, torch.linalg.inv(Hpp), Hgp)
+            cov = torch.linalg.inv(0.5 * (reduced + reduced.T)) * total / max(count - unknowns, 1)
+        except torch.linalg.LinAlgError:
+            return np.full((G, G), math.nan)
+        return cov.numpy()
+
     def remove_outliers(self, x: _State) -> tuple[_State, float]:
         """Weight 0 for each camera's observations above ``Q3 + k (Q3 - Q1)`` of its errors in use."""
         for c, cam in enumerate(self.cams):
@@ -309,5 +333,6 @@ def rig_bundle_adjust(models: Sequence[CentralGeneric], camera_tr_rig: Sequence[
             med[c], rms[c] = float(torch.median(e)), float(torch.sqrt(torch.mean(e * e)))
     Rc, tc, Rs, ts = (v.numpy() for v in (x.Rc, x.tc, x.Rs, x.ts))
     rig = Rig(tuple(models), tuple(Pose(orthonormal(Rc[c]), tc[c]) for c in range(C)))
+    covariance = steps.covariance(x)
     return RigBundleResult(rig, [Pose(orthonormal(Rs[k]), ts[k]) for k in range(S)], x.s.numpy(), residuals,
-                           inliers, med, rms, iterations, cost, time.process_time() - t_cpu)
+                           inliers, med, rms, iterations, cost, time.process_time() - t_cpu, covariance)

@@ -14,7 +14,7 @@ blurry frame keeping its own image shift.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Collection, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -24,7 +24,7 @@ from blurcalib.calib.joint import GenericCalibration
 from blurcalib.calib.rig_bundle import RigBundleResult, RigObservations, rig_bundle_adjust
 from blurcalib.geometry.pose import Pose
 
-__all__ = ["RigCalibration", "RigError", "calibrate_rig", "initial_rig", "mean_pose"]
+__all__ = ["RigCalibration", "RigError", "calibrate_rig", "initial_rig", "mean_pose", "rig_problem"]
 
 
 class RigError(ValueError):
@@ -91,6 +91,33 @@ class RigCalibration:
     bundle: RigBundleResult
 
 
+def rig_problem(cameras: Sequence[GenericCalibration], leave_out: Collection[str] = ()
+                ) -> tuple[list[str], list[Pose], list[Pose], list[RigObservations]]:
+    """The joint bundle's inputs from the cameras' own calibrations, the sets named in
+    ``leave_out`` left out: the sets' names, the initial ``camera_tr_rig (C,)`` and
+    ``rig_tr_global (S,)`` (:func:`initial_rig`) and each camera's observations.
+
+    Raises:
+        RigError: a camera that shares no image set with the others.
+    """
+    names = sorted(set().union(*(cal.frames for cal in cameras)) - set(leave_out))
+    index = {name: k for k, name in enumerate(names)}
+    camera_poses = [[cal.poses.get(name) for name in names] for cal in cameras]
+    camera_tr_rig, rig_tr_global = initial_rig(camera_poses)
+    used = [k for k, p in enumerate(rig_tr_global) if p is not None]
+    renumber = np.full(len(names), -1)
+    renumber[used] = np.arange(len(used))
+    observations = []
+    for cal in cameras:
+        keep = np.array([f in index for f in cal.frame.tolist()], dtype=bool)
+        sets = renumber[np.array([index[f] for f in cal.frame[keep].tolist()], dtype=np.int64)]
+        blurry = set(cal.blurry_frames) & set(cal.shifts)
+        free = np.array([names[k] in blurry for k in used], dtype=bool)
+        observations.append(RigObservations(sets, cal.points[keep], cal.observed[keep],
+                                            (cal.weight * cal.inlier)[keep], free))
+    return [names[k] for k in used], camera_tr_rig, [rig_tr_global[k] for k in used], observations  # type: ignore[misc]
+
+
 def calibrate_rig(cameras: Sequence[GenericCalibration], settings: BundleSettings | None = None
                   ) -> RigCalibration:
     """The rig of calibrated cameras (module docstring); frames match by name across cameras.
@@ -100,19 +127,7 @@ def calibrate_rig(cameras: Sequence[GenericCalibration], settings: BundleSetting
     """
     if len(cameras) < 2:
         raise RigError(f"a rig needs two or more cameras, got {len(cameras)}")
-    names = sorted(set().union(*(cal.frames for cal in cameras)))
-    index = {name: k for k, name in enumerate(names)}
-    camera_poses = [[cal.poses.get(name) for name in names] for cal in cameras]
-    camera_tr_rig, rig_tr_global = initial_rig(camera_poses)
-    used = [k for k, p in enumerate(rig_tr_global) if p is not None]
-    renumber = np.full(len(names), -1)
-    renumber[used] = np.arange(len(used))
-    observations = []
-    for cal in cameras:
-        sets = renumber[np.array([index[f] for f in cal.frame.tolist()], dtype=np.int64)]
-        blurry = set(cal.blurry_frames) & set(cal.shifts)
-        free = np.array([names[k] in blurry for k in used])
-        observations.append(RigObservations(sets, cal.points, cal.observed, cal.weight * cal.inlier, free))
-    bundle = rig_bundle_adjust([cal.model for cal in cameras], camera_tr_rig,
-                               [rig_tr_global[k] for k in used], observations, settings)  # type: ignore[misc]
-    return RigCalibration(list(cameras), [names[k] for k in used], bundle)
+    names, camera_tr_rig, rig_tr_global, observations = rig_problem(cameras)
+    bundle = rig_bundle_adjust([cal.model for cal in cameras], camera_tr_rig, rig_tr_global, observations,
+                               settings)
+    return RigCalibration(list(cameras), names, bundle)

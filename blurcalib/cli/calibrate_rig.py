@@ -31,7 +31,8 @@ def cmd_calibrate_rig(args: argparse.Namespace) -> int:
     Writes into --out the reference tool's rig folder (calibration/intrinsics{N}.yaml,
     camera_tr_rig.yaml, rig_tr_global.yaml, points.yaml), OpenCV's stereo_{i}_{j}.yaml (R, T, E,
     R1, R2, P1, P2, Q) with its rectification maps rectify_{i}_{j}.npz for every pair, and
-    report.json, written last. Prints each camera's errors and each pair's extrinsics."""
+    report.json, written last. Prints each camera's errors and each pair's extrinsics, their
+    uncertainty and held-out error."""
     from blurcalib.pipeline.rig import calibrate_rig_features
     from blurcalib.pipeline.run import PipelineError
 
@@ -104,6 +105,13 @@ def _print_rig(run: RigRun, out: str) -> None:
         angle = float(np.degrees(np.linalg.norm(Pose(np.array(pair["R"]), np.zeros(3)).rvec)))
         print(f"camera {j} <- camera {i}: T = ({', '.join(f'{v * 1000:.3f}' for v in pair['T_m'])}) mm, "
               f"baseline {pair['baseline_mm']:.3f} mm, rotation {angle:.4f} deg")
+        if pair.get("translation_uncertainty_mm") is not None:
+            print(f"  uncertainty {pair['translation_uncertainty_mm']:.4f} mm, "
+                  f"{pair['rotation_uncertainty_deg']:.5f} deg (expected size of the extrinsics' error)")
+        if pair.get("holdout_error_px") is not None:
+            print(f"  held-out error {pair['holdout_error_px']:.4f} px (median over "
+                  f"{pair['holdout_predictions']} features of sets left out, predicted from the other "
+                  f"camera)")
     print(f"image sets used: {report['sets']}; wrote {len(run.outputs)} files into {out}")
 
 

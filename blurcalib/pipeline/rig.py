@@ -13,6 +13,9 @@ Outputs (``docs/rig.md``), written only once everything is computed, ``report.js
 ``intrinsics{N}.yaml``, ``camera_tr_rig.yaml``, ``rig_tr_global.yaml``, ``points.yaml``), and per
 pair of cameras ``i < j`` OpenCV's ``stereo_{i}_{j}.yaml`` with, unless ``maps`` is off, the
 rectification maps ``rectify_{i}_{j}.npz`` (:func:`blurcalib.camera.rig_files.write_stereo_pair`).
+Each pair's entry in ``report.json`` carries its trust (:mod:`blurcalib.calib.rig_trust`): the
+extrinsics' uncertainty (translation mm, rotation deg) from the joint bundle and their 5-fold
+held-out error (px; null where the pair shares no set).
 """
 
 from __future__ import annotations
@@ -29,6 +32,7 @@ import numpy as np
 
 from blurcalib.calib.joint import GenericCalibration, JointSettings, calibrate_generic
 from blurcalib.calib.rig_calibration import RigCalibration, RigError, calibrate_rig
+from blurcalib.calib.rig_trust import PairTrust, rig_trust
 from blurcalib.calib.sharp import CalibrationError, calibrate_sharp
 from blurcalib.camera.generic import DEFAULT_CELL_PX
 from blurcalib.camera.rig_files import write_rig_folder, write_stereo_pair
@@ -73,11 +77,12 @@ def _camera(path: Path, pattern: StarPattern, image_size: tuple[int, int] | None
         raise PipelineError(f"{path}: generic calibration: {exc}") from None
 
 
-def rig_report(result: RigCalibration, features: Sequence[Path], inputs: Sequence[str] | None = None
-               ) -> dict[str, Any]:
+def rig_report(result: RigCalibration, features: Sequence[Path], inputs: Sequence[str] | None = None,
+               trust: Sequence[PairTrust] = ()) -> dict[str, Any]:
     """The ``report.json`` document: per camera its features (and, from frames, its ``input``),
-    frames and errors (px), per pair ``camera j <- camera i`` (OpenCV's ``R``, ``T`` m) and its
-    baseline (mm), the image sets used."""
+    frames and errors (px), per pair ``camera j <- camera i`` (OpenCV's ``R``, ``T`` m), its
+    baseline (mm) and its ``trust`` (:meth:`blurcalib.calib.rig_trust.PairTrust.to_dict`, NaN
+    written as null), the image sets used."""
     bundle = result.bundle
     cameras = [{"features": str(path), "frames": len(cal.frames), "blurry_frames": len(cal.blurry_frames),
                 "generic_median_px": cal.median_error, "rig_median_px": float(bundle.median_error[c]),
@@ -87,11 +92,14 @@ def rig_report(result: RigCalibration, features: Sequence[Path], inputs: Sequenc
         for cam, source in zip(cameras, inputs, strict=True):
             cam["input"] = source
     pairs = []
+    trusted = {(t.i, t.j): t.to_dict() for t in trust}
     for i in range(bundle.rig.size):
         for j in range(i + 1, bundle.rig.size):
             rel = bundle.rig.relative(i, j)
+            extra = {k: (None if isinstance(v, float) and not np.isfinite(v) else v)
+                     for k, v in trusted.get((i, j), {}).items() if k != "cameras"}
             pairs.append({"cameras": [i, j], "R": rel.R.tolist(), "T_m": rel.t.tolist(),
-                          "baseline_mm": float(np.linalg.norm(rel.t)) * 1000.0})
+                          "baseline_mm": float(np.linalg.norm(rel.t)) * 1000.0, **extra})
     return {"cameras": cameras, "pairs": pairs, "sets": len(result.sets), "iterations": bundle.iterations,
             "pixel_convention": "opencv (top-left pixel centre at (0, 0))"}
 
@@ -132,6 +140,7 @@ def write_rig_outputs(out: Path, result: RigCalibration, pattern: StarPattern, f
     for i in range(len(result.cameras)):
         for j in range(i + 1, len(result.cameras)):
             written += write_stereo_pair(out, result.bundle.rig, i, j, maps=maps)[1]
-    report = {**rig_report(result, features, inputs), "cpu_seconds": time.process_time() - t_cpu}
+    trust = rig_trust(result)
+    report = {**rig_report(result, features, inputs, trust), "cpu_seconds": time.process_time() - t_cpu}
     written.append(atomic_write_text(out / RIG_REPORT_FILE, json.dumps(report, indent=1)))
     return RigRun(result, report, written)

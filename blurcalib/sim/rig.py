@@ -2,15 +2,18 @@
 
 A rig (:class:`TrueRig`) is simulated cameras (:class:`blurcalib.sim.truth.TrueCamera`) and their
 rig -> camera poses ``camera_tr_rig`` (:mod:`blurcalib.camera.rig`'s convention; the rig's frame
-is camera 0's). Image set ``k`` has one target -> rig pose ``rig_tr_global`` (mid-exposure):
-drawn for camera 0 as the single-camera simulator draws a frame's pose
-(:func:`blurcalib.sim.synth.sample_pose`), redrawn (up to :data:`SET_TRIES` times) until every
-camera sees 40 features, else kept with the cameras that do not see it left out of the set.
-Camera ``c`` sees the target at ``camera_tr_rig[c] o rig_tr_global``.
+is camera 0's). Image set ``k`` is meant for a group of cameras: every camera, or, with a
+visibility rule ``groups`` (:class:`RigSimulator`), the group ``groups[k % len(groups)]``; the
+other cameras' frames are left out of the set. The set has one target -> rig pose
+``rig_tr_global`` (mid-exposure): drawn for the group's first camera (its anchor) as the
+single-camera simulator draws a frame's pose (:func:`blurcalib.sim.synth.sample_pose`), redrawn
+(up to :data:`SET_TRIES` times) until every camera of the group sees 40 features, else kept with
+the cameras that do not see it left out. Camera ``c`` sees the target at
+``camera_tr_rig[c] o rig_tr_global``.
 
-A blurry set's hand motion is drawn for camera 0 (:func:`blurcalib.sim.synth.sample_motion`) and
-moves the whole rig: camera ``c`` sees the same rigid motion in its own frame, the twist
-conjugated by ``T = camera c <- camera 0`` (:func:`conjugate_motion`: ``omega' = R omega``,
+A blurry set's hand motion is drawn for the anchor camera (:func:`blurcalib.sim.synth.sample_motion`)
+and moves the whole rig: camera ``c`` sees the same rigid motion in its own frame, the twist
+conjugated by ``T = camera c <- anchor`` (:func:`conjugate_motion`: ``omega' = R omega``,
 ``v' = R v + t x R omega``), so each camera blurs differently. Frames, feature truth and noise
 are the single-camera simulator's (:func:`blurcalib.sim.synth.frame_truth`,
 :func:`blurcalib.sim.render.sensor_image`). Pixel convention: OpenCV.
@@ -52,8 +55,8 @@ from blurcalib.sim.truth import (
 )
 from blurcalib.target.pattern import StarPattern, layout_pattern
 
-__all__ = ["RIG_TRUTH_FILE", "SET_TRIES", "RigSet", "RigSimulator", "TrueRig", "conjugate_motion",
-           "d435i_stereo_rig", "load_rig_truth", "write_rig_dataset"]
+__all__ = ["RIG_TRUTH_FILE", "SET_TRIES", "RigSet", "RigSimulator", "TrueRig", "chain_rig",
+           "conjugate_motion", "d435i_stereo_rig", "load_rig_truth", "write_rig_dataset"]
 
 RIG_TRUTH_FILE = "rig_truth.json"
 SET_TRIES = 20
@@ -105,9 +108,25 @@ def d435i_stereo_rig(seed: int = 0, baseline_m: float = 0.05,
     return TrueRig(tuple(cameras), (Pose.identity(), second))
 
 
+def chain_rig(cameras: int = 3, seed: int = 0, baseline_m: float = 0.05, yaw_deg: float = 20.0,
+              deviation_px: float = 0.3, scale: float = 1.0) -> TrueRig:
+    """A row of ``cameras`` D435I-like cameras (:func:`d435i_like_camera`, seeds ``seed + c``):
+    camera ``c`` sits ``baseline_m`` to the right (+x) of camera ``c - 1`` and is turned
+    ``yaw_deg`` further about its y axis (towards +x), so that the first and the last camera look
+    apart; ``scale`` resizes the images as in :func:`d435i_stereo_rig`."""
+    poses = []
+    for c in range(cameras):
+        R, _ = cv2.Rodrigues(np.array([0.0, np.radians(yaw_deg) * c, 0.0]).reshape(3, 1))
+        poses.append(Pose(R, -R @ np.array([baseline_m * c, 0.0, 0.0])))
+    models = [d435i_like_camera(seed + c, deviation_px) for c in range(cameras)]
+    if scale != 1.0:
+        models = [TrueCamera(c.model.scaled(scale), c.waves) for c in models]
+    return TrueRig(tuple(models), tuple(poses))
+
+
 def conjugate_motion(motion: Motion, pose: Pose, samples: int | None = None) -> Motion:
-    """The motion of camera 0 (``motion``, in its frame) seen by a camera rigidly fixed to it with
-    ``pose`` = that camera <- camera 0: each twist ``(omega, v)`` becomes ``(R omega, R v + t x R
+    """The motion of one camera (``motion``, in its frame) seen by a camera rigidly fixed to it with
+    ``pose`` = that camera <- the first: each twist ``(omega, v)`` becomes ``(R omega, R v + t x R
     omega)`` (the adjoint), so ``Exp(xi') = pose Exp(xi) pose^-1``."""
 
     def ad(xi: np.ndarray) -> np.ndarray:
@@ -119,8 +138,8 @@ def conjugate_motion(motion: Motion, pose: Pose, samples: int | None = None) -> 
 
 @dataclass(frozen=True, eq=False)
 class RigSet:
-    """One image set's truth: its target -> rig pose, the motion of camera 0 and, per camera, the
-    frame's truth (None where the camera does not see the target)."""
+    """One image set's truth: its target -> rig pose and, per camera, the frame's truth (None where
+    the camera does not see the target or is not in the set's group)."""
 
     name: str
     kind: str
@@ -132,12 +151,18 @@ class RigSimulator:
     """Deterministic generator of a rig dataset: ``SynthConfig`` + pattern + rig -> image sets.
 
     ``config.sharp`` sharp and ``config.blurry`` blurry sets; each set's randomness depends only
-    on the seed and its index."""
+    on the seed and its index. ``groups`` is the visibility rule (module docstring): set ``k`` is
+    meant for the cameras ``groups[k % len(groups)]`` (its first camera the anchor); None: every
+    camera, camera 0 the anchor."""
 
     def __init__(self, config: SynthConfig | None = None, rig: TrueRig | None = None,
-                 pattern: StarPattern | None = None) -> None:
+                 pattern: StarPattern | None = None, groups: Sequence[Sequence[int]] | None = None) -> None:
         self.config = config or SynthConfig()
         self.rig = rig or d435i_stereo_rig(self.config.seed)
+        C = len(self.rig.cameras)
+        self.groups = [tuple(range(C))] if groups is None else [tuple(g) for g in groups]
+        if not self.groups or any(not g or min(g) < 0 or max(g) >= C for g in self.groups):
+            raise ValueError(f"each group of the visibility rule needs cameras in [0, {C}), got {groups}")
         self.pattern = pattern or layout_pattern()
         self.sims = [Simulator(self.config, self.pattern, camera) for camera in self.rig.cameras]
         self.renderers: list[Renderer] = [sim.renderer for sim in self.sims]
@@ -159,31 +184,33 @@ class RigSimulator:
         name, kind = self.set_names()[index]
         cfg = self.config
         rng = np.random.default_rng([cfg.seed, index])
-        first = self.rig.camera_tr_rig[0]
+        group = self.groups[index % len(self.groups)]
+        a = group[0]
+        first = self.rig.camera_tr_rig[a]
         for _ in range(SET_TRIES):
-            pose0 = sample_pose(self.pattern, self.rig.cameras[0], rng, cfg.max_tilt_deg, cfg.square_px)
+            pose0 = sample_pose(self.pattern, self.rig.cameras[a], rng, cfg.max_tilt_deg, cfg.square_px)
             rig_pose = first.inverse().compose(pose0)
-            if all(self._sees(c, rig_pose) for c in range(len(self.rig.cameras))):
+            if all(self._sees(c, rig_pose) for c in group):
                 break
         motion0 = Motion.still()
         if kind == "blurry":
-            motion0 = sample_motion(self.renderers[0], pose0, self.pattern, rng,
+            motion0 = sample_motion(self.renderers[a], pose0, self.pattern, rng,
                                     rng.uniform(cfg.blur_min_px, cfg.blur_max_px),
                                     curved=bool(rng.uniform() < cfg.curved_fraction),
                                     rolling_shutter=cfg.rolling_shutter)
         frames: list[FrameTruth | None] = []
         for c, camera in enumerate(self.rig.cameras):
-            if not self._sees(c, rig_pose):
+            if c not in group or not self._sees(c, rig_pose):
                 frames.append(None)
                 continue
             pose = self.rig.camera_tr_rig[c].compose(rig_pose)
             motion = motion0
-            if kind == "blurry" and c > 0:
-                moved = conjugate_motion(motion0, self.rig.relative(0, c))
+            if kind == "blurry" and c != a:
+                moved = conjugate_motion(motion0, self.rig.relative(a, c))
                 pts = self.pattern.points_3d()
                 samples = self.renderers[c].time_samples_for(pose, moved.xi, moved.xi2, pts,
                                                              cfg.rolling_shutter)
-                motion = conjugate_motion(motion0, self.rig.relative(0, c), max(samples, motion0.samples))
+                motion = conjugate_motion(motion0, self.rig.relative(a, c), max(samples, motion0.samples))
             cam_rng = np.random.default_rng([cfg.seed, index, c])
             frames.append(frame_truth(name, kind, self.pattern, camera, pose, motion,
                                       float(cam_rng.uniform(*cfg.defocus_px)), cam_rng, cfg.noise_sigma,

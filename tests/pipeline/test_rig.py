@@ -55,5 +55,9 @@ def test_stereo_pair_from_features(tmp_path: Path, capsys: pytest.CaptureFixture
     assert err.rotation_deg < 0.01 and err.translation_mm < 0.1
     report = json.loads((out / "report.json").read_text())
     assert abs(report["pairs"][0]["baseline_mm"] - 50.0) < 0.1
+    pair = report["pairs"][0]
+    assert 0.0 < pair["translation_uncertainty_mm"] < 0.1 and 0.0 < pair["rotation_uncertainty_deg"] < 0.01
+    assert 0.04 < pair["holdout_error_px"] < 0.1 and pair["holdout_predictions"] > 1000  # 0.05 px noise
+    assert "held-out error" in printed and "uncertainty" in printed
     stereo = read_stereo_yaml(out / "stereo_0_1.yaml")
     assert np.allclose(stereo.relative.t, folder.rig.relative(0, 1).t, atol=1e-12)

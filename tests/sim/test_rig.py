@@ -15,6 +15,7 @@ from blurcalib.geometry.pose import Pose
 from blurcalib.sim.rig import (
     RIG_TRUTH_FILE,
     RigSimulator,
+    chain_rig,
     conjugate_motion,
     d435i_stereo_rig,
     load_rig_truth,
@@ -52,6 +53,27 @@ def test_sets_are_seen_through_the_extrinsics() -> None:
             b0, b1 = (f.blur_length[f.visible] for f in image_set.frames)
             assert np.median(b0) > 1.0 and np.median(b1) > 1.0
             assert abs(np.median(b0) - np.median(b1)) > 1e-3  # each camera blurs differently
+
+
+@pytest.mark.slow  # builds three cameras' renderers
+def test_visibility_rule_links_the_third_camera_only_through_the_second() -> None:
+    rig = chain_rig(3, seed=0)
+    assert np.isclose(np.linalg.norm(rig.relative(0, 2).t), 0.1)
+    sim = RigSimulator(SynthConfig(sharp=2, blurry=2, seed=0), rig, groups=[(0, 1), (1, 2)])
+    for k in range(4):
+        image_set = sim.image_set(k)
+        group = (0, 1) if k % 2 == 0 else (1, 2)
+        for c, frame in enumerate(image_set.frames):
+            if c not in group:
+                assert frame is None
+                continue
+            assert frame is not None and frame.visible.sum() >= 40
+            want = rig.camera_tr_rig[c].compose(image_set.rig_tr_global)
+            assert np.allclose(frame.pose.R, want.R) and np.allclose(frame.pose.t, want.t)
+            if image_set.kind == "blurry":
+                assert np.median(frame.blur_length[frame.visible]) > 1.0
+    with pytest.raises(ValueError, match="visibility rule"):
+        RigSimulator(SynthConfig(sharp=1, blurry=0), rig, groups=[(0, 3)])
 
 
 @pytest.mark.slow
