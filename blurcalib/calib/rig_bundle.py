@@ -246,9 +246,9 @@ class _RigSteps(SingleProblem[_State, SchurSystem, tuple[torch.Tensor, torch.Ten
         try:
             reduced = Hgg - torch.einsum("gfi,fij,hfj->gh", Hgp, torch.linalg.inv(Hpp), Hgp)
             cov = torch.linalg.inv(0.5 * (reduced + reduced.T)) * total / max(count - unknowns, 1)
-        except torch.linalg.LinAlgError:
+        except RuntimeError:  # torch.linalg.LinAlgError: a singular reduced system
             return np.full((G, G), math.nan)
-        return cov.numpy()
+        return np.asarray(cov.numpy(), dtype=np.float64)
 
     def remove_outliers(self, x: _State) -> tuple[_State, float]:
         """Weight 0 for each camera's observations above ``Q3 + k (Q3 - Q1)`` of its errors in use."""
