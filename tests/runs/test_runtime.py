@@ -96,41 +96,35 @@ def test_cuda_without_cuda_is_a_one_line_error(tmp_path, capsys) -> None:
     assert not (tmp_path / "o").exists()
 
 
-@pytest.mark.parametrize(("given", "expected"), [(None, "PASSIVE"), ("ACTIVE", "ACTIVE")])
-def test_openmp_threads_sleep_while_they_wait(given: str | None, expected: str) -> None:
+def _after_import(given: dict[str, str], cleared: str, checked: str, names: list[str]) -> str:
+    """The variables ``names`` printed by a fresh interpreter after ``import blurcalib``, in an
+    environment without the variables starting ``cleared`` but with ``given``; it also asserts
+    that the import left the module ``checked`` unloaded."""
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    env = {k: v for k, v in os.environ.items() if not k.startswith(cleared)}
+    env.update(given, PYTHONPATH=str(Path(__file__).resolve().parents[2]))
+    code = (f"import os, sys, blurcalib; assert {checked!r} not in sys.modules; "
+            f"print(*(os.environ[n] for n in {names!r}))")
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True)
+    return out.stdout.strip()
+
+
+@pytest.mark.parametrize(("given", "expected"), [({}, "PASSIVE"), ({"OMP_WAIT_POLICY": "ACTIVE"}, "ACTIVE")])
+def test_openmp_threads_sleep_while_they_wait(given: dict[str, str], expected: str) -> None:
     """Importing blurcalib makes torch's OpenMP threads sleep at barriers (spinning threads took
     4 to 8 times the CPU of a frame on a busy machine), before torch reads the policy; a policy
     the user set is kept."""
-    import os
-    import subprocess
-    import sys
-    from pathlib import Path
-
-    env = {k: v for k, v in os.environ.items() if k != "OMP_WAIT_POLICY"}
-    if given is not None:
-        env["OMP_WAIT_POLICY"] = given
-    env["PYTHONPATH"] = str(Path(__file__).resolve().parents[2])
-    code = ("import os, blurcalib, sys; assert 'torch' not in sys.modules; "
-            "print(os.environ['OMP_WAIT_POLICY'])")
-    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True)
-    assert out.stdout.strip() == expected
+    assert _after_import(given, "OMP_WAIT_POLICY", "torch", ["OMP_WAIT_POLICY"]) == expected
 
 
-@pytest.mark.parametrize(("given", "expected"), [(None, "1 4"), ("2", "2 4")])
-def test_openblas_computes_with_one_thread(given: str | None, expected: str) -> None:
+@pytest.mark.parametrize(("given", "expected"), [({}, "1 4"), ({"OPENBLAS_NUM_THREADS": "2"}, "2 4")])
+def test_openblas_computes_with_one_thread(given: dict[str, str], expected: str) -> None:
     """Importing blurcalib gives NumPy's OpenBLAS one thread whose waits sleep at once (two
     spinning threads took a small Cholesky solve from 0.016 to 0.17 s on a busy machine), before
     NumPy loads OpenBLAS; threads the user set are kept."""
-    import os
-    import subprocess
-    import sys
-    from pathlib import Path
-
-    env = {k: v for k, v in os.environ.items() if not k.startswith("OPENBLAS_")}
-    if given is not None:
-        env["OPENBLAS_NUM_THREADS"] = given
-    env["PYTHONPATH"] = str(Path(__file__).resolve().parents[2])
-    code = ("import os, sys, blurcalib; assert 'numpy' not in sys.modules; "
-            "print(os.environ['OPENBLAS_NUM_THREADS'], os.environ['OPENBLAS_THREAD_TIMEOUT'])")
-    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True)
-    assert out.stdout.strip() == expected
+    names = ["OPENBLAS_NUM_THREADS", "OPENBLAS_THREAD_TIMEOUT"]
+    assert _after_import(given, "OPENBLAS_", "numpy", names) == expected
