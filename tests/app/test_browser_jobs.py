@@ -15,6 +15,7 @@ two frames extracted).
 from __future__ import annotations
 
 import re
+import time
 from pathlib import Path
 
 import numpy as np
@@ -39,9 +40,14 @@ def _run(page, app, name: str) -> None:
     _choose_frame(page, name)
     sync_api.expect(page.get_by_text("not extracted yet")).to_be_visible()
     page.get_by_role("button", name="Run frame").click()
-    sync_api.expect(page.get_by_role("button", name="Cancel")).to_be_disabled(timeout=900_000)
+    # The frame's result, not the buttons: on a busy machine the click may reach the server after
+    # the buttons were first checked, when they still show the idle state.
+    deadline = time.monotonic() + 900.0
+    while app.state.view().result is None and time.monotonic() < deadline:
+        page.wait_for_timeout(200)
+    sync_api.expect(page.get_by_role("button", name="Cancel")).to_be_disabled(timeout=60_000)
     sync_api.expect(page.get_by_role("button", name="Run frame")).to_be_enabled()
-    assert app.state.view().entry.name == name
+    assert app.state.view().entry.name == name and app.state.view().result is not None
 
 
 def test_the_three_jobs_on_the_built_in_dataset(tmp_path: Path) -> None:

@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 
 import blurcalib.pipeline.frames as frame_rows
+import blurcalib.pipeline.outputs as outputs
 import blurcalib.pipeline.run as pipeline
 from blurcalib.calib.alignment import AlignmentSettings
 from blurcalib.calib.report import error_direction_image
@@ -181,7 +182,7 @@ def test_rerun_resumes_and_a_killed_write_never_mixes_runs(tmp_path, finished, d
         (Path(path).parent / f".{Path(path).stem}.k1ll3d_x.tmp.png").write_bytes(b"half a PNG")
         raise KeyboardInterrupt
 
-    monkeypatch.setattr(pipeline, "save_frame_error_plot", killed)
+    monkeypatch.setattr(outputs, "save_frame_error_plot", killed)
     with pytest.raises(KeyboardInterrupt):
         run_pipeline(*_frames(dataset), layout_pattern(), out, other)
     monkeypatch.undo()
