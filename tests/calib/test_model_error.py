@@ -3,15 +3,19 @@ against what noise predicts."""
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
 import pytest
 
+from blurcalib.calib.joint import GenericCalibration, JointSettings, calibrate_generic
 from blurcalib.calib.model_error import model_error, residual_structure
+from blurcalib.calib.sharp import calibrate_sharp
 from blurcalib.calib.trust import summary_lines
 from blurcalib.calib.uncertainty import CrossValidationDiff, ProjectionUncertainty
 from blurcalib.io.results import FeatureFlags
+from blurcalib.target.pattern import layout_pattern
 from tests.calib.test_joint import simulated_features
 
 SIZE = (1280, 720)
@@ -79,3 +83,27 @@ def test_halves_against_noise(diff_px: float, ratio: float, systematic: bool) ->
     assert ("the halves differ by 3.0 x what random noise predicts" in check.verdict()) is systematic
     line = [ln for ln in summary_lines({"model_error": check.to_dict()}) if ln.startswith("model error: ")]
     assert len(line) == 1
+
+
+def _generic_fit(cell_px: float, noise_px: float) -> GenericCalibration:
+    f = simulated_features(16, 3, int(FeatureFlags.STAR_CENTRE | FeatureFlags.SHARP_FRAME), "s")
+    rng = np.random.default_rng(0)
+    f = dataclasses.replace(f, x=np.asarray(f.x) + rng.normal(0, noise_px, len(f.x)),
+                            y=np.asarray(f.y) + rng.normal(0, noise_px, len(f.y)))
+    pattern = layout_pattern()
+    cal = calibrate_sharp(f, pattern, SIZE, refine_points=False)
+    return calibrate_generic(f, None, cal, pattern, SIZE, JointSettings(cell_px=cell_px))
+
+
+@pytest.mark.slow
+def test_fitted_generic_camera() -> None:
+    """A generic camera whose grid follows the lens (40 px cells) leaves noise; the same residuals
+    with the offset added show it; a grid too coarse for the lens (80 px) leaves structure even
+    without noise (model error of the camera itself)."""
+    g = _generic_fit(40.0, NOISE_PX)
+    xy, res = g.observed[g.inlier], g.residuals[g.inlier]
+    assert not model_error(xy, res, SIZE).systematic
+    assert model_error(xy, res + _radial_offset(xy), SIZE).structure.systematic_cells >= 4
+    coarse = _generic_fit(80.0, 0.0)
+    s = residual_structure(coarse.observed[coarse.inlier], coarse.residuals[coarse.inlier], SIZE)
+    assert s.systematic_cells >= 4 and s.max_mean_px > 0.02
