@@ -15,8 +15,11 @@ explain the data:
   generic cameras of two halves of the frames against what two independent estimates predict,
   ``sqrt(sigma_a(u)^2 + sigma_b(u)^2)``; each half has half the observations, so its
   uncertainty is taken as ``sqrt(2) sigma(u)`` of the camera of all frames, and the prediction
-  is ``2 sigma(u)``. The ratio of the RMS of the diff to the RMS of the prediction is about 1
-  (or below) when random noise explains the difference; above ``ratio_limit`` it does not.
+  is ``2 sigma(u)``. The halves are fitted under the bundle adjustment's smoothness prior
+  (``smoothness_px``, each around its own initial camera), so ``sigma`` here is the uncertainty
+  with that prior (``prior_scale`` 1), an upper bound where the frames are thin: the ratio of
+  the RMS of the diff to the RMS of the prediction is below 1 when random noise explains the
+  difference (0.6-0.8 on simulated noise); above ``ratio_limit`` it does not.
 
 Pixel convention: OpenCV (the centre of the top-left pixel is ``(0, 0)``).
 """

@@ -106,7 +106,7 @@ class Trust:
         guidance: plain-words advice on where more frames are needed.
         seconds: wall time (s) of each part: ``validation``, ``uncertainty``,
             ``cross_validation`` (the comparison alone when the validation ran: the halves'
-            cameras come from its pass).
+            cameras come from its pass), ``model_error``.
         validation_skipped: why the validation did not run (too few frames, or turned off);
             None when it ran.
         model_error: whether random noise explains the data (:mod:`blurcalib.calib.model_error`).
@@ -210,8 +210,12 @@ def assess_calibration(generic: GenericCalibration, generic_sharp: GenericCalibr
         skipped = ("turned off (--validation none)" if vs.method == "none" else
                    f"{count(len(generic.frames), 'frame')} in the generic fit, the k-fold validation "
                    f"needs at least {vs.min_frames}")
+    t3 = time.perf_counter()
     inl = np.asarray(generic.inlier, dtype=bool)
-    check = model_error(np.asarray(generic.observed)[inl], np.asarray(generic.residuals)[inl], size, cv, unc)
+    halves_unc = None if cv is None else projection_uncertainty(generic.bundle, step_px=settings.step_px)
+    check = model_error(np.asarray(generic.observed)[inl], np.asarray(generic.residuals)[inl], size, cv,
+                        halves_unc)
+    seconds["model_error"] = time.perf_counter() - t3
     return Trust(validation, unc, unc_sharp, cv, advice, seconds, skipped, check)
 
 

@@ -12,7 +12,7 @@ import pytest
 from blurcalib.calib.joint import GenericCalibration, JointSettings, calibrate_generic
 from blurcalib.calib.model_error import model_error, residual_structure
 from blurcalib.calib.sharp import calibrate_sharp
-from blurcalib.calib.trust import summary_lines
+from blurcalib.calib.trust import assess_calibration, summary_lines
 from blurcalib.calib.uncertainty import CrossValidationDiff, ProjectionUncertainty
 from blurcalib.io.results import FeatureFlags
 from blurcalib.target.pattern import layout_pattern
@@ -107,3 +107,21 @@ def test_fitted_generic_camera() -> None:
     coarse = _generic_fit(80.0, 0.0)
     s = residual_structure(coarse.observed[coarse.inlier], coarse.residuals[coarse.inlier], SIZE)
     assert s.systematic_cells >= 4 and s.max_mean_px > 0.02
+
+
+@pytest.mark.slow
+def test_assessment_reports_model_error() -> None:
+    """assess_calibration's model-error check on a generic camera of noise-only features: no
+    systematic verdict, the halves within what noise predicts, one printed line."""
+    f = simulated_features(16, 3, int(FeatureFlags.STAR_CENTRE | FeatureFlags.SHARP_FRAME), "s")
+    rng = np.random.default_rng(0)
+    f = dataclasses.replace(f, x=np.asarray(f.x) + rng.normal(0, NOISE_PX, len(f.x)),
+                            y=np.asarray(f.y) + rng.normal(0, NOISE_PX, len(f.y)))
+    pattern = layout_pattern()
+    cal = calibrate_sharp(f, pattern, SIZE, refine_points=False)
+    g = calibrate_generic(f, None, cal, pattern, SIZE, JointSettings(cell_px=40.0))
+    doc = assess_calibration(g, None, cal, f, pattern, SIZE).to_dict()
+    me = doc["model_error"]
+    assert me["systematic"] is False and me["systematic_cells"] == 0
+    assert me["halves_rms_px"] is not None and 0.2 < me["noise_ratio"] < 1.5
+    assert sum(ln.startswith("model error: no systematic error") for ln in summary_lines(doc)) == 1
