@@ -11,7 +11,9 @@ generic camera of the sharp frames alone:
   (:func:`blurcalib.calib.uncertainty.cross_validation_diff`), which bounds what the data can tell;
 * plain-words guidance naming the image regions whose uncertainty exceeds a threshold;
 * what the blurry frames bought: the held-out error and the uncertainty, sharp-only against
-  sharp + blurry.
+  sharp + blurry;
+* the model-error check (:mod:`blurcalib.calib.model_error`): whether random noise explains the
+  generic camera's residuals over the image and the halves' diff.
 
 :func:`save_trust` writes ``uncertainty.npz``, ``uncertainty.png`` and
 ``cross_validation.png`` (``docs/results-format.md``).
@@ -29,6 +31,7 @@ import numpy as np
 
 from blurcalib.calib.bundle import BundleSettings
 from blurcalib.calib.joint import GenericCalibration
+from blurcalib.calib.model_error import ModelError, model_error
 from blurcalib.calib.sharp import Calibration
 from blurcalib.calib.uncertainty import (
     CrossValidationDiff,
@@ -103,9 +106,10 @@ class Trust:
         guidance: plain-words advice on where more frames are needed.
         seconds: wall time (s) of each part: ``validation``, ``uncertainty``,
             ``cross_validation`` (the comparison alone when the validation ran: the halves'
-            cameras come from its pass).
+            cameras come from its pass), ``model_error``.
         validation_skipped: why the validation did not run (too few frames, or turned off);
             None when it ran.
+        model_error: whether random noise explains the data (:mod:`blurcalib.calib.model_error`).
     """
 
     validation: Validation | None
@@ -115,10 +119,12 @@ class Trust:
     guidance: list[str]
     seconds: dict[str, float]
     validation_skipped: str | None = None
+    model_error: ModelError | None = None
 
     def to_dict(self) -> dict[str, Any]:
         """The ``report.json`` sections ``validation`` (and ``validation_skipped``),
-        ``uncertainty``, ``cross_validation``, ``guidance`` and ``blurry_frames_gain``."""
+        ``uncertainty``, ``cross_validation``, ``model_error``, ``guidance`` and
+        ``blurry_frames_gain``."""
         def unc(u: ProjectionUncertainty | None) -> dict[str, Any] | None:
             if u is None:
                 return None
@@ -134,6 +140,7 @@ class Trust:
             "cross_validation": None if self.cross_validation is None else
             {"median_px": _round(self.cross_validation.median_px),
              "p95_px": _round(float(np.nanpercentile(self.cross_validation.diff_px, 95)))},
+            "model_error": None if self.model_error is None else self.model_error.to_dict(),
             "guidance": self.guidance,
             "seconds": {k: round(v, 2) for k, v in self.seconds.items()},
         }
@@ -203,7 +210,13 @@ def assess_calibration(generic: GenericCalibration, generic_sharp: GenericCalibr
         skipped = ("turned off (--validation none)" if vs.method == "none" else
                    f"{count(len(generic.frames), 'frame')} in the generic fit, the k-fold validation "
                    f"needs at least {vs.min_frames}")
-    return Trust(validation, unc, unc_sharp, cv, advice, seconds, skipped)
+    t3 = time.perf_counter()
+    inl = np.asarray(generic.inlier, dtype=bool)
+    halves_unc = None if cv is None else projection_uncertainty(generic.bundle, step_px=settings.step_px)
+    check = model_error(np.asarray(generic.observed)[inl], np.asarray(generic.residuals)[inl], size, cv,
+                        halves_unc)
+    seconds["model_error"] = time.perf_counter() - t3
+    return Trust(validation, unc, unc_sharp, cv, advice, seconds, skipped, check)
 
 
 def save_trust(folder: Path, trust: Trust, size: tuple[int, int]) -> dict[str, Path]:
@@ -254,6 +267,9 @@ def summary_lines(doc: dict[str, Any]) -> list[str]:
     if cv:
         lines.append(f"cross-validation diff of the generic cameras of two halves of the frames: median "
                      f"{_px(cv['median_px'])}, p95 {_px(cv['p95_px'])}")
+    me = doc.get("model_error")
+    if me:
+        lines.append(f"model error: {me['verdict']}")
     gain = doc.get("blurry_frames_gain")
     if gain:
         lines.append("what the blurry frames bought (sharp only -> sharp + blurry): "

@@ -63,6 +63,9 @@ def test_features_csv_calibrates_with_shifts_and_trust(features_csv, tmp_path, c
     assert gain["uncertainty_median_px"][1] < gain["uncertainty_median_px"][0]
     printed = capsys.readouterr().out
     assert "held-out reprojection error (5-fold" in printed and "what the blurry frames bought" in printed
+    me = report["model_error"]
+    assert me["cells"] == [8, 6] and isinstance(me["systematic"], bool) and "noise_ratio" in me
+    assert f"model error: {me['verdict']}" in printed
 
 
 def test_features_csv_needs_the_image_size(features_csv) -> None:
