@@ -9,12 +9,13 @@ import math
 import numpy as np
 import pytest
 
+from blurcalib.calib.calibration import Calibration
 from blurcalib.calib.joint import GenericCalibration, JointSettings, calibrate_generic
 from blurcalib.calib.model_error import model_error, residual_structure
 from blurcalib.calib.sharp import calibrate_sharp
 from blurcalib.calib.trust import assess_calibration, summary_lines
 from blurcalib.calib.uncertainty import CrossValidationDiff, ProjectionUncertainty
-from blurcalib.io.results import FeatureFlags
+from blurcalib.io.results import FeatureFlags, FeatureTable
 from blurcalib.target.pattern import layout_pattern
 from tests.calib.test_joint import simulated_features
 
@@ -85,14 +86,15 @@ def test_halves_against_noise(diff_px: float, ratio: float, systematic: bool) ->
     assert len(line) == 1
 
 
-def _generic_fit(cell_px: float, noise_px: float) -> GenericCalibration:
+def _generic_fit(cell_px: float, noise_px: float) -> tuple[FeatureTable, Calibration, GenericCalibration]:
+    """16 simulated sharp frames with ``noise_px`` of noise, their parametric and generic cameras."""
     f = simulated_features(16, 3, int(FeatureFlags.STAR_CENTRE | FeatureFlags.SHARP_FRAME), "s")
     rng = np.random.default_rng(0)
     f = dataclasses.replace(f, x=np.asarray(f.x) + rng.normal(0, noise_px, len(f.x)),
                             y=np.asarray(f.y) + rng.normal(0, noise_px, len(f.y)))
     pattern = layout_pattern()
     cal = calibrate_sharp(f, pattern, SIZE, refine_points=False)
-    return calibrate_generic(f, None, cal, pattern, SIZE, JointSettings(cell_px=cell_px))
+    return f, cal, calibrate_generic(f, None, cal, pattern, SIZE, JointSettings(cell_px=cell_px))
 
 
 @pytest.mark.slow
@@ -100,11 +102,11 @@ def test_fitted_generic_camera() -> None:
     """A generic camera whose grid follows the lens (40 px cells) leaves noise; the same residuals
     with the offset added show it; a grid too coarse for the lens (80 px) leaves structure even
     without noise (model error of the camera itself)."""
-    g = _generic_fit(40.0, NOISE_PX)
+    g = _generic_fit(40.0, NOISE_PX)[2]
     xy, res = g.observed[g.inlier], g.residuals[g.inlier]
     assert not model_error(xy, res, SIZE).systematic
     assert model_error(xy, res + _radial_offset(xy), SIZE).structure.systematic_cells >= 4
-    coarse = _generic_fit(80.0, 0.0)
+    coarse = _generic_fit(80.0, 0.0)[2]
     s = residual_structure(coarse.observed[coarse.inlier], coarse.residuals[coarse.inlier], SIZE)
     assert s.systematic_cells >= 4 and s.max_mean_px > 0.02
 
@@ -113,14 +115,8 @@ def test_fitted_generic_camera() -> None:
 def test_assessment_reports_model_error() -> None:
     """assess_calibration's model-error check on a generic camera of noise-only features: no
     systematic verdict, the halves within what noise predicts, one printed line."""
-    f = simulated_features(16, 3, int(FeatureFlags.STAR_CENTRE | FeatureFlags.SHARP_FRAME), "s")
-    rng = np.random.default_rng(0)
-    f = dataclasses.replace(f, x=np.asarray(f.x) + rng.normal(0, NOISE_PX, len(f.x)),
-                            y=np.asarray(f.y) + rng.normal(0, NOISE_PX, len(f.y)))
-    pattern = layout_pattern()
-    cal = calibrate_sharp(f, pattern, SIZE, refine_points=False)
-    g = calibrate_generic(f, None, cal, pattern, SIZE, JointSettings(cell_px=40.0))
-    doc = assess_calibration(g, None, cal, f, pattern, SIZE).to_dict()
+    f, cal, g = _generic_fit(40.0, NOISE_PX)
+    doc = assess_calibration(g, None, cal, f, layout_pattern(), SIZE).to_dict()
     me = doc["model_error"]
     assert me["systematic"] is False and me["systematic_cells"] == 0
     assert me["halves_rms_px"] is not None and 0.2 < me["noise_ratio"] < 1.5
