@@ -39,6 +39,12 @@ from matplotlib.figure import Figure
 from blurcalib.calib.bundle import BundleResult, BundleSettings, bundle_adjust
 from blurcalib.calib.frame_block import RollingRows
 from blurcalib.calib.sharp import Calibration, solve_pose
+from blurcalib.calib.undistortion import (
+    UNDISTORT,
+    UNDISTORTION_FILE,
+    undistortion_output,
+    write_undistortion_map,
+)
 from blurcalib.camera.files import write_generic_yaml
 from blurcalib.camera.generic import (
     DEFAULT_CELL_PX,
@@ -50,13 +56,7 @@ from blurcalib.camera.generic import (
 )
 from blurcalib.camera.lens import ParametricCamera
 from blurcalib.camera.parametric import BrownConrady
-from blurcalib.camera.remap import (
-    OutputProjection,
-    auto_output_kind,
-    field_of_view_deg,
-    output_for,
-    output_maps,
-)
+from blurcalib.camera.remap import OutputProjection
 from blurcalib.camera.shutter import row_time
 from blurcalib.geometry.pose import Pose
 from blurcalib.io.atomic import atomic_path, atomic_write_csv, ensure_writable_dir
@@ -70,18 +70,12 @@ __all__ = [
     "difference_field",
     "generic_report",
     "save_generic_calibration",
-    "undistortion_output",
-    "undistortion_report",
-    "write_undistortion_map",
 ]
 
 ROUTES = ("joint", "aligned")
 POINTS = ("nominal", "parametric")
-UNDISTORT = ("auto", "pinhole", "latlong", "stereographic")
-"""Projections of the undistortion map (:func:`undistortion_output`)."""
 INTRINSICS_FILE = "intrinsics0.yaml"
 POSES_FILE = "generic_poses.csv"
-UNDISTORTION_FILE = "undistortion_map.npz"
 COVERAGE_FILE = "generic_coverage.png"
 DIFFERENCE_FILE = "generic_minus_parametric.png"
 
@@ -98,8 +92,9 @@ class JointSettings:
             docstring.
         min_features: frames with fewer usable features are left out.
         bundle: the bundle adjustment's options.
-        undistort: the projection of the undistortion map (:func:`undistortion_output`):
-            ``"auto"``, ``"pinhole"``, ``"latlong"`` or ``"stereographic"``.
+        undistort: the projection of the undistortion map
+            (:func:`blurcalib.calib.undistortion.undistortion_output`): ``"auto"``, ``"pinhole"``,
+            ``"latlong"`` or ``"stereographic"``.
     """
 
     cell_px: float = DEFAULT_CELL_PX
@@ -302,51 +297,6 @@ def _image_figure(values: np.ndarray, extent: tuple[float, float, float, float],
     return fig
 
 
-def undistortion_output(result: GenericCalibration, undistort: str = "auto",
-                        pinhole: BrownConrady | ParametricCamera | None = None) -> OutputProjection:
-    """The output image of the undistortion map of a generic calibration
-    (:mod:`blurcalib.camera.remap`).
-
-    ``undistort`` ``"auto"``: ``pinhole`` for a generic camera whose field is at most
-    :data:`blurcalib.camera.remap.PINHOLE_FIELD_DEG` (:func:`blurcalib.camera.remap.auto_output_kind`),
-    ``latlong`` beyond. A pinhole output is the camera ``pinhole`` (its ``K`` and size; default
-    the parametric camera's, distortion ignored); a ``latlong`` or ``stereographic`` output has
-    the generic camera's size, its principal point at the image centre and the px per radian of
-    the image centre, lowered so that the middle row and column fit
-    (:func:`blurcalib.camera.remap.output_for`).
-    """
-    if undistort not in UNDISTORT:
-        raise ValueError(f"undistort must be one of {UNDISTORT}, got {undistort!r}")
-    kind = auto_output_kind(result.model) if undistort == "auto" else undistort
-    if kind == "pinhole":
-        cam = pinhole or result.parametric
-        return OutputProjection("pinhole", cam.fx, cam.fy, cam.cx, cam.cy, cam.width, cam.height)
-    return output_for(result.model, kind)
-
-
-def undistortion_report(result: GenericCalibration, output: OutputProjection) -> dict[str, Any]:
-    """The ``undistortion`` section of ``report.json``: the map's ``file`` (in ``calibration/``),
-    its output projection (:meth:`blurcalib.camera.remap.OutputProjection.to_dict`) and the
-    generic camera's field ``field_deg`` (:func:`blurcalib.camera.remap.field_of_view_deg`)."""
-    return {"file": UNDISTORTION_FILE, **output.to_dict(), "field_deg": field_of_view_deg(result.model)}
-
-
-def write_undistortion_map(path: str | os.PathLike[str], model: CentralGeneric, output: OutputProjection
-                           ) -> Path:
-    """Write ``undistortion_map.npz`` (atomically): ``map_x, map_y (H, W)`` float32 for
-    ``cv2.remap(image, map_x, map_y, cv2.INTER_LINEAR)`` from ``model``'s image to ``output``'s
-    (:func:`blurcalib.camera.remap.output_maps`: -1 where an output pixel's ray has no calibrated
-    pixel), ``K = [[fx, 0, cx], [0, fy, cy], [0, 0, 1]]`` (px; px per rad for ``latlong`` and
-    ``stereographic``), ``width``, ``height``, ``projection`` (the output's kind) and ``field_deg``
-    (:func:`blurcalib.camera.remap.field_of_view_deg` of ``model``). Returns the path."""
-    map_x, map_y = output_maps(model, output)
-    K = np.array([[output.fx, 0, output.cx], [0, output.fy, output.cy], [0, 0, 1.0]])
-    with atomic_path(path) as tmp, open(tmp, "wb") as handle:
-        np.savez_compressed(handle, map_x=map_x, map_y=map_y, K=K, width=output.width, height=output.height,
-                            projection=np.array(output.kind), field_deg=field_of_view_deg(model))
-    return Path(path)
-
-
 def save_generic_calibration(out_dir: str | os.PathLike[str], result: GenericCalibration,
                              pinhole: BrownConrady | ParametricCamera | None = None,
                              undistort: str | OutputProjection = "auto") -> list[Path]:
@@ -357,8 +307,9 @@ def save_generic_calibration(out_dir: str | os.PathLike[str], result: GenericCal
       reference tool's pose line layout, plus ``shift_x, shift_y`` (px);
     * ``undistortion_map.npz``: ``map_x, map_y`` (float32, for ``cv2.remap``) to the output image
       ``undistort`` (an :class:`blurcalib.camera.remap.OutputProjection`, or its kind for
-      :func:`undistortion_output` with ``pinhole``), its ``K`` (``fx, fy, cx, cy``), ``width``,
-      ``height``, ``projection`` (its kind) and the generic camera's field ``field_deg``;
+      :func:`blurcalib.calib.undistortion.undistortion_output` with ``pinhole``), its ``K``
+      (``fx, fy, cx, cy``), ``width``, ``height``, ``projection`` (its kind) and the generic
+      camera's field ``field_deg``;
     * ``generic_coverage.png``: observations per grid cell; ``generic_minus_parametric.png``:
       the magnitude of :func:`difference_field`.
 
@@ -375,7 +326,7 @@ def save_generic_calibration(out_dir: str | os.PathLike[str], result: GenericCal
     paths.append(atomic_write_csv(out / POSES_FILE, ["frame", "tx", "ty", "tz", "qx", "qy", "qz", "qw",
                                                      "shift_x", "shift_y"], rows))
     output = (undistort if isinstance(undistort, OutputProjection)
-              else undistortion_output(result, undistort, pinhole))
+              else undistortion_output(model, pinhole or result.parametric, undistort))
     paths.append(write_undistortion_map(out / UNDISTORTION_FILE, model, output))
     x0, y0, x1, y1 = model.area_opencv
     cov = result.bundle.coverage.astype(np.float64)

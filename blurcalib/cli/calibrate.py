@@ -19,9 +19,10 @@ from blurcalib.argtypes import (
     rolling_shutter_mode,
 )
 from blurcalib.calib.alignment import BIASES, LOSSES, AlignmentSettings
-from blurcalib.calib.joint import ROUTES, UNDISTORT, JointSettings
+from blurcalib.calib.joint import ROUTES, JointSettings
 from blurcalib.calib.rolling_shutter import RollingShutterSettings
 from blurcalib.calib.sequence import MODELS, PARAMETRIC_MODELS, SequenceSettings
+from blurcalib.calib.undistortion import UNDISTORT
 from blurcalib.calib.validation import ValidationMethod, ValidationSettings
 from blurcalib.cli.common import (
     CliError,
@@ -254,7 +255,7 @@ def add_pipeline_options(p: argparse._ActionsContainer) -> None:
     g.add_argument("--undistort", choices=UNDISTORT, default=JointSettings.undistort,
                    help="projection of the undistortion map (calibration/undistortion_map.npz, for "
                         "cv2.remap): a pinhole image, a latitude-longitude or a stereographic one; auto: "
-                        "pinhole for a generic camera of at most 120 degrees of field, latlong beyond "
+                        "pinhole for a camera of at most 120 degrees of field, latlong beyond "
                         "(default %(default)s; docs/results-format.md)")
     g.add_argument("--no-lens-correction", action="store_true",
                    help="keep star centres as extracted instead of removing the bias of block homographies "

@@ -19,9 +19,10 @@ generic camera to sharp and blurry frames together.
    the central generic camera (:mod:`blurcalib.calib.joint`) of sharp and blurry frames, on the
    joint route (each blurry frame with a free image shift, so frontal frames need no
    orientation filter) or the paper's aligned route, saved as the reference tool's
-   ``OUT/calibration/intrinsics0.yaml`` with the poses, an undistortion map (pinhole, or
-   latitude-longitude for a wide field: :func:`blurcalib.calib.joint.undistortion_output`), report images;
-   and its assessment (:mod:`blurcalib.calib.trust`, ``docs/validation.md``);
+   ``OUT/calibration/intrinsics0.yaml`` with the poses, report images, and its assessment
+   (:mod:`blurcalib.calib.trust`, ``docs/validation.md``); the undistortion map of the generic
+   camera, or of the parametric one with ``model="parametric"`` (pinhole, or latitude-longitude
+   for a wide field: :func:`blurcalib.calib.undistortion.undistortion_output`);
 3. outputs: ``OUT/features.csv`` (sharp features and aligned blurry features, flagged),
    ``OUT/features.bin`` (the reference tool's format, pixel-corner convention),
    ``OUT/frames.csv`` (one row per input frame, :mod:`blurcalib.pipeline.frames`),
@@ -54,13 +55,7 @@ from typing import Any, TypeVar
 import numpy as np
 
 from blurcalib.calib.capture import CaptureCheck, CaptureSettings, check_capture
-from blurcalib.calib.joint import (
-    INTRINSICS_FILE,
-    generic_report,
-    save_generic_calibration,
-    undistortion_output,
-    undistortion_report,
-)
+from blurcalib.calib.joint import INTRINSICS_FILE, generic_report, save_generic_calibration
 from blurcalib.calib.sequence import (
     BlurryFrame,
     BlurryOutcome,
@@ -70,6 +65,13 @@ from blurcalib.calib.sequence import (
 )
 from blurcalib.calib.sharp import CalibrationError, save_calibration
 from blurcalib.calib.trust import save_trust
+from blurcalib.calib.undistortion import (
+    UNDISTORTION_FILE,
+    undistortion_output,
+    undistortion_report,
+    write_undistortion_map,
+)
+from blurcalib.camera.family import as_family
 from blurcalib.camera.files import write_generic_yaml
 from blurcalib.extract.duplicates import mark_duplicates
 from blurcalib.extract.frame import ExtractSettings
@@ -168,8 +170,8 @@ class PipelineReport:
     {...}}``), ``generic`` the generic fit (:func:`blurcalib.calib.joint.generic_report`: grid, median
     and RMS reprojection error in px, frames, coverage warnings; None for ``model="parametric"``),
     ``generic_sharp`` the same for the sharp frames alone, ``undistortion`` the undistortion map's
-    projection and parameters (:func:`blurcalib.calib.joint.undistortion_report`; None without a
-    generic camera), ``trust`` the assessment
+    projection and parameters (:func:`blurcalib.calib.undistortion.undistortion_report`; the
+    parametric camera's without a generic camera), ``trust`` the assessment
     (:meth:`blurcalib.calib.trust.Trust.to_dict`), ``rolling_shutter`` the rolling-shutter step
     (:meth:`blurcalib.calib.rolling_shutter.RollingShutterResult.to_dict`: readout ratio, its
     standard error, each moving frame's blur velocity), ``capture`` the capture check
@@ -508,11 +510,16 @@ def _stage_run(out: Path, staging: Path, pattern: StarPattern, size: tuple[int, 
     ensure_writable_dir(staging)
     save_calibration(staging / CALIBRATION_DIR, calibration)
     trust_files: dict[str, Path] = {}
-    undistortion = None
+    undistort = s.calibration.generic.undistort
     if generic is not None:
-        output = undistortion_output(generic, s.calibration.generic.undistort)
+        output = undistortion_output(generic.model, generic.parametric, undistort)
         save_generic_calibration(staging / CALIBRATION_DIR, generic, undistort=output)
-        undistortion = undistortion_report(generic, output)
+        undistortion = undistortion_report(generic.model, output)
+    else:
+        camera = as_family(calibration.camera)
+        output = undistortion_output(camera, calibration.camera, undistort)
+        write_undistortion_map(staging / CALIBRATION_DIR / UNDISTORTION_FILE, camera, output)
+        undistortion = undistortion_report(camera, output)
     if run.generic_sharp is not None:
         write_generic_yaml(ensure_writable_dir(staging / CALIBRATION_DIR / SHARP_ONLY_DIR) / INTRINSICS_FILE,
                            run.generic_sharp.model)

@@ -1,5 +1,5 @@
-"""The undistortion map of a generic calibration: its projection chosen from the camera's field,
-and the written map sending directions where its projection says."""
+"""The undistortion map of a calibrated camera, generic or parametric: its projection chosen from
+the camera's field, and the written map sending directions where its projection says."""
 
 from __future__ import annotations
 
@@ -9,13 +9,9 @@ import cv2
 import numpy as np
 import pytest
 
-from blurcalib.calib.joint import (
-    JointSettings,
-    undistortion_output,
-    undistortion_report,
-    write_undistortion_map,
-)
-from blurcalib.camera.generic import CentralGeneric, fit_to_rays
+from blurcalib.calib.joint import JointSettings
+from blurcalib.calib.undistortion import undistortion_output, undistortion_report, write_undistortion_map
+from blurcalib.camera.generic import fit_to_rays
 from blurcalib.camera.lens import ParametricCamera
 from blurcalib.camera.remap import OutputProjection
 from tests.camera.models import BROWN_CONRADY, KANNALA_BRANDT
@@ -27,8 +23,8 @@ MILD = BROWN_CONRADY.scaled(0.25)
 
 
 def _calibration(truth: ParametricCamera) -> SimpleNamespace:
-    """What :func:`undistortion_output` reads of a generic calibration: the generic camera (fitted to
-    the true rays) and its parametric start."""
+    """A generic calibration's cameras: the generic one (fitted to the true rays) and its parametric
+    start."""
     model = fit_to_rays(truth.unproject, truth.width, truth.height, cell_px=20.0)
     return SimpleNamespace(model=model, parametric=truth)
 
@@ -44,21 +40,21 @@ def mild() -> SimpleNamespace:
 
 
 def test_auto_picks_latlong_beyond_120_degrees_and_pinhole_below(fisheye, mild) -> None:
-    wide = undistortion_output(fisheye)
+    wide = undistortion_output(fisheye.model, FISHEYE)
     assert wide.kind == "latlong"
-    assert undistortion_report(fisheye, wide)["field_deg"] == pytest.approx(222.0, abs=2.0)
-    narrow = undistortion_output(mild)
+    assert undistortion_report(fisheye.model, wide)["field_deg"] == pytest.approx(222.0, abs=2.0)
+    narrow = undistortion_output(mild.model, MILD)
     assert narrow == OutputProjection("pinhole", MILD.fx, MILD.fy, MILD.cx, MILD.cy, MILD.width, MILD.height)
-    assert undistortion_report(mild, narrow)["field_deg"] < 120.0
-    assert undistortion_output(fisheye, "stereographic").kind == "stereographic"
-    assert undistortion_output(mild, "latlong").kind == "latlong"
+    assert undistortion_report(mild.model, narrow)["field_deg"] < 120.0
+    assert undistortion_output(fisheye.model, FISHEYE, "stereographic").kind == "stereographic"
+    assert undistortion_output(mild.model, MILD, "latlong").kind == "latlong"
     with pytest.raises(ValueError, match="undistort"):
-        undistortion_output(mild, "cylindrical")
+        undistortion_output(mild.model, MILD, "cylindrical")
     with pytest.raises(ValueError, match="undistort"):
         JointSettings(undistort="cylindrical")
 
 
-def _round_trip(path, model: CentralGeneric, truth: ParametricCamera, kind: str) -> tuple[float, float]:
+def _round_trip(path, truth: ParametricCamera, kind: str) -> tuple[float, float]:
     """Directions the true camera sees at random pixels, through the written map: the share of them
     the map holds and their largest distance (px) from those pixels."""
     maps = np.load(path)
@@ -81,15 +77,24 @@ def _round_trip(path, model: CentralGeneric, truth: ParametricCamera, kind: str)
 
 @pytest.mark.parametrize("kind", ["latlong", "stereographic"])
 def test_a_fisheye_map_sends_directions_where_its_projection_says(fisheye, tmp_path, kind) -> None:
-    output = undistortion_output(fisheye, kind)
+    output = undistortion_output(fisheye.model, FISHEYE, kind)
     path = write_undistortion_map(tmp_path / "undistortion_map.npz", fisheye.model, output)
-    share, worst = _round_trip(path, fisheye.model, FISHEYE, kind)
+    share, worst = _round_trip(path, FISHEYE, kind)
     assert share > 0.85 and worst < 0.05
 
 
+def test_a_parametric_fisheye_camera_has_its_own_wide_map(tmp_path) -> None:
+    """Without a generic camera (``--model parametric``) the map is the parametric camera's."""
+    output = undistortion_output(FISHEYE, FISHEYE)
+    assert output.kind == "latlong"
+    path = write_undistortion_map(tmp_path / "undistortion_map.npz", FISHEYE, output)
+    share, worst = _round_trip(path, FISHEYE, "latlong")
+    assert share > 0.9 and worst < 0.05
+
+
 def test_a_mild_lens_map_is_the_pinhole_camera(mild, tmp_path) -> None:
-    output = undistortion_output(mild)
+    output = undistortion_output(mild.model, MILD)
     path = write_undistortion_map(tmp_path / "undistortion_map.npz", mild.model, output)
     assert np.array_equal(np.load(path)["K"], MILD.K)
-    share, worst = _round_trip(path, mild.model, MILD, "pinhole")
+    share, worst = _round_trip(path, MILD, "pinhole")
     assert share > 0.6 and worst < 0.05  # the pinhole image of the same K crops the barrel's corners

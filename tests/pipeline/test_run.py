@@ -207,7 +207,10 @@ def test_rerun_resumes_and_a_killed_write_never_mixes_runs(tmp_path, finished, d
 
     # the next run cleans up and publishes one whole set
     run_pipeline(*_frames(dataset), layout_pattern(), out, other)
-    assert json.loads((out / "report.json").read_text())["settings"]["calibration"]["model"] == "parametric"
+    published = json.loads((out / "report.json").read_text())
+    assert published["settings"]["calibration"]["model"] == "parametric" and published["generic"] is None
+    assert published["undistortion"]["projection"] == "pinhole"  # the parametric camera's map
+    assert np.load(out / "calibration" / "undistortion_map.npz")["map_x"].shape == (360, 480)
     assert (out / "features.csv").read_bytes() != reference["features.csv"]
     assert not [p.name for p in out.iterdir() if p.name.startswith(".")]
     run_pipeline(*_frames(dataset), layout_pattern(), out, _settings())
