@@ -6,6 +6,7 @@ OpenCV's convention: the top-left pixel's centre is ``(0, 0)``, x right, y down.
 
 from __future__ import annotations
 
+import math
 from collections import Counter
 from collections.abc import Mapping
 from dataclasses import dataclass
@@ -14,6 +15,7 @@ import numpy as np
 
 from blurcalib.calib.joint import GenericCalibration
 from blurcalib.calib.sharp import CalibrationError, calibrate_pinhole
+from blurcalib.camera.lens import ParametricCamera
 from blurcalib.camera.parametric import BrownConrady
 from blurcalib.extract.frame import FrameResult
 from blurcalib.geometry.pose import Pose
@@ -218,13 +220,32 @@ def cell_means(xy: np.ndarray, error: np.ndarray, image_size: tuple[int, int], c
     return corner, sums[occupied] / count[occupied, None], count[occupied].astype(np.int64)
 
 
+FRUSTUM_FOV_MAX = math.radians(150.0)
+"""Widest vertical field (rad) a pose's frustum is drawn with: a pinhole frustum of a field near
+180 degrees is infinitely wide, so a fisheye's is drawn at this angle."""
+
+
+def vertical_fov(camera: BrownConrady | ParametricCamera) -> float:
+    """The camera's vertical field (rad): the angles off the optical axis (the ray of the image
+    centre) of the rays through the middle of the top and bottom image edges, added; the pinhole
+    ``2 atan(H / 2 fy)`` where an edge has no ray. At most :data:`FRUSTUM_FOV_MAX`."""
+    w, h = float(camera.width), float(camera.height)
+    middle = (w - 1) / 2
+    rays = camera.pixel_to_ray(np.array([[middle, -0.5], [middle, (h - 1) / 2], [middle, h - 0.5]]))
+    if np.all(np.isfinite(rays)):
+        fov = float(sum(np.arccos(np.clip(rays[k] @ rays[1], -1.0, 1.0)) for k in (0, 2)))
+    else:
+        fov = 2.0 * math.atan2(h / 2.0, float(camera.fy))
+    return min(fov, FRUSTUM_FOV_MAX)
+
+
 @dataclass(frozen=True)
 class FramePoses:
     """Poses of frames around the target.
 
     Attributes:
         poses: frame name -> pose (target -> camera).
-        fov: vertical field of view (rad).
+        fov: vertical field of view (rad, :func:`vertical_fov`).
         aspect: width / height.
         source: ``"ground truth"``, ``"generic bundle adjustment"`` (the poses of the app's
             generic calibration), ``"global alignment"`` (the poses fitted with the reference
@@ -241,8 +262,7 @@ class FramePoses:
 def truth_poses(truth: DatasetTruth) -> FramePoses:
     """The ground-truth mid-exposure poses of a simulated dataset."""
     model = truth.camera.model
-    fov = 2.0 * float(np.arctan2(model.height / 2.0, model.fy))
-    return FramePoses({f.name: f.pose for f in truth.frames}, fov, model.width / model.height,
+    return FramePoses({f.name: f.pose for f in truth.frames}, vertical_fov(model), model.width / model.height,
                       "ground truth")
 
 
@@ -250,8 +270,8 @@ def generic_poses(generic: GenericCalibration) -> FramePoses:
     """The poses of a generic calibration's bundle adjustment (field of view and aspect of its
     parametric camera)."""
     camera = generic.parametric
-    fov = 2.0 * float(np.arctan2(camera.height / 2.0, camera.fy))
-    return FramePoses(dict(generic.poses), fov, camera.width / camera.height, "generic bundle adjustment")
+    return FramePoses(dict(generic.poses), vertical_fov(camera), camera.width / camera.height,
+                      "generic bundle adjustment")
 
 
 def alignment_poses(alignments: Mapping[str, FrameAlignment], camera: BrownConrady) -> FramePoses | None:
@@ -259,8 +279,8 @@ def alignment_poses(alignments: Mapping[str, FrameAlignment], camera: BrownConra
     when there are none)."""
     if not alignments:
         return None
-    fov = 2.0 * float(np.arctan2(camera.height / 2.0, camera.fy))
-    return FramePoses({name: a.pose for name, a in alignments.items()}, fov, camera.width / camera.height,
+    return FramePoses({name: a.pose for name, a in alignments.items()}, vertical_fov(camera),
+                      camera.width / camera.height,
                       "global alignment")
 
 
@@ -292,5 +312,4 @@ def feature_poses(pattern: StarPattern,
     except CalibrationError:
         return None
     w, h = size
-    fov = 2.0 * float(np.arctan2(h / 2.0, camera.fy))
-    return FramePoses(dict(zip(names, poses, strict=True)), fov, w / h, "approximate camera")
+    return FramePoses(dict(zip(names, poses, strict=True)), vertical_fov(camera), w / h, "approximate camera")
