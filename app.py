@@ -2,6 +2,8 @@
 inspect blocks, see the error field and the frames' poses, and learn the translational ambiguity.
 
     python app.py [FOLDER] [--pattern P.yaml] [--out DIR] [--port N]
+    python app.py --rig D [--port N]
+
 
 With no folder it opens a small simulated dataset, rendered on first use into the user's cache
 folder (``~/.cache/blurcalib/app_dataset``, or under ``$XDG_CACHE_HOME``). Extracted frames are
@@ -12,6 +14,10 @@ shows them as done, and a run resumes where the last one stopped. The app serves
 that origin can drive it, and it is never shared (``views/security.py``). A ``--host`` that other
 machines can reach (``0.0.0.0``) is refused without ``--allow-remote``, and warned about with it.
 All browser tabs share one state (``state/``); each panel is a module of ``views/``.
+
+``--rig D`` opens a ``blurcalib calibrate-rig`` output folder instead (``state/rig.py``,
+``views/rig.py``): the rig's cameras and image sets in 3D, each camera's reprojection errors and a
+pair's rectified image sets with their epipolar error.
 """
 
 from __future__ import annotations
@@ -33,6 +39,7 @@ from state import AppState, RunSettings, default_dataset
 from state.alignment import AlignmentCache
 from state.calibration import CalibrationRunner, CalibrationSettings
 from state.folder import builtin_dataset_folder
+from state.rig import RigOutputError, RigState, load_rig
 from state.seeding import TagSearchCache
 from views.ambiguity import AmbiguityPanel
 from views.browser import add_page_script
@@ -42,6 +49,7 @@ from views.frame_view import FrameViewPanel
 from views.frames import FramesPanel
 from views.inspect import InspectPanel
 from views.psf_field import PsfFieldPanel
+from views.rig import RigPanel
 from views.security import ServeError, check_host, check_listen, secure_viser_server
 from views.tuning import TuningPanel
 
@@ -71,6 +79,40 @@ class App:
         self.calibration.wait(60.0)
         for panel in self.panels:
             panel.close()
+
+
+@dataclass
+class RigApp:
+    """A running rig view: the loaded rig and its panel."""
+
+    rig: RigState
+    panel: RigPanel
+
+    def close(self) -> None:
+        """Stop the panel's threads (the server is stopped by its owner)."""
+        self.panel.close()
+
+
+def serve_rig(rig: RigState, port: int = 8080, *, host: str = "127.0.0.1", allow_remote: bool = False
+              ) -> tuple[viser.ViserServer, RigApp]:
+    """Start the rig view of a loaded rig output (:func:`state.rig.load_rig`) on ``host:port``
+    (as :func:`serve`). Returns the server and the app; stop with ``app.close()`` then
+    ``server.stop()``.
+
+    Raises:
+        ServeError: as :func:`serve`.
+    """
+    check_listen(host, port)
+    check_host(host, allow_remote)
+    server = secure_viser_server(host, port, "blurcalib rig")
+    server.gui.configure_theme(control_width="large", show_share_button=False, dark_mode=False,
+                               brand_color=(40, 110, 200))
+    server.gui.main_panel.dock_right()
+    views = server.gui.add_panel()
+    panel = RigPanel(rig, server, views)
+    views.dock_left()
+    views.set_width(VIEWS_WIDTH)
+    return server, RigApp(rig, panel)
 
 
 def _progress(done: int, total: int, name: str) -> None:
@@ -182,6 +224,9 @@ def build_parser(prog: str = "app.py") -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog=prog, description=__doc__.split("\n\n")[0])
     p.add_argument("folder", nargs="?", metavar="FOLDER",
                    help="dataset folder (default: a built-in simulated dataset)")
+    p.add_argument("--rig", metavar="D",
+                   help="open a calibrate-rig (or demo --rig) output folder: the rig in 3D, each camera's "
+                        "errors, a pair's rectified image sets")
     p.add_argument("--pattern", metavar="FILE",
                    help="pattern YAML (default: pattern.yaml in the folder or its parent)")
     p.add_argument("--out", metavar="DIR",
@@ -202,7 +247,10 @@ def build_parser(prog: str = "app.py") -> argparse.ArgumentParser:
 
 def main(argv: Sequence[str] | None = None, prog: str = "app.py") -> int:
     """Run the app until interrupted (``prog``: its name in messages)."""
-    args = build_parser(prog).parse_args(argv)
+    parser = build_parser(prog)
+    args = parser.parse_args(argv)
+    if args.rig is not None and args.folder is not None:
+        parser.error("give a FOLDER or --rig D, not both")
     threads, note = capped_count(args.threads, "--threads")
     if note is not None:
         print(f"{prog}: note: {note}", file=sys.stderr)
@@ -213,15 +261,20 @@ def main(argv: Sequence[str] | None = None, prog: str = "app.py") -> int:
         warning = check_host(args.host, args.allow_remote)
         if warning is not None:
             print(f"{prog}: warning: {warning}", file=sys.stderr, flush=True)
-        server, app = serve(args.folder, args.pattern, args.port, host=args.host,
-                            allow_remote=args.allow_remote, out=args.out)
-    except ServeError as exc:
+        app: App | RigApp
+        if args.rig is not None:
+            server, app = serve_rig(load_rig(args.rig), args.port, host=args.host,
+                                    allow_remote=args.allow_remote)
+        else:
+            server, app = serve(args.folder, args.pattern, args.port, host=args.host,
+                                allow_remote=args.allow_remote, out=args.out)
+    except (ServeError, RigOutputError) as exc:
         print(f"{prog}: error: {exc}", file=sys.stderr)
         return 2
     signal.signal(signal.SIGTERM, _stop)
     signal.signal(signal.SIGINT, _stop)
     try:  # from here a signal, even one that comes while the address is printed, runs the clean-up
-        for notice in app.state.notices:
+        for notice in app.state.notices if isinstance(app, App) else []:
             if notice.level == "error":
                 print(f"{notice.title}: {notice.text}", file=sys.stderr)
         print(f"blurcalib app: http://{args.host}:{server.get_port()}/  (Ctrl+C to stop)", flush=True)

@@ -30,6 +30,7 @@ import viser
 import viser.transforms as vtf
 
 from blurcalib.calib import report
+from blurcalib.geometry.pose import Pose
 from blurcalib.io.record import FrameStatus
 from blurcalib.io.text import count
 from blurcalib.target.pattern import StarPattern
@@ -150,6 +151,17 @@ def page_placement(pattern: StarPattern) -> tuple[np.ndarray, float, float]:
     page = pattern.page
     centre = pattern.page_mm_to_feature(np.array([page.width_mm / 2, page.height_mm / 2]))
     return np.array([*(centre * pattern.square_length_m), 0.0]), page.width_mm / 1000, page.height_mm / 1000
+
+
+def add_pose_frustum(scene: viser.SceneApi, name: str, pose: Pose, fov: float, aspect: float, scale: float,
+                     colour: tuple[int, int, int], thickness: float = 1.5, image: np.ndarray | None = None
+                     ) -> viser.CameraFrustumHandle:
+    """A camera frustum at ``pose`` (the scene's frame -> camera, ``X_cam = R X + t``): placed at the
+    camera's centre, turned by ``R^T`` (``fov`` rad vertical, ``aspect`` width / height, ``scale`` m)."""
+    inv = pose.inverse()
+    return scene.add_camera_frustum(name, fov=fov, aspect=aspect, scale=scale, color=colour, image=image,
+                                    wxyz=vtf.SO3.from_matrix(inv.R).wxyz, position=inv.t, thickness=thickness,
+                                    thickness_units="screen")
 
 
 class ErrorsPanel:
@@ -341,16 +353,13 @@ class ErrorsPanel:
         entries = {e.name: e for e in self.state.entries()}
         scale = 4.0 * dataset.pattern.square_length_m
         for i, (name, pose) in enumerate(sorted(poses.poses.items())):
-            inv = pose.inverse()
             kind = entries[name].kind if name in entries else "blurry"
             colour = (255, 120, 0) if name == current else FRUSTUM_COLOURS.get(kind, (60, 90, 220))
             thumb = None
             if name == current and view is not None and view.image is not None:
                 thumb = fit_width(grey_rgb(view.image), 200)[0]
-            frustum = scene.add_camera_frustum(
-                f"/cameras/{i}", fov=poses.fov, aspect=poses.aspect, scale=scale, color=colour,
-                image=thumb, wxyz=vtf.SO3.from_matrix(inv.R).wxyz, position=inv.t,
-                thickness=3.0 if name == current else 1.5, thickness_units="screen")
+            frustum = add_pose_frustum(scene, f"/cameras/{i}", pose, poses.fov, poses.aspect, scale, colour,
+                                       3.0 if name == current else 1.5, thumb)
             frustum.on_click(partial(self._open_frame, name))
             self._frustums.append(frustum)
         self.poses_text.content = (f"3D view: {count(len(poses.poses), 'frame pose')} from the "

@@ -48,8 +48,8 @@ from blurcalib.geometry.pose import Pose
 from blurcalib.io.atomic import atomic_path, atomic_write_text, ensure_writable_dir
 
 __all__ = ["CAMERA_TR_RIG_FILE", "POINTS_FILE", "RIG_TR_GLOBAL_FILE", "RigFileError", "RigFolder",
-           "intrinsics_file", "read_poses", "read_rig_folder", "read_stereo_yaml", "write_poses",
-           "write_rig_folder", "write_stereo_pair"]
+           "intrinsics_file", "read_points", "read_poses", "read_rig_folder", "read_stereo_yaml",
+           "stereo_names", "write_poses", "write_rig_folder", "write_stereo_pair"]
 
 CAMERA_TR_RIG_FILE = "camera_tr_rig.yaml"
 RIG_TR_GLOBAL_FILE = "rig_tr_global.yaml"
@@ -126,6 +126,30 @@ def _write_points(path: Path, points: np.ndarray, feature_ids: np.ndarray) -> Pa
     for index, fid in enumerate(feature_ids):
         lines += [f"  - feature_id: {int(fid)}", f"    point_index: {index}"]
     return atomic_write_text(path, "\n".join(lines) + "\n")
+
+
+def read_points(path: str | os.PathLike[str]) -> tuple[np.ndarray, np.ndarray]:
+    """Read ``points.yaml``: the target's points ``(M, 3)`` m and their feature ids ``(M,)``.
+
+    Raises:
+        RigFileError: naming the file and what is missing or malformed.
+    """
+    path = Path(path)
+    try:
+        doc = yaml.safe_load(path.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError) as exc:
+        raise RigFileError(f"{path}: cannot read ({exc})") from None
+    except yaml.YAMLError as exc:
+        raise RigFileError(f"{path}: not YAML ({str(exc).splitlines()[0]})") from None
+    try:
+        points = np.asarray(doc["points"], dtype=np.float64).reshape(-1, 3)
+        ids = np.full(len(points), -1, dtype=np.int64)
+        for entry in doc.get("feature_id_to_point_index") or []:
+            ids[int(entry["point_index"])] = int(entry["feature_id"])
+    except (KeyError, TypeError, ValueError, IndexError) as exc:
+        raise RigFileError(f"{path}: needs 'points' (x, y, z each) and 'feature_id_to_point_index' "
+                           f"({exc})") from None
+    return points, ids
 
 
 @dataclass(frozen=True, eq=False)

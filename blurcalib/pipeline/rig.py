@@ -82,7 +82,8 @@ def rig_report(result: RigCalibration, features: Sequence[Path], inputs: Sequenc
     """The ``report.json`` document: per camera its features (and, from frames, its ``input``),
     frames and errors (px), per pair ``camera j <- camera i`` (OpenCV's ``R``, ``T`` m), its
     baseline (mm) and its ``trust`` (:meth:`blurcalib.calib.rig_trust.PairTrust.to_dict`, NaN
-    written as null), the image sets used."""
+    written as null), the number of image sets used and their names (``set_names``, in the order of
+    ``calibration/rig_tr_global.yaml``'s poses)."""
     bundle = result.bundle
     cameras = [{"features": str(path), "frames": len(cal.frames), "blurry_frames": len(cal.blurry_frames),
                 "generic_median_px": cal.median_error, "rig_median_px": float(bundle.median_error[c]),
@@ -100,7 +101,8 @@ def rig_report(result: RigCalibration, features: Sequence[Path], inputs: Sequenc
                      for k, v in trusted.get((i, j), {}).items() if k != "cameras"}
             pairs.append({"cameras": [i, j], "R": rel.R.tolist(), "T_m": rel.t.tolist(),
                           "baseline_mm": float(np.linalg.norm(rel.t)) * 1000.0, **extra})
-    return {"cameras": cameras, "pairs": pairs, "sets": len(result.sets), "iterations": bundle.iterations,
+    return {"cameras": cameras, "pairs": pairs, "sets": len(result.sets), "set_names": list(result.sets),
+            "iterations": bundle.iterations,
             "pixel_convention": "opencv (top-left pixel centre at (0, 0))"}
 
 

@@ -9,9 +9,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from blurcalib.calib.rig_residuals import set_epipolar
 from blurcalib.camera.rig_files import read_rig_folder, read_stereo_yaml
 from blurcalib.cli import main
-from blurcalib.io.results import write_features
+from blurcalib.io.results import FeatureFlags, write_features
+from blurcalib.pipeline.rig_output import read_rig_output
 from blurcalib.sim.rig import RigSimulator, d435i_stereo_rig
 from blurcalib.sim.rig_eval import extrinsic_error, truth_features
 from blurcalib.sim.synth import SynthConfig
@@ -61,3 +63,11 @@ def test_stereo_pair_from_features(tmp_path: Path, capsys: pytest.CaptureFixture
     assert "held-out error" in printed and "uncertainty" in printed
     stereo = read_stereo_yaml(out / "stereo_0_1.yaml")
     assert np.allclose(stereo.relative.t, folder.rig.relative(0, 1).t, atol=1e-12)
+    back = read_rig_output(out)  # as the app reads it: the sets named, the features renamed to them
+    assert back.set_names == report["set_names"] and len(set(back.set_names)) == 12
+    sharp = [n for n in back.set_names if not np.any(back.cameras[0].features.flags[
+        back.cameras[0].features.frame == n] & int(FeatureFlags.BLURRY_FRAME))]
+    rect = back.pairs[0].rectification
+    errors = np.concatenate([set_epipolar(rect, *back.rig.cameras, back.cameras[0].features,
+                                          back.cameras[1].features, n).error for n in sharp])
+    assert len(sharp) == 8 and len(errors) > 500 and np.median(errors) < 0.1  # 0.05 px noise per axis
