@@ -15,6 +15,7 @@ import numpy as np
 
 from blurcalib.calib.joint import GenericCalibration
 from blurcalib.calib.sharp import CalibrationError, calibrate_pinhole
+from blurcalib.camera.generic import CentralGeneric
 from blurcalib.camera.lens import ParametricCamera
 from blurcalib.camera.parametric import BrownConrady
 from blurcalib.extract.frame import FrameResult
@@ -225,17 +226,22 @@ FRUSTUM_FOV_MAX = math.radians(150.0)
 180 degrees is infinitely wide, so a fisheye's is drawn at this angle."""
 
 
-def vertical_fov(camera: BrownConrady | ParametricCamera) -> float:
+def vertical_fov(camera: BrownConrady | ParametricCamera | CentralGeneric) -> float:
     """The camera's vertical field (rad): the angles off the optical axis (the ray of the image
-    centre) of the rays through the middle of the top and bottom image edges, added; the pinhole
-    ``2 atan(H / 2 fy)`` where an edge has no ray. At most :data:`FRUSTUM_FOV_MAX`."""
-    w, h = float(camera.width), float(camera.height)
-    middle = (w - 1) / 2
-    rays = camera.pixel_to_ray(np.array([[middle, -0.5], [middle, (h - 1) / 2], [middle, h - 0.5]]))
+    centre) of the rays through the centres of the first and last rows' middle pixels (of a
+    generic camera's calibrated area), added; the pinhole ``2 atan((H - 1) / 2 fy)`` where a
+    parametric camera's edge has no ray, 1 rad where a generic one's has none. At most
+    :data:`FRUSTUM_FOV_MAX`."""
+    x0, y0, x1, y1 = (camera.area_opencv if isinstance(camera, CentralGeneric)
+                      else (-0.5, -0.5, camera.width - 0.5, camera.height - 0.5))
+    middle, top, bottom = (x0 + x1) / 2, y0 + 0.5, y1 - 0.5
+    rays = camera.pixel_to_ray(np.array([[middle, top], [middle, (top + bottom) / 2], [middle, bottom]]))
     if np.all(np.isfinite(rays)):
         fov = float(sum(np.arccos(np.clip(rays[k] @ rays[1], -1.0, 1.0)) for k in (0, 2)))
+    elif isinstance(camera, CentralGeneric):
+        fov = 1.0
     else:
-        fov = 2.0 * math.atan2(h / 2.0, float(camera.fy))
+        fov = 2.0 * math.atan2((camera.height - 1) / 2.0, float(camera.fy))
     return min(fov, FRUSTUM_FOV_MAX)
 
 

@@ -18,6 +18,7 @@ import numpy as np
 import viser
 
 from blurcalib.io.text import count
+from state.figures import vertical_fov
 from state.rig import RectifiedSet, RigOutputError, RigState
 from views.common import Coalescer, fit_width, grey_rgb, hstack, md, placeholder, set_image, titled
 from views.errors import add_pose_frustum, draw_cells, draw_quiver
@@ -29,16 +30,6 @@ SET_COLOUR, CHOSEN_COLOUR = (120, 120, 160), (255, 120, 0)
 LINE_COLOUR, FEATURE_COLOUR = (0, 200, 220), (255, 230, 0)
 EPIPOLAR_LINES = 16
 """Epipolar lines drawn across each rectified image."""
-
-
-def _field_of_view(rig: RigState, c: int) -> tuple[float, float]:
-    """Camera ``c``'s vertical field of view (rad, from its rays at the top and bottom of its
-    image's middle column) and its aspect (width / height)."""
-    cam = rig.output.rig.cameras[c]
-    x0, y0, x1, y1 = cam.area_opencv
-    rays = cam.pixel_to_ray(np.array([[(x0 + x1) / 2, y0 + 1.0], [(x0 + x1) / 2, y1 - 1.0]]))
-    angle = float(np.arccos(np.clip(rays[0] @ rays[1], -1.0, 1.0))) if np.all(np.isfinite(rays)) else 1.0
-    return angle, cam.width / cam.height
 
 
 def summary(rig: RigState) -> str:
@@ -242,7 +233,8 @@ class RigPanel:
         extent = max((float(np.ptp(p, axis=0).max()) for _, p in placed), default=0.1)
         scale = max(0.4 * baseline, 0.1 * extent, 0.01)
         for c, pose in enumerate(out.rig.camera_tr_rig):
-            fov, aspect = _field_of_view(self.rig, c)
+            camera = out.rig.cameras[c]
+            fov, aspect = vertical_fov(camera), camera.width / camera.height
             colour = CAMERA_COLOURS[c % len(CAMERA_COLOURS)]
             self._scene_handles.append(add_pose_frustum(scene, f"/rig/cam{c}", pose, fov, aspect, scale,
                                                         colour, 2.5))
