@@ -31,6 +31,7 @@ import os
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import yaml
@@ -85,6 +86,20 @@ def write_poses(path: str | os.PathLike[str], poses: Sequence[Pose | None]) -> P
     return atomic_write_text(path, "\n".join(lines) + "\n")
 
 
+def _load_yaml(path: Path) -> Any:
+    """The YAML document of ``path``.
+
+    Raises:
+        RigFileError: naming the file when it cannot be read or is not YAML.
+    """
+    try:
+        return yaml.safe_load(path.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError) as exc:
+        raise RigFileError(f"{path}: cannot read ({exc})") from None
+    except yaml.YAMLError as exc:
+        raise RigFileError(f"{path}: not YAML ({str(exc).splitlines()[0]})") from None
+
+
 def read_poses(path: str | os.PathLike[str]) -> list[Pose | None]:
     """Read a pose file: ``pose_count`` entries, None where no pose is given.
 
@@ -92,12 +107,7 @@ def read_poses(path: str | os.PathLike[str]) -> list[Pose | None]:
         RigFileError: naming the file and what is missing or malformed.
     """
     path = Path(path)
-    try:
-        doc = yaml.safe_load(path.read_text(encoding="utf-8"))
-    except (OSError, UnicodeDecodeError) as exc:
-        raise RigFileError(f"{path}: cannot read ({exc})") from None
-    except yaml.YAMLError as exc:
-        raise RigFileError(f"{path}: not YAML ({str(exc).splitlines()[0]})") from None
+    doc = _load_yaml(path)
     if not isinstance(doc, dict) or not isinstance(doc.get("pose_count"), int) or doc["pose_count"] < 0:
         raise RigFileError(f"{path}: needs 'pose_count' (an integer >= 0) and 'poses'")
     entries = doc.get("poses") or []
@@ -135,12 +145,7 @@ def read_points(path: str | os.PathLike[str]) -> tuple[np.ndarray, np.ndarray]:
         RigFileError: naming the file and what is missing or malformed.
     """
     path = Path(path)
-    try:
-        doc = yaml.safe_load(path.read_text(encoding="utf-8"))
-    except (OSError, UnicodeDecodeError) as exc:
-        raise RigFileError(f"{path}: cannot read ({exc})") from None
-    except yaml.YAMLError as exc:
-        raise RigFileError(f"{path}: not YAML ({str(exc).splitlines()[0]})") from None
+    doc = _load_yaml(path)
     try:
         points = np.asarray(doc["points"], dtype=np.float64).reshape(-1, 3)
         ids = np.full(len(points), -1, dtype=np.int64)
