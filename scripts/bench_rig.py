@@ -1,7 +1,7 @@
 """Benchmark of the stereo rig calibration: extrinsics against the truth, printed.
 
     python scripts/bench_rig.py [--cameras 2 3] [--sharp 20] [--blurry 60] [--sets3 10 14]
-                                [--noise-px 0.05] [--seed 0]
+                                [--noise-px 0.05] [--seed 0] [--trust-seeds 4] [--trust-sets 10 10]
 
 A simulated RealSense D435I-like infrared pair (``blurcalib.sim.rig.d435i_stereo_rig``: two
 1280 x 720 cameras 50 mm apart, each with its own 0.3 px lens deviation) sees the target in
@@ -23,8 +23,14 @@ further; ``--sets3`` sharp and blurry sets), whose image sets alternate between 
 and cameras 1 and 2 (the simulator's visibility rule): camera 2 never shares a set with camera 0
 and is linked to it only through camera 1. Printed per camera: its generic error, its extrinsics'
 error against the truth (``camera c <- camera 0``, mm and deg) and the frames it was calibrated
-from; per pair its uncertainty and held-out error (``blurcalib.calib.rig_trust``) beside its true
-error, and the epipolar error of each pair sharing sets.
+from; per pair its uncertainty (with the cameras' own errors, and from the features' noise alone)
+and held-out error (``blurcalib.calib.rig_trust``) beside its true error, and the epipolar error of
+each pair sharing sets.
+
+Last, ``--trust-seeds`` simulations of the pair (``--trust-sets`` sharp and blurry sets each, seeds
+0, 1, ...) measure how far the uncertainty can be trusted: per route the RMS over the seeds of the
+true error over the predicted uncertainty (1 when the uncertainty is the error's expected size),
+translation and rotation, with the cameras' own errors folded in and from the features' noise alone.
 """
 
 from __future__ import annotations
@@ -39,7 +45,7 @@ import torch
 
 from blurcalib.calib.joint import GenericCalibration, calibrate_generic
 from blurcalib.calib.rig_calibration import RigCalibration, calibrate_rig
-from blurcalib.calib.rig_trust import rig_trust
+from blurcalib.calib.rig_trust import cameras_covariance, pair_uncertainty, rig_trust
 from blurcalib.calib.sharp import calibrate_sharp
 from blurcalib.camera.stereo import epipolar_errors, stereo_rectify
 from blurcalib.sim.evaluate import camera_accuracy
@@ -96,14 +102,18 @@ def report_case(rig: TrueRig, sets: Sequence[RigSet], result: RigCalibration,
         figures[f"camera{c}_observations"] = used
     for pair in rig_trust(result, folds=5):
         err = extrinsic_error(rig, result.bundle.rig, pair.i, pair.j)
+        alone_mm, alone_deg = pair_uncertainty(result.bundle.rig, result.bundle.covariance, pair.i, pair.j)
         print(f"camera {pair.j} <- camera {pair.i}: uncertainty {pair.translation_mm:.4f} mm, "
-              f"{pair.rotation_deg:.5f} deg (true error {err.translation_mm:.4f} mm, "
-              f"{err.rotation_deg:.5f} deg); " + (
+              f"{pair.rotation_deg:.5f} deg (the features' noise alone {alone_mm:.4f} mm, "
+              f"{alone_deg:.5f} deg; "
+              f"true error {err.translation_mm:.4f} mm, {err.rotation_deg:.5f} deg); " + (
                   f"held-out error {pair.holdout_px:.4f} px over {pair.holdout_count} predicted features"
                   if pair.holdout_count else "no held-out error (no shared set)"))
         key = f"pair{pair.i}{pair.j}"
         figures[f"{key}_translation_uncertainty_mm"] = pair.translation_mm
         figures[f"{key}_rotation_uncertainty_deg"] = pair.rotation_deg
+        figures[f"{key}_translation_uncertainty_features_mm"] = alone_mm
+        figures[f"{key}_rotation_uncertainty_features_deg"] = alone_deg
         figures[f"{key}_holdout_px"] = pair.holdout_px
     C = len(rig.cameras)
     for i in range(C):
@@ -164,6 +174,44 @@ def run_case(cameras: int, sharp: int, blurry: int, noise_px: float, seed: int,
                    sets=len(sets), cpu_cameras_s=cpu_cameras, cpu_rig_s=cpu_rig, **figures)
 
 
+def trust_over_seeds(seeds: int, sharp: int, blurry: int, noise_px: float, record: benchrecord.BenchRecord
+                     ) -> None:
+    """The pair's extrinsics error against their predicted uncertainty over ``seeds`` simulations:
+    per route the RMS over seeds of true error / uncertainty, with the cameras' own errors
+    (:func:`blurcalib.calib.rig_trust.cameras_covariance`) and with the features' noise alone."""
+    pattern = layout_pattern()
+    ratios: dict[str, list[list[float]]] = {}
+    print(f"== uncertainty against the true error: the pair, {sharp} sharp + {blurry} blurry sets, seeds "
+          f"0-{seeds - 1} ==")
+    for seed in range(seeds):
+        rig = d435i_stereo_rig(seed)
+        sim = RigSimulator(SynthConfig(sharp=sharp, blurry=blurry, seed=seed), rig, pattern)
+        sets = [sim.image_set(k) for k in range(len(sim.set_names()))]
+        rng = np.random.default_rng(seed)
+        for routes in (("sharp",), ("sharp", "blurry")):
+            result = calibrate_rig(calibrate_cameras(rig, sets, routes, pattern, noise_px, rng))
+            bundle = result.bundle
+            err = extrinsic_error(rig, bundle.rig, 0, 1)
+            alone = pair_uncertainty(bundle.rig, bundle.covariance, 0, 1)
+            both = pair_uncertainty(bundle.rig, bundle.covariance + cameras_covariance(result), 0, 1)
+            name = " + ".join(routes)
+            print(f"seed {seed}, {name} sets: true error {err.translation_mm:.4f} mm, "
+                  f"{err.rotation_deg:.5f} deg; "
+                  f"uncertainty {both[0]:.4f} mm, {both[1]:.5f} deg (the features' noise alone "
+                  f"{alone[0]:.4f} mm, {alone[1]:.5f} deg)")
+            ratios.setdefault(name, []).append([err.translation_mm / both[0], err.rotation_deg / both[1],
+                                                err.translation_mm / alone[0], err.rotation_deg / alone[1]])
+    for name, rows in ratios.items():
+        r = np.array(rows)
+        rms = np.sqrt(np.mean(r ** 2, axis=0))
+        print(f"{name} sets: true error / uncertainty, RMS over {len(r)} seeds: translation {rms[0]:.2f}, "
+              f"rotation {rms[1]:.2f} (the features' noise alone: {rms[2]:.2f}, {rms[3]:.2f})")
+        record.add(f"uncertainty over seeds: {name} sets", seeds=len(r), translation_ratio=rms[0],
+                   rotation_ratio=rms[1], translation_ratio_features=rms[2], rotation_ratio_features=rms[3],
+                   translation_ratio_min=float(r[:, 0].min()), translation_ratio_max=float(r[:, 0].max()),
+                   rotation_ratio_min=float(r[:, 1].min()), rotation_ratio_max=float(r[:, 1].max()))
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--cameras", type=int, nargs="+", choices=(2, 3), default=[2, 3],
@@ -175,6 +223,11 @@ def main() -> None:
                     help="sharp and blurry image sets of the row of three (default 10 14)")
     ap.add_argument("--noise-px", type=float, default=0.05, help="feature noise, px per axis (default 0.05)")
     ap.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    ap.add_argument("--trust-seeds", type=int, default=4,
+                    help="simulations of the pair whose extrinsics error is compared with the predicted "
+                         "uncertainty (default 4; 0: none)")
+    ap.add_argument("--trust-sets", type=int, nargs=2, default=[10, 10], metavar=("SHARP", "BLURRY"),
+                    help="sharp and blurry image sets of each of those simulations (default 10 10)")
     benchrecord.add_option(ap)
     args = ap.parse_args()
     record = benchrecord.start(__file__, args)
@@ -182,6 +235,8 @@ def main() -> None:
     for cameras in args.cameras:
         sharp, blurry = (args.sharp, args.blurry) if cameras == 2 else args.sets3
         run_case(cameras, sharp, blurry, args.noise_px, args.seed, record)
+    if args.trust_seeds:
+        trust_over_seeds(args.trust_seeds, *args.trust_sets, args.noise_px, record)
     record.write()
 
 

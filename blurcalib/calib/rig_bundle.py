@@ -35,13 +35,13 @@ import numpy as np
 import torch
 
 from blurcalib.calib.bundle import BundleSettings, SchurSystem, adjust_with_outliers, schur_step
-from blurcalib.camera.generic import CentralGeneric, GridSpline, projection_jacobians
+from blurcalib.camera.generic import CentralGeneric, GridSpline, param_columns, projection_jacobians
 from blurcalib.camera.rig import Rig
 from blurcalib.geometry.lie import exp_so3, orthonormal, skew
 from blurcalib.geometry.pose import Pose
 from blurcalib.optim.lm import SingleProblem
 
-__all__ = ["RigBundleResult", "RigObservations", "rig_bundle_adjust"]
+__all__ = ["RigBundleResult", "RigObservations", "camera_sensitivity", "rig_bundle_adjust"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -173,6 +173,29 @@ class _RigSteps(SingleProblem[_State, SchurSystem, tuple[torch.Tensor, torch.Ten
             total = total + (self.use(st, c) * rho).sum() + self.shift_w * (free * st.s[c] ** 2).sum()
         return float(total)
 
+    def jacobians(self, x: _State, c: int) -> tuple[torch.Tensor, ...] | None:
+        """Camera ``c``'s observations in use at ``x``: their IRLS weights ``w (n,)``, sets ``(n,)``,
+        residuals ``(n, 2)``, the prediction's derivatives by the set's block ``J_set (n, 2, K)``
+        and by the camera's extrinsics ``J_c (n, 2, 6)`` (``omega``, ``dt``), the projection's by
+        the camera's grid ``(n, 2, 32)`` and its parameter columns ``(n, 32)``
+        (:func:`blurcalib.camera.generic.projection_jacobians`); None when none is in use."""
+        cam = self.cams[c]
+        e = x.r[c].norm(dim=-1)
+        w = self.use(x, c) * torch.where(e <= self.settings.huber_px, 1.0,
+                                         self.settings.huber_px / e.clamp_min(1e-300))
+        keep = w > 0
+        if not bool(keep.any()):
+            return None
+        X, _, RP = (v[keep] for v in self.camera_points(x, c))
+        J_p, J_grid, nodes = projection_jacobians(cam.spline, x.u[c][keep], X)
+        J_pR = J_p @ x.Rc[c]
+        J_set = torch.zeros(len(X), 2, self.K, dtype=torch.float64)
+        J_set[:, :, 0:3] = -J_pR @ skew(RP)
+        J_set[:, :, 3:6] = J_pR
+        J_set[:, :, 6 + 2 * c:8 + 2 * c] = torch.eye(2, dtype=torch.float64)
+        J_c = torch.cat([-J_p @ skew(X - x.tc[c]), J_p], dim=2)
+        return w[keep], cam.sets[keep], x.r[c][keep], J_set, J_c, J_grid, param_columns(nodes)
+
     def linearise(self, x: _State) -> SchurSystem:
         C, S, K = self.C, self.S, self.K
         G = 6 * (C - 1)
@@ -180,27 +203,16 @@ class _RigSteps(SingleProblem[_State, SchurSystem, tuple[torch.Tensor, torch.Ten
         Hgg, bg = torch.zeros(G, G, **kw), torch.zeros(G, **kw)
         Hgp, Hpp, bp = torch.zeros(G, S, K, **kw), torch.zeros(S, K, K, **kw), torch.zeros(S, K, **kw)
         eye2 = torch.eye(2, **kw)
-        for c, cam in enumerate(self.cams):
-            e = x.r[c].norm(dim=-1)
-            w = self.use(x, c) * torch.where(e <= self.settings.huber_px, 1.0,
-                                             self.settings.huber_px / e.clamp_min(1e-300))
-            keep = w > 0
-            if not bool(keep.any()):
+        for c in range(C):
+            rows = self.jacobians(x, c)
+            if rows is None:
                 continue
-            w, sets, r = w[keep], cam.sets[keep], x.r[c][keep]
-            X, _, RP = (v[keep] for v in self.camera_points(x, c))
-            J_p = projection_jacobians(cam.spline, x.u[c][keep], X)[0]
-            J_pR = J_p @ x.Rc[c]
-            J_set = torch.zeros(len(w), 2, K, **kw)
-            J_set[:, :, 0:3] = -J_pR @ skew(RP)
-            J_set[:, :, 3:6] = J_pR
-            J_set[:, :, 6 + 2 * c:8 + 2 * c] = eye2
+            w, sets, r, J_set, J_c = rows[:5]
             wJs = w[:, None, None] * J_set
             Hpp.index_add_(0, sets, wJs.transpose(1, 2) @ J_set)
             bp.index_add_(0, sets, (wJs.transpose(1, 2) @ r[:, :, None])[..., 0])
             if c == 0:
                 continue
-            J_c = torch.cat([-J_p @ skew(X - x.tc[c]), J_p], dim=2)
             wJc = w[:, None, None] * J_c
             g = slice(6 * (c - 1), 6 * c)
             Hgg[g, g] += (wJc.transpose(1, 2) @ J_c).sum(0)
@@ -250,6 +262,27 @@ class _RigSteps(SingleProblem[_State, SchurSystem, tuple[torch.Tensor, torch.Ten
             return np.full((G, G), math.nan)
         return np.asarray(cov.numpy(), dtype=np.float64)
 
+    def sensitivity(self, x: _State) -> list[torch.Tensor]:
+        """``dE/dtheta_c (6 (C-1), G_c)`` per camera at ``x`` (:func:`camera_sensitivity`)."""
+        Hgg, Hgp, Hpp, _, _ = self.linearise(x)
+        GE = Hgg.shape[0]
+        M = torch.einsum("gsk,skl->sgl", Hgp, torch.linalg.inv(Hpp))  # (S, GE, K): H_Es H_ss^-1
+        reduced = Hgg - torch.einsum("sgk,hsk->gh", M, Hgp)
+        out = []
+        for c, cam in enumerate(self.cams):
+            coupling = torch.zeros(GE, 2 * cam.spline.grid[..., 0].numel(), dtype=torch.float64)
+            rows = self.jacobians(x, c)
+            if rows is not None:
+                w, sets, _, J_set, J_c, J_grid, cols = rows
+                J_E = torch.zeros(len(w), 2, GE, dtype=torch.float64)
+                if c > 0:
+                    J_E[:, :, 6 * (c - 1):6 * c] = J_c
+                J_hat = J_E - J_set @ M[sets].transpose(1, 2)  # (n, 2, GE): the sets eliminated
+                blocks = (w[:, None, None] * J_hat).transpose(1, 2) @ J_grid  # (n, GE, 32)
+                coupling.index_add_(1, cols.reshape(-1), blocks.permute(1, 0, 2).reshape(GE, -1))
+            out.append(-torch.linalg.solve(0.5 * (reduced + reduced.T), coupling))
+        return out
+
     def remove_outliers(self, x: _State) -> tuple[_State, float]:
         """Weight 0 for each camera's observations above ``Q3 + k (Q3 - Q1)`` of its errors in use."""
         for c, cam in enumerate(self.cams):
@@ -275,6 +308,18 @@ def _checked(models: Sequence[CentralGeneric], observations: Sequence[RigObserva
         w = np.asarray(obs.weights, dtype=np.float64)
         if np.any(w < 0) or not np.all(np.isfinite(w)):
             raise ValueError(f"camera {c}: weights must be finite and >= 0")
+
+
+def _cams(models: Sequence[CentralGeneric], observations: Sequence[RigObservations],
+          inliers: Sequence[np.ndarray] | None = None) -> list[_Cam]:
+    """Each camera's fixed data; ``inliers``: per camera the observations kept (the others weigh 0)."""
+    kw: dict[str, Any] = {"dtype": torch.float64}
+    keep = [None] * len(models) if inliers is None else inliers
+    return [_Cam(m.spline(), torch.as_tensor(np.asarray(o.set_index, dtype=np.int64)),
+                 torch.as_tensor(np.asarray(o.points), **kw), torch.as_tensor(np.asarray(o.observed), **kw),
+                 torch.as_tensor(np.asarray(o.weights) if k is None else np.asarray(o.weights) * k, **kw),
+                 torch.as_tensor(np.asarray(o.shift_free, bool)))
+            for m, o, k in zip(models, observations, keep, strict=True)]
 
 
 def rig_bundle_adjust(models: Sequence[CentralGeneric], camera_tr_rig: Sequence[Pose],
@@ -308,11 +353,7 @@ def rig_bundle_adjust(models: Sequence[CentralGeneric], camera_tr_rig: Sequence[
     kw: dict[str, Any] = {"dtype": torch.float64}
     base = camera_tr_rig[0]
     rel = [p.compose(base.inverse()) for p in camera_tr_rig]
-    cams = [_Cam(m.spline(), torch.as_tensor(np.asarray(o.set_index, dtype=np.int64)),
-                 torch.as_tensor(np.asarray(o.points), **kw), torch.as_tensor(np.asarray(o.observed), **kw),
-                 torch.as_tensor(np.asarray(o.weights), **kw),
-                 torch.as_tensor(np.asarray(o.shift_free, bool)))
-            for m, o in zip(models, observations, strict=True)]
+    cams = _cams(models, observations)
     steps = _RigSteps(cams, settings)
     poses = [base.compose(p) for p in rig_tr_global]
     def stacked(values: list[np.ndarray]) -> torch.Tensor:
@@ -336,3 +377,35 @@ def rig_bundle_adjust(models: Sequence[CentralGeneric], camera_tr_rig: Sequence[
     covariance = steps.covariance(x)
     return RigBundleResult(rig, [Pose(orthonormal(Rs[k]), ts[k]) for k in range(S)], x.s.numpy(), residuals,
                            inliers, med, rms, iterations, cost, time.process_time() - t_cpu, covariance)
+
+
+def camera_sensitivity(result: RigBundleResult, observations: Sequence[RigObservations],
+                       settings: BundleSettings | None = None) -> list[np.ndarray]:
+    """How the adjusted extrinsics move with each camera's own calibration: per camera ``c``
+    ``dE/dtheta_c (6 (C-1), G_c)``, ``E`` the extrinsics of cameras ``1 .. C-1`` as in
+    :attr:`RigBundleResult.covariance` and ``theta_c`` the ``G_c`` tangent parameters of camera
+    ``c``'s grid (:func:`blurcalib.camera.generic.projection_jacobians`' columns).
+
+    At the solution the gradient vanishes; a change ``dtheta`` of a camera moves the prediction
+    by ``J_theta dtheta`` and the solution by (implicit-function theorem, Gauss-Newton blocks at
+    ``result``'s inliers and Huber weights, the sets' blocks eliminated by the Schur complement)::
+
+        dE/dtheta_c = -H_EE'^-1 H_Etheta_c',   H_EE' = H_EE - H_EP H_PP^-1 H_PE,
+        H_Etheta_c' = sum_i (J_E,i - J_P,i H_PP^-1 H_PE)^T w_i J_theta,i
+
+    ``observations``: those ``result`` was adjusted on (:func:`rig_bundle_adjust`'s); ``settings``
+    its Huber threshold and shift prior.
+    """
+    settings = settings or BundleSettings()
+    models = result.rig.cameras
+    S = len(result.rig_tr_global)
+    _checked(models, observations, S)
+    steps = _RigSteps(_cams(models, observations, result.inlier), settings)
+    kw: dict[str, Any] = {"dtype": torch.float64}
+    poses = result.rig.camera_tr_rig
+    x = steps.project(_State(torch.as_tensor(np.stack([p.R for p in poses]), **kw),
+                             torch.as_tensor(np.stack([p.t for p in poses]), **kw),
+                             torch.as_tensor(np.stack([p.R for p in result.rig_tr_global]), **kw),
+                             torch.as_tensor(np.stack([p.t for p in result.rig_tr_global]), **kw),
+                             torch.as_tensor(result.shifts, **kw), [], [], []))
+    return [np.asarray(d.numpy(), dtype=np.float64) for d in steps.sensitivity(x)]

@@ -9,6 +9,19 @@ by the rotation ``omega = omega_j - R omega_i`` and the translation
 of the trace of that covariance's rotation and translation blocks: the expected size of the
 rotation error (deg) and of the translation error (mm).
 
+The joint bundle holds each camera's own calibration fixed, so its covariance counts the
+features' noise with exact cameras. Each camera's own error moves the extrinsics too
+(:func:`cameras_covariance`): with ``theta_c`` camera ``c``'s grid parameters, their covariance
+``Sigma_c`` from the camera's own calibration with its rotation removed
+(:func:`blurcalib.calib.uncertainty.grid_covariance`, a central camera's orientation being a gauge
+that the extrinsics take up) and the extrinsics' sensitivity ``D_c = dE/dtheta_c``
+(:func:`blurcalib.calib.rig_bundle.camera_sensitivity`, the implicit-function theorem at the
+joint bundle's solution)::
+
+    Sigma_E = Sigma_E,features + sum_c D_c Sigma_c D_c^T
+
+the cameras' errors taken as independent of each other and of the joint bundle's noise.
+
 Held-out error (:func:`rig_holdout`). The sets seen by two or more cameras are split into ``k``
 folds (every ``k``-th set); for each fold the rig is fitted without the fold's sets
 (:func:`blurcalib.calib.rig_calibration.rig_problem`), then in each held-out set each camera's
@@ -29,11 +42,17 @@ from typing import Any
 import numpy as np
 
 from blurcalib.calib.bundle import BundleSettings
-from blurcalib.calib.rig_bundle import rig_bundle_adjust
+from blurcalib.calib.rig_bundle import camera_sensitivity, rig_bundle_adjust
 from blurcalib.calib.rig_calibration import RigCalibration, RigError, rig_problem
+from blurcalib.calib.uncertainty import grid_covariance
 from blurcalib.camera.rig import Rig
 
-__all__ = ["PairTrust", "pair_uncertainty", "rig_holdout", "rig_trust"]
+__all__ = ["CAMERA_PRIOR_SCALE", "PairTrust", "cameras_covariance", "pair_uncertainty", "rig_holdout",
+           "rig_trust"]
+
+CAMERA_PRIOR_SCALE = 0.1
+"""The cameras' ``prior_scale`` (:func:`blurcalib.calib.uncertainty.grid_covariance`), as
+``calibrate``'s projection uncertainty (:class:`blurcalib.calib.trust.TrustSettings`)."""
 
 
 def pair_uncertainty(rig: Rig, covariance: np.ndarray, i: int, j: int) -> tuple[float, float]:
@@ -56,6 +75,25 @@ def pair_uncertainty(rig: Rig, covariance: np.ndarray, i: int, j: int) -> tuple[
     cov = J @ covariance @ J.T
     return (float(np.sqrt(max(np.trace(cov[3:, 3:]), 0.0))) * 1000.0,
             float(np.degrees(np.sqrt(max(np.trace(cov[:3, :3]), 0.0)))))
+
+
+def cameras_covariance(calibration: RigCalibration, settings: BundleSettings | None = None,
+                       prior_scale: float = CAMERA_PRIOR_SCALE) -> np.ndarray:
+    """``(6 (C-1), 6 (C-1))``: the covariance that the cameras' own calibration errors add to the
+    extrinsics (module docstring; ``settings`` the joint bundle's); NaN where a camera's
+    covariance cannot be computed (its grid singular)."""
+    bundle = calibration.bundle
+    G = 6 * (bundle.rig.size - 1)
+    observations = rig_problem(calibration.cameras)[3]
+    total = np.zeros((G, G))
+    try:
+        sensitivity = camera_sensitivity(bundle, observations, settings)
+        for cal, D in zip(calibration.cameras, sensitivity, strict=True):
+            Sigma = grid_covariance(cal.bundle, prior_scale).cpu().numpy()
+            total += D @ Sigma @ D.T
+    except (ValueError, RuntimeError):  # torch.linalg.LinAlgError is a RuntimeError
+        return np.full((G, G), math.nan)
+    return 0.5 * (total + total.T)
 
 
 def _predicted_errors(rig: Rig, calibration: RigCalibration, names: set[str], a: int, b: int
@@ -126,15 +164,18 @@ class PairTrust:
                 "holdout_predictions": self.holdout_count}
 
 
-def rig_trust(calibration: RigCalibration, folds: int = 5, settings: BundleSettings | None = None
-              ) -> list[PairTrust]:
-    """Every pair's :class:`PairTrust` (``folds = 0``: the uncertainty only)."""
+def rig_trust(calibration: RigCalibration, folds: int = 5, settings: BundleSettings | None = None,
+              cameras: bool = True) -> list[PairTrust]:
+    """Every pair's :class:`PairTrust` (``folds = 0``: the uncertainty only); ``cameras``: the
+    cameras' own errors folded into the uncertainty (module docstring; False: the features' noise
+    alone, for exact cameras)."""
     bundle = calibration.bundle
     held = rig_holdout(calibration, folds, settings) if folds > 0 else {}
+    covariance = bundle.covariance + (cameras_covariance(calibration, settings) if cameras else 0.0)
     out = []
     for i in range(bundle.rig.size):
         for j in range(i + 1, bundle.rig.size):
-            mm, deg = pair_uncertainty(bundle.rig, bundle.covariance, i, j)
+            mm, deg = pair_uncertainty(bundle.rig, covariance, i, j)
             px, n = held.get((i, j), (math.nan, 0))
             out.append(PairTrust(i, j, mm, deg, px, n))
     return out

@@ -75,7 +75,7 @@ from scipy.interpolate import RegularGridInterpolator
 
 from blurcalib.calib.bundle import BundleResult, reduce_frames
 from blurcalib.calib.normal_equations import NormalEquations, normal_equations
-from blurcalib.camera.generic import CentralGeneric, GridSpline, best_fit_rotation, tangent_basis
+from blurcalib.camera.generic import CentralGeneric, GridSpline, SplineEval, best_fit_rotation, tangent_basis
 from blurcalib.geometry.lie import skew
 from blurcalib.io.atomic import atomic_path
 
@@ -83,6 +83,7 @@ __all__ = [
     "CrossValidationDiff",
     "ProjectionUncertainty",
     "cross_validation_diff",
+    "grid_covariance",
     "guidance",
     "projection_uncertainty",
     "save_uncertainty_npz",
@@ -241,17 +242,31 @@ def projection_uncertainty(result: BundleResult, step_px: float = 16.0, noise_px
     if not prior_scale > 0:
         raise ValueError(f"prior_scale must be positive, got {prior_scale}")
     model = result.model
+    Sigma, noise_sq, p_eff, shift_noise = _grid_sigma(result, noise_px, prior_scale)
+    spline = model.spline(Sigma.device)
+    x, y, shape = _lattice(*model.area_opencv, step_px)
+    corner = np.array([model.width - 1, model.height - 1]) / 2.0
+    lattice = torch.as_tensor(np.column_stack([x, y]), dtype=torch.float64, device=Sigma.device)
+    cov, scale_var = _pixel_covariance(spline, Sigma, lattice, corner)
+    sigma = np.sqrt(np.clip(np.trace(cov, axis1=1, axis2=2), 0.0, None))
+    return ProjectionUncertainty(x, y, shape, sigma, cov, math.sqrt(noise_sq), model.width, model.height,
+                                 p_eff, math.sqrt(max(scale_var, 0.0)), math.sqrt(noise_sq) * shift_noise)
+
+
+def _grid_sigma(result: BundleResult, noise_px: float | None, prior_scale: float
+                ) -> tuple[torch.Tensor, float, float, float]:
+    """``Sigma (G, G)`` (module docstring), the noise variance ``sigma^2`` (px^2), the effective
+    parameter count ``p`` and the blurry frames' noise over the sharp frames' (1 with a given
+    ``noise_px``)."""
     shift_noise = 1.0
     if noise_px is None:
         result, shift_noise = _group_weighted(result)
     ne = normal_equations(result)
     prior = ne.hgg_prior / prior_scale ** 2
-    dev = ne.hgg_data.device
-    spline = model.spline(dev)
-    grid = spline.grid
+    spline = result.model.spline(ne.hgg_data.device)
     G, F = ne.hgf_data.shape[:2]
     free = int(np.count_nonzero(result.data.shift_free))
-    g, _ = torch.linalg.qr(_rotation_directions(grid))
+    g, _ = torch.linalg.qr(_rotation_directions(spline.grid))
     residuals = 2 * ne.observations
     fixed_p = 6 * F + 2 * free
     if residuals <= fixed_p + 3:
@@ -265,13 +280,7 @@ def projection_uncertainty(result: BundleResult, step_px: float = 16.0, noise_px
         new_sq = ne.weighted_sq / max(residuals - p_eff, 1.0)
         Sigma.mul_(new_sq / noise_sq)
         noise_sq = new_sq
-    x, y, shape = _lattice(*model.area_opencv, step_px)
-    corner = np.array([model.width - 1, model.height - 1]) / 2.0
-    lattice = torch.as_tensor(np.column_stack([x, y]), dtype=torch.float64, device=dev)
-    cov, scale_var = _pixel_covariance(spline, Sigma, lattice, corner)
-    sigma = np.sqrt(np.clip(np.trace(cov, axis1=1, axis2=2), 0.0, None))
-    return ProjectionUncertainty(x, y, shape, sigma, cov, math.sqrt(noise_sq), model.width, model.height,
-                                 p_eff, math.sqrt(max(scale_var, 0.0)), math.sqrt(noise_sq) * shift_noise)
+    return Sigma, noise_sq, p_eff, shift_noise
 
 
 def _group_weighted(result: BundleResult) -> tuple[BundleResult, float]:
@@ -302,18 +311,10 @@ def _pixel_covariance(spline: GridSpline, Sigma: torch.Tensor, u: torch.Tensor, 
     ev = spline.evaluate(u)
     D = ev.dd_du
     Dp = torch.linalg.inv(D.transpose(1, 2) @ D) @ D.transpose(1, 2)  # (K, 2, 3)
-    tang = tangent_basis(spline.grid.reshape(-1, 3))[ev.nodes]  # (K, 16, 2, 3)
-    W = torch.einsum("kj,kjcx->kxjc", ev.weights / ev.norm[:, None], tang).reshape(len(u), 3, 32)
-    cols = (2 * ev.nodes[:, :, None] + torch.arange(2, device=u.device)).reshape(len(u), 32)
+    W, cols, dx, L = _ray_derivatives(spline, u, ev)
     J = -Dp @ W
-    dx = skew(ev.d)
     R = -Dp @ dx
-    eye = torch.eye(3, dtype=u.dtype, device=u.device)
-    Nmat = (eye - ev.d[:, :, None] * ev.d[:, None, :]).sum(0)
     G = Sigma.shape[0]
-    Lraw = torch.zeros(3, G, dtype=u.dtype, device=u.device)
-    Lraw.index_add_(1, cols.reshape(-1), (dx @ W).permute(1, 0, 2).reshape(3, -1))
-    L = torch.linalg.solve(Nmat, Lraw)  # (3, G)
     S_kk = Sigma[cols[:, :, None], cols[:, None, :]]  # (K, 32, 32)
     SL = Sigma @ L.T  # (G, 3)
     LSL = L @ SL
@@ -329,6 +330,48 @@ def _pixel_covariance(spline: GridSpline, Sigma: torch.Tensor, u: torch.Tensor, 
     w += ((c[:, None, :] @ R).sum(0) @ L).reshape(-1)
     scale_var = float(w @ Sigma @ w)
     return (0.5 * (cov + cov.transpose(1, 2))).cpu().numpy(), scale_var
+
+
+def _ray_derivatives(spline: GridSpline, u: torch.Tensor, ev: SplineEval | None = None
+                     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """At pixels ``u (K, 2)``: ``W (K, 3, 32)`` with ``M_k = (I - d d^T) W_k`` (the spline's
+    derivative by its 32 parameters ``cols (K, 32)``; the projection ``(I - d d^T)`` is left to the
+    caller, as ``D^+`` and ``[d]_x`` annihilate ``d``), ``[d_k]_x (K, 3, 3)`` and the best-fit
+    rotation of the rays ``L (3, G)`` (module docstring); ``ev`` the spline's evaluation at ``u``."""
+    ev = spline.evaluate(u) if ev is None else ev
+    tang = tangent_basis(spline.grid.reshape(-1, 3))[ev.nodes]  # (K, 16, 2, 3)
+    W = torch.einsum("kj,kjcx->kxjc", ev.weights / ev.norm[:, None], tang).reshape(len(u), 3, 32)
+    cols = (2 * ev.nodes[:, :, None] + torch.arange(2, device=u.device)).reshape(len(u), 32)
+    dx = skew(ev.d)
+    eye = torch.eye(3, dtype=u.dtype, device=u.device)
+    Nmat = (eye - ev.d[:, :, None] * ev.d[:, None, :]).sum(0)
+    Lraw = torch.zeros(3, 2 * spline.grid[..., 0].numel(), dtype=u.dtype, device=u.device)
+    Lraw.index_add_(1, cols.reshape(-1), (dx @ W).permute(1, 0, 2).reshape(3, -1))
+    return W, cols, dx, torch.linalg.solve(Nmat, Lraw)
+
+
+def grid_covariance(result: BundleResult, prior_scale: float = 1.0, step_px: float = 16.0) -> torch.Tensor:
+    """``(G, G)``: the covariance of the generic camera's grid parameters with the camera's
+    rotation removed, ``P Sigma P^T`` with ``P = I - g L`` (module docstring: ``Sigma`` with the
+    noise estimated from the residuals and the prior divided by ``prior_scale^2``; ``g (G, 3)``
+    the grid directions of a rotation and ``L (3, G)`` the best-fit rotation of the rays over a
+    lattice of steps ``<= step_px`` px over the calibrated area, so ``L g = I`` and ``P g = 0``).
+    A grid perturbation ``dtheta ~ N(0, P Sigma P^T)`` changes the camera as its error against a
+    true camera does, after the best-fit rotation (:func:`blurcalib.sim.evaluate.projection_error_vectors`).
+
+    Raises:
+        ValueError: a non-positive ``prior_scale`` or fewer residuals than parameters.
+    """
+    if not prior_scale > 0:
+        raise ValueError(f"prior_scale must be positive, got {prior_scale}")
+    Sigma = _grid_sigma(result, None, prior_scale)[0]
+    spline = result.model.spline(Sigma.device)
+    x, y, _ = _lattice(*result.model.area_opencv, step_px)
+    L = _ray_derivatives(spline, torch.as_tensor(np.column_stack([x, y]), dtype=Sigma.dtype,
+                                                 device=Sigma.device))[3]
+    g = _rotation_directions(spline.grid)
+    SL = Sigma @ L.T  # (G, 3)
+    return Sigma - g @ SL.T - SL @ g.T + g @ (L @ SL) @ g.T
 
 
 @dataclass(eq=False)

@@ -31,7 +31,8 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 __all__ = ["MAP_TOL_PX", "OUTPUT_KINDS", "PINHOLE_FIELD_DEG", "OutputProjection", "RayProjector",
-           "RotatedCamera", "auto_output_kind", "field_of_view_deg", "output_for", "output_maps"]
+           "RotatedCamera", "auto_output_kind", "central_pixel", "field_of_view_deg", "output_for",
+           "output_maps"]
 
 OUTPUT_KINDS = ("pinhole", "latlong", "stereographic", "epipolar")
 
@@ -180,9 +181,37 @@ def field_of_view_deg(camera: RayProjector, lattice: int = 64) -> float:
     return 2.0 * math.degrees(float(theta.max(initial=0.0)))
 
 
+def _probe_step(camera: RayProjector) -> float:
+    """The distance (px) of the pixels whose rays give the focal length near the centre."""
+    return max(1.0, 0.01 * min(camera.width, camera.height))
+
+
+def central_pixel(camera: RayProjector) -> np.ndarray:
+    """``(2,)``: the image centre, or, where the camera has no ray there (a generic camera whose
+    calibrated area leaves it out), the pixel nearest it on a 33 x 33 lattice of the image whose
+    ray and the rays :func:`_probe_step` px to each side exist.
+
+    Raises:
+        ValueError: no such pixel (a camera without rays).
+    """
+    w, h = camera.width, camera.height
+    d = _probe_step(camera)
+    centre = np.array([(w - 1) / 2.0, (h - 1) / 2.0])
+    xs, ys = np.meshgrid(np.linspace(d, w - 1 - d, 33), np.linspace(d, h - 1 - d, 33))
+    candidates = np.vstack([centre, np.column_stack([xs.ravel(), ys.ravel()])])
+    candidates = candidates[np.argsort(np.linalg.norm(candidates - centre, axis=1), kind="stable")]
+    offsets = np.array([[0.0, 0.0], [-d, 0.0], [d, 0.0], [0.0, -d], [0.0, d]])
+    rays = camera.pixel_to_ray((candidates[:, None, :] + offsets).reshape(-1, 2))
+    ok = np.all(np.isfinite(rays.reshape(len(candidates), 5, 3)), axis=(1, 2))
+    if not ok.any():
+        raise ValueError(f"the {w} x {h} camera has no rays: it has no calibrated area")
+    return cast(np.ndarray, candidates[int(np.argmax(ok))])
+
+
 def _off_axis(camera: RayProjector, px: np.ndarray) -> np.ndarray:
-    """Angles (rad) between the image centre's ray and the rays of pixels ``(N, 2)`` that have one."""
-    axis = camera.pixel_to_ray(np.array([[(camera.width - 1) / 2.0, (camera.height - 1) / 2.0]]))[0]
+    """Angles (rad) between the optical axis (the ray of :func:`central_pixel`, the image centre's
+    where it has one) and the rays of pixels ``(N, 2)`` that have one."""
+    axis = camera.pixel_to_ray(central_pixel(camera)[None])[0]
     rays = camera.pixel_to_ray(px)
     return np.asarray(np.arccos(np.clip(rays[np.all(np.isfinite(rays), axis=1)] @ axis, -1.0, 1.0)))
 
@@ -196,16 +225,17 @@ def auto_output_kind(camera: RayProjector) -> str:
 
 def output_for(camera: RayProjector, kind: str | None = None) -> OutputProjection:
     """The output image of a camera: its size, principal point at the image centre, and its
-    px per radian near the centre as focal length, lowered where needed so that the rays of the
-    middle row and column (as far as the camera has rays) stay in the output (a pinhole output
-    keeps the centre's scale).
+    px per radian near the centre (at :func:`central_pixel`) as focal length, lowered where
+    needed so that the rays of the middle row and column (as far as the camera has rays) stay in
+    the output (a pinhole output keeps the centre's scale).
 
     ``kind`` None: :func:`auto_output_kind`.
     """
     w, h = camera.width, camera.height
     centre = np.array([(w - 1) / 2.0, (h - 1) / 2.0])
-    delta = max(1.0, 0.01 * min(w, h))
-    probe = camera.pixel_to_ray(centre + np.array([[-delta, 0.0], [delta, 0.0], [0.0, -delta], [0.0, delta]]))
+    delta = _probe_step(camera)
+    probe = camera.pixel_to_ray(central_pixel(camera)
+                                + np.array([[-delta, 0.0], [delta, 0.0], [0.0, -delta], [0.0, delta]]))
     angle = [math.acos(float(np.clip(probe[i] @ probe[i + 1], -1.0, 1.0))) for i in (0, 2)]
     fx, fy = 2.0 * delta / angle[0], 2.0 * delta / angle[1]
     kind = auto_output_kind(camera) if kind is None else kind

@@ -14,8 +14,9 @@ Outputs (``docs/rig.md``), written only once everything is computed, ``report.js
 pair of cameras ``i < j`` OpenCV's ``stereo_{i}_{j}.yaml`` with, unless ``maps`` is off, the
 rectification maps ``rectify_{i}_{j}.npz`` (:func:`blurcalib.camera.rig_files.write_stereo_pair`).
 Each pair's entry in ``report.json`` carries its trust (:mod:`blurcalib.calib.rig_trust`): the
-extrinsics' uncertainty (translation mm, rotation deg) from the joint bundle and their 5-fold
-held-out error (px; null where the pair shares no set).
+extrinsics' uncertainty (translation mm, rotation deg: the features' noise through the joint
+bundle and each camera's own calibration error) and their 5-fold held-out error (px; null where
+the pair shares no set).
 """
 
 from __future__ import annotations

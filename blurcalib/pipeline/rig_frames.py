@@ -12,12 +12,11 @@ video (:func:`blurcalib.io.sources.frame_inputs`).
 2. Each camera runs the one-camera pipeline (:func:`blurcalib.pipeline.run.run_pipeline`, its
    frames classified sharp or blurry by their measured blur) into ``OUT/cameras/camN/``: a
    ``calibrate`` output folder of its own, resumable, with its cameras, features and assessment.
-3. Each camera's ``features.csv`` (the sharp frames' features, the blurry frames' star centres),
-   its frames renamed to their sets, is calibrated again without the assessment
-   (:func:`blurcalib.calib.sequence.calibrate_features`, the parametric model the camera's run
-   chose, the joint route: a free image shift per blurry frame), then the rig by one bundle over
-   all cameras (:func:`blurcalib.calib.rig_calibration.calibrate_rig`). A camera may miss the target
-   in some sets; one that sees it in no set shared with the others is refused, naming its input.
+3. Each camera's generic calibration, as its pipeline run computed it (the run's report carries
+   it: :attr:`blurcalib.pipeline.run.PipelineReport.camera`, the joint route, a free image shift per
+   blurry frame), its frames renamed to their sets, enters the rig's bundle over all cameras
+   (:func:`blurcalib.calib.rig_calibration.calibrate_rig`). A camera may miss the target in some
+   sets; one that sees it in no set shared with the others is refused, naming its input.
 4. Outputs as ``calibrate-rig --features`` writes them (:func:`blurcalib.pipeline.rig.write_rig_outputs`),
    ``report.json`` last.
 """
@@ -29,16 +28,15 @@ import time
 from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
+from typing import TypeVar
 
 import numpy as np
 
 from blurcalib.calib.joint import GenericCalibration
 from blurcalib.calib.rig_calibration import RigError, calibrate_rig
-from blurcalib.calib.sequence import BlurryFrame, calibrate_features
-from blurcalib.calib.sharp import CalibrationError
 from blurcalib.io.atomic import claim_output_dir
-from blurcalib.io.frames import IMAGE_EXTENSIONS, FrameError, frame_size_problem
-from blurcalib.io.results import FEATURES_FILE, FeatureFlags, read_feature_table
+from blurcalib.io.frames import IMAGE_EXTENSIONS, FrameError
+from blurcalib.io.results import FEATURES_FILE
 from blurcalib.io.sources import FrameInput, frame_inputs
 from blurcalib.pipeline.rig import RigRun, write_rig_outputs
 from blurcalib.pipeline.run import MIXED, PipelineError, PipelineReport, PipelineSettings, run_pipeline
@@ -47,6 +45,8 @@ from blurcalib.target.pattern import StarPattern
 
 __all__ = ["CAMERAS_DIR", "CameraFrames", "RigFramesRun", "calibrate_rig_frames", "camera_frames",
            "unlinked_camera"]
+
+T = TypeVar("T")
 
 CAMERAS_DIR = "cameras"
 """``OUT/cameras/camN/``: camera ``N``'s own ``calibrate`` output."""
@@ -114,36 +114,26 @@ def unlinked_camera(sets: Sequence[set[str]]) -> int | None:
     return next((c for c in range(len(sets)) if c not in linked), None)
 
 
-def _size(frames: Sequence[FrameInput]) -> tuple[int, int]:
-    """The camera's image size: its first readable frame's (the pipeline refused other sizes)."""
-    for f in frames:
-        size = f.size()
-        if size is not None and frame_size_problem(*size) is None:
-            return size
-    raise PipelineError("no readable frame")
+def _camera(camera: CameraFrames, report: PipelineReport) -> GenericCalibration:
+    """The camera's generic calibration from its pipeline run, its frames named by their sets
+    (module docstring, step 3).
 
-
-def _camera(camera: CameraFrames, folder: Path, report: PipelineReport, pattern: StarPattern,
-            settings: PipelineSettings) -> GenericCalibration:
-    """The camera's generic calibration from its run's features, its frames named by their sets
-    (module docstring, step 3)."""
-    table = read_feature_table(folder / FEATURES_FILE)
+    Raises:
+        PipelineError: the run fitted no generic camera (the message names the input and why).
+    """
+    cal = report.camera
+    if cal is None:
+        raise PipelineError(f"{camera.source}: no generic camera for the rig: {report.generic_failure}")
     names = {f"{MIXED}/{name}": key for name, key in camera.sets.items()}
-    table = replace(table, frame=np.array([names.get(f, f) for f in table.frame.tolist()]))
-    blurry = (table.flags & int(FeatureFlags.BLURRY_FRAME)) != 0
-    frames = [BlurryFrame(str(name), features=table.select(table.frame == name))
-              for name in dict.fromkeys(table.frame[blurry].tolist())]
-    c = settings.calibration
-    model = report.calibration.get("model", c.parametric)
-    s = replace(c, parametric=model, generic=replace(c.generic, route="joint"))
-    try:
-        run = calibrate_features(table.select(~blurry), None, frames, pattern, _size(camera.frames), s,
-                                 assess=False)
-    except (CalibrationError, ValueError) as exc:
-        raise PipelineError(f"{camera.source}: calibration for the rig: {exc}") from None
-    if run.generic is None:
-        raise PipelineError(f"{camera.source}: no generic camera for the rig: {run.generic_failure}")
-    return run.generic
+
+    def renamed(values: dict[str, T]) -> dict[str, T]:
+        return {names.get(k, k): v for k, v in values.items()}
+
+    return replace(cal, poses=renamed(cal.poses), shifts=renamed(cal.shifts),
+                   frames=[names.get(f, f) for f in cal.frames],
+                   blurry_frames=[names.get(f, f) for f in cal.blurry_frames],
+                   frame=np.array([names.get(f, f) for f in cal.frame.tolist()]),
+                   skipped_frames=renamed(cal.skipped_frames), rolling=renamed(cal.rolling))
 
 
 def calibrate_rig_frames(cameras: Sequence[CameraFrames], pattern: StarPattern,
@@ -182,7 +172,7 @@ def calibrate_rig_frames(cameras: Sequence[CameraFrames], pattern: StarPattern,
         except PipelineError as exc:
             raise PipelineError(f"{camera.source}: {exc}") from None
         reports.append(report)
-        calibrations.append(_camera(camera, folder, report, pattern, s))
+        calibrations.append(_camera(camera, report))
         features.append(folder / FEATURES_FILE)
     lonely = unlinked_camera([set(cal.poses) for cal in calibrations])
     if lonely is not None:

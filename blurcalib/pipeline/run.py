@@ -55,7 +55,12 @@ from typing import Any, TypeVar
 import numpy as np
 
 from blurcalib.calib.capture import CaptureCheck, CaptureSettings, check_capture
-from blurcalib.calib.joint import INTRINSICS_FILE, generic_report, save_generic_calibration
+from blurcalib.calib.joint import (
+    INTRINSICS_FILE,
+    GenericCalibration,
+    generic_report,
+    save_generic_calibration,
+)
 from blurcalib.calib.sequence import (
     BlurryFrame,
     BlurryOutcome,
@@ -181,7 +186,10 @@ class PipelineReport:
     generic camera could not be fitted (what the capture lacks; the parametric calibration and
     the features are written all the same), else "", ``assessment_failure`` why the generic
     camera (or the sharp-only one) has no assessment, else "", and ``patterns`` the cross-pattern
-    check of a calibration from several patterns (:mod:`blurcalib.pipeline.patterns`), else None."""
+    check of a calibration from several patterns (:mod:`blurcalib.pipeline.patterns`), else None.
+    ``camera`` is the generic calibration itself (:class:`blurcalib.calib.joint.GenericCalibration`:
+    the camera, its frames' poses and observations; None without a generic camera), not written
+    to ``report.json``."""
 
     calibration: dict[str, Any]
     frames: list[FrameRecord]
@@ -199,11 +207,12 @@ class PipelineReport:
     assessment_failure: str = ""
     seconds: dict[str, float] = field(default_factory=dict)
     patterns: dict[str, Any] | None = None
+    camera: GenericCalibration | None = field(default=None, repr=False)
 
     def to_dict(self) -> dict[str, Any]:
         """The ``report.json`` document: the fields, with ``trust``'s sections (``validation``,
         ``uncertainty``, ``cross_validation``, ``guidance``, ``blurry_frames_gain``) at the top."""
-        out = {**{k: v for k, v in vars(self).items() if k != "frames"},
+        out = {**{k: v for k, v in vars(self).items() if k not in ("frames", "camera")},
                "frames": [r.to_row() for r in self.frames]}
         trust = dict(out.pop("trust") or {})
         out["seconds"] = {**out["seconds"], **trust.pop("seconds", {})}
@@ -545,7 +554,7 @@ def _stage_run(out: Path, staging: Path, pattern: StarPattern, size: tuple[int, 
                             parametric_choice=None if run.choice is None else run.choice.to_dict(),
                             generic_failure=run.generic_failure,
                             assessment_failure=run.trust_failure or run.sharp_failure, patterns=patterns,
-                            seconds={k: round(v, 2) for k, v in seconds.items()})
+                            seconds={k: round(v, 2) for k, v in seconds.items()}, camera=generic)
     atomic_write_json(staging / REPORT_FILE, report.to_dict(), indent=2, default=str)
     return report
 

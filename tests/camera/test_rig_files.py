@@ -12,6 +12,7 @@ import pytest
 
 from blurcalib.camera.generic import fit_to_rays
 from blurcalib.camera.parametric import BrownConrady
+from blurcalib.camera.remap import central_pixel, output_for
 from blurcalib.camera.rig import Rig
 from blurcalib.camera.rig_files import (
     CAMERA_TR_RIG_FILE,
@@ -161,3 +162,16 @@ def test_parametric_frames_keep_what_the_rig_sees(rig: Rig) -> None:
         assert np.abs(after - before)[ok & ok2].max() < 1e-6
         assert np.abs(cameras[c].project(seen) - after)[ok & ok2].max() < 0.05
     assert np.allclose(turned.camera_tr_rig[0].R, np.eye(3)) and np.allclose(turned.camera_tr_rig[0].t, 0.0)
+
+
+def test_a_camera_calibrated_away_from_its_image_centre_is_rectified(rig: Rig) -> None:
+    """A camera whose frames covered only the left part of its image has no ray at the image
+    centre: its focal length comes from the pixel nearest the centre that has rays."""
+    left = fit_to_rays(LENS.pixel_to_ray, 320, 240, area=(0, 0, 120, 239), cell_px=40.0)
+    assert not np.isfinite(left.pixel_to_ray(np.array([[159.5, 119.5]]))).all()
+    assert central_pixel(left)[0] < 120.0 and np.array_equal(central_pixel(rig.cameras[0]), [159.5, 119.5])
+    rect = stereo_rectify(rig.cameras[0], left, rig.relative(0, 1))
+    assert rect.output.kind == "pinhole"
+    outputs = [output_for(left), output_for(rig.cameras[0])]
+    assert rect.output.fx == pytest.approx(min(min(o.fx, o.fy) for o in outputs))
+    assert 285.0 < output_for(left).fx < 315.0  # the lens's 300 px per radian, off its centre

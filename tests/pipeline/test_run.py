@@ -134,6 +134,8 @@ def test_pipeline_delivers_the_generic_camera(finished, dataset) -> None:
     truth = load_ground_truth(dataset)
     generic = read_generic_yaml(out / "calibration" / "intrinsics0.yaml")
     assert report.generic["median_error_px"] < 0.1 and report.generic["blurry_frames"] >= 1
+    assert report.camera is not None and np.allclose(report.camera.model.grid, generic.grid, atol=1e-9)
+    assert len(report.camera.frames) == report.generic["frames"] and "camera" not in report.to_dict()
     assert Path(report.outputs["error_directions_generic"]).is_file()
     for name in ("generic_poses.csv", "undistortion_map.npz", "generic_coverage.png"):
         assert (out / "calibration" / name).is_file()
