@@ -159,7 +159,7 @@ def test_sensitivity_to_the_cameras_matches_finite_differences(model: CentralGen
                         obs[0].observed)
     draw = rng.multivariate_normal(np.zeros(len(sensitivity[0][0])), grid_covariance(cam).numpy(),
                                    method="eigh") * 0.1
-    grid = torch.as_tensor(cam.model.grid.reshape(-1, 3))
+    grid = torch.as_tensor(cam.model.grid.reshape(-1, 3).copy())
     g = torch.linalg.cross(grid[:, None, :].expand(-1, 2, -1), tangent_basis(grid), dim=-1).reshape(-1, 3)
     omega = np.array([2e-6, -1e-6, 3e-6])
     xx, yy = np.meshgrid(np.linspace(0.0, 319.0, 21), np.linspace(0.0, 239.0, 16))  # grid_covariance's
