@@ -78,9 +78,11 @@ def _camera(path: Path, pattern: StarPattern, image_size: tuple[int, int] | None
         raise PipelineError(f"{path}: generic calibration: {exc}") from None
 
 
-def rig_report(result: RigCalibration, features: Sequence[Path], inputs: Sequence[str] | None = None,
-               trust: Sequence[PairTrust] = ()) -> dict[str, Any]:
-    """The ``report.json`` document: per camera its features (and, from frames, its ``input``),
+def rig_report(result: RigCalibration, features: Sequence[Path],
+               inputs: Sequence[tuple[str, int]] | None = None, trust: Sequence[PairTrust] = ()
+               ) -> dict[str, Any]:
+    """The ``report.json`` document: per camera its features (and, from frames, its ``input`` and
+    ``time_offset`` in frames, from ``inputs``),
     frames and errors (px), per pair ``camera j <- camera i`` (OpenCV's ``R``, ``T`` m), its
     baseline (mm) and its ``trust`` (:meth:`blurcalib.calib.rig_trust.PairTrust.to_dict`, NaN
     written as null), the number of image sets used and their names (``set_names``, in the order of
@@ -91,8 +93,8 @@ def rig_report(result: RigCalibration, features: Sequence[Path], inputs: Sequenc
                 "rig_rms_px": float(bundle.rms_error[c]), "rig_observations": int(bundle.inlier[c].sum())}
                for c, (cal, path) in enumerate(zip(result.cameras, features, strict=True))]
     if inputs is not None:
-        for cam, source in zip(cameras, inputs, strict=True):
-            cam["input"] = source
+        for cam, (source, offset) in zip(cameras, inputs, strict=True):
+            cam["input"], cam["time_offset"] = source, offset
     pairs = []
     trusted = {(t.i, t.j): t.to_dict() for t in trust}
     for i in range(bundle.rig.size):
@@ -134,7 +136,7 @@ def calibrate_rig_features(features: Sequence[str | os.PathLike[str]], pattern: 
 
 
 def write_rig_outputs(out: Path, result: RigCalibration, pattern: StarPattern, features: Sequence[Path],
-                      maps: bool, t_cpu: float, inputs: Sequence[str] | None = None) -> RigRun:
+                      maps: bool, t_cpu: float, inputs: Sequence[tuple[str, int]] | None = None) -> RigRun:
     """Write the rig's outputs into the claimed folder ``out`` (module docstring), ``report.json``
     last (:func:`rig_report` of ``features`` and ``inputs``, with the CPU seconds since ``t_cpu``)."""
     points = pattern.points_3d()

@@ -54,12 +54,13 @@ CAMERAS_DIR = "cameras"
 
 @dataclass(frozen=True)
 class CameraFrames:
-    """One camera's input: ``source`` as given, its ``frames`` and each frame's image set
-    (``sets[frame name]``, module docstring)."""
+    """One camera's input: ``source`` as given, its ``frames``, each frame's image set
+    (``sets[frame name]``, module docstring) and the video's time ``offset`` in frames."""
 
     source: str
     frames: list[FrameInput]
     sets: dict[str, str]
+    offset: int = 0
 
 
 @dataclass(eq=False)
@@ -98,7 +99,7 @@ def camera_frames(source: str | os.PathLike[str], every: int = 1, max_frames: in
         raise PipelineError(f"{source}: a time offset applies to a video's frames, and this input is no "
                             "video")
     sets = {f.name: f.name if f.index is None else f"#{f.index - offset:06d}" for f in frames}
-    return CameraFrames(str(source), frames, sets)
+    return CameraFrames(str(source), frames, sets, offset)
 
 
 def unlinked_camera(sets: Sequence[set[str]]) -> int | None:
@@ -183,5 +184,6 @@ def calibrate_rig_frames(cameras: Sequence[CameraFrames], pattern: StarPattern,
         result = calibrate_rig(calibrations, s.calibration.generic.bundle)
     except RigError as exc:
         raise PipelineError(f"rig: {exc}") from None
-    rig = write_rig_outputs(out, result, pattern, features, maps, t_cpu, [c.source for c in cameras])
+    rig = write_rig_outputs(out, result, pattern, features, maps, t_cpu,
+                            [(c.source, c.offset) for c in cameras])
     return RigFramesRun(rig, reports)

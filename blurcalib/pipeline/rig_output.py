@@ -163,7 +163,7 @@ def _camera(folder: Path, c: int, entry: dict[str, Any]) -> RigCameraOutput:
     sets: dict[str, str] = {}
     if found is not None:
         try:
-            listed = camera_frames(found)
+            listed = camera_frames(found, offset=int(entry.get("time_offset") or 0))
         except PipelineError:
             found = None
         else:

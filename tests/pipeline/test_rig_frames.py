@@ -13,12 +13,14 @@ import pytest
 from blurcalib.camera.rig_files import read_rig_folder
 from blurcalib.cli import main
 from blurcalib.pipeline.rig_frames import camera_frames, unlinked_camera
+from blurcalib.pipeline.rig_output import read_rig_output
 from blurcalib.pipeline.run import PipelineError
 from blurcalib.sim.rig import TrueRig, d435i_stereo_rig, load_rig_truth, write_rig_dataset
 from blurcalib.sim.rig_eval import rig_accuracy
 from blurcalib.sim.synth import SynthConfig
 from blurcalib.sim.truth import TrueCamera
 from blurcalib.target.pattern import layout_pattern
+from tests.rig_output_scene import write_rig_scene
 
 
 def _images(folder: Path, names: list[str]) -> Path:
@@ -47,6 +49,19 @@ def test_image_sets_match_by_name_and_by_video_index(tmp_path: Path) -> None:
     assert shifted.sets["right#000002"] == "#000000" and shifted.sets["right#000000"] == "#-00002"
     with pytest.raises(PipelineError, match="left: a time offset applies to a video"):
         camera_frames(tmp_path / "left", offset=1)
+
+
+def test_a_videos_frames_are_read_back_in_the_image_sets_of_its_time_offset(tmp_path: Path) -> None:
+    """A rig output names each camera's input and time offset; reading it back matches a video's
+    frames to the image sets the calibration used."""
+    scene = write_rig_scene(tmp_path)
+    report_path = scene.out / "report.json"
+    report = json.loads(report_path.read_text())
+    report["cameras"][1].update(input=str(_video(tmp_path / "right.avi", 4)), time_offset=2)
+    report_path.write_text(json.dumps(report))
+    frames = read_rig_output(scene.out).cameras[1].frames
+    assert {name: frame.index for name, frame in frames.items()} == {
+        "#-00002": 0, "#-00001": 1, "#000000": 2, "#000001": 3}
 
 
 def test_cameras_link_through_shared_sets() -> None:
