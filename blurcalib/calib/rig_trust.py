@@ -44,15 +44,11 @@ import numpy as np
 from blurcalib.calib.bundle import BundleSettings
 from blurcalib.calib.rig_bundle import camera_sensitivity, rig_bundle_adjust
 from blurcalib.calib.rig_calibration import RigCalibration, RigError, rig_problem
+from blurcalib.calib.trust import TrustSettings
 from blurcalib.calib.uncertainty import grid_covariance
 from blurcalib.camera.rig import Rig
 
-__all__ = ["CAMERA_PRIOR_SCALE", "PairTrust", "cameras_covariance", "pair_uncertainty", "rig_holdout",
-           "rig_trust"]
-
-CAMERA_PRIOR_SCALE = 0.1
-"""The cameras' ``prior_scale`` (:func:`blurcalib.calib.uncertainty.grid_covariance`), as
-``calibrate``'s projection uncertainty (:class:`blurcalib.calib.trust.TrustSettings`)."""
+__all__ = ["PairTrust", "cameras_covariance", "pair_uncertainty", "rig_holdout", "rig_trust"]
 
 
 def pair_uncertainty(rig: Rig, covariance: np.ndarray, i: int, j: int) -> tuple[float, float]:
@@ -78,10 +74,11 @@ def pair_uncertainty(rig: Rig, covariance: np.ndarray, i: int, j: int) -> tuple[
 
 
 def cameras_covariance(calibration: RigCalibration, settings: BundleSettings | None = None,
-                       prior_scale: float = CAMERA_PRIOR_SCALE) -> np.ndarray:
+                       prior_scale: float = TrustSettings.prior_scale) -> np.ndarray:
     """``(6 (C-1), 6 (C-1))``: the covariance that the cameras' own calibration errors add to the
-    extrinsics (module docstring; ``settings`` the joint bundle's); NaN where a camera's
-    covariance cannot be computed (its grid singular)."""
+    extrinsics (module docstring; ``settings`` the joint bundle's, ``prior_scale`` the cameras'
+    :func:`blurcalib.calib.uncertainty.grid_covariance`'s, by default ``calibrate``'s); NaN where a
+    camera's covariance cannot be computed (its grid singular)."""
     bundle = calibration.bundle
     G = 6 * (bundle.rig.size - 1)
     observations = rig_problem(calibration.cameras)[3]
