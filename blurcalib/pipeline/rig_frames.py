@@ -62,6 +62,12 @@ class CameraFrames:
     sets: dict[str, str]
     offset: int = 0
 
+    @property
+    def output_sets(self) -> dict[str, str]:
+        """Each frame's image set by the name the camera's ``calibrate`` output gives the frame
+        (``frames/<name>``)."""
+        return {f"{MIXED}/{name}": key for name, key in self.sets.items()}
+
 
 @dataclass(eq=False)
 class RigFramesRun:
@@ -125,7 +131,7 @@ def _camera(camera: CameraFrames, report: PipelineReport) -> GenericCalibration:
     cal = report.camera
     if cal is None:
         raise PipelineError(f"{camera.source}: no generic camera for the rig: {report.generic_failure}")
-    names = {f"{MIXED}/{name}": key for name, key in camera.sets.items()}
+    names = camera.output_sets
 
     def renamed(values: dict[str, T]) -> dict[str, T]:
         return {names.get(k, k): v for k, v in values.items()}

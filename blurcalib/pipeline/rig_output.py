@@ -167,7 +167,7 @@ def _camera(folder: Path, c: int, entry: dict[str, Any]) -> RigCameraOutput:
         except PipelineError:
             found = None
         else:
-            sets = {f"{MIXED}/{name}": key for name, key in listed.sets.items()}
+            sets = listed.output_sets
             frames = {listed.sets[f.name]: f for f in listed.frames}
     own = folder / CAMERAS_DIR / f"cam{c}" / FEATURES_FILE
     path = own if own.is_file() else find_path(str(entry.get("features") or ""), folder)
